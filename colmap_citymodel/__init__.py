@@ -1,0 +1,21 @@
+"""colmap-citymodel: georeference and refine COLMAP reconstructions with a CityGML LOD2 model."""
+
+from __future__ import annotations
+
+import logging
+
+__version__ = "0.1.0"
+
+logger = logging.getLogger("colmap_citymodel")
+if not logger.handlers:
+    _handler = logging.StreamHandler()
+    _handler.setFormatter(
+        logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S")
+    )
+    logger.addHandler(_handler)
+    logger.setLevel(logging.INFO)
+    logger.propagate = False
+
+from .errors import CityModelError  # noqa: E402
+
+__all__ = ["CityModelError", "logger", "__version__"]
