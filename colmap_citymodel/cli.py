@@ -1,0 +1,60 @@
+"""Command line interface. It only parses arguments and calls each stage's typed `main`, so the
+CLI and the Python API cannot drift. Domain errors become one line and exit code 2 here."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from . import logger
+from .errors import CityModelError
+
+
+def _add_model_info(subparsers) -> None:
+    p = subparsers.add_parser("model-info", help="summarise a CityGML/CityJSON building model")
+    p.add_argument("path", nargs="+", help="CityGML/CityJSON file(s) or a directory of tiles")
+    p.add_argument("--lod", type=int, default=2, help="level of detail to read (1, 2 or 3)")
+    p.add_argument("--crs", default=None, help="CRS to assume when the file names none (EPSG:N)")
+    p.add_argument("--target_crs", default=None, help="projected CRS to reproject to (EPSG:N)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+    def run(args):
+        from .model_info import main
+
+        main(args.path, lod=args.lod, crs=args.crs, target_crs=args.target_crs, as_json=args.json)
+
+    p.set_defaults(func=run)
+
+
+SUBCOMMANDS = [_add_model_info]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="colmap-citymodel",
+        description="Georeference and refine COLMAP reconstructions with a city building model.",
+    )
+    parser.add_argument("-v", "--verbose", action="store_true", help="debug logging")
+    subparsers = parser.add_subparsers(dest="command", required=True)
+    for add in SUBCOMMANDS:
+        add(subparsers)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    if args.verbose:
+        logger.setLevel("DEBUG")
+    try:
+        args.func(args)
+    except CityModelError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return error.exit_code
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
