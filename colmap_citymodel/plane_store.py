@@ -1,0 +1,860 @@
+"""The plane and vertex store: one building model as shared vertices plus planar faces.
+
+Everything downstream (assignment, hybrid adjustment, model correction, mesh export) works on
+this representation (method.md section 1; Unger 2020, 3.1 and 3.2.1, eq. 2-4):
+
+- a vertex array in a LOCAL frame (float64 `origin` subtracted once, so nothing downstream
+  handles 6-7 digit coordinates), merged within a tolerance so that faces meeting at a corner or
+  an edge share vertex indices (the vertex-to-plane relations f_dVT come from this);
+- faces as vertex-index rings (exterior + holes) with semantic class, building/part id, gml:id;
+- per face a plane with its local frame: P0 = centroid of the face's vertices, R = eigenvectors
+  of the vertices' 3x3 covariance sorted by eigenvalue (descending), third column = normal,
+  oriented outward by the ring orientation (CityGML/CityJSON rings run counter-clockwise seen
+  from outside), right-handed;
+- a uniform-grid spatial index answering "closest face whose polygon contains the projection of
+  this point" for 1e5 points against 1e4 faces in a fraction of a second.
+
+All tolerances live in `Tolerances` below.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections import Counter
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+from scipy.sparse import coo_matrix
+from scipy.sparse.csgraph import connected_components
+from scipy.spatial import cKDTree
+
+from .raw_model import CRSInfo, RawCityModel, RawPolygon
+
+logger = logging.getLogger("colmap_citymodel.plane_store")
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Every geometric tolerance of the store, in metres (areas in m^2).
+
+    merge: vertices closer than this become one vertex (single linkage, so chains merge).
+        Official models round to 1 mm and tum2twin walls/roofs disagree by exactly one unit of
+        that rounding at shared corners; two such coordinates are 1 mm apart only up to float
+        noise (e.g. 1.0000000000331966 mm), so the merge radius is `merge + merge_slack`,
+        i.e. "within 1 mm" includes "exactly 1 mm" but not 1.01 mm.
+    nonplanar: faces whose RMS out-of-plane residual exceeds this are kept but flagged.
+    min_area: faces smaller than this are dropped as degenerate.
+    collinear: faces whose vertices spread less than this across their main direction
+        (sqrt of the middle covariance eigenvalue) are dropped as degenerate.
+    chain_warning: a merged cluster wider than this says the merge chained too far (warned).
+    """
+
+    merge: float = 0.001
+    merge_slack: float = 1e-6
+    nonplanar: float = 0.05
+    min_area: float = 1e-4
+    collinear: float = 1e-4
+    chain_warning: float = 0.005
+
+
+DEFAULT_TOLERANCES = Tolerances()
+
+THEMATIC_CLASSES = (
+    "WallSurface",
+    "RoofSurface",
+    "GroundSurface",
+    "ClosureSurface",
+    "OuterCeilingSurface",
+    "OuterFloorSurface",
+)
+
+
+def local_engineering_crs() -> CRSInfo:
+    """The CRS of synthetic scenes: a metric engineering frame without geodetic meaning."""
+    wkt = (
+        'ENGCRS["local engineering",EDATUM["local"],CS[Cartesian,3],'
+        'AXIS["x",east,LENGTHUNIT["metre",1]],AXIS["y",north,LENGTHUNIT["metre",1]],'
+        'AXIS["z",up,LENGTHUNIT["metre",1]]]'
+    )
+    return CRSInfo(
+        srs_name="local", horizontal_epsg=None, vertical_epsg=None, wkt=wkt, is_projected=True
+    )
+
+
+@dataclass
+class Face:
+    exterior: np.ndarray  # (N,) int64 vertex indices, ring order, not closed
+    holes: list[np.ndarray]  # each (M,) int64
+    semantic: str  # "WallSurface", "RoofSurface", "GroundSurface", "ClosureSurface", ...
+    building_id: str
+    part_id: str
+    gml_id: str
+    lod: int
+
+
+# ----------------------------------------------------------------------------------------------
+# geometry kernels (vectorised over all faces)
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Rings:
+    """All rings of all faces flattened: vertex ids, CSR pointers, owning face, hole flag."""
+
+    vertex: np.ndarray  # (K,) int64
+    ptr: np.ndarray  # (R+1,) int64
+    face: np.ndarray  # (R,) int64
+    is_hole: np.ndarray  # (R,) bool
+
+    @classmethod
+    def from_faces(cls, faces: list[Face]) -> _Rings:
+        rings, ring_face, is_hole = [], [], []
+        for f, face in enumerate(faces):
+            for k, ring in enumerate([face.exterior, *face.holes]):
+                rings.append(np.asarray(ring, dtype=np.int64))
+                ring_face.append(f)
+                is_hole.append(k > 0)
+        lengths = np.array([len(r) for r in rings], dtype=np.int64)
+        ptr = np.zeros(len(rings) + 1, dtype=np.int64)
+        np.cumsum(lengths, out=ptr[1:])
+        vertex = np.concatenate(rings) if rings else np.zeros(0, np.int64)
+        return cls(vertex, ptr, np.array(ring_face, np.int64), np.array(is_hole, bool))
+
+    def next_index(self) -> np.ndarray:
+        """Index (into `vertex`) of the next vertex along each ring, wrapping at the ring end."""
+        nxt = np.arange(1, len(self.vertex) + 1, dtype=np.int64)
+        nxt[self.ptr[1:] - 1] = self.ptr[:-1]
+        return nxt
+
+    def ring_of_entry(self) -> np.ndarray:
+        return np.repeat(np.arange(len(self.ptr) - 1), np.diff(self.ptr))
+
+
+def _face_unique_vertices(faces: list[Face]) -> tuple[np.ndarray, np.ndarray]:
+    """CSR (ptr, ids) of the unique vertex ids of each face (exterior + holes)."""
+    ids = [np.unique(np.concatenate([f.exterior, *f.holes])) for f in faces]
+    ptr = np.zeros(len(ids) + 1, dtype=np.int64)
+    np.cumsum([len(i) for i in ids], out=ptr[1:])
+    return ptr, (np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64))
+
+
+def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.ndarray]:
+    """Planes of all faces (eq. 2-4), vectorised.
+
+    P0 = centroid of the face's distinct vertices (Unger: "all vertices that belong to a
+    plane", so holes count too), M = their covariance (eq. 2-3), R = eigenvectors of M sorted
+    by eigenvalue descending (eq. 4), column 2 = normal. The normal sign follows the Newell
+    vector of the exterior ring (outward for counter-clockwise-from-outside rings); column 1 is
+    flipped if needed so that det(R) = +1.
+    """
+    F = len(faces)
+    if F == 0:
+        z = np.zeros(0)
+        return dict(
+            centroids=np.zeros((0, 3)), rotations=np.zeros((0, 3, 3)), areas=z, rms=z,
+            eigvals=np.zeros((0, 3)), newell_area=z, num_distinct=np.zeros(0, np.int64),
+        )
+    ptr, ids = _face_unique_vertices(faces)
+    counts = np.diff(ptr)
+    owner = np.repeat(np.arange(F), counts)
+    X = vertices[ids]
+    centroids = np.stack([np.bincount(owner, X[:, k], F) for k in range(3)], 1) / np.maximum(
+        counts, 1
+    )[:, None]
+    D = X - centroids[owner]
+    M = np.zeros((F, 3, 3))
+    for a in range(3):
+        for b in range(a, 3):
+            M[:, a, b] = M[:, b, a] = np.bincount(owner, D[:, a] * D[:, b], F)
+    M /= np.maximum(counts - 1, 1)[:, None, None]
+    eigvals, eigvecs = np.linalg.eigh(M)  # ascending
+    eigvals = eigvals[:, ::-1]
+    R = eigvecs[:, :, ::-1].copy()
+
+    # Newell area vectors per ring (relative to the face centroid for precision)
+    rings = _Rings.from_faces(faces)
+    nxt = rings.next_index()
+    ring_of = rings.ring_of_entry()
+    face_of_entry = rings.face[ring_of]
+    P = vertices[rings.vertex] - centroids[face_of_entry]
+    C = 0.5 * np.cross(P, P[nxt])
+    nring = len(rings.ptr) - 1
+    ring_area_vec = np.stack([np.bincount(ring_of, C[:, k], nring) for k in range(3)], 1)
+    ext = np.flatnonzero(~rings.is_hole)  # exactly one exterior per face, in face order
+    ext_vec = ring_area_vec[ext]
+
+    normals = R[:, :, 2]
+    sign = np.where(np.einsum("fi,fi->f", normals, ext_vec) < 0, -1.0, 1.0)
+    R[:, :, 2] *= sign[:, None]
+    det = np.linalg.det(R)
+    R[:, :, 1] *= np.where(det < 0, -1.0, 1.0)[:, None]
+    normals = R[:, :, 2]
+
+    proj = np.abs(np.einsum("ri,ri->r", ring_area_vec, normals[rings.face]))
+    area = np.where(rings.is_hole, -proj, proj)
+    areas = np.bincount(rings.face, area, F)
+
+    resid = np.einsum("ki,ki->k", D, normals[owner])
+    rms = np.sqrt(np.bincount(owner, resid**2, F) / np.maximum(counts, 1))
+    return dict(
+        centroids=centroids,
+        rotations=R,
+        areas=areas,
+        rms=rms,
+        eigvals=np.clip(eigvals, 0.0, None),
+        newell_area=np.linalg.norm(ext_vec, axis=1),
+        num_distinct=counts,
+    )
+
+
+def merge_vertices(
+    points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack
+) -> tuple[np.ndarray, np.ndarray, float]:
+    """Merge points closer than `tolerance + slack` (single linkage over a cKDTree).
+
+    Returns (merged (V,3) = mean of each cluster, index (N,) into merged, widest cluster extent).
+    Clusters are numbered in order of first appearance so the result is deterministic.
+    """
+    if len(points) == 0:
+        return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
+    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
+    inverse = inverse.ravel()
+    if tolerance > 0 and len(uniq) > 1:
+        pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
+    else:
+        pairs = np.zeros((0, 2), np.int64)
+    n = len(uniq)
+    if len(pairs):
+        graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
+        _, labels = connected_components(graph, directed=False)
+    else:
+        labels = np.arange(n)
+    # renumber clusters by first appearance in the input
+    point_label = labels[inverse]
+    _, first = np.unique(point_label, return_index=True)
+    order = np.argsort(first)
+    renum = np.empty_like(order)
+    renum[order] = np.arange(len(order))
+    cluster = renum[labels]
+    counts = np.bincount(cluster)
+    merged = np.stack([np.bincount(cluster, uniq[:, k]) for k in range(3)], 1) / counts[:, None]
+    extent = 0.0
+    if len(pairs):
+        lo = np.full((len(counts), 3), np.inf)
+        hi = np.full((len(counts), 3), -np.inf)
+        np.minimum.at(lo, cluster, uniq)
+        np.maximum.at(hi, cluster, uniq)
+        extent = float(np.linalg.norm(hi - lo, axis=1).max())
+    return merged, cluster[inverse].astype(np.int64), extent
+
+
+def _clean_ring(ids: np.ndarray) -> np.ndarray:
+    """Drop consecutive repeats (including the closing point / last == first)."""
+    if len(ids) == 0:
+        return ids
+    keep = ids != np.roll(ids, 1)
+    if not keep.any():  # all the same vertex
+        return ids[:1]
+    return ids[keep]
+
+
+def _ring_key(ids: np.ndarray) -> tuple:
+    """Same ring up to the starting vertex (orientation kept: reversed rings are other faces)."""
+    if len(ids) == 0:
+        return ()
+    k = int(np.argmin(ids))
+    return tuple(np.roll(ids, -k).tolist())
+
+
+# ----------------------------------------------------------------------------------------------
+# the store
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class PlaneStore:
+    origin: np.ndarray
+    crs: CRSInfo
+    vertices: np.ndarray
+    faces: list[Face]
+    centroids: np.ndarray
+    rotations: np.ndarray
+    areas: np.ndarray
+    rms_out_of_plane: np.ndarray
+    nonplanar: np.ndarray
+    source: str = ""
+    format: str = ""
+    version: str = ""
+    num_buildings: int = 0
+    num_parts: int = 0
+    num_dropped_degenerate: int = 0
+    warnings: list[str] = field(default_factory=list)
+    tolerances: Tolerances = DEFAULT_TOLERANCES
+    _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    # -- derived ---------------------------------------------------------------------------
+    @property
+    def num_faces(self) -> int:
+        return len(self.faces)
+
+    @property
+    def normals(self) -> np.ndarray:
+        return self.rotations[:, :, 2]
+
+    @property
+    def offsets(self) -> np.ndarray:
+        """d = -n . P0, so the signed distance of X is n . X + d."""
+        return -np.einsum("fi,fi->f", self.normals, self.centroids)
+
+    def _face_vertex_csr(self) -> tuple[np.ndarray, np.ndarray]:
+        if "fv" not in self._cache:
+            self._cache["fv"] = _face_unique_vertices(self.faces)
+        return self._cache["fv"]
+
+    def face_vertex_ids(self, f: int) -> np.ndarray:
+        """Unique vertex ids of face f (exterior + holes), sorted."""
+        ptr, ids = self._face_vertex_csr()
+        return ids[ptr[f] : ptr[f + 1]]
+
+    @property
+    def vertex_faces(self) -> tuple[np.ndarray, np.ndarray]:
+        """CSR (indptr (V+1,), indices): the faces each vertex belongs to (for f_dVT)."""
+        if "vf" not in self._cache:
+            ptr, ids = self._face_vertex_csr()
+            owner = np.repeat(np.arange(self.num_faces, dtype=np.int64), np.diff(ptr))
+            order = np.lexsort((owner, ids))
+            counts = np.bincount(ids, minlength=len(self.vertices))
+            indptr = np.zeros(len(self.vertices) + 1, dtype=np.int64)
+            np.cumsum(counts, out=indptr[1:])
+            self._cache["vf"] = (indptr, owner[order])
+        return self._cache["vf"]
+
+    @property
+    def bbox_local(self) -> np.ndarray:
+        if len(self.vertices) == 0:
+            return np.zeros((2, 3))
+        return np.stack([self.vertices.min(0), self.vertices.max(0)])
+
+    @property
+    def bbox_crs(self) -> np.ndarray:
+        return self.bbox_local + self.origin
+
+    def to_local(self, xyz_crs: np.ndarray) -> np.ndarray:
+        return np.asarray(xyz_crs, dtype=np.float64) - self.origin
+
+    def to_crs(self, xyz_local: np.ndarray) -> np.ndarray:
+        return np.asarray(xyz_local, dtype=np.float64) + self.origin
+
+    # -- 2D face frames and edges ------------------------------------------------------------
+    def _edges2d(self) -> dict[str, np.ndarray]:
+        """All ring edges of all faces in each face's 2D frame (R columns 0, 1), grouped by face."""
+        if "edges" not in self._cache:
+            rings = _Rings.from_faces(self.faces)
+            nxt = rings.next_index()
+            face_of = rings.face[rings.ring_of_entry()]  # sorted by face (rings are in order)
+            R = self.rotations[face_of]
+            A = self.vertices[rings.vertex] - self.centroids[face_of]
+            B = self.vertices[rings.vertex[nxt]] - self.centroids[face_of]
+            au, av = np.einsum("ki,ki->k", A, R[:, :, 0]), np.einsum("ki,ki->k", A, R[:, :, 1])
+            bu, bv = np.einsum("ki,ki->k", B, R[:, :, 0]), np.einsum("ki,ki->k", B, R[:, :, 1])
+            counts = np.bincount(face_of, minlength=self.num_faces)
+            ptr = np.zeros(self.num_faces + 1, dtype=np.int64)
+            np.cumsum(counts, out=ptr[1:])
+            lo_u = np.full(self.num_faces, np.inf)
+            hi_u = np.full(self.num_faces, -np.inf)
+            lo_v, hi_v = lo_u.copy(), hi_u.copy()
+            np.minimum.at(lo_u, face_of, au)
+            np.maximum.at(hi_u, face_of, au)
+            np.minimum.at(lo_v, face_of, av)
+            np.maximum.at(hi_v, face_of, av)
+            self._cache["edges"] = dict(
+                au=au, av=av, bu=bu, bv=bv, ptr=ptr, lo_u=lo_u, hi_u=hi_u, lo_v=lo_v, hi_v=hi_v
+            )
+        return self._cache["edges"]
+
+    def _to_face_2d(self, faces: np.ndarray, points: np.ndarray):
+        D = points - self.centroids[faces]
+        R = self.rotations[faces]
+        return np.einsum("ki,ki->k", D, R[:, :, 0]), np.einsum("ki,ki->k", D, R[:, :, 1])
+
+    def _inside_pairs(
+        self, faces: np.ndarray, u: np.ndarray, v: np.ndarray, margin: float,
+        chunk_edges: int = 4_000_000,
+    ) -> np.ndarray:
+        """Point-in-polygon (with holes) for (face, 2D point) pairs, polygon grown by `margin`.
+
+        Crossing-number parity over all rings of the face (holes flip parity), OR distance to
+        any ring edge <= margin. Vectorised over pairs x edges, in chunks to bound memory.
+        """
+        E = self._edges2d()
+        out = np.zeros(len(faces), dtype=bool)
+        if len(faces) == 0:
+            return out
+        n_edges = E["ptr"][faces + 1] - E["ptr"][faces]
+        ends = np.cumsum(n_edges)
+        start = 0
+        while start < len(faces):
+            stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk_edges))
+            stop = max(stop, start + 1)
+            stop = min(stop, len(faces))
+            cnt = n_edges[start:stop]
+            pair = np.repeat(np.arange(stop - start), cnt)
+            first = np.cumsum(cnt) - cnt
+            edge = np.arange(len(pair)) - np.repeat(first, cnt) + np.repeat(
+                E["ptr"][faces[start:stop]], cnt
+            )
+            x, y = u[start:stop][pair], v[start:stop][pair]
+            au, av, bu, bv = E["au"][edge], E["av"][edge], E["bu"][edge], E["bv"][edge]
+            straddle = (av > y) != (bv > y)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                xint = au + (bu - au) * (y - av) / (bv - av)
+            cross = straddle & (x < xint)
+            parity = np.bincount(pair, cross, stop - start).astype(np.int64) % 2 == 1
+            inside = parity
+            if margin > 0:
+                du, dv = bu - au, bv - av
+                L2 = du * du + dv * dv
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = np.where(L2 > 0, ((x - au) * du + (y - av) * dv) / L2, 0.0)
+                t = np.clip(t, 0.0, 1.0)
+                d2 = (x - au - t * du) ** 2 + (y - av - t * dv) ** 2
+                dmin = np.minimum.reduceat(d2, first) if len(d2) else d2
+                inside = inside | (dmin <= margin * margin)
+            out[start:stop] = inside
+            start = stop
+        return out
+
+    def contains_projection(
+        self, face: int, points_local: np.ndarray, margin: float = 0.0
+    ) -> np.ndarray:
+        """(P,) bool: does face `face` (with holes, grown by `margin` m) contain the orthogonal
+        projection of each point onto its plane?"""
+        pts = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
+        faces = np.full(len(pts), int(face), dtype=np.int64)
+        u, v = self._to_face_2d(faces, pts)
+        return self._inside_pairs(faces, u, v, margin)
+
+    # -- spatial index ---------------------------------------------------------------------
+    def _grid(self, reach: float, max_registrations: int = 20_000_000) -> dict:
+        """Uniform 3D grid: each face registered in the cells its AABB (grown by `reach`)
+        overlaps AND whose centre lies within reach + half a cell diagonal of the face plane."""
+        key = round(float(reach), 6)
+        grids = self._cache.setdefault("grids", {})
+        if key in grids:
+            return grids[key]
+        F = self.num_faces
+        ptr, ids = self._face_vertex_csr()
+        owner = np.repeat(np.arange(F), np.diff(ptr))
+        lo = np.full((F, 3), np.inf)
+        hi = np.full((F, 3), -np.inf)
+        np.minimum.at(lo, owner, self.vertices[ids])
+        np.maximum.at(hi, owner, self.vertices[ids])
+        lo -= reach
+        hi += reach
+        gmin = lo.min(0) if F else np.zeros(3)
+        extent = np.max(hi - lo, axis=1) if F else np.ones(1)
+        h = float(np.clip(np.median(extent) / 2.0, 0.25, 50.0))
+        while True:
+            i0 = np.floor((lo - gmin) / h).astype(np.int64)
+            i1 = np.floor((hi - gmin) / h).astype(np.int64)
+            n = i1 - i0 + 1
+            per_face = n.prod(1)
+            if per_face.sum() <= max_registrations:
+                break
+            h *= 1.5
+        dims = (np.floor((hi.max(0) - gmin) / h).astype(np.int64) + 1) if F else np.ones(3, int)
+        total = int(per_face.sum())
+        face = np.repeat(np.arange(F), per_face)
+        local = np.arange(total) - np.repeat(np.cumsum(per_face) - per_face, per_face)
+        nf = n[face]
+        ix = local % nf[:, 0]
+        iy = (local // nf[:, 0]) % nf[:, 1]
+        iz = local // (nf[:, 0] * nf[:, 1])
+        cell = np.stack([ix, iy, iz], 1) + i0[face]
+        centre = gmin + (cell + 0.5) * h
+        dist = np.abs(np.einsum("ki,ki->k", centre, self.normals[face]) + self.offsets[face])
+        keep = dist <= reach + h * math.sqrt(3) / 2 + 1e-9
+        face, cell = face[keep], cell[keep]
+        keys = cell[:, 0] + dims[0] * (cell[:, 1] + dims[1] * cell[:, 2])
+        order = np.argsort(keys, kind="stable")
+        keys, face = keys[order], face[order]
+        ukeys, starts = np.unique(keys, return_index=True)
+        ends = np.append(starts[1:], len(keys))
+        grid = dict(gmin=gmin, h=h, dims=dims, ukeys=ukeys, starts=starts, ends=ends, faces=face)
+        grids[key] = grid
+        logger.debug("grid reach %.3f: cell %.2f m, %d registrations", reach, h, len(face))
+        return grid
+
+    def _candidate_pairs(self, pts: np.ndarray, reach: float) -> tuple[np.ndarray, np.ndarray]:
+        if self.num_faces == 0 or len(pts) == 0:
+            return np.zeros(0, np.int64), np.zeros(0, np.int64)
+        g = self._grid(reach)
+        c = np.floor((pts - g["gmin"]) / g["h"]).astype(np.int64)
+        ok = np.all((c >= 0) & (c < g["dims"]), axis=1)
+        keys = c[:, 0] + g["dims"][0] * (c[:, 1] + g["dims"][1] * c[:, 2])
+        pos = np.searchsorted(g["ukeys"], keys)
+        pos = np.minimum(pos, len(g["ukeys"]) - 1)
+        ok &= g["ukeys"][pos] == keys
+        pidx = np.flatnonzero(ok)
+        s, e = g["starts"][pos[pidx]], g["ends"][pos[pidx]]
+        cnt = e - s
+        point = np.repeat(pidx, cnt)
+        idx = np.arange(cnt.sum()) - np.repeat(np.cumsum(cnt) - cnt, cnt) + np.repeat(s, cnt)
+        return point, g["faces"][idx]
+
+    def closest_faces(
+        self,
+        points_local: np.ndarray,
+        max_distance: float,
+        margin: float = 0.1,
+        candidates: int | None = 8,
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """For each point: the face with the smallest |distance to plane| among faces whose
+        polygon (with holes, grown by `margin` m) contains the point's orthogonal projection,
+        only if |d| <= max_distance.
+
+        Returns (face_index int64, -1 for none; signed_distance float64, nan for none).
+        `candidates` caps how many planes (nearest first) per point are tested for containment
+        after the plane-distance and 2D-bbox filters (None: all); only points near more than
+        that many overlapping faces can be affected.
+        """
+        pts = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
+        P = len(pts)
+        best = np.full(P, -1, dtype=np.int64)
+        dist = np.full(P, np.nan)
+        point, face = self._candidate_pairs(pts, max_distance + margin)
+        if len(point) == 0:
+            return best, dist
+        d = np.einsum("ki,ki->k", pts[point], self.normals[face]) + self.offsets[face]
+        keep = np.abs(d) <= max_distance
+        point, face, d = point[keep], face[keep], d[keep]
+        u, v = self._to_face_2d(face, pts[point])
+        E = self._edges2d()
+        keep = (
+            (u >= E["lo_u"][face] - margin) & (u <= E["hi_u"][face] + margin)
+            & (v >= E["lo_v"][face] - margin) & (v <= E["hi_v"][face] + margin)
+        )
+        point, face, d, u, v = point[keep], face[keep], d[keep], u[keep], v[keep]
+        order = np.lexsort((face, np.abs(d), point))
+        point, face, d, u, v = point[order], face[order], d[order], u[order], v[order]
+        if candidates is not None and len(point):
+            first = np.r_[True, point[1:] != point[:-1]]
+            start = np.maximum.accumulate(np.where(first, np.arange(len(point)), 0))
+            keep = (np.arange(len(point)) - start) < candidates
+            point, face, d, u, v = point[keep], face[keep], d[keep], u[keep], v[keep]
+        inside = self._inside_pairs(face, u, v, margin)
+        point, face, d = point[inside], face[inside], d[inside]
+        first = np.r_[True, point[1:] != point[:-1]] if len(point) else np.zeros(0, bool)
+        best[point[first]] = face[first]
+        dist[point[first]] = d[first]
+        return best, dist
+
+    # -- derived stores ---------------------------------------------------------------------
+    def with_vertices(self, vertices_local: np.ndarray) -> PlaneStore:
+        """Same topology with new vertex coordinates; planes recomputed (model correction)."""
+        V = np.asarray(vertices_local, dtype=np.float64)
+        if V.shape != self.vertices.shape:
+            raise ValueError(f"vertices must have shape {self.vertices.shape}, got {V.shape}")
+        planes = _compute_planes(V, self.faces)
+        return replace(
+            self,
+            vertices=V.copy(),
+            centroids=planes["centroids"],
+            rotations=planes["rotations"],
+            areas=planes["areas"],
+            rms_out_of_plane=planes["rms"],
+            nonplanar=planes["rms"] > self.tolerances.nonplanar,
+            warnings=list(self.warnings),
+            _cache={},
+        )
+
+    def subset_bbox(self, bbox_local_min, bbox_local_max) -> PlaneStore:
+        """Faces whose vertex AABB touches the box, with only their vertices (re-indexed)."""
+        bmin = np.asarray(bbox_local_min, dtype=np.float64)
+        bmax = np.asarray(bbox_local_max, dtype=np.float64)
+        dim = len(bmin)  # 2 (x, y) or 3
+        ptr, ids = self._face_vertex_csr()
+        owner = np.repeat(np.arange(self.num_faces), np.diff(ptr))
+        lo = np.full((self.num_faces, 3), np.inf)
+        hi = np.full((self.num_faces, 3), -np.inf)
+        np.minimum.at(lo, owner, self.vertices[ids])
+        np.maximum.at(hi, owner, self.vertices[ids])
+        keep = np.all((hi[:, :dim] >= bmin) & (lo[:, :dim] <= bmax), axis=1)
+        sel = np.flatnonzero(keep)
+        used = np.unique(np.concatenate([self.face_vertex_ids(f) for f in sel])) if len(
+            sel
+        ) else np.zeros(0, np.int64)
+        remap = np.full(len(self.vertices), -1, dtype=np.int64)
+        remap[used] = np.arange(len(used))
+        faces = [
+            replace(
+                self.faces[f],
+                exterior=remap[self.faces[f].exterior],
+                holes=[remap[h] for h in self.faces[f].holes],
+            )
+            for f in sel
+        ]
+        buildings = {f.building_id for f in faces}
+        parts = {(f.building_id, f.part_id) for f in faces if f.part_id}
+        return replace(
+            self,
+            vertices=self.vertices[used].copy(),
+            faces=faces,
+            centroids=self.centroids[sel],
+            rotations=self.rotations[sel],
+            areas=self.areas[sel],
+            rms_out_of_plane=self.rms_out_of_plane[sel],
+            nonplanar=self.nonplanar[sel],
+            num_buildings=len(buildings),
+            num_parts=len(parts),
+            warnings=list(self.warnings),
+            _cache={},
+        )
+
+    def summary(self) -> dict:
+        """Plain-data summary for `model-info` (JSON-serialisable)."""
+        by_class = Counter(f.semantic for f in self.faces)
+        return {
+            "format": self.format,
+            "version": self.version,
+            "source": self.source,
+            "crs": {
+                "label": self.crs.label,
+                "srs_name": self.crs.srs_name,
+                "horizontal_epsg": self.crs.horizontal_epsg,
+                "vertical_epsg": self.crs.vertical_epsg,
+                "wkt": self.crs.wkt,
+            },
+            "num_buildings": int(self.num_buildings),
+            "num_parts": int(self.num_parts),
+            "num_faces": int(self.num_faces),
+            "num_vertices": int(len(self.vertices)),
+            "faces_by_class": dict(sorted(by_class.items())),
+            "faces_with_holes": int(sum(1 for f in self.faces if f.holes)),
+            "num_holes": int(sum(len(f.holes) for f in self.faces)),
+            "bbox": self.bbox_crs.tolist(),
+            "origin": self.origin.tolist(),
+            "num_dropped_degenerate": int(self.num_dropped_degenerate),
+            "num_nonplanar": int(np.count_nonzero(self.nonplanar)),
+            "max_rms_out_of_plane": float(self.rms_out_of_plane.max()) if self.num_faces else 0.0,
+            "warnings": list(self.warnings),
+        }
+
+
+# ----------------------------------------------------------------------------------------------
+# construction
+# ----------------------------------------------------------------------------------------------
+
+
+def default_origin(points_crs: np.ndarray) -> np.ndarray:
+    """Lower bbox corner rounded down to whole metres (float64)."""
+    if len(points_crs) == 0:
+        return np.zeros(3)
+    return np.floor(np.asarray(points_crs, dtype=np.float64).min(0))
+
+
+def build_store(
+    raw: RawCityModel,
+    merge_tolerance: float = DEFAULT_TOLERANCES.merge,
+    origin: np.ndarray | None = None,
+    nonplanar_tolerance: float = DEFAULT_TOLERANCES.nonplanar,
+    tolerances: Tolerances | None = None,
+) -> PlaneStore:
+    """Turn reader output into a PlaneStore: local frame, merged vertices, de-duplicated faces,
+    planes; degenerate faces dropped (counted), non-planar faces flagged (counted)."""
+    tol = replace(
+        tolerances or DEFAULT_TOLERANCES, merge=merge_tolerance, nonplanar=nonplanar_tolerance
+    )
+    warnings = list(raw.warnings)
+    polys = raw.polygons
+    rings = [p.exterior for p in polys] + [h for p in polys for h in p.holes]
+    allpts = (
+        np.concatenate([np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rings])
+        if rings
+        else np.zeros((0, 3))
+    )
+    origin = default_origin(allpts) if origin is None else np.asarray(origin, dtype=np.float64)
+    merged, index, extent = merge_vertices(allpts - origin, tol.merge, tol.merge_slack)
+    if extent > tol.chain_warning:
+        warnings.append(
+            f"vertex merging (tolerance {tol.merge * 1000:.1f} mm) chained points up to "
+            f"{extent * 1000:.1f} mm apart into one vertex"
+        )
+
+    # ring vertex ids in the same order as `rings`
+    offsets = np.cumsum([0] + [len(r) for r in rings])
+    ring_ids = [index[offsets[i] : offsets[i + 1]] for i in range(len(rings))]
+    n_poly = len(polys)
+    hole_start = n_poly
+    faces: list[Face] = []
+    from_solid: list[bool] = []
+    seen: dict = {}
+    dropped = 0
+    duplicates = 0
+    dropped_holes = 0
+    for i, p in enumerate(polys):
+        ext = _clean_ring(ring_ids[i])
+        holes = []
+        for _ in p.holes:
+            h = _clean_ring(ring_ids[hole_start])
+            hole_start += 1
+            if len(np.unique(h)) >= 3:
+                holes.append(h)
+            else:
+                dropped_holes += 1
+        if len(np.unique(ext)) < 3:
+            dropped += 1
+            continue
+        key_ring = ("ring", _ring_key(ext), tuple(sorted(_ring_key(h) for h in holes)))
+        key_id = ("id", p.gml_id) if p.gml_id else None
+        prev = seen.get(key_id) if key_id else None
+        if prev is None:
+            prev = seen.get(key_ring)
+        if prev is not None:
+            duplicates += 1
+            face = faces[prev]
+            # the thematic surface knows the class; the solid only references the polygon
+            if face.semantic in ("", "Unknown") and p.semantic not in ("", "Unknown"):
+                face.semantic = p.semantic
+            if not face.gml_id and p.gml_id:
+                face.gml_id = p.gml_id
+            if key_id:
+                seen[key_id] = prev
+            continue
+        faces.append(
+            Face(
+                exterior=ext.astype(np.int64),
+                holes=[h.astype(np.int64) for h in holes],
+                semantic=p.semantic or "Unknown",
+                building_id=p.building_id,
+                part_id=p.part_id,
+                gml_id=p.gml_id,
+                lod=int(p.lod),
+            )
+        )
+        from_solid.append(p.from_solid)
+        seen[key_ring] = len(faces) - 1
+        if key_id:
+            seen[key_id] = len(faces) - 1
+    if duplicates:
+        logger.debug("%d polygons referenced twice became one face each", duplicates)
+    if dropped_holes:
+        warnings.append(f"{dropped_holes} degenerate interior rings dropped")
+
+    planes = _compute_planes(merged, faces)
+    degenerate = (planes["areas"] < tol.min_area) | (
+        np.sqrt(planes["eigvals"][:, 1]) < tol.collinear
+    )
+    if degenerate.any():
+        dropped += int(degenerate.sum())
+        keep = np.flatnonzero(~degenerate)
+        faces = [faces[k] for k in keep]
+        planes = {k: v[keep] for k, v in planes.items()}
+    if dropped:
+        warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
+
+    # drop vertices no face uses any more and re-index
+    if faces:
+        used = np.unique(np.concatenate([np.concatenate([f.exterior, *f.holes]) for f in faces]))
+    else:
+        used = np.zeros(0, np.int64)
+    remap = np.full(len(merged), -1, dtype=np.int64)
+    remap[used] = np.arange(len(used))
+    for f in faces:
+        f.exterior = remap[f.exterior]
+        f.holes = [remap[h] for h in f.holes]
+    vertices = merged[used]
+
+    _orient_by_semantics(planes, faces, warnings)
+    nonplanar = planes["rms"] > tol.nonplanar
+    if nonplanar.any():
+        warnings.append(
+            f"{int(nonplanar.sum())} non-planar faces (RMS out-of-plane > {tol.nonplanar} m) kept"
+        )
+    parts = set(raw.part_ids) | {(f.part_id) for f in faces if f.part_id}
+    buildings = set(raw.building_ids) | {f.building_id for f in faces if not f.part_id}
+    store = PlaneStore(
+        origin=origin,
+        crs=raw.crs,
+        vertices=vertices,
+        faces=faces,
+        centroids=planes["centroids"],
+        rotations=planes["rotations"],
+        areas=planes["areas"],
+        rms_out_of_plane=planes["rms"],
+        nonplanar=nonplanar,
+        source=raw.source,
+        format=raw.format,
+        version=raw.version,
+        num_buildings=len(buildings - {""}),
+        num_parts=len(parts - {""}),
+        num_dropped_degenerate=dropped,
+        warnings=warnings,
+        tolerances=tol,
+    )
+    logger.debug(
+        "store: %d faces, %d vertices, %d dropped, %d non-planar",
+        store.num_faces, len(vertices), dropped, int(nonplanar.sum()),
+    )
+    return store
+
+
+def _orient_by_semantics(planes: dict, faces: list[Face], warnings: list[str]) -> None:
+    """Rings give the orientation; a roof whose ring says "facing down" or a ground surface
+    "facing up" has a reversed ring (seen in real data), so the semantics win there."""
+    if not faces:
+        return
+    nz = planes["rotations"][:, 2, 2]
+    sem = np.array([f.semantic for f in faces])
+    flip = ((sem == "RoofSurface") & (nz < -0.1)) | ((sem == "GroundSurface") & (nz > 0.1))
+    if flip.any():
+        R = planes["rotations"]
+        R[flip, :, 2] *= -1
+        R[flip, :, 1] *= -1  # keep det(R) = +1
+        for f in np.flatnonzero(flip):
+            faces[f].exterior = faces[f].exterior[::-1].copy()
+            faces[f].holes = [h[::-1].copy() for h in faces[f].holes]
+        warnings.append(
+            f"{int(flip.sum())} roof/ground faces had reversed rings; oriented by their class"
+        )
+
+
+def store_from_polygons(
+    polygons: list[np.ndarray],
+    *,
+    semantics: list[str] | None = None,
+    origin: np.ndarray | None = None,
+    crs: CRSInfo | None = None,
+    holes: list[list[np.ndarray]] | None = None,
+    building_ids: list[str] | None = None,
+    merge_tolerance: float = DEFAULT_TOLERANCES.merge,
+) -> PlaneStore:
+    """A store from plain (N,3) rings (synthetic scenes, tests, the simulator).
+
+    Rings run counter-clockwise seen from outside (that orientation gives the normal sign).
+    Coordinates are taken as CRS coordinates; pass origin=np.zeros(3) to keep them as they are.
+    """
+    n = len(polygons)
+    semantics = semantics or ["Unknown"] * n
+    holes = holes or [[] for _ in range(n)]
+    building_ids = building_ids or ["b0"] * n
+    raw = RawCityModel(
+        source="<polygons>",
+        format="synthetic",
+        version="",
+        crs=crs or local_engineering_crs(),
+        polygons=[
+            RawPolygon(
+                exterior=np.asarray(p, dtype=np.float64).reshape(-1, 3),
+                holes=[np.asarray(h, dtype=np.float64).reshape(-1, 3) for h in holes[i]],
+                semantic=semantics[i],
+                building_id=building_ids[i],
+                gml_id=f"poly_{i}",
+            )
+            for i, p in enumerate(polygons)
+        ],
+        building_ids=sorted(set(building_ids)),
+        part_ids=[],
+    )
+    return build_store(raw, merge_tolerance=merge_tolerance, origin=origin)
