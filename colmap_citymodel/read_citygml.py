@@ -1,0 +1,829 @@
+"""Read building geometry from CityGML 1.0, 2.0 and 3.0 (GML 3.1.1 and 3.2) into a RawCityModel.
+
+Streaming: `lxml.etree.iterparse` delivers one top-level `cityObjectMember` / `featureMember` /
+`member` at a time; it is turned into polygons, then cleared and its previous siblings deleted, so
+memory holds one city object plus the polygons kept so far (the output), however large the file.
+
+What is read (namespace-agnostic, by local element name, so 1.0/2.0/3.0 and producers' prefix
+quirks all pass): `Building` and (nested) `BuildingPart` (`consistsOfBuildingPart`, 3.0
+`buildingPart`); thematic surfaces (`WallSurface`, `RoofSurface`, `GroundSurface`,
+`ClosureSurface`, `OuterCeilingSurface`, `OuterFloorSurface`, ...) under `boundedBy` (3.0
+`boundary`) with their `lodNMultiSurface`; the building's own `lodNSolid` / `lodNMultiSurface`;
+GML `Solid` (exterior shell), `CompositeSurface`, `Shell`, `MultiSurface`, `OrientableSurface`
+(orientation "-" reverses), `Polygon`, `Surface`/`PolygonPatch`, `Triangle`/`Rectangle`; exterior
+and interior rings of `posList`, `pos` sequences or `coordinates`; `srsDimension` inherited from
+ancestors (default 3). Openings (windows, doors), installations and rooms are skipped.
+
+xlinks: `xlink:href` on a surface member (`#id` or bare `id`) names a polygon defined elsewhere;
+a polygon referenced from a solid and defined in a thematic surface (or the other way round)
+becomes ONE polygon with the thematic semantics and `from_solid=True`. References are resolved
+per city object first; the few that point to other city objects are kept in a small pending list
+(target id + context, a few hundred bytes each) and resolved at the end against the kept polygons'
+ids; anything still open (the target lies in a building dropped by the bbox filter, or a ring
+reference across city objects) triggers one more streaming pass over the file that looks only for
+those ids. An id found nowhere is a CityGMLError naming it.
+
+CRS: `srsName` on the model envelope, building envelopes or any geometry element read; all must
+agree (else CRSError). No CRS at all: CRSError unless `crs` is given (a given `crs` overrides the
+file's, with a warning when they differ). Geographic CRS (e.g. PLATEAU EPSG:6697): CRSError unless
+`target_crs` names a projected CRS; then coordinates are reprojected city object by city object
+(see crs.py for axis order). The first city object with geometry must carry or follow a CRS: the
+reader fails then rather than buffering a whole file it cannot place.
+"""
+
+from __future__ import annotations
+
+import logging
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from lxml import etree
+
+from . import crs as crs_mod
+from .errors import CityGMLError, CRSError, InputError, NoOverlapError
+from .raw_model import CRSInfo, RawCityModel, RawPolygon
+
+logger = logging.getLogger("colmap_citymodel.read_citygml")
+
+XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
+GML_NAMESPACES = ("http://www.opengis.net/gml", "http://www.opengis.net/gml/3.2")
+GML_IDS = tuple(f"{{{ns}}}id" for ns in GML_NAMESPACES)
+_VERSION_RE = re.compile(r"opengis\.net/citygml/(?:[A-Za-z]+/)?(\d\.\d)")
+
+MEMBER_TAGS = ("cityObjectMember", "featureMember", "member", "featureMembers")
+# top-level siblings we also listen for, only to clear them early (global appearances can be large)
+_CLEAR_TAGS = ("appearanceMember",)
+PART_PROPERTIES = ("consistsOfBuildingPart", "buildingPart")
+THEMATIC_PROPERTIES = ("boundedBy", "boundary")
+# GML aggregates whose members are surfaces
+_SURFACE_AGGREGATES = ("MultiSurface", "CompositeSurface", "Shell")
+_PATCHED_SURFACES = ("Surface", "PolyhedralSurface", "TriangulatedSurface", "Tin")
+_PATCHES = ("PolygonPatch", "Triangle", "Rectangle")
+_PLANAR = ("Polygon",) + _PATCHES
+
+_local_cache: dict[str, str] = {}
+
+
+def _local(tag) -> str:
+    """Local name of an element tag ('' for comments and processing instructions)."""
+    if not isinstance(tag, str):
+        return ""
+    name = _local_cache.get(tag)
+    if name is None:
+        name = tag.rpartition("}")[2]
+        _local_cache[tag] = name
+    return name
+
+
+def _gml_id(el) -> str:
+    return el.get(GML_IDS[0]) or el.get(GML_IDS[1]) or ""
+
+
+def _href_id(href: str) -> str:
+    """'#id', 'id' and 'file.gml#id' all name `id` (other files are not followed)."""
+    return href.rpartition("#")[2].strip()
+
+
+@dataclass
+class _Ref:
+    """A surface member given by reference."""
+
+    target: str
+    semantic: str
+    in_solid: bool
+    reversed: bool
+    building_id: str
+    part_id: str
+
+
+@dataclass
+class _RingRef:
+    target: str
+
+
+class _Pending:
+    """A polygon of a kept building with a ring given by a reference not resolvable in its member."""
+
+    def __init__(self, polygon: RawPolygon, rings: list):
+        self.polygon = polygon
+        self.rings = rings  # exterior first; np.ndarray or _RingRef
+
+
+class _Walker:
+    """Turns one city object (an lxml subtree) into polygons and references."""
+
+    def __init__(self, path: Path, lod: int):
+        self.path = path
+        self.lod = lod
+        self.lod_prefix = f"lod{lod}"
+        self.srs_names: set[str] = set()
+        self.lods_seen: set[int] = set()
+        self.num_2d_rings = 0
+        self.reset(None)
+
+    def reset(self, member) -> None:
+        self.member = member
+        self.polygons: list[RawPolygon] = []
+        self.refs: list[_Ref] = []
+        self.containers: dict[str, tuple[int, int]] = {}  # aggregate gml:id -> polygon index range
+        self.pending: list[_Pending] = []
+        self.buildings: list[str] = []
+        self.parts: list[str] = []
+        self._ring_index: dict | None = None
+        self.building = ""
+        self.part = ""
+
+    # -- features -----------------------------------------------------------------------------
+    def feature(self, el, counter: list[int]) -> None:
+        name = _local(el.tag)
+        if name == "Building":
+            counter[0] += 1
+            bid = _gml_id(el) or f"building_{counter[0]}"
+            self.buildings.append(bid)
+            self.building, self.part = bid, ""
+            self._building(el)
+
+    def _building(self, el) -> None:
+        for child in el:
+            name = _local(child.tag)
+            if not name:
+                continue
+            if name in PART_PROPERTIES:
+                for part in child:
+                    if _local(part.tag) == "BuildingPart":
+                        outer = self.part
+                        self.part = _gml_id(part) or f"{self.building}_part_{len(self.parts) + 1}"
+                        self.parts.append(self.part)
+                        self._building(part)
+                        self.part = outer
+            elif name in THEMATIC_PROPERTIES:
+                if child.tag.startswith("{http://www.opengis.net/gml"):
+                    self._envelope(child)
+                    continue
+                for surface in child:
+                    semantic = _local(surface.tag)
+                    if semantic:
+                        self._thematic(surface, semantic)
+            elif name.startswith("lod") and len(name) > 4 and name[3].isdigit():
+                kind = name[4:]
+                if kind in ("Solid", "MultiSurface"):
+                    self.lods_seen.add(int(name[3]))
+                    if name.startswith(self.lod_prefix):
+                        self._property(child, "Unknown", kind == "Solid", False, 3)
+
+    def _thematic(self, surface, semantic: str) -> None:
+        for child in surface:
+            name = _local(child.tag)
+            if name.startswith("lod") and name.endswith("MultiSurface") and name[3].isdigit():
+                self.lods_seen.add(int(name[3]))
+                if name.startswith(self.lod_prefix):
+                    self._property(child, semantic, False, False, 3)
+            elif name == "boundedBy":
+                self._envelope(child)
+
+    def _envelope(self, bounded_by) -> None:
+        for env in bounded_by:
+            srs = env.get("srsName") if _local(env.tag) == "Envelope" else None
+            if srs:
+                self.srs_names.add(srs)
+
+    # -- GML geometry -------------------------------------------------------------------------
+    def _property(self, prop, semantic: str, in_solid: bool, rev: bool, dim: int) -> None:
+        """A property element (surfaceMember, baseSurface, lod2Solid, exterior of a Solid, ...):
+        either a reference or inline geometry."""
+        href = prop.get(XLINK_HREF)
+        if href is not None:
+            self.refs.append(
+                _Ref(_href_id(href), semantic, in_solid, rev, self.building, self.part)
+            )
+            return
+        for child in prop:
+            if isinstance(child.tag, str):
+                self._geometry(child, semantic, in_solid, rev, dim)
+
+    def _geometry(self, el, semantic: str, in_solid: bool, rev: bool, dim: int) -> None:
+        srs = el.get("srsName")
+        if srs:
+            self.srs_names.add(srs)
+        d = el.get("srsDimension")
+        if d:
+            dim = self._dim(d)
+        name = _local(el.tag)
+        if name in _PLANAR:
+            self._polygon(el, semantic, in_solid, rev, dim, _gml_id(el))
+            return
+        start = len(self.polygons)
+        if name in _SURFACE_AGGREGATES:
+            for member in el:
+                mname = _local(member.tag)
+                if mname in ("surfaceMember", "surfaceMembers"):
+                    self._property(member, semantic, in_solid, rev, dim)
+        elif name == "Solid":
+            for member in el:
+                if _local(member.tag) == "exterior":  # interior shells (cavities) are skipped
+                    self._property(member, semantic, True, rev, dim)
+        elif name in ("MultiSolid", "CompositeSolid"):
+            for member in el:
+                if _local(member.tag) in ("solidMember", "solidMembers"):
+                    self._property(member, semantic, True, rev, dim)
+        elif name == "OrientableSurface":
+            flip = el.get("orientation", "+").strip() == "-"
+            for member in el:
+                if _local(member.tag) == "baseSurface":
+                    self._property(member, semantic, in_solid, rev != flip, dim)
+        elif name in _PATCHED_SURFACES:
+            gid = _gml_id(el)
+            for patches in el:
+                if _local(patches.tag) in ("patches", "polygonPatches", "trianglePatches"):
+                    for k, patch in enumerate(p for p in patches if isinstance(p.tag, str)):
+                        pid = gid if (k == 0 or not gid) else f"{gid}_{k}"
+                        self._polygon(patch, semantic, in_solid, rev, dim, pid)
+        else:
+            return  # curves, points, implicit geometry: not building surfaces
+        gid = _gml_id(el)
+        if gid:
+            self.containers.setdefault(gid, (start, len(self.polygons)))
+
+    def _dim(self, text: str) -> int:
+        try:
+            dim = int(text)
+        except ValueError:
+            raise CityGMLError(f"bad srsDimension {text!r}", self.path) from None
+        if dim not in (2, 3):
+            raise CityGMLError(f"unsupported srsDimension {dim} (only 2 and 3)", self.path)
+        return dim
+
+    def _polygon(self, el, semantic: str, in_solid: bool, rev: bool, dim: int, gid: str) -> None:
+        d = el.get("srsDimension")
+        if d:
+            dim = self._dim(d)
+        srs = el.get("srsName")
+        if srs:
+            self.srs_names.add(srs)
+        rings: list = []
+        for child in el:
+            name = _local(child.tag)
+            if name in ("exterior", "outerBoundaryIs"):
+                rings.insert(0, self._ring_property(child, dim, gid))
+            elif name in ("interior", "innerBoundaryIs"):
+                rings.append(self._ring_property(child, dim, gid))
+        if not rings:
+            raise CityGMLError(f"polygon {gid or '(without gml:id)'} has no exterior ring", self.path)
+        polygon = RawPolygon(
+            exterior=None,  # type: ignore[arg-type]
+            semantic=semantic,
+            building_id=self.building,
+            part_id=self.part,
+            gml_id=gid,
+            lod=self.lod,
+            from_solid=in_solid and not rev,
+        )
+        if rev:
+            rings = [r[::-1].copy() if isinstance(r, np.ndarray) else _RingRef(r.target + "\0rev") for r in rings]
+        if any(isinstance(r, _RingRef) for r in rings):
+            self.pending.append(_Pending(polygon, rings))
+            polygon.exterior = np.zeros((0, 3))
+        else:
+            polygon.exterior = rings[0]
+            polygon.holes = rings[1:]
+        self.polygons.append(polygon)
+
+    def _ring_property(self, prop, dim: int, gid: str):
+        href = prop.get(XLINK_HREF)
+        if href is not None:
+            target = _href_id(href)
+            ring = self._ring_by_id(target)
+            return ring if ring is not None else _RingRef(target)
+        for ring in prop:
+            if isinstance(ring.tag, str):
+                return self._ring(ring, dim, gid)
+        raise CityGMLError(f"polygon {gid or '(without gml:id)'} has an empty ring", self.path)
+
+    def _ring_by_id(self, target: str):
+        """A ring referenced by id inside the current city object (index built on first need)."""
+        if self.member is None:
+            return None
+        if self._ring_index is None:
+            self._ring_index = {}
+            for el in self.member.iter("{*}LinearRing", "{*}Ring"):
+                rid = _gml_id(el)
+                if rid:
+                    self._ring_index.setdefault(rid, el)
+        el = self._ring_index.get(target)
+        if el is None:
+            return None
+        dim = 3
+        for anc in el.iterancestors():
+            d = anc.get("srsDimension")
+            if d:
+                dim = self._dim(d)
+                break
+        return self._ring(el, dim, target)
+
+    def _ring(self, ring, dim: int, gid: str) -> np.ndarray:
+        d = ring.get("srsDimension")
+        if d:
+            dim = self._dim(d)
+        name = _local(ring.tag)
+        if name == "Ring":  # a ring of curve members: concatenate their points
+            parts = [self._curve_points(m, dim, gid) for m in ring if _local(m.tag) == "curveMember"]
+            pts = np.concatenate(parts) if parts else np.zeros((0, 3))
+        elif name == "LinearRing":
+            pts = self._points(ring, dim, gid)
+        else:
+            raise CityGMLError(f"polygon {gid or '(without gml:id)'}: unsupported ring {name}", self.path)
+        # rings are closed in GML; the store wants them open
+        if len(pts) > 1 and (pts[0] == pts[-1]).all():
+            pts = pts[:-1]
+        return pts
+
+    def _curve_points(self, member, dim: int, gid: str) -> np.ndarray:
+        out = []
+        for el in member.iter("{*}LineString", "{*}LineStringSegment"):
+            pts = self._points(el, dim, gid)
+            if out and len(pts) and (out[-1][-1] == pts[0]).all():
+                pts = pts[1:]
+            out.append(pts)
+        return np.concatenate(out) if out else np.zeros((0, 3))
+
+    def _points(self, el, dim: int, gid: str) -> np.ndarray:
+        """Coordinates of a LinearRing/LineString from posList, pos sequence or coordinates."""
+        values: list[str] = []
+        for child in el:
+            name = _local(child.tag)
+            if name == "posList":
+                d = child.get("srsDimension")
+                if d:
+                    dim = self._dim(d)
+                values = (child.text or "").split()
+                break
+            if name == "pos":
+                d = child.get("srsDimension")
+                if d:
+                    dim = self._dim(d)
+                values.extend((child.text or "").split())
+            elif name == "coordinates":
+                cs = child.get("cs", ",")
+                ts = child.get("ts", " ")
+                decimal = child.get("decimal", ".")
+                text = child.text or ""
+                if decimal != ".":
+                    text = text.replace(".", "\0").replace(decimal, ".")
+                tuples = text.split() if ts.isspace() else text.split(ts)
+                parts = [t.split(cs) for t in tuples if t.strip()]
+                if parts:
+                    dim = len(parts[0])
+                values = [v for t in parts for v in t]
+        try:
+            arr = np.array(values, dtype=np.float64)
+        except ValueError:
+            raise CityGMLError(
+                f"polygon {gid or '(without gml:id)'}: coordinates that are not numbers", self.path
+            ) from None
+        if len(arr) % dim:
+            raise CityGMLError(
+                f"polygon {gid or '(without gml:id)'}: {len(arr)} coordinate values are not a "
+                f"multiple of srsDimension {dim}",
+                self.path,
+            )
+        arr = arr.reshape(-1, dim)
+        if dim == 2:
+            self.num_2d_rings += 1
+            arr = np.column_stack([arr, np.zeros(len(arr))])
+        return arr
+
+    # -- per city object resolution ------------------------------------------------------------
+    def resolve_local(self) -> list[_Ref]:
+        """Merge references with their targets inside this city object; return the others."""
+        index: dict[str, RawPolygon] = {}
+        for p in self.polygons:
+            if p.gml_id:
+                index.setdefault(p.gml_id, p)
+        unresolved = []
+        for ref in self.refs:
+            targets = self._targets(ref.target, index)
+            if targets is None:
+                unresolved.append(ref)
+            else:
+                for t in targets:
+                    merge_reference(t, ref)
+        return unresolved
+
+    def _targets(self, target: str, index: dict[str, RawPolygon]):
+        p = index.get(target)
+        if p is not None:
+            return [p]
+        rng = self.containers.get(target)
+        if rng is not None:
+            return self.polygons[rng[0]:rng[1]]
+        return None
+
+    def dedupe(self) -> int:
+        """Drop repeated definitions of the same gml:id (invalid GML, but seen); returns count."""
+        seen: set[str] = set()
+        keep = []
+        for p in self.polygons:
+            if p.gml_id and p.gml_id in seen:
+                continue
+            if p.gml_id:
+                seen.add(p.gml_id)
+            keep.append(p)
+        dropped = len(self.polygons) - len(keep)
+        self.polygons = keep
+        return dropped
+
+
+def merge_reference(target: RawPolygon, ref: _Ref) -> None:
+    """A second use of a polygon: keep one polygon, with thematic semantics and solid membership."""
+    if ref.in_solid and not ref.reversed:
+        target.from_solid = True
+    if target.semantic == "Unknown" and ref.semantic != "Unknown":
+        target.semantic = ref.semantic
+
+
+def detect_version(namespaces) -> str | None:
+    """CityGML version ("1.0", "2.0", "3.0") from namespace URIs, None if none is CityGML."""
+    found = []
+    for uri in namespaces:
+        m = _VERSION_RE.search(uri or "")
+        if m:
+            found.append(m.group(1))
+    if not found:
+        return None
+    return max(set(found), key=found.count)
+
+
+def _read_root(path: Path):
+    """Tag and namespaces of the root element (parses only the first start tag)."""
+    try:
+        for _event, el in etree.iterparse(str(path), events=("start",), huge_tree=True):
+            return el.tag, dict(el.nsmap)
+    except etree.XMLSyntaxError as error:
+        raise CityGMLError(f"malformed XML: {error}", path) from None
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", path) from None
+    raise CityGMLError("empty XML document", path)
+
+
+class _CRSState:
+    """The file's CRS, checked for consistency as srsNames appear."""
+
+    def __init__(self, path: Path, user: CRSInfo | None, target: CRSInfo | None):
+        self.path = path
+        self.user = user
+        self.target = target
+        self.file: CRSInfo | None = None
+        self.file_names: list[str] = []
+        self._seen: set[str] = set()
+        self.warnings: list[str] = []
+        self._out_key = None
+        self._out: CRSInfo | None = None
+        self._reproject = False
+
+    def add(self, names: set[str]) -> None:
+        for name in names - self._seen:
+            self._seen.add(name)
+            info = crs_mod.resolve_crs(name, path=self.path)
+            if self.file is None:
+                self.file = info
+                self.file_names.append(name)
+                self._check()
+            elif crs_mod.same_crs(self.file, info):
+                self.file = crs_mod.more_complete(self.file, info)
+            else:
+                raise CRSError(
+                    f"mixed CRSs in one file: {self.file_names[0]!r} ({self.file.label}) and "
+                    f"{name!r} ({info.label})",
+                    self.path,
+                )
+
+    def _check(self) -> None:
+        if self.user is not None and self.file is not None and not crs_mod.same_crs(self.user, self.file):
+            self.warnings.append(
+                f"the file names CRS {self.file.label} but {self.user.label} was given; using {self.user.label}"
+            )
+
+    @property
+    def source(self) -> CRSInfo | None:
+        return self.user if self.user is not None else self.file
+
+    def require(self) -> CRSInfo:
+        src = self.source
+        if src is None:
+            raise CRSError("no CRS in the file; pass --crs EPSG:N", self.path)
+        if not src.is_projected and self.target is None:
+            raise CRSError(
+                f"the file's CRS {src.label} is geographic (degrees); give a projected CRS to "
+                "reproject to, e.g. --target_crs EPSG:6677 for PLATEAU (Japan plane rectangular "
+                "CS IX) or the local UTM zone",
+                self.path,
+            )
+        return src
+
+    def output(self) -> CRSInfo:
+        """The CRS of the polygons returned: the source CRS, or the target CRS (keeping the
+        source's height system when the target names none)."""
+        src = self.require()
+        key = (src.wkt, None if self.target is None else self.target.wkt)
+        if key != self._out_key:
+            self._out_key = key
+            if self.target is None or (
+                crs_mod.same_crs(src, self.target)
+                and self.target.vertical_epsg in (None, src.vertical_epsg)
+            ):
+                self._out, self._reproject = src, False
+            else:
+                self._out, self._reproject = crs_mod.output_crs(src, self.target), True
+        return self._out
+
+    def needs_reprojection(self) -> bool:
+        self.output()
+        return self._reproject
+
+    def reproject(self, xyz: np.ndarray) -> np.ndarray:
+        return crs_mod.reproject_points(xyz, self.source, self.output())
+
+
+def _as_bbox(bbox_crs) -> np.ndarray | None:
+    if bbox_crs is None:
+        return None
+    b = np.asarray(bbox_crs, dtype=np.float64)
+    if b.shape not in ((2, 2), (2, 3)):
+        raise ValueError(f"bbox_crs must have shape (2, 2) or (2, 3), got {b.shape}")
+    return b
+
+
+def read_citygml(
+    path: str | Path,
+    *,
+    lod: int = 2,
+    crs: str | CRSInfo | None = None,
+    target_crs: str | CRSInfo | None = None,
+    bbox_crs: np.ndarray | None = None,
+) -> RawCityModel:
+    """Read the buildings of a CityGML file at level of detail `lod` (1, 2 or 3).
+
+    crs: CRS to use when the file names none (overrides the file's, with a warning).
+    target_crs: projected CRS to reproject to (required for geographic files).
+    bbox_crs: (2,2) or (2,3) [min, max] in the output CRS; buildings whose bounding box does not
+        intersect it are dropped (NoOverlapError if none is left).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise InputError("no such file", path)
+    if lod not in (0, 1, 2, 3, 4):
+        raise InputError(f"unsupported level of detail {lod} (use 1, 2 or 3)", path)
+    user = crs if isinstance(crs, CRSInfo) or crs is None else crs_mod.user_crs(crs)
+    target = (
+        target_crs
+        if isinstance(target_crs, CRSInfo) or target_crs is None
+        else crs_mod.resolve_crs(target_crs, path="--target_crs")
+    )
+    if target is not None and not target.is_projected:
+        raise CRSError(f"target CRS {target.label} is not projected (metres needed)", "--target_crs")
+    bbox = _as_bbox(bbox_crs)
+
+    root_tag, nsmap = _read_root(path)
+    root_name = _local(root_tag)
+    version = detect_version([root_tag.partition("}")[0][1:], *nsmap.values()])
+    if version is None or root_name not in ("CityModel", "FeatureCollection"):
+        raise CityGMLError(
+            f"not a CityGML file (root element {root_name or root_tag!r}"
+            + ("" if version else ", no CityGML namespace")
+            + ")",
+            path,
+        )
+
+    walker = _Walker(path, lod)
+    state = _CRSState(path, user, target)
+    polygons: list[RawPolygon] = []
+    building_ids: list[str] = []
+    part_ids: list[str] = []
+    pending_refs: list[_Ref] = []
+    pending_polys: list[_Pending] = []
+    num_features = [0]
+    num_dropped = 0
+    num_duplicates = 0
+    kept_ids_by_building: set[str] = set()
+
+    tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
+    try:
+        context = etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True)
+        for _event, el in context:
+            parent = el.getparent()
+            name = _local(el.tag)
+            if name == "Envelope":
+                grand = parent.getparent() if parent is not None else None
+                if grand is not None and grand.getparent() is None:  # the model's envelope
+                    srs = el.get("srsName")
+                    if srs:
+                        state.add({srs})
+                continue
+            if parent is None or parent.getparent() is not None:
+                continue  # not a top-level member (nested featureMember etc.)
+            if name in MEMBER_TAGS:
+                for feature in el:
+                    if not isinstance(feature.tag, str):
+                        continue
+                    walker.reset(el)
+                    walker.feature(feature, num_features)
+                    if not walker.buildings:
+                        continue
+                    num_duplicates += walker.dedupe()
+                    unresolved = walker.resolve_local()
+                    state.add(walker.srs_names)
+                    walker.srs_names = set()
+                    if not walker.polygons:
+                        building_ids.extend(walker.buildings)  # a building without LOD-n geometry
+                        part_ids.extend(walker.parts)
+                        continue
+                    state.require()
+                    keep = _place(walker, state, bbox)
+                    if not keep:
+                        num_dropped += len(walker.buildings)
+                        continue
+                    polygons.extend(walker.polygons)
+                    building_ids.extend(walker.buildings)
+                    part_ids.extend(walker.parts)
+                    kept_ids_by_building.update(walker.buildings)
+                    pending_refs.extend(unresolved)
+                    pending_polys.extend(walker.pending)
+            # free the member and everything before it
+            el.clear()
+            while el.getprevious() is not None:
+                del parent[0]
+        del context
+    except etree.XMLSyntaxError as error:
+        raise CityGMLError(f"malformed XML: {error}", path) from None
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", path) from None
+
+    if num_features[0] == 0:
+        raise CityGMLError("no buildings in the file", path)
+    if not polygons and num_dropped == 0:
+        seen = sorted(walker.lods_seen)
+        other = f" (it has LOD {', '.join(map(str, seen))}; pass --lod {seen[-1] if 2 not in seen else 2})" if seen else ""
+        raise CityGMLError(f"no building geometry at LOD {lod}{other}", path)
+    if not polygons:
+        raise NoOverlapError(
+            f"none of the {num_dropped} buildings intersects the bounding box "
+            f"{np.round(bbox, 3).tolist()} ({state.output().label})",
+            path,
+        )
+    warnings = list(state.warnings)
+    if pending_refs or pending_polys:
+        polygons += _resolve_pending(path, walker, state, polygons, pending_refs, pending_polys)
+    if num_duplicates:
+        warnings.append(f"{num_duplicates} polygons defined twice with the same gml:id (kept the first)")
+    if walker.num_2d_rings:
+        warnings.append(f"{walker.num_2d_rings} rings with 2D coordinates (z set to 0)")
+    if num_dropped:
+        logger.info("%s: kept %d buildings, dropped %d outside the bounding box", path.name, len(building_ids), num_dropped)
+    return RawCityModel(
+        source=str(path),
+        format="CityGML",
+        version=version,
+        crs=state.output(),
+        polygons=polygons,
+        building_ids=building_ids,
+        part_ids=part_ids,
+        warnings=warnings,
+    )
+
+
+def _place(walker: _Walker, state: _CRSState, bbox: np.ndarray | None) -> bool:
+    """Reproject the city object's polygons if needed and apply the bbox filter."""
+    polys = [p for p in walker.polygons if len(p.exterior)]
+    if state.needs_reprojection():
+        arrays = [a for p in polys for a in (p.exterior, *p.holes)]
+        if arrays:
+            xyz = state.reproject(np.concatenate(arrays))
+            k = 0
+            for p in polys:
+                n = len(p.exterior)
+                p.exterior = xyz[k:k + n]
+                k += n
+                holes = []
+                for h in p.holes:
+                    holes.append(xyz[k:k + len(h)])
+                    k += len(h)
+                p.holes = holes
+    if bbox is None or not polys:
+        return True
+    lo = np.min([p.exterior.min(axis=0) for p in polys], axis=0)
+    hi = np.max([p.exterior.max(axis=0) for p in polys], axis=0)
+    d = bbox.shape[1]
+    return bool(np.all(lo[:d] <= bbox[1]) and np.all(hi[:d] >= bbox[0]))
+
+
+def _resolve_pending(
+    path: Path,
+    walker: _Walker,
+    state: _CRSState,
+    polygons: list[RawPolygon],
+    refs: list[_Ref],
+    pending: list[_Pending],
+) -> list[RawPolygon]:
+    """Resolve references across city objects; returns polygons to add (targets that lie in
+    dropped buildings, attributed to the referencing building)."""
+    index: dict[str, RawPolygon] = {}
+    for p in polygons:
+        if p.gml_id:
+            index.setdefault(p.gml_id, p)
+    open_refs = []
+    for ref in refs:
+        target = index.get(ref.target)
+        if target is not None:
+            merge_reference(target, ref)
+        else:
+            open_refs.append(ref)
+    ring_ids = {r.target.split("\0")[0] for pp in pending for r in pp.rings if isinstance(r, _RingRef)}
+    if not open_refs and not ring_ids:
+        return []
+    found_surfaces, found_rings = _rescan(path, walker.lod, {r.target for r in open_refs}, ring_ids)
+    added: list[RawPolygon] = []
+    added_by_id: dict[str, list[RawPolygon]] = {}
+    reproject = state.needs_reprojection()
+    for ref in open_refs:
+        if ref.target in added_by_id:
+            for p in added_by_id[ref.target]:
+                merge_reference(p, ref)
+            continue
+        surfaces = found_surfaces.get(ref.target)
+        if surfaces is None:
+            raise CityGMLError(f"unresolved xlink:href to '{ref.target}': no element has this gml:id", path)
+        new = []
+        for rings in surfaces:
+            if ref.reversed:
+                rings = [r[::-1].copy() for r in rings]
+            if reproject:
+                rings = [state.reproject(r) for r in rings]
+            new.append(
+                RawPolygon(
+                    exterior=rings[0], holes=rings[1:], semantic=ref.semantic,
+                    building_id=ref.building_id, part_id=ref.part_id, gml_id=ref.target,
+                    lod=walker.lod, from_solid=ref.in_solid and not ref.reversed,
+                )
+            )
+        added_by_id[ref.target] = new
+        added.extend(new)
+    for pp in pending:
+        rings = []
+        for r in pp.rings:
+            if isinstance(r, _RingRef):
+                rid, _, rev = r.target.partition("\0")
+                ring = found_rings.get(rid)
+                if ring is None:
+                    raise CityGMLError(f"unresolved xlink:href to ring '{rid}': no ring has this gml:id", path)
+                if rev:
+                    ring = ring[::-1].copy()
+                rings.append(ring)
+            else:
+                rings.append(r)
+        if reproject:  # _place() skipped these polygons: all their rings are still in the source CRS
+            rings = [state.reproject(r) for r in rings]
+        pp.polygon.exterior = rings[0]
+        pp.polygon.holes = rings[1:]
+    return added
+
+
+def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
+    """Second streaming pass: geometry of the elements with the given gml:ids.
+
+    Returns ({id: [rings of each polygon]}, {ring id: (N,3) array})."""
+    surfaces: dict[str, list[list[np.ndarray]]] = {}
+    rings: dict[str, np.ndarray] = {}
+    walker = _Walker(path, lod)
+    tags = ["{*}Polygon", "{*}Surface", "{*}CompositeSurface", "{*}MultiSurface", "{*}OrientableSurface",
+            "{*}LinearRing", "{*}Ring"] + [f"{{*}}{t}" for t in MEMBER_TAGS]
+    try:
+        for _event, el in etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True):
+            parent = el.getparent()
+            if _local(el.tag) in MEMBER_TAGS:
+                if parent is not None and parent.getparent() is None:
+                    el.clear()
+                    while el.getprevious() is not None:
+                        del parent[0]
+                continue
+            gid = _gml_id(el)
+            if not gid or (gid not in surface_ids and gid not in ring_ids):
+                continue
+            dim = 3
+            for anc in el.iterancestors():
+                d = anc.get("srsDimension")
+                if d:
+                    dim = walker._dim(d)
+                    break
+            if _local(el.tag) in ("LinearRing", "Ring"):
+                rings.setdefault(gid, walker._ring(el, dim, gid))
+                continue
+            walker.reset(None)
+            walker._geometry(el, "Unknown", False, False, dim)
+            if walker.refs or walker.pending:
+                raise CityGMLError(f"xlink:href to '{gid}' leads to further references (not supported)", path)
+            surfaces.setdefault(gid, [[p.exterior, *p.holes] for p in walker.polygons])
+    except etree.XMLSyntaxError as error:
+        raise CityGMLError(f"malformed XML: {error}", path) from None
+    return surfaces, rings
