@@ -1,0 +1,136 @@
+// Python bindings of colmap_citymodel._core: factories that return
+// ceres::CostFunction* for pyceres.Problem.add_residual_block.
+//
+// The returned pointer is converted through the ceres::CostFunction type that
+// pyceres registers, so this module must share pybind11 internals with
+// pyceres/pycolmap (pybind11 3.0.x, internals v11). The Python object owns the
+// cost (take_ownership); pyceres wraps it in a non-owning CostFunctionWrapper
+// and keeps the Python object alive as long as the pyceres.Problem object.
+#include "colmap_citymodel/point_plane_distance.h"
+#include "colmap_citymodel/point_position_prior.h"
+#include "colmap_citymodel/projection_center_prior.h"
+
+#include <stdexcept>
+#include <string>
+
+#include <ceres/version.h>
+#include <pybind11/eigen.h>
+#include <pybind11/pybind11.h>
+
+namespace py = pybind11;
+using namespace pybind11::literals;
+using namespace colmap_citymodel;
+
+namespace {
+
+void CheckSigma(double sigma, const char* what) {
+  if (!(sigma > 0.0) || !std::isfinite(sigma)) {
+    throw std::invalid_argument(std::string(what) +
+                                " must be finite and > 0, got " +
+                                std::to_string(sigma));
+  }
+}
+
+Eigen::Matrix3d SqrtInformationFromSigma(const Eigen::Vector3d& sigma) {
+  for (int i = 0; i < 3; ++i) CheckSigma(sigma(i), "sigma_xyz");
+  return sigma.cwiseInverse().asDiagonal();
+}
+
+void CheckSqrtInformation(const Eigen::Matrix3d& sqrt_information) {
+  if (!sqrt_information.allFinite() ||
+      std::abs(sqrt_information.determinant()) <= 0.0) {
+    throw std::invalid_argument(
+        "sqrt_information must be a finite, invertible 3x3 matrix");
+  }
+}
+
+}  // namespace
+
+PYBIND11_MODULE(_core, m) {
+  m.doc() =
+      "Ceres cost functions of colmap-citymodel's hybrid bundle adjustment, "
+      "returned as ceres::CostFunction for pyceres / pycolmap problems.";
+
+  // Registers ceres::CostFunction with pybind11; without it the factories
+  // below cannot convert their return value.
+  py::module_::import("pyceres");
+
+  constexpr auto kTake = py::return_value_policy::take_ownership;
+
+  m.def(
+      "PointPlaneDistanceCost",
+      [](double sigma) -> ceres::CostFunction* {
+        CheckSigma(sigma, "sigma");
+        return PointPlaneDistanceCostFunctor::Create(sigma);
+      },
+      "sigma"_a,
+      kTake,
+      "Point-to-plane distance, residual = (n.X/|n| + d) / sigma.\n"
+      "Parameter blocks: point (3), normal (3, use pyceres.SphereManifold(3)),"
+      " offset (1).");
+
+  m.def(
+      "PointPositionPriorCost",
+      [](const Eigen::Vector3d& observed_xyz,
+         const Eigen::Vector3d& sigma_xyz) -> ceres::CostFunction* {
+        return PointPositionPriorCostFunctor::Create(
+            observed_xyz, SqrtInformationFromSigma(sigma_xyz));
+      },
+      "observed_xyz"_a,
+      "sigma_xyz"_a,
+      kTake,
+      "Direct observation of a point, residual = (X - X_obs) / sigma per "
+      "axis.\nParameter block: point (3).");
+  m.def(
+      "PointPositionPriorCost",
+      [](const Eigen::Vector3d& observed_xyz,
+         const Eigen::Matrix3d& sqrt_information) -> ceres::CostFunction* {
+        CheckSqrtInformation(sqrt_information);
+        return PointPositionPriorCostFunctor::Create(observed_xyz,
+                                                     sqrt_information);
+      },
+      "observed_xyz"_a,
+      "sqrt_information"_a,
+      kTake,
+      "Direct observation of a point, residual = L (X - X_obs) with "
+      "L^T L = Sigma^-1.\nParameter block: point (3).");
+
+  m.def(
+      "ProjectionCenterPriorCost",
+      [](const Eigen::Vector3d& observed_xyz,
+         const Eigen::Vector3d& sigma_xyz,
+         const Eigen::Vector3d& position_in_rig) -> ceres::CostFunction* {
+        return ProjectionCenterPriorCostFunctor::Create(
+            observed_xyz, SqrtInformationFromSigma(sigma_xyz), position_in_rig);
+      },
+      "observed_xyz"_a,
+      "sigma_xyz"_a,
+      "position_in_rig"_a = Eigen::Vector3d::Zero(),
+      kTake,
+      "GNSS position prior on a frame, residual = (R^T (p_in_rig - t) - "
+      "P_obs) / sigma per axis.\nParameter block: rig_from_world.params (7: "
+      "qx, qy, qz, qw, tx, ty, tz).");
+  m.def(
+      "ProjectionCenterPriorCost",
+      [](const Eigen::Vector3d& observed_xyz,
+         const Eigen::Matrix3d& sqrt_information,
+         const Eigen::Vector3d& position_in_rig) -> ceres::CostFunction* {
+        CheckSqrtInformation(sqrt_information);
+        return ProjectionCenterPriorCostFunctor::Create(
+            observed_xyz, sqrt_information, position_in_rig);
+      },
+      "observed_xyz"_a,
+      "sqrt_information"_a,
+      "position_in_rig"_a = Eigen::Vector3d::Zero(),
+      kTake,
+      "GNSS position prior on a frame, residual = L (R^T (p_in_rig - t) - "
+      "P_obs) with L^T L = Sigma^-1.\nParameter block: rig_from_world.params "
+      "(7).");
+
+  m.attr("__ceres_version__") = CERES_VERSION_STRING;
+  m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;
+  m.attr("__pybind11_internals_version__") = PYBIND11_INTERNALS_VERSION;
+#ifdef PYBIND11_INTERNALS_ID
+  m.attr("__pybind11_internals_id__") = PYBIND11_INTERNALS_ID;
+#endif
+}
