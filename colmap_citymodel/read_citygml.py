@@ -24,8 +24,8 @@ reference across city objects) triggers one more streaming pass over the file th
 those ids. An id found nowhere is a CityGMLError naming it.
 
 CRS: `srsName` on the model envelope, building envelopes or any geometry element read; all must
-agree (else CRSError). No CRS at all: CRSError unless `crs` is given (a given `crs` overrides the
-file's, with a warning when they differ). Geographic CRS (e.g. PLATEAU EPSG:6697): CRSError unless
+agree (else CRSError). No CRS at all: CRSError unless `crs` is given (the file's own CRS wins over
+a given one, which then only adds a warning, as in read_cityjson). Geographic CRS (e.g. PLATEAU EPSG:6697): CRSError unless
 `target_crs` names a projected CRS; then coordinates are reprojected city object by city object
 (see crs.py for axis order). The first city object with geometry must carry or follow a CRS: the
 reader fails then rather than buffering a whole file it cannot place.
@@ -502,12 +502,12 @@ class _CRSState:
     def _check(self) -> None:
         if self.user is not None and self.file is not None and not crs_mod.same_crs(self.user, self.file):
             self.warnings.append(
-                f"the file names CRS {self.file.label} but {self.user.label} was given; using {self.user.label}"
+                f"the file names CRS {self.file.label}; the given CRS {self.user.label} is ignored"
             )
 
     @property
     def source(self) -> CRSInfo | None:
-        return self.user if self.user is not None else self.file
+        return self.file if self.file is not None else self.user
 
     def require(self) -> CRSInfo:
         src = self.source
@@ -515,7 +515,8 @@ class _CRSState:
             raise CRSError("no CRS in the file; pass --crs EPSG:N", self.path)
         if not src.is_projected and self.target is None:
             raise CRSError(
-                f"the file's CRS {src.label} is geographic (degrees); give a projected CRS to "
+                f"the file's CRS {src.srs_name or src.label} ({src.label}) is geographic (degrees); "
+                "give a projected CRS to "
                 "reproject to, e.g. --target_crs EPSG:6677 for PLATEAU (Japan plane rectangular "
                 "CS IX) or the local UTM zone",
                 self.path,
@@ -565,7 +566,7 @@ def read_citygml(
 ) -> RawCityModel:
     """Read the buildings of a CityGML file at level of detail `lod` (1, 2 or 3).
 
-    crs: CRS to use when the file names none (overrides the file's, with a warning).
+    crs: CRS to assume when the file names none (the file's own CRS wins; a different one warns).
     target_crs: projected CRS to reproject to (required for geographic files).
     bbox_crs: (2,2) or (2,3) [min, max] in the output CRS; buildings whose bounding box does not
         intersect it are dropped (NoOverlapError if none is left).

@@ -1,0 +1,158 @@
+"""The one entry point that turns city model files into a PlaneStore.
+
+`read_city_model` accepts one file, several files or a directory of tiles (CityGML `*.gml`,
+`*.xml`; CityJSON `*.json`, `*.city.json`, `*.jsonl`), reads each with its format's reader, checks
+that all share one CRS, merges them into one RawCityModel and builds the store (vertex merging,
+planes, spatial index: plane_store.build_store).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from . import crs as crs_mod
+from .errors import CRSError, InputError, NoOverlapError
+from .plane_store import PlaneStore, build_store
+from .raw_model import RawCityModel
+
+logger = logging.getLogger("colmap_citymodel.read_city_model")
+
+CITYGML_SUFFIXES = (".gml", ".xml")
+CITYJSON_SUFFIXES = (".json", ".jsonl")
+
+
+def _kind(path: Path) -> str:
+    """'citygml' or 'cityjson' from the suffix (or the first character for other names)."""
+    suffix = path.suffix.lower()
+    if suffix in CITYGML_SUFFIXES:
+        return "citygml"
+    if suffix in CITYJSON_SUFFIXES:
+        return "cityjson"
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", path) from None
+    if head.startswith(b"<"):
+        return "citygml"
+    if head.startswith(b"{"):
+        return "cityjson"
+    raise InputError("neither CityGML (XML) nor CityJSON; expected *.gml, *.xml, *.json or *.jsonl", path)
+
+
+def city_model_files(paths: str | Path | list) -> list[Path]:
+    """The files named by `paths`: files as given, directories expanded to their tiles (sorted)."""
+    if isinstance(paths, (str, Path)):
+        paths = [paths]
+    files: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            tiles = sorted(
+                f for f in p.iterdir()
+                if f.is_file() and f.suffix.lower() in CITYGML_SUFFIXES + CITYJSON_SUFFIXES
+            )
+            if not tiles:
+                raise InputError("directory has no CityGML (*.gml, *.xml) or CityJSON (*.json, *.jsonl) files", p)
+            files.extend(tiles)
+        elif p.is_file():
+            files.append(p)
+        else:
+            raise InputError("no such file or directory", p)
+    if not files:
+        raise InputError("no city model file given")
+    return files
+
+
+def read_raw(path: Path, *, lod: int, crs, target_crs, bbox_crs) -> RawCityModel:
+    """Read one file with the reader of its format."""
+    if _kind(path) == "citygml":
+        from .read_citygml import read_citygml
+
+        return read_citygml(path, lod=lod, crs=crs, target_crs=target_crs, bbox_crs=bbox_crs)
+    from .read_cityjson import read_cityjson
+
+    return read_cityjson(path, lod=lod, crs=crs, target_crs=target_crs, bbox_crs=bbox_crs)
+
+
+def merge_raw(models: list[RawCityModel]) -> RawCityModel:
+    """One RawCityModel from several tiles; all must share a CRS (else CRSError)."""
+    first = models[0]
+    model_crs = first.crs
+    for m in models[1:]:
+        if not crs_mod.same_crs(model_crs, m.crs):
+            raise CRSError(
+                f"CRS {m.crs.label} differs from {model_crs.label} of {first.source}; "
+                "all tiles must share one CRS (or pass --target_crs)",
+                m.source,
+            )
+        model_crs = crs_mod.more_complete(model_crs, m.crs)
+    if len(models) == 1:
+        return first
+    warnings: list[str] = []
+    for m in models:
+        warnings += [f"{Path(m.source).name}: {w}" for w in m.warnings]
+    building_ids = [b for m in models for b in m.building_ids]
+    seen: set[str] = set()
+    repeated = {b for b in building_ids if b in seen or seen.add(b)}
+    if repeated:
+        warnings.append(f"{len(repeated)} building ids occur in more than one tile")
+    formats = sorted({m.format for m in models})
+    versions = sorted({m.version for m in models})
+    return RawCityModel(
+        source=";".join(m.source for m in models),
+        format="+".join(formats),
+        version="+".join(versions),
+        crs=model_crs,
+        polygons=[p for m in models for p in m.polygons],
+        building_ids=building_ids,
+        part_ids=[p for m in models for p in m.part_ids],
+        warnings=warnings,
+    )
+
+
+def read_city_model(
+    paths: str | Path | list,
+    *,
+    lod: int = 2,
+    crs: str | None = None,
+    target_crs: str | None = None,
+    bbox_crs: np.ndarray | None = None,
+    merge_tolerance: float = 0.001,
+) -> PlaneStore:
+    """Read a city model (file, files or directory of tiles) into a PlaneStore.
+
+    lod: level of detail (1, 2 or 3); crs: CRS to assume when a file names none ("EPSG:3946");
+    target_crs: projected CRS to reproject to (needed for geographic data such as PLATEAU);
+    bbox_crs: (2,2) or (2,3) [min, max] in the model CRS, buildings outside are dropped (tiles
+    entirely outside are skipped; NoOverlapError when nothing is left);
+    merge_tolerance: vertices closer than this (metres) are merged.
+    """
+    files = city_model_files(paths)
+    models: list[RawCityModel] = []
+    misses: list[NoOverlapError] = []
+    for f in files:
+        try:
+            models.append(read_raw(f, lod=lod, crs=crs, target_crs=target_crs, bbox_crs=bbox_crs))
+        except NoOverlapError as error:
+            if len(files) == 1:
+                raise
+            misses.append(error)
+    if not models:
+        where = files[0].parent if len(files) > 1 else files[0]
+        raise NoOverlapError(
+            f"none of the {len(files)} tiles has a building inside the bounding box "
+            f"{np.round(np.asarray(bbox_crs, float), 3).tolist()}",
+            where,
+        )
+    if misses:
+        logger.info("skipped %d of %d tiles outside the bounding box", len(misses), len(files))
+    raw = merge_raw(models)
+    store = build_store(raw, merge_tolerance=merge_tolerance)
+    logger.info(
+        "read %d buildings, %d faces, %d vertices from %d file(s) (%s)",
+        store.num_buildings, store.num_faces, len(store.vertices), len(files), store.crs.label,
+    )
+    return store
