@@ -1,0 +1,332 @@
+"""Initial georegistration of an SfM reconstruction (method.md section 4, Unger 3.2.5).
+
+A robust 7-parameter similarity (Sim3: scale, rotation, translation) from the COLMAP camera
+centres to the GNSS positions of the same images in the store's local frame (CRS minus origin),
+estimated with pycolmap's LO-RANSAC (`pycolmap.estimate_sim3d_robust`) and refined by least
+squares on the inliers. Without GNSS the user gives the transform (`read_initial_transform`).
+
+Sim3 convention (pycolmap.Sim3d, "tgt_from_src"): x_tgt = scale * R @ x_src + t.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import GeoregistrationError, InputError
+
+logger = logging.getLogger("colmap_citymodel.georegister")
+
+
+@dataclass
+class GeoregistrationOptions:
+    """Tolerances of the initial georegistration (one place)."""
+
+    # RANSAC inlier distance (m) in the target frame; None: sigma_factor x the largest per-axis
+    # median GNSS sigma (3 x 5 m = 15 m with the default sigmas 3, 3, 5 m). The largest axis is
+    # used (not only the horizontal ones) so that true vertical errors of 2-3 sigma stay inliers.
+    max_error: float | None = None
+    sigma_factor: float = 3.0
+    min_inliers: int = 3
+    # Camera centres whose second principal extent is below this fraction of the first are
+    # collinear: the rotation about that line is undetermined.
+    min_noncollinearity: float = 1e-2
+    # The GNSS spread (largest principal std) must exceed this many GNSS sigmas.
+    min_baseline_sigmas: float = 2.0
+    random_seed: int = 0
+    confidence: float = 0.9999
+    max_num_trials: int = 100000
+
+
+@dataclass
+class Georegistration:
+    """Result: sim3 maps the reconstruction frame to the local (store) frame."""
+
+    sim3: "pycolmap.Sim3d"  # noqa: F821
+    inlier_mask: np.ndarray  # (K,) bool over the given image_ids
+    residuals: np.ndarray  # (K,3) GNSS - sim3 * centre, metres in the target frame
+    rms: float  # 3D RMS of the inlier residuals, metres
+    image_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+    max_error: float = float("nan")
+    warnings: list[str] = field(default_factory=list)
+
+    @property
+    def num_inliers(self) -> int:
+        return int(np.sum(self.inlier_mask))
+
+    def todict(self) -> dict:
+        return {
+            "scale": float(self.sim3.scale),
+            "rotation_xyzw": np.asarray(self.sim3.rotation.quat).tolist(),
+            "translation": np.asarray(self.sim3.translation).reshape(3).tolist(),
+            "matrix": np.asarray(self.sim3.matrix()).tolist(),
+            "num_positions": int(len(self.inlier_mask)),
+            "num_inliers": self.num_inliers,
+            "rms_m": float(self.rms),
+            "max_error_m": float(self.max_error),
+            "outlier_image_ids": [int(i) for i in self.image_ids[~self.inlier_mask]],
+            "warnings": list(self.warnings),
+        }
+
+
+def camera_centres(reconstruction, image_ids) -> np.ndarray:
+    """(K,3) projection centres (world frame) of the given images (COLMAP 4:
+    `Image.projection_center()`, which composes rig and frame poses)."""
+    centres = np.empty((len(image_ids), 3), dtype=np.float64)
+    for k, image_id in enumerate(image_ids):
+        image = reconstruction.image(int(image_id))
+        if not image.has_pose:
+            raise GeoregistrationError(f"image {image.name!r} (id {image_id}) has no pose")
+        centres[k] = image.projection_center()
+    return centres
+
+
+def _principal_std(points: np.ndarray) -> np.ndarray:
+    centred = points - points.mean(axis=0)
+    return np.linalg.svd(centred, compute_uv=False) / np.sqrt(max(len(points), 1))
+
+
+def _transform(sim3, points: np.ndarray) -> np.ndarray:
+    matrix = np.asarray(sim3.matrix())
+    return points @ matrix[:, :3].T + matrix[:, 3]
+
+
+def estimate_georegistration(
+    reconstruction,
+    gnss_positions_local,
+    image_ids,
+    *,
+    sigmas=None,
+    max_error: float | None = None,
+    min_inliers: int = 3,
+    options: GeoregistrationOptions | None = None,
+) -> Georegistration:
+    """Robust Sim3 from the camera centres of `image_ids` to `gnss_positions_local` (K,3).
+
+    `sigmas` (K,3) GNSS sigmas set the default RANSAC threshold (see GeoregistrationOptions);
+    without them the default sigmas 3, 3, 5 m are assumed. Raises GeoregistrationError for
+    fewer than 3 positions, collinear centres, a GNSS spread within its noise, RANSAC failure
+    or fewer than `min_inliers` inliers.
+    """
+    import pycolmap
+
+    options = options or GeoregistrationOptions()
+    if max_error is not None:
+        options.max_error = max_error
+    min_inliers = max(3, int(min_inliers if min_inliers is not None else options.min_inliers))
+    image_ids = np.asarray(image_ids, dtype=np.int64).reshape(-1)
+    target = np.asarray(gnss_positions_local, dtype=np.float64).reshape(-1, 3)
+    if len(target) != len(image_ids):
+        raise ValueError("gnss_positions_local and image_ids differ in length")
+    if len(target) < 3:
+        raise GeoregistrationError(
+            f"only {len(target)} GNSS position(s) for registered images; at least 3 "
+            "non-collinear ones are needed for the 7-parameter transform"
+        )
+    sigmas = (np.tile([3.0, 3.0, 5.0], (len(target), 1)) if sigmas is None
+              else np.asarray(sigmas, dtype=np.float64).reshape(-1, 3))
+    source = camera_centres(reconstruction, image_ids)
+    warnings: list[str] = []
+
+    # Geometry checks: the reconstruction's centres are noise-free in their own frame, so
+    # collinearity is judged there; the baseline is judged against the GNSS noise.
+    spread_src = _principal_std(source)
+    if spread_src[0] <= 0 or spread_src[1] < options.min_noncollinearity * spread_src[0]:
+        raise GeoregistrationError(
+            f"the {len(source)} camera centres with GNSS are (nearly) collinear "
+            f"(principal extents {spread_src[0]:.3g}, {spread_src[1]:.3g}, {spread_src[2]:.3g} in "
+            "reconstruction units): the rotation about that line is undetermined; give "
+            "--initial_transform or GNSS of images off that line"
+        )
+    sigma_axis = np.median(sigmas, axis=0)
+    spread_tgt = _principal_std(target)
+    if spread_tgt[0] < options.min_baseline_sigmas * float(sigma_axis.max()):
+        raise GeoregistrationError(
+            f"the GNSS positions spread only {spread_tgt[0]:.2f} m (std along the main axis), "
+            f"not more than {options.min_baseline_sigmas:g} x their sigma "
+            f"({sigma_axis.max():.2f} m): not enough baseline for a similarity transform"
+        )
+    scale_guess = spread_tgt[0] / spread_src[0]
+    if spread_src[1] * scale_guess < float(sigma_axis[:2].max()):
+        warnings.append(
+            f"weak georegistration: the camera centres deviate only ~{spread_src[1] * scale_guess:.1f} m "
+            f"from a line, less than the GNSS sigma ({sigma_axis[:2].max():.1f} m); the rotation "
+            "about the flight line is poorly determined until the model planes fix it"
+        )
+
+    threshold = (options.max_error if options.max_error is not None
+                 else options.sigma_factor * float(sigma_axis.max()))
+    ransac = pycolmap.RANSACOptions()
+    ransac.max_error = float(threshold)
+    ransac.confidence = options.confidence
+    ransac.max_num_trials = options.max_num_trials
+    ransac.random_seed = options.random_seed
+    ransac.min_inlier_ratio = min(0.99, max(0.01, (min_inliers - 0.5) / len(target)))
+    # pycolmap 4.2.1 returns {"tgt_from_src", "num_inliers", "inlier_mask"} or None (its
+    # docstring says Sim3d | None); accept both.
+    found = pycolmap.estimate_sim3d_robust(source, target, ransac)
+    sim3 = found.get("tgt_from_src") if isinstance(found, dict) else found
+    if sim3 is None:
+        raise GeoregistrationError(
+            f"RANSAC found no similarity transform from {len(target)} camera centres to GNSS "
+            f"within {threshold:.2f} m"
+        )
+    inliers = np.linalg.norm(target - _transform(sim3, source), axis=1) <= threshold
+    for _ in range(3):
+        # Least-squares refit on the inliers (deterministic), re-classify, until stable.
+        if inliers.sum() < 3:
+            break
+        refit = pycolmap.estimate_sim3d(source[inliers], target[inliers])
+        if refit is None:
+            break
+        new_inliers = np.linalg.norm(target - _transform(refit, source), axis=1) <= threshold
+        if new_inliers.sum() < inliers.sum():
+            break
+        stable = np.array_equal(new_inliers, inliers)
+        sim3, inliers = refit, new_inliers
+        if stable:
+            break
+    residuals = target - _transform(sim3, source)
+    num = int(inliers.sum())
+    if num < min_inliers:
+        raise GeoregistrationError(
+            f"only {num} of {len(target)} GNSS positions agree with a similarity transform "
+            f"within {threshold:.2f} m (at least {min_inliers} needed)"
+        )
+    rms = float(np.sqrt(np.mean(np.sum(residuals[inliers] ** 2, axis=1))))
+    if num < len(target):
+        worst = np.argsort(-np.linalg.norm(residuals, axis=1))[: min(5, len(target) - num)]
+        names = [reconstruction.image(int(image_ids[i])).name for i in worst]
+        logger.warning(
+            "%d of %d GNSS positions rejected as outliers (> %.2f m), e.g. %s",
+            len(target) - num, len(target), threshold, names,
+        )
+    for warning in warnings:
+        logger.warning(warning)
+    logger.info(
+        "Georegistration: scale %.6g, %d/%d inliers, RMS %.3f m", sim3.scale, num, len(target), rms
+    )
+    return Georegistration(
+        sim3=sim3,
+        inlier_mask=inliers,
+        residuals=residuals,
+        rms=rms,
+        image_ids=image_ids,
+        max_error=float(threshold),
+        warnings=warnings,
+    )
+
+
+def apply_sim3(reconstruction, sim3) -> None:
+    """Transform the reconstruction in place (all frames/images and points): new_from_old."""
+    reconstruction.transform(sim3)
+
+
+def sim3_to_local(sim3, origin):
+    """A Sim3 mapping input -> model CRS turned into input -> local (CRS minus origin)."""
+    import pycolmap
+
+    matrix = np.array(sim3.matrix(), dtype=np.float64)
+    matrix[:, 3] -= np.asarray(origin, dtype=np.float64).reshape(3)
+    return pycolmap.Sim3d(matrix)
+
+
+def _sim3_from_matrix(matrix: np.ndarray, path) -> "pycolmap.Sim3d":  # noqa: F821
+    import pycolmap
+
+    matrix = np.asarray(matrix, dtype=np.float64)
+    if matrix.shape == (4, 4):
+        if not np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9):
+            raise InputError("the last row of the 4x4 transform must be 0 0 0 1", path)
+        matrix = matrix[:3]
+    if matrix.shape != (3, 4) or not np.all(np.isfinite(matrix)):
+        raise InputError("the transform must be a finite 4x4 (or 3x4) matrix", path)
+    linear = matrix[:, :3]
+    det = np.linalg.det(linear)
+    if det <= 0:
+        raise InputError("the transform's 3x3 part has a non-positive determinant", path)
+    scale = det ** (1.0 / 3.0)
+    rotation = linear / scale
+    if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6):
+        raise InputError(
+            "the transform's 3x3 part is not scale x rotation (a similarity is required)", path
+        )
+    u, _, vt = np.linalg.svd(rotation)  # re-orthonormalise what was written with few digits
+    rotation = u @ vt
+    return pycolmap.Sim3d(np.column_stack([scale * rotation, matrix[:, 3]]))
+
+
+def read_initial_transform(path) -> "pycolmap.Sim3d":  # noqa: F821
+    """Read a user-given similarity mapping the INPUT reconstruction frame to MODEL CRS
+    coordinates (unshifted; use sim3_to_local(sim3, store.origin) for the local frame).
+
+    Formats:
+    - text: a 4x4 matrix [scale*R | t; 0 0 0 1] (or 3x4), whitespace/comma separated, `#` comments;
+    - JSON: {"scale": s, "rotation": [qw, qx, qy, qz] or a 3x3 matrix, "translation": [tx, ty, tz]}
+      or {"matrix": 4x4}.
+    Malformed files raise InputError naming the file.
+    """
+    import pycolmap
+
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"cannot read transform file: {error}", path) from None
+    stripped = text.strip()
+    if stripped.startswith("{"):
+        try:
+            data = json.loads(stripped)
+        except json.JSONDecodeError as error:
+            raise InputError(f"invalid JSON: {error}", path) from None
+        if "matrix" in data:
+            return _sim3_from_matrix(_as_array(data["matrix"], path, "matrix"), path)
+        missing = [k for k in ("scale", "rotation", "translation") if k not in data]
+        if missing:
+            raise InputError(f"JSON transform lacks {missing}", path)
+        try:
+            scale = float(data["scale"])
+        except (TypeError, ValueError):
+            raise InputError("'scale' must be a number", path) from None
+        if not np.isfinite(scale) or scale <= 0:
+            raise InputError("'scale' must be positive", path)
+        rotation = _as_array(data["rotation"], path, "rotation")
+        if rotation.shape == (4,):
+            norm = np.linalg.norm(rotation)
+            if norm < 1e-9:
+                raise InputError("'rotation' quaternion is zero", path)
+            qw, qx, qy, qz = rotation / norm
+            rotation = pycolmap.Rotation3d(np.array([qx, qy, qz, qw])).matrix()
+        elif rotation.shape != (3, 3):
+            raise InputError("'rotation' must be [qw, qx, qy, qz] or a 3x3 matrix", path)
+        translation = _as_array(data["translation"], path, "translation")
+        if translation.shape != (3,):
+            raise InputError("'translation' must have 3 numbers", path)
+        return _sim3_from_matrix(np.column_stack([scale * rotation, translation]), path)
+    rows = []
+    for number, line in enumerate(text.splitlines(), start=1):
+        content = line.split("#", 1)[0].replace(",", " ").strip()
+        if not content:
+            continue
+        try:
+            rows.append([float(v) for v in content.split()])
+        except ValueError:
+            raise InputError(f"line {number}: not a number in {content!r}", path) from None
+    if len(rows) not in (3, 4) or any(len(r) != 4 for r in rows):
+        raise InputError(
+            f"expected a 4x4 matrix (4 rows of 4 numbers), got {len(rows)} row(s) of "
+            f"{sorted({len(r) for r in rows})} numbers",
+            path,
+        )
+    return _sim3_from_matrix(np.array(rows), path)
+
+
+def _as_array(value, path, key) -> np.ndarray:
+    try:
+        return np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise InputError(f"'{key}' must contain numbers", path) from None

@@ -1,0 +1,163 @@
+"""Georegistration: robust Sim3 from camera centres to GNSS, and user-given transforms."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+
+from colmap_citymodel.errors import GeoregistrationError, InputError
+from colmap_citymodel.georegister import (
+    apply_sim3,
+    camera_centres,
+    estimate_georegistration,
+    read_initial_transform,
+    sim3_to_local,
+)
+
+
+def _scene(num_frames=20, seed=1):
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs = 1
+    options.num_frames_per_rig = num_frames
+    options.num_points3D = 50
+    pycolmap.set_random_seed(seed)
+    return pycolmap.synthesize_dataset(options)
+
+
+def _true_sim3(scale=8.0):
+    rotation = Rotation.from_euler("zyx", [35.0, -12.0, 7.0], degrees=True).as_matrix()
+    return pycolmap.Sim3d(np.column_stack([scale * rotation, [120.0, -40.0, 25.0]]))
+
+
+def _rotation_angle_deg(a, b):
+    return np.degrees(Rotation.from_matrix(a @ b.T).magnitude())
+
+
+def test_recovers_sim3_and_rejects_gnss_outliers():
+    rec = _scene()
+    ids = np.array(sorted(rec.reg_image_ids()))
+    truth = _true_sim3()
+    centres = camera_centres(rec, ids)
+    rng = np.random.default_rng(0)
+    sigma = np.array([0.3, 0.3, 0.5])
+    gnss = (centres @ np.asarray(truth.matrix())[:, :3].T + np.asarray(truth.translation)
+            + rng.normal(0, sigma, size=centres.shape))
+    outliers = np.array([3, 11])
+    gnss[outliers] += [[60.0, 0, 0], [0, -45.0, 30.0]]
+    result = estimate_georegistration(rec, gnss, ids, sigmas=np.tile(sigma, (len(ids), 1)))
+    assert result.max_error == pytest.approx(1.5)  # 3 x the largest per-axis sigma
+    np.testing.assert_array_equal(np.flatnonzero(~result.inlier_mask), outliers)
+    assert result.sim3.scale == pytest.approx(8.0, rel=0.01)
+    assert _rotation_angle_deg(result.sim3.rotation.matrix(), truth.rotation.matrix()) < 0.5
+    assert result.rms < 1.0  # ~ sqrt(0.3^2 + 0.3^2 + 0.5^2) = 0.66 m of noise
+    assert np.linalg.norm(result.residuals[outliers[0]]) > 40.0
+    d = result.todict()
+    assert d["num_inliers"] == len(ids) - 2 and sorted(d["outlier_image_ids"]) == sorted(
+        ids[outliers].tolist())
+
+    # Applying it brings the camera centres onto the GNSS positions (up to the noise).
+    apply_sim3(rec, result.sim3)
+    moved = camera_centres(rec, ids)
+    inl = result.inlier_mask
+    assert np.sqrt(np.mean(np.sum((moved[inl] - gnss[inl]) ** 2, axis=1))) < 1.0
+
+
+def test_exact_data_recovered_exactly():
+    rec = _scene(num_frames=6, seed=3)
+    ids = np.array(sorted(rec.reg_image_ids()))
+    truth = _true_sim3(scale=25.0)
+    gnss = camera_centres(rec, ids) @ np.asarray(truth.matrix())[:, :3].T + np.asarray(
+        truth.translation)
+    result = estimate_georegistration(rec, gnss, ids)
+    np.testing.assert_allclose(np.asarray(result.sim3.matrix()), np.asarray(truth.matrix()),
+                               atol=1e-8)
+    assert result.inlier_mask.all() and result.rms < 1e-8
+
+
+def test_too_few_and_collinear_and_no_baseline():
+    rec = _scene(num_frames=8)
+    ids = np.array(sorted(rec.reg_image_ids()))
+    gnss = camera_centres(rec, ids) * 10.0
+    with pytest.raises(GeoregistrationError, match="only 2 GNSS"):
+        estimate_georegistration(rec, gnss[:2], ids[:2])
+
+    # Put the camera centres on a line: the rotation about it is undetermined.
+    for k, image_id in enumerate(ids):
+        frame = rec.frame(rec.image(int(image_id)).frame_id)
+        frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([-k, 0.0, 0.0]))
+    line = camera_centres(rec, ids)
+    with pytest.raises(GeoregistrationError, match="collinear"):
+        estimate_georegistration(rec, line * 10.0, ids)
+
+    # Non-collinear centres but all GNSS within a metre of each other.
+    rec = _scene(num_frames=8)
+    tiny = camera_centres(rec, ids) * 0.05
+    with pytest.raises(GeoregistrationError, match="baseline"):
+        estimate_georegistration(rec, tiny, ids)
+
+
+def test_mostly_outliers_fails_clearly():
+    rec = _scene(num_frames=10)
+    ids = np.array(sorted(rec.reg_image_ids()))
+    rng = np.random.default_rng(5)
+    gnss = rng.uniform(-500, 500, size=(len(ids), 3))
+    with pytest.raises(GeoregistrationError, match="agree with a similarity|no similarity"):
+        estimate_georegistration(rec, gnss, ids, min_inliers=6)
+
+
+def test_read_initial_transform_formats(tmp_path):
+    truth = _true_sim3(scale=2.5)
+    matrix4 = np.vstack([np.asarray(truth.matrix()), [0, 0, 0, 1]])
+    text = tmp_path / "t.txt"
+    text.write_text("# input -> model CRS\n" + "\n".join(" ".join(f"{v:.17g}" for v in row)
+                                                      for row in matrix4) + "\n")
+    np.testing.assert_allclose(read_initial_transform(text).matrix(), truth.matrix(), atol=1e-9)
+
+    xyzw = truth.rotation.quat
+    as_json = tmp_path / "t.json"
+    as_json.write_text(json.dumps({
+        "scale": 2.5,
+        "rotation": [xyzw[3], xyzw[0], xyzw[1], xyzw[2]],  # qw qx qy qz
+        "translation": np.asarray(truth.translation).tolist(),
+    }))
+    np.testing.assert_allclose(read_initial_transform(as_json).matrix(), truth.matrix(), atol=1e-9)
+    as_json.write_text(json.dumps({"scale": 2.5, "rotation": truth.rotation.matrix().tolist(),
+                                   "translation": [120.0, -40.0, 25.0]}))
+    sim3 = read_initial_transform(as_json)
+    np.testing.assert_allclose(sim3.matrix(), truth.matrix(), atol=1e-9)
+
+    origin = np.array([100.0, -50.0, 20.0])
+    local = sim3_to_local(sim3, origin)
+    x = np.array([[1.0, 2.0, 3.0]])
+    np.testing.assert_allclose(local * x, sim3 * x - origin, atol=1e-9)
+
+
+@pytest.mark.parametrize(
+    "name, content, match",
+    [
+        ("a.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n", None),  # 3x4 is accepted
+        ("b.txt", "1 0 0\n0 1 0\n0 0 1\n", "4x4"),
+        ("c.txt", "1 0 0 0\n0 1 0 0\n0 0 1 x\n0 0 0 1\n", "line 3: not a number"),
+        ("d.txt", "1 0 0 0\n0 2 0 0\n0 0 1 0\n0 0 0 1\n", "not scale x rotation"),
+        ("e.txt", "-1 0 0 0\n0 1 0 0\n0 0 1 0\n0 0 0 1\n", "determinant"),
+        ("f.txt", "1 0 0 0\n0 1 0 0\n0 0 1 0\n1 0 0 1\n", "last row"),
+        ("g.json", '{"scale": 1, "rotation": [1, 0, 0]', "invalid JSON"),
+        ("h.json", '{"scale": 1, "rotation": [1, 0, 0, 0]}', "lacks"),
+        ("i.json", '{"scale": -1, "rotation": [1, 0, 0, 0], "translation": [0, 0, 0]}',
+         "positive"),
+        ("j.json", '{"scale": 1, "rotation": [1, 0], "translation": [0, 0, 0]}', "rotation"),
+    ],
+)
+def test_read_initial_transform_malformed(tmp_path, name, content, match):
+    path = tmp_path / name
+    path.write_text(content)
+    if match is None:
+        np.testing.assert_allclose(read_initial_transform(path).matrix(), np.eye(3, 4))
+        return
+    with pytest.raises(InputError, match=match) as info:
+        read_initial_transform(path)
+    assert name in str(info.value)
