@@ -1,0 +1,151 @@
+"""Assignment of tie points to model planes (Unger chapter 4; method.md section 6).
+
+Every method answers the same question: given the current tie point coordinates (local frame)
+and the plane store, which tie point belongs to which model face? At most one face per point
+per iteration. All methods finish with the same two tests per face: a minimum number of points
+and a planarity test on the eigenvalues l1 >= l2 >= l3 of the assigned points' covariance,
+(l2 - l3) / l1 > threshold (rejects point sets close to a line).
+
+Only method (a), direct assignment, is implemented; (b) and (c) register in `ASSIGNERS`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Protocol
+
+import numpy as np
+
+from .options import AssignmentOptions
+from .plane_store import PlaneStore
+
+logger = logging.getLogger("colmap_citymodel.assign_planes")
+
+
+@dataclass
+class Assignment:
+    """Result of one assignment: `face_index[i]` is the face of tie point `point_ids[i]` (-1: none)."""
+
+    point_ids: np.ndarray  # (P,) int64 COLMAP point3D ids, all candidates (check points excluded)
+    face_index: np.ndarray  # (P,) int64
+    distance: np.ndarray  # (P,) float64 signed distance to the assigned plane, nan if none
+    threshold: float
+    rejected_faces: dict[str, int] = field(default_factory=dict)  # reason -> number of faces
+
+    @property
+    def assigned(self) -> np.ndarray:
+        return self.face_index >= 0
+
+    @property
+    def num_assigned(self) -> int:
+        return int(np.count_nonzero(self.assigned))
+
+    @property
+    def faces(self) -> np.ndarray:
+        """Sorted unique face indices with at least one assigned point."""
+        return np.unique(self.face_index[self.assigned])
+
+    @property
+    def num_faces(self) -> int:
+        return len(self.faces)
+
+    def points_of_face(self, face: int) -> np.ndarray:
+        return self.point_ids[self.face_index == face]
+
+    def without(self, point_mask: np.ndarray) -> "Assignment":
+        """A copy in which the points selected by `point_mask` are unassigned (eliminated)."""
+        face_index = self.face_index.copy()
+        distance = self.distance.copy()
+        face_index[point_mask] = -1
+        distance[point_mask] = np.nan
+        return Assignment(self.point_ids, face_index, distance, self.threshold,
+                          dict(self.rejected_faces))
+
+
+class PlaneAssigner(Protocol):
+    """Interface of an assignment method."""
+
+    def __call__(self, points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
+                 threshold: float, options: AssignmentOptions) -> Assignment: ...
+
+
+def planarity(points: np.ndarray) -> float:
+    """(l2 - l3) / l1 of the covariance eigenvalues l1 >= l2 >= l3 (0 for a line or a point)."""
+    if len(points) < 3:
+        return 0.0
+    eigenvalues = np.linalg.eigvalsh(np.cov(points.T))[::-1]
+    if eigenvalues[0] <= 0:
+        return 0.0
+    return float((eigenvalues[1] - eigenvalues[2]) / eigenvalues[0])
+
+
+def filter_faces(points: np.ndarray, face_index: np.ndarray, options: AssignmentOptions,
+                 rejected: dict[str, int]) -> np.ndarray:
+    """Unassign the points of faces that fail the minimum-count or planarity test."""
+    face_index = face_index.copy()
+    faces, counts = np.unique(face_index[face_index >= 0], return_counts=True)
+    for face, count in zip(faces, counts):
+        members = face_index == face
+        if count < options.min_points_per_plane:
+            reason = "too_few_points"
+        elif planarity(points[members]) <= options.planarity_threshold:
+            reason = "not_planar"
+        else:
+            continue
+        face_index[members] = -1
+        rejected[reason] = rejected.get(reason, 0) + 1
+    return face_index
+
+
+def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
+                  threshold: float, options: AssignmentOptions) -> Assignment:
+    """Method (a): each tie point to its closest model face, if closer than `threshold`.
+
+    "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
+    contains the point's orthogonal projection (grown by `polygon_margin`).
+    """
+    face_index, distance = store.closest_faces(points, max_distance=threshold,
+                                               margin=options.polygon_margin)
+    rejected: dict[str, int] = {}
+    face_index = filter_faces(points, face_index, options, rejected)
+    distance = np.where(face_index >= 0, distance, np.nan)
+    return Assignment(np.asarray(point_ids, dtype=np.int64), face_index, distance, threshold,
+                      rejected)
+
+
+ASSIGNERS: dict[str, PlaneAssigner] = {"direct": assign_direct}
+
+
+def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
+           options: AssignmentOptions) -> Assignment:
+    try:
+        assigner = ASSIGNERS[options.method]
+    except KeyError:
+        from .errors import InputError
+
+        raise InputError(f"unknown assignment method {options.method!r}; "
+                         f"available: {', '.join(sorted(ASSIGNERS))}") from None
+    result = assigner(points, point_ids, store, threshold, options)
+    logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
+                 result.num_assigned, len(point_ids), result.num_faces, threshold,
+                 result.rejected_faces)
+    return result
+
+
+def next_threshold(previous: Assignment, points: np.ndarray, store: PlaneStore,
+                   options: AssignmentOptions, sigma_dtp: float) -> float:
+    """Threshold schedule of method (a): 3.5 x the mean over faces of the per-face mean
+    |distance| of the previously assigned points (at their current coordinates), bounded to
+    [2 sigma_dTP, max_threshold]."""
+    lower = options.min_threshold_sigmas * sigma_dtp
+    assigned = previous.assigned
+    if not np.any(assigned):
+        return options.max_threshold
+    faces = previous.face_index[assigned]
+    pts = points[assigned]
+    distances = np.abs(np.einsum("ij,ij->i", pts, store.normals[faces]) + store.offsets[faces])
+    unique_faces, inverse = np.unique(faces, return_inverse=True)
+    per_face_mean = np.bincount(inverse, weights=distances) / np.bincount(inverse)
+    threshold = options.threshold_factor * float(np.mean(per_face_mean))
+    return float(np.clip(threshold, lower, options.max_threshold))

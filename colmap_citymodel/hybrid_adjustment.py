@@ -1,0 +1,295 @@
+"""The hybrid bundle adjustment: COLMAP's own bundle adjuster plus model residual blocks.
+
+Unger 3.2 (method.md section 2). The problem is the `pyceres.Problem` of
+`pycolmap.create_default_ceres_bundle_adjuster` (reprojection errors of all tie points in all
+registered images), to which this module adds, through the C++ extension's cost functions:
+
+- f_pos: GNSS projection centre priors on each frame's rig_from_world block (sigma 3, 3, 5 m);
+- f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
+- f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
+- f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed").
+
+Planes are unknowns with 3 degrees of freedom: a unit normal on a sphere manifold plus an
+offset, so the signed distance of X is n . X + d. The gauge is left free: GNSS and the model
+planes give the datum. Everything is in the plane store's local frame (CRS minus origin).
+
+Residual order in the problem is the order of addition (nothing is ever removed), which lets
+`group_residuals` split `evaluate_residuals` into the observation groups without bookkeeping
+inside Ceres.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+
+import numpy as np
+import pyceres
+import pycolmap
+
+from ._ext import load_core
+from .assign_planes import Assignment
+from .options import AdjustmentOptions
+from .plane_store import PlaneStore
+
+logger = logging.getLogger("colmap_citymodel.hybrid_adjustment")
+
+GROUPS = ("image", "gnss", "dTP", "dVT", "VT")
+
+
+@dataclass
+class GNSSPriors:
+    """GNSS projection centres matched to the reconstruction, in the local frame."""
+
+    image_ids: np.ndarray  # (N,) int
+    positions: np.ndarray  # (N, 3)
+    sigmas: np.ndarray  # (N, 3)
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+
+@dataclass
+class SolveReport:
+    """Figures of one solve, all residuals normalised by their a priori sigma."""
+
+    rms: dict[str, float]  # per group: RMS of normalised residuals
+    count: dict[str, int]  # per group: number of scalar observations
+    sum_squares: dict[str, float]
+    num_unknowns: int
+    ceres_iterations: int
+    seconds: float
+    termination: str
+
+    @property
+    def num_observations(self) -> int:
+        return sum(self.count.values())
+
+    @property
+    def redundancy(self) -> int:
+        return self.num_observations - self.num_unknowns
+
+    @property
+    def sigma0_squared(self) -> float:
+        r = self.redundancy
+        return float(sum(self.sum_squares.values()) / r) if r > 0 else float("nan")
+
+    @property
+    def rms_total(self) -> float:
+        n = self.num_observations
+        return float(np.sqrt(sum(self.sum_squares.values()) / n)) if n else float("nan")
+
+    def todict(self) -> dict:
+        return {
+            "rms": self.rms, "count": self.count, "num_unknowns": self.num_unknowns,
+            "redundancy": self.redundancy, "sigma0": float(np.sqrt(self.sigma0_squared)),
+            "ceres_iterations": self.ceres_iterations, "seconds": self.seconds,
+            "termination": self.termination,
+        }
+
+
+@dataclass
+class PlaneBlocks:
+    """The model unknowns in the problem: one normal (3) and offset (1) array per face and one
+    array (3) per vertex. Ceres holds raw pointers to these arrays: keep this object alive."""
+
+    faces: np.ndarray
+    normals: list[np.ndarray] = field(default_factory=list)
+    offsets: list[np.ndarray] = field(default_factory=list)
+    vertex_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    vertices: list[np.ndarray] = field(default_factory=list)
+
+    @property
+    def normal_array(self) -> np.ndarray:
+        return np.array(self.normals).reshape(-1, 3)
+
+    @property
+    def offset_array(self) -> np.ndarray:
+        return np.array(self.offsets).reshape(-1)
+
+    @property
+    def vertex_array(self) -> np.ndarray:
+        return np.array(self.vertices).reshape(-1, 3)
+
+
+def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
+                              ) -> pycolmap.BundleAdjustmentOptions:
+    ba = pycolmap.BundleAdjustmentOptions()
+    ba.refine_focal_length = options.refine_intrinsics
+    ba.refine_extra_params = options.refine_intrinsics
+    ba.refine_principal_point = False
+    ba.refine_sensor_from_rig = False
+    ba.print_summary = False
+    if robust_images:
+        ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        ba.ceres.loss_function_scale = options.image_loss_scale
+    else:
+        ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
+    ba.ceres.solver_options.max_num_iterations = options.max_solver_iterations
+    ba.ceres.solver_options.num_threads = options.num_threads
+    # COLMAP stops on gradient_tolerance only; a relative cost tolerance ends the many
+    # near-converged re-solves of the outer loop early without changing the optimum.
+    ba.ceres.solver_options.function_tolerance = 1e-8
+    return ba
+
+
+class HybridProblem:
+    """One hybrid adjustment problem built from the current state; solve() updates in place.
+
+    `reconstruction` is modified by solve(): poses, tie points (and intrinsics if enabled).
+    The model unknowns are read back from `blocks`.
+    """
+
+    def __init__(self, reconstruction: pycolmap.Reconstruction, store: PlaneStore | None,
+                 assignment: Assignment | None, gnss: GNSSPriors | None,
+                 options: AdjustmentOptions, *, robust_images: bool, robust_planes: bool,
+                 current: PlaneStore | None = None):
+        """`store` is the model as observed (f_VT observes its vertices); `current` (same
+        topology, default `store`) holds the current estimate used as initial values."""
+        core = load_core()
+        self.reconstruction = reconstruction
+        self.options = options
+        config = pycolmap.BundleAdjustmentConfig()
+        for image_id in reconstruction.reg_image_ids():
+            config.add_image(image_id)
+        # No gauge fixing: GNSS and the model planes give the datum (checked before solving).
+        self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(
+            bundle_adjustment_options(options, robust_images), config, reconstruction)
+        self.problem: pyceres.Problem = self.adjuster.problem
+        self.counts = {"image": self.problem.num_residuals()}
+        self.point_ids = np.zeros(0, np.int64)
+        self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
+        self._add_gnss(core, gnss)
+        if store is not None and assignment is not None and assignment.num_assigned:
+            self._add_model(core, store, current if current is not None else store, assignment,
+                            robust_planes)
+        else:
+            self.counts.update(dTP=0, dVT=0, VT=0)
+
+    # -- building ---------------------------------------------------------------------------
+    def _add_gnss(self, core, gnss: GNSSPriors | None) -> None:
+        self.counts["gnss"] = 0
+        if gnss is None:
+            return
+        rec = self.reconstruction
+        for image_id, position, sigma in zip(gnss.image_ids, gnss.positions, gnss.sigmas):
+            image = rec.image(int(image_id))
+            frame = rec.frame(image.frame_id)
+            rig_from_world = frame.rig_from_world.params
+            if not self.problem.has_parameter_block(rig_from_world):
+                continue
+            cost = core.ProjectionCenterPriorCost(np.asarray(position, float),
+                                                  np.asarray(sigma, float),
+                                                  _position_in_rig(rec, image))
+            self.problem.add_residual_block(cost, None, [rig_from_world])
+            self.counts["gnss"] += 3
+
+    def _add_model(self, core, store: PlaneStore, current: PlaneStore, assignment: Assignment,
+                   robust_planes: bool) -> None:
+        o = self.options
+        problem = self.problem
+        faces = assignment.faces
+        blocks = PlaneBlocks(faces=faces)
+        slot_of_face = {int(f): k for k, f in enumerate(faces)}
+        sphere = pyceres.SphereManifold(3)
+        for f in faces:
+            blocks.normals.append(np.array(current.normals[f], dtype=np.float64))
+            blocks.offsets.append(np.array([current.offsets[f]], dtype=np.float64))
+            problem.add_parameter_block(blocks.normals[-1], 3)
+            problem.set_manifold(blocks.normals[-1], sphere)
+            problem.add_parameter_block(blocks.offsets[-1], 1)
+
+        # f_dTP: one residual per assigned tie point, in the order of `point_ids`.
+        tie_cost = core.PointPlaneDistanceCost(o.sigma_dtp)
+        tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
+        assigned = assignment.assigned
+        self.point_ids = assignment.point_ids[assigned]
+        point_faces = assignment.face_index[assigned]
+        rec = self.reconstruction
+        for point_id, face in zip(self.point_ids, point_faces):
+            k = slot_of_face[int(face)]
+            problem.add_residual_block(tie_cost, tie_loss,
+                                       [rec.point3D(int(point_id)).xyz, blocks.normals[k],
+                                        blocks.offsets[k]])
+        self.counts["dTP"] = len(self.point_ids)
+
+        # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
+        vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
+        blocks.vertex_ids = vertex_ids
+        indptr, indices = store.vertex_faces
+        vertex_cost = core.PointPlaneDistanceCost(o.sigma_dvt)
+        sigma_vt = np.full(3, o.sigma_vt)
+        n_dvt = 0
+        for v in vertex_ids:
+            blocks.vertices.append(np.array(current.vertices[v], dtype=np.float64))
+            for f in indices[indptr[v]:indptr[v + 1]]:
+                k = slot_of_face.get(int(f))
+                if k is not None:
+                    problem.add_residual_block(vertex_cost, None,
+                                               [blocks.vertices[-1], blocks.normals[k],
+                                                blocks.offsets[k]])
+                    n_dvt += 1
+        self.counts["dVT"] = n_dvt
+        for v, vertex in zip(vertex_ids, blocks.vertices):
+            problem.add_residual_block(
+                core.PointPositionPriorCost(np.array(store.vertices[v], dtype=np.float64),
+                                            sigma_vt), None, [vertex])
+        self.counts["VT"] = 3 * len(vertex_ids)
+        self.blocks = blocks
+
+    # -- solving ----------------------------------------------------------------------------
+    def num_unknowns(self) -> int:
+        """Tangent-space dimension of the variable parameters (the u of n - u)."""
+        rec = self.reconstruction
+        frames = {rec.image(i).frame_id for i in rec.reg_image_ids()}
+        u = 6 * len(frames) + 3 * rec.num_points3D()
+        if self.options.refine_intrinsics:
+            u += sum(len(c.params) - 2 for c in rec.cameras.values())  # principal point fixed
+        u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
+        return u
+
+    def group_residuals(self) -> dict[str, np.ndarray]:
+        """Normalised residuals per observation group (loss functions not applied)."""
+        evaluate = pyceres.EvaluateOptions()
+        evaluate.apply_loss_function = False
+        values = np.asarray(self.problem.evaluate_residuals(evaluate))
+        out, start = {}, 0
+        for group in GROUPS:
+            n = self.counts[group]
+            out[group] = values[start:start + n]
+            start += n
+        out["image"] = out["image"] / self.options.sigma_image
+        return out
+
+    def solve(self) -> SolveReport:
+        import time
+
+        start = time.perf_counter()
+        summary = self.adjuster.solve()
+        seconds = time.perf_counter() - start
+        ceres_summary = getattr(summary, "ceres_summary", None)
+        iterations = (ceres_summary.num_successful_steps + ceres_summary.num_unsuccessful_steps
+                      if ceres_summary is not None else -1)
+        if ceres_summary is not None:
+            logger.debug("ceres: %s", ceres_summary.BriefReport())
+        residuals = self.group_residuals()
+        return SolveReport(
+            rms={g: float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
+                 for g, r in residuals.items()},
+            count={g: len(r) for g, r in residuals.items()},
+            sum_squares={g: float(np.sum(r ** 2)) for g, r in residuals.items()},
+            num_unknowns=self.num_unknowns(),
+            ceres_iterations=iterations,
+            seconds=seconds,
+            termination=str(getattr(summary, "termination_type", "")),
+        )
+
+
+def _position_in_rig(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> np.ndarray:
+    """The camera's projection centre in its rig frame; zero for the rig's reference camera."""
+    if image.is_ref_in_frame():
+        return np.zeros(3)
+    rig = rec.rig(rec.frame(image.frame_id).rig_id)
+    cam_from_rig = rig.sensor_from_rig(image.camera.sensor_id)
+    rotation = np.asarray(cam_from_rig.rotation.matrix())
+    return -rotation.T @ np.asarray(cam_from_rig.translation)

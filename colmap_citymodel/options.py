@@ -1,0 +1,136 @@
+"""Options of the refine step as dataclasses, with the defaults of method.md (Unger 5.3).
+
+Every number a user may want to change lives here, documented, in one place. `RefineOptions`
+loads from and dumps to TOML-like dicts; unknown keys are rejected (like pycolmap's mergedict),
+so a typo in an options file is an error, not a silently ignored setting.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from .errors import InputError
+
+
+@dataclass
+class AssignmentOptions:
+    """Assignment of tie points to model planes (method.md section 6, Unger 4.1 and 4.4)."""
+
+    method: str = "direct"
+    """"direct" = method (a). Methods (b) "msac" and (c) "roi_msac" plug in behind the same
+    interface (assign_planes.ASSIGNERS)."""
+    max_threshold: float = 2.0
+    """Upper limit of the point-to-plane distance threshold in metres (first iteration)."""
+    threshold_factor: float = 3.5
+    """Later thresholds = factor x mean over planes of the per-plane mean distance."""
+    min_threshold_sigmas: float = 2.0
+    """Lower bound of the threshold in units of sigma_dTP (2 x 0.2 m = 0.4 m)."""
+    min_points_per_plane: int = 15
+    """Planes with fewer assigned tie points get none (5 for a detailed model)."""
+    planarity_threshold: float = 0.001
+    """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
+    polygon_margin: float = 0.1
+    """A point's projection may lie this far (m) outside the face polygon and still count."""
+
+
+@dataclass
+class AdjustmentOptions:
+    """Stochastic model and solver settings of the hybrid bundle adjustment (Unger 3.2, 5.3)."""
+
+    sigma_image: float = 1.0
+    """A priori sigma of image coordinates (px) of tie points and check points."""
+    sigma_gnss: tuple[float, float, float] = (3.0, 3.0, 5.0)
+    """Default sigma of GNSS projection centres X, Y, Z (m) when the source gives none."""
+    sigma_dtp: float = 0.20
+    """Fictitious distance tie point -> assigned plane (m); 0.05 for a detailed model."""
+    sigma_dvt: float = 0.01
+    """Fictitious distance vertex -> each plane it belongs to (m)."""
+    sigma_vt: float = 0.01
+    """Direct observation of each model vertex (m); 0.5 to correct the model."""
+    image_loss_scale: float = 1.0
+    """Cauchy scale (px) of the robust reprojection loss in step 2."""
+    plane_loss_scale: float = 2.0
+    """Huber scale (in units of sigma_dTP) of the robust f_dTP loss in step 4."""
+    elimination_threshold: float = 3.0
+    """Observations whose normalised residual |v| / sigma exceeds this are eliminated."""
+    min_triangulation_angle: float = 1.5
+    """Degrees; tie points below it are removed with the image outliers in step 2."""
+    refine_intrinsics: bool = False
+    """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
+    max_solver_iterations: int = 100
+    num_threads: int = -1
+
+
+@dataclass
+class WorkflowOptions:
+    """Global workflow (Unger Table 3): steps 3-4 repeated until convergence."""
+
+    max_iterations: int = 10
+    """At most this many assign + hybrid BA iterations."""
+    convergence_rms_change: float = 1e-5
+    """Stop when the relative change of the RMS of normalised residuals is below this."""
+    overlap_margin: float = 30.0
+    """Metres around the reconstruction's footprint in which model buildings are kept."""
+
+
+@dataclass
+class RefineOptions:
+    assignment: AssignmentOptions = field(default_factory=AssignmentOptions)
+    adjustment: AdjustmentOptions = field(default_factory=AdjustmentOptions)
+    workflow: WorkflowOptions = field(default_factory=WorkflowOptions)
+
+    @classmethod
+    def preset(cls, name: str) -> "RefineOptions":
+        """`generalised` (default, LOD2 as published) or `detailed` (LOD3 / detailed LOD2)."""
+        options = cls()
+        if name in ("generalised", "generalized", "default"):
+            return options
+        if name == "detailed":
+            options.adjustment.sigma_dtp = 0.05
+            options.assignment.min_points_per_plane = 5
+            return options
+        if name == "correct_model":
+            options.adjustment.sigma_vt = 0.5
+            return options
+        raise InputError(f"unknown preset {name!r}; use generalised, detailed or correct_model")
+
+    def todict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def mergedict(self, values: dict[str, Any], source: str = "options") -> "RefineOptions":
+        """Overwrite fields from a nested dict; unknown sections or keys are an InputError."""
+        for section, entries in values.items():
+            target = getattr(self, section, None)
+            if not dataclasses.is_dataclass(target) or not isinstance(entries, dict):
+                raise InputError(f"unknown options section {section!r}", source)
+            known = {f.name: f for f in dataclasses.fields(target)}
+            for key, value in entries.items():
+                if key not in known:
+                    raise InputError(f"unknown option {section}.{key}", source)
+                current = getattr(target, key)
+                if isinstance(current, tuple):
+                    value = tuple(float(v) for v in value)
+                elif isinstance(current, float) and isinstance(value, int):
+                    value = float(value)
+                elif not isinstance(value, type(current)):
+                    raise InputError(
+                        f"option {section}.{key} must be {type(current).__name__}, got {value!r}",
+                        source,
+                    )
+                setattr(target, key, value)
+        return self
+
+    @classmethod
+    def from_toml(cls, path: str | Path, preset: str = "generalised") -> "RefineOptions":
+        path = Path(path)
+        try:
+            values = tomllib.loads(path.read_text())
+        except FileNotFoundError:
+            raise InputError("options file does not exist", path) from None
+        except (tomllib.TOMLDecodeError, UnicodeDecodeError) as error:
+            raise InputError(f"not a valid TOML file: {error}", path) from None
+        return cls.preset(preset).mergedict(values, source=str(path))

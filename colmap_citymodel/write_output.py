@@ -1,0 +1,217 @@
+"""Writing the refine result: a georeferenced COLMAP model and the files people look at.
+
+Everything goes into a temporary directory beside `output_path` that is renamed into place at
+the end, so a failed run leaves nothing half-written and never touches the inputs.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import shutil
+import tempfile
+from contextlib import contextmanager
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from .errors import InputError
+from .refine import RefineResult
+
+logger = logging.getLogger("colmap_citymodel.write_output")
+
+UNASSIGNED_GREY = (160, 160, 160)
+
+
+@contextmanager
+def atomic_directory(output_path: str | Path):
+    """Yield a temporary directory that becomes `output_path` when the block succeeds."""
+    output_path = Path(output_path)
+    if output_path.exists() and (not output_path.is_dir() or any(output_path.iterdir())):
+        raise InputError("output path exists and is not an empty directory; give a new one",
+                         output_path)
+    output_path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = Path(tempfile.mkdtemp(prefix=f".{output_path.name}.", dir=output_path.parent))
+    try:
+        yield tmp
+        if output_path.exists():
+            output_path.rmdir()
+        os.replace(tmp, output_path)
+    finally:
+        if tmp.exists():
+            shutil.rmtree(tmp, ignore_errors=True)
+
+
+def face_colours(num_faces: int) -> np.ndarray:
+    """A fixed, well-spread colour per face index (same colours in every run)."""
+    golden = 0.618033988749895
+    hue = (np.arange(num_faces) * golden) % 1.0
+    import colorsys
+
+    return (np.array([colorsys.hsv_to_rgb(h, 0.75, 0.95) for h in hue]).reshape(-1, 3)
+            * 255).astype(np.uint8)
+
+
+def write_point_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray,
+                    scalars: dict[str, np.ndarray] | None = None) -> None:
+    """Binary PLY with float64 coordinates (CRS coordinates do not fit float32) and colours."""
+    scalars = scalars or {}
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
+              ("blue", "u1")] + [(name, "<f4") for name in scalars]
+    data = np.empty(len(xyz), dtype=fields)
+    data["x"], data["y"], data["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
+    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    for name, values in scalars.items():
+        data[name] = values
+    ply_type = {"<f8": "double", "u1": "uchar", "<f4": "float"}
+    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}"]
+    header += [f"property {ply_type[t]} {name}" for name, t in fields]
+    header += ["end_header"]
+    with open(path, "wb") as f:
+        f.write(("\n".join(header) + "\n").encode())
+        f.write(data.tobytes())
+
+
+def write_assignments_ply(result: RefineResult, path: Path, offset: np.ndarray) -> None:
+    a = result.assignment
+    xyz = np.array([result.reconstruction.point3D(int(i)).xyz for i in a.point_ids]).reshape(-1, 3)
+    colours = np.tile(np.array(UNASSIGNED_GREY, np.uint8), (len(xyz), 1))
+    palette = face_colours(len(result.store.faces))
+    colours[a.assigned] = palette[a.face_index[a.assigned]]
+    write_point_ply(path, xyz + offset, colours,
+                    {"face": a.face_index.astype(np.float32),
+                     "distance": np.nan_to_num(a.distance, nan=-1.0).astype(np.float32)})
+
+
+def sim3_dict(sim3: pycolmap.Sim3d) -> dict:
+    return {"scale": float(sim3.scale),
+            "rotation_xyzw": [float(v) for v in sim3.rotation.quat],
+            "translation": [float(v) for v in sim3.translation],
+            "matrix": np.asarray(sim3.matrix()).tolist()}
+
+
+def georeference_dict(result: RefineResult, output_frame: str) -> dict:
+    crs = result.store.crs
+    origin = result.origin
+    to_crs = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), origin) * result.input_to_local
+    return {
+        "crs": {"label": crs.label, "horizontal_epsg": crs.horizontal_epsg,
+                "vertical_epsg": crs.vertical_epsg, "wkt": crs.wkt},
+        "origin": [float(v) for v in origin],
+        "output_frame": output_frame,
+        "note": ("model coordinates are CRS coordinates" if output_frame == "crs" else
+                 "model coordinates are CRS coordinates minus origin"),
+        "input_to_local_sim3": sim3_dict(result.input_to_local),
+        "input_to_crs_sim3": sim3_dict(to_crs),
+        "options": result.options.todict(),
+    }
+
+
+def plane_table(result: RefineResult) -> list[dict]:
+    faces = result.store.faces
+    rows = []
+    for face, d in sorted(result.plane_residuals().items()):
+        rows.append({"face": face, "gml_id": faces[face].gml_id,
+                     "semantic": faces[face].semantic, "building_id": faces[face].building_id,
+                     "num_points": int(len(d)), "mean_m": float(np.mean(d)),
+                     "std_m": float(np.std(d)), "rms_m": float(np.sqrt(np.mean(d ** 2)))})
+    return rows
+
+
+def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
+    last = result.iterations[-1] if result.iterations else None
+    return {
+        "inputs": inputs or {},
+        "georegistration": {"rms_m": result.georegistration_rms,
+                            "sim3": sim3_dict(result.input_to_local)},
+        "step2": {**(result.step2.todict() if result.step2 else {}),
+                  "eliminated_image_observations": result.step2_eliminated},
+        "iterations": [it.todict() for it in result.iterations],
+        "converged": bool(last and last.relative_change <
+                          result.options.workflow.convergence_rms_change),
+        "sigma0": float(np.sqrt(last.final.sigma0_squared)) if last else None,
+        "num_images": result.reconstruction.num_reg_images(),
+        "num_points3D": result.reconstruction.num_points3D(),
+        "num_assigned_points": result.assignment.num_assigned,
+        "num_planes": result.assignment.num_faces,
+        "planes": plane_table(result),
+        "warnings": result.warnings,
+        "seconds": result.seconds,
+    }
+
+
+def report_markdown(report: dict) -> str:
+    lines = ["# colmap-citymodel refine report", ""]
+    geo = report["georegistration"]
+    if geo["rms_m"] is not None:
+        lines.append(f"Georegistration to GNSS: RMS {geo['rms_m']:.2f} m, "
+                     f"scale {geo['sim3']['scale']:.5f}.")
+    s2 = report["step2"]
+    if s2:
+        lines.append(f"Step 2 (BA without model): image RMS {s2['rms']['image']:.3f} px "
+                     f"(normalised), {s2['eliminated_image_observations']} image observations "
+                     "eliminated.")
+    lines += ["", "## Iterations (steps 3-4)", "",
+              "| it | threshold m | points | planes | eliminated dTP | RMS image | RMS gnss "
+              "| RMS dTP | RMS dVT | RMS VT | s0 | rel. change |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for it in report["iterations"]:
+        rms = it["solve"]["rms"]
+        lines.append(
+            f"| {it['iteration']} | {it['threshold']:.3f} | {it['num_assigned_points']} | "
+            f"{it['num_planes']} | {it['num_eliminated_dTP']} | " + " | ".join(
+                f"{rms[g]:.4f}" for g in ("image", "gnss", "dTP", "dVT", "VT"))
+            + f" | {it['solve']['sigma0']:.4f} | {it['relative_change']:.2e} |")
+    lines += ["", "RMS values are of residuals normalised by their a priori sigma.", "",
+              "## Planes (residuals of assigned tie points, m)", "",
+              "| face | gml:id | class | points | mean | std |", "|---|---|---|---|---|---|"]
+    for row in report["planes"]:
+        lines.append(f"| {row['face']} | {row['gml_id']} | {row['semantic']} | "
+                     f"{row['num_points']} | {row['mean_m']:+.3f} | {row['std_m']:.3f} |")
+    if report["warnings"]:
+        lines += ["", "## Warnings", ""] + [f"- {w}" for w in report["warnings"]]
+    lines += ["", "## Time (s)", ""] + [f"- {k}: {v:.2f}" for k, v in report["seconds"].items()]
+    return "\n".join(lines) + "\n"
+
+
+def write_refined(result: RefineResult, output_path: str | Path, *, output_type: str = "bin",
+                  output_frame: str = "crs", inputs: dict | None = None) -> Path:
+    """Write the refined model and its report into the new directory `output_path`."""
+    if output_type not in ("bin", "txt"):
+        raise InputError(f"unknown output type {output_type!r}; use bin or txt")
+    if output_frame not in ("crs", "local"):
+        raise InputError(f"unknown output frame {output_frame!r}; use crs or local")
+    output_path = Path(output_path)
+    offset = result.origin if output_frame == "crs" else np.zeros(3)
+    with atomic_directory(output_path) as tmp:
+        rec = result.reconstruction_in_crs() if output_frame == "crs" else result.reconstruction
+        if output_type == "bin":
+            rec.write_binary(str(tmp))
+        else:
+            rec.write_text(str(tmp))
+        (tmp / "georeference.json").write_text(
+            json.dumps(georeference_dict(result, output_frame), indent=2))
+        write_assignments_ply(result, tmp / "assignments.ply", offset)
+        try:
+            from .export_mesh import write_mesh
+
+            write_mesh(result.adjusted_store, tmp / "model_mesh.ply", frame=output_frame)
+        except ImportError:  # pragma: no cover - mesh export is optional for the result
+            logger.warning("model mesh not written: export_mesh is unavailable")
+        report = report_dict(result, inputs)
+        (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
+        (tmp / "report.md").write_text(report_markdown(report))
+    logger.info("wrote the refined model and report to %s", output_path)
+    return output_path
+
+
+def _json_default(value):
+    if isinstance(value, (np.integer,)):
+        return int(value)
+    if isinstance(value, (np.floating,)):
+        return float(value)
+    if isinstance(value, np.ndarray):
+        return value.tolist()
+    return str(value)
