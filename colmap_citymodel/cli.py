@@ -26,7 +26,28 @@ def _add_model_info(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info]
+def _add_evaluate(subparsers) -> None:
+    p = subparsers.add_parser("evaluate", help="check point errors of a COLMAP model")
+    p.add_argument("--input_path", required=True, help="COLMAP model directory to evaluate")
+    p.add_argument("--checkpoints", required=True, help="text file 'id X Y Z' (model CRS)")
+    p.add_argument("--observations", required=True, help="text file 'image_name id x y' (px)")
+    p.add_argument("--origin_file", default=None,
+                   help="georeference.json (or 'X Y Z') when the model is in the local frame")
+    p.add_argument("--frame", choices=["auto", "crs", "local"], default="auto",
+                   help="frame of the model's coordinates (auto: decide from the data)")
+    p.add_argument("--truth_path", default=None, help="truth COLMAP model (default: ../truth)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+
+    def run(args):
+        from .evaluate import main
+
+        main(args.input_path, args.checkpoints, args.observations, origin_file=args.origin_file,
+             frame=args.frame, as_json=args.json, truth_path=args.truth_path)
+
+    p.set_defaults(func=run)
+
+
+SUBCOMMANDS = [_add_model_info, _add_evaluate]
 
 
 def build_parser() -> argparse.ArgumentParser:
