@@ -132,11 +132,22 @@ class _Rings:
 
 
 def _face_unique_vertices(faces: list[Face]) -> tuple[np.ndarray, np.ndarray]:
-    """CSR (ptr, ids) of the unique vertex ids of each face (exterior + holes)."""
-    ids = [np.unique(np.concatenate([f.exterior, *f.holes])) for f in faces]
-    ptr = np.zeros(len(ids) + 1, dtype=np.int64)
-    np.cumsum([len(i) for i in ids], out=ptr[1:])
-    return ptr, (np.concatenate(ids).astype(np.int64) if ids else np.zeros(0, np.int64))
+    """CSR (ptr, ids) of the unique vertex ids of each face (exterior + holes), ids sorted."""
+    F = len(faces)
+    if F == 0:
+        return np.zeros(1, np.int64), np.zeros(0, np.int64)
+    rings = [r for f in faces for r in (f.exterior, *f.holes)]
+    owner = np.repeat(
+        np.repeat(np.arange(F), [1 + len(f.holes) for f in faces]), [len(r) for r in rings]
+    )
+    ids = np.concatenate(rings).astype(np.int64)
+    n = int(ids.max()) + 1 if len(ids) else 1
+    key = np.sort(owner * n + ids)
+    key = key[np.r_[True, key[1:] != key[:-1]]]
+    fo, ids = key // n, key % n
+    ptr = np.zeros(F + 1, dtype=np.int64)
+    np.cumsum(np.bincount(fo, minlength=F), out=ptr[1:])
+    return ptr, ids
 
 
 def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.ndarray]:
@@ -218,8 +229,13 @@ def merge_vertices(
     """
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
-    uniq, inverse = np.unique(points, axis=0, return_inverse=True)
-    inverse = inverse.ravel()
+    # exact duplicates first (lexsort: several times faster than np.unique(axis=0))
+    order = np.lexsort(points.T[::-1])
+    srt = points[order]
+    new = np.r_[True, np.any(srt[1:] != srt[:-1], axis=1)]
+    uniq = srt[new]
+    inverse = np.empty(len(points), dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -249,22 +265,12 @@ def merge_vertices(
     return merged, cluster[inverse].astype(np.int64), extent
 
 
-def _clean_ring(ids: np.ndarray) -> np.ndarray:
-    """Drop consecutive repeats (including the closing point / last == first)."""
-    if len(ids) == 0:
-        return ids
-    keep = ids != np.roll(ids, 1)
-    if not keep.any():  # all the same vertex
-        return ids[:1]
-    return ids[keep]
-
-
-def _ring_key(ids: np.ndarray) -> tuple:
+def _ring_key(ids: list[int]) -> tuple:
     """Same ring up to the starting vertex (orientation kept: reversed rings are other faces)."""
-    if len(ids) == 0:
+    if not ids:
         return ()
-    k = int(np.argmin(ids))
-    return tuple(np.roll(ids, -k).tolist())
+    k = ids.index(min(ids))
+    return tuple(ids[k:] + ids[:k])
 
 
 # ----------------------------------------------------------------------------------------------
@@ -682,33 +688,39 @@ def build_store(
             f"{extent * 1000:.1f} mm apart into one vertex"
         )
 
-    # ring vertex ids in the same order as `rings`
-    offsets = np.cumsum([0] + [len(r) for r in rings])
-    ring_ids = [index[offsets[i] : offsets[i + 1]] for i in range(len(rings))]
-    n_poly = len(polys)
-    hole_start = n_poly
+    # ring vertex ids (Python lists) in the same order as `rings`, consecutive repeats (and the
+    # closing point) removed, vectorised over all rings
+    lengths = np.array([len(r) for r in rings], dtype=np.int64)
+    ring_of = np.repeat(np.arange(len(rings)), lengths)
+    prev = np.arange(len(index)) - 1
+    starts = np.cumsum(lengths) - lengths
+    nonempty = lengths > 0
+    prev[starts[nonempty]] = (starts + lengths - 1)[nonempty]
+    keep = index != index[prev] if len(index) else np.zeros(0, bool)
+    offsets = np.r_[0, np.cumsum(np.bincount(ring_of[keep], minlength=len(rings)))].tolist()
+    flat = index[keep].tolist()
+    ring_ids = [flat[offsets[i] : offsets[i + 1]] for i in range(len(rings))]
+    hole_start = len(polys)
     faces: list[Face] = []
-    from_solid: list[bool] = []
     seen: dict = {}
     dropped = 0
     duplicates = 0
     dropped_holes = 0
     for i, p in enumerate(polys):
-        ext = _clean_ring(ring_ids[i])
+        ext = ring_ids[i]
         holes = []
         for _ in p.holes:
-            h = _clean_ring(ring_ids[hole_start])
+            h = ring_ids[hole_start]
             hole_start += 1
-            if len(np.unique(h)) >= 3:
+            if len(set(h)) >= 3:
                 holes.append(h)
             else:
                 dropped_holes += 1
-        if len(np.unique(ext)) < 3:
+        if len(set(ext)) < 3:
             dropped += 1
             continue
-        key_ring = ("ring", _ring_key(ext), tuple(sorted(_ring_key(h) for h in holes)))
-        key_id = ("id", p.gml_id) if p.gml_id else None
-        prev = seen.get(key_id) if key_id else None
+        key_ring = (_ring_key(ext), tuple(sorted(_ring_key(h) for h in holes)) if holes else ())
+        prev = seen.get(("id", p.gml_id)) if p.gml_id else None
         if prev is None:
             prev = seen.get(key_ring)
         if prev is not None:
@@ -719,13 +731,13 @@ def build_store(
                 face.semantic = p.semantic
             if not face.gml_id and p.gml_id:
                 face.gml_id = p.gml_id
-            if key_id:
-                seen[key_id] = prev
+            if p.gml_id:
+                seen[("id", p.gml_id)] = prev
             continue
         faces.append(
             Face(
-                exterior=ext.astype(np.int64),
-                holes=[h.astype(np.int64) for h in holes],
+                exterior=np.array(ext, dtype=np.int64),
+                holes=[np.array(h, dtype=np.int64) for h in holes],
                 semantic=p.semantic or "Unknown",
                 building_id=p.building_id,
                 part_id=p.part_id,
@@ -733,10 +745,9 @@ def build_store(
                 lod=int(p.lod),
             )
         )
-        from_solid.append(p.from_solid)
         seen[key_ring] = len(faces) - 1
-        if key_id:
-            seen[key_id] = len(faces) - 1
+        if p.gml_id:
+            seen[("id", p.gml_id)] = len(faces) - 1
     if duplicates:
         logger.debug("%d polygons referenced twice became one face each", duplicates)
     if dropped_holes:
@@ -755,10 +766,7 @@ def build_store(
         warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
 
     # drop vertices no face uses any more and re-index
-    if faces:
-        used = np.unique(np.concatenate([np.concatenate([f.exterior, *f.holes]) for f in faces]))
-    else:
-        used = np.zeros(0, np.int64)
+    used = np.flatnonzero(np.bincount(_face_unique_vertices(faces)[1], minlength=len(merged)))
     remap = np.full(len(merged), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
     for f in faces:

@@ -324,3 +324,24 @@ def test_tolerances_are_configurable():
     assert build_store(raw).nonplanar[0]
     assert not build_store(raw, nonplanar_tolerance=0.2).nonplanar[0]
     assert build_store(raw, tolerances=Tolerances(min_area=100.0)).num_faces == 0
+
+
+@pytest.mark.slow
+def test_query_speed_1e5_points_1e4_faces():
+    """The assignment's budget: 1e5 points against 1e4 faces well under a second."""
+    import sys
+    import time
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benchmarks"))
+    from bench_store_queries import sample_points, synthetic_city
+
+    rng = np.random.default_rng(0)
+    store = synthetic_city(10_000, rng)
+    pts = sample_points(store, 100_000, rng)
+    store.closest_faces(pts[:10], 1.0, 0.1)  # builds the grid
+    t = time.perf_counter()
+    face, _ = store.closest_faces(pts, 1.0, 0.1)
+    elapsed = time.perf_counter() - t
+    assert np.count_nonzero(face >= 0) > 30_000
+    assert elapsed < 1.0, f"{elapsed:.2f} s"
