@@ -1,0 +1,13 @@
+#!/usr/bin/env bash
+# Set up (scripts/bootstrap.sh), then run the test suite: every test not marked `slow`, plus
+# slow tests also marked `ci`. Extra arguments go to pytest. "No tests collected" is a failure.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+bash scripts/bootstrap.sh
+status=0
+.venv/bin/pytest -m "not slow or ci" "$@" || status=$?
+if [ "$status" -eq 5 ]; then
+  echo "error: pytest collected no tests" >&2
+  exit 1
+fi
+exit "$status"
