@@ -1,0 +1,866 @@
+"""Scenes of the UAV simulator (issue 4; Unger 5.1.1, 5.2.2): the given LOD2 model, its error
+variants, and the *true* scene that the simulated camera sees.
+
+- The given model is a PlaneStore: a real CityGML/CityJSON file read by `read_city_model`, or a
+  procedural street (a row of box buildings with gable, hip or flat roofs along a street).
+- The true scene is that model plus generalisation effects a LOD2 model does not have (Unger
+  Fig. 10): facade relief (pilasters +0.1 m, window recesses -0.12 m), entrances and garage doors
+  0.5-1 m behind the wall, balconies 1 m out with balustrades, roof overhangs on sloped roofs,
+  parapets on flat roofs, roof furniture (chimneys, boxes), clutter in front of facades (trees,
+  cars) and the terrain. It is a triangle mesh (for sampling points and ray casting) plus the
+  planar polygons of the buildings (the *detailed* model, LOD3-like, for Scn1).
+- Model variants: "corrected" = the LOD2 model as given (its planes are the true scene's main
+  planes, only generalisation effects differ), "original" = the same topology with systematic
+  plane errors (per face a shift N(0, 0.2 m) along the normal and a tilt N(0, 0.5 deg); every
+  vertex then moves to the least-squares intersection of its (perturbed) planes, so shared
+  vertices stay shared and faces stay nearly planar), "detailed" = the true building polygons.
+
+All coordinates here are local (CRS minus `store.origin`), float64.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass, field
+
+import mapbox_earcut
+import numpy as np
+import shapely
+from shapely.geometry import Polygon, box
+from shapely.geometry.polygon import orient
+
+from .plane_store import PlaneStore, store_from_polygons
+from .raw_model import RawPolygon
+
+logger = logging.getLogger("colmap_citymodel.simulate_scene")
+
+# triangle labels of the true mesh
+LABEL_WALL, LABEL_ROOF, LABEL_DETAIL, LABEL_CLUTTER, LABEL_GROUND = 0, 1, 2, 3, 4
+LABEL_NAMES = ("wall", "roof", "detail", "clutter", "ground")
+
+# Random streams: each stage draws from its own generator np.random.default_rng([seed, stage,
+# ...]), so changing one stage's options never changes another stage's random numbers.
+STAGE_PROCEDURAL, STAGE_DETAILS, STAGE_ERRORS, STAGE_CLUTTER = 11, 12, 13, 14
+
+
+@dataclass
+class ProceduralOptions:
+    """A row of buildings along a street (x axis); street facades face -y."""
+
+    num_buildings: int = 14
+    width_range: tuple[float, float] = (9.0, 22.0)  # along the street (m)
+    depth_range: tuple[float, float] = (10.0, 15.0)
+    eave_height_range: tuple[float, float] = (7.0, 17.0)
+    roof_pitch_range_deg: tuple[float, float] = (25.0, 40.0)
+    roof_types: tuple[str, ...] = ("gable", "gable_street", "hip", "flat")
+    gap_probability: float = 0.3  # chance of a gap (side walls visible) before a building
+    gap_range: tuple[float, float] = (3.0, 9.0)
+    setback_range: tuple[float, float] = (0.0, 2.0)  # front facade behind the street line
+    # an ETRS89/UTM 32N origin so CRS coordinates have 6-7 digits like real data
+    crs: str = "EPSG:25832"
+    origin: tuple[float, float, float] = (691000.0, 5336000.0, 515.0)
+
+
+@dataclass
+class DetailOptions:
+    """Generalisation effects of the true scene (magnitudes from Unger 5.2.2 / Fig. 10)."""
+
+    bay_width: float = 3.6  # window axis spacing along facades (m)
+    storey_height: float = 3.0
+    window_size: tuple[float, float] = (1.2, 1.5)  # width, height
+    window_depth: float = 0.12  # recess of windows behind the wall plane
+    pilaster_width: float = 0.5
+    pilaster_depth: float = 0.1  # prongs in front of the wall plane
+    pilaster_every: int = 2  # a pilaster every n bays (0: none)
+    entrance_probability: float = 0.12  # per ground-floor bay
+    garage_probability: float = 0.08
+    entrance_depth_range: tuple[float, float] = (0.5, 1.0)  # recessed entrances/garage doors
+    balcony_probability: float = 0.12  # per upper-storey bay (walls with >= 3 storeys)
+    balcony_depth: float = 1.0
+    balustrade_height: float = 1.0
+    roof_overhang: float = 0.5  # horizontal eave/verge overhang of sloped roofs
+    parapet_height: float = 0.8  # on flat roofs
+    parapet_thickness: float = 0.25
+    roof_furniture_per_100m2: float = 1.5  # chimneys, vents, boxes
+    tree_spacing: float = 14.0  # mean spacing of trees in front of facades (0: none)
+    car_spacing: float = 18.0  # mean spacing of parked cars (0: none)
+    camera_clearance: float = 3.0  # no clutter closer than this to a camera
+    ground_cell: float = 4.0  # terrain grid cell (m)
+    min_wall_length: float = 2.0  # smaller walls stay plain
+
+
+@dataclass
+class ModelErrorOptions:
+    """Systematic errors of the "original" model and imperfections of the "detailed" one."""
+
+    shift_sigma: float = 0.2  # per face, along its normal (m)
+    rotation_sigma_deg: float = 0.5  # per face, tilt about an in-plane axis through its centroid
+    detailed_shift_sigma: float = 0.02  # per polygon of the detailed model
+    detailed_rotation_sigma_deg: float = 0.1
+    detailed_min_area: float = 0.5  # smaller true polygons are left out of the detailed model
+
+
+@dataclass
+class TrueScene:
+    triangles: np.ndarray  # (T,3,3) local coordinates
+    labels: np.ndarray  # (T,) int8 LABEL_*
+    polygons: list[RawPolygon]  # building polygons of the true scene, LOCAL coordinates
+    num_clutter_objects: int = 0
+
+    @property
+    def normals(self) -> np.ndarray:
+        n = np.cross(self.triangles[:, 1] - self.triangles[:, 0],
+                     self.triangles[:, 2] - self.triangles[:, 0])
+        return n / np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-15)
+
+    @property
+    def areas(self) -> np.ndarray:
+        n = np.cross(self.triangles[:, 1] - self.triangles[:, 0],
+                     self.triangles[:, 2] - self.triangles[:, 0])
+        return 0.5 * np.linalg.norm(n, axis=1)
+
+    def to_trimesh(self):
+        import trimesh
+
+        v = self.triangles.reshape(-1, 3)
+        f = np.arange(len(v)).reshape(-1, 3)
+        return trimesh.Trimesh(vertices=v, faces=f, process=False)
+
+    def raycasting_scene(self):
+        """An open3d RaycastingScene of the true mesh (float32, local coordinates)."""
+        import open3d as o3d
+
+        scene = o3d.t.geometry.RaycastingScene()
+        v = self.triangles.reshape(-1, 3).astype(np.float32)
+        f = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
+        scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
+        return scene
+
+
+# ----------------------------------------------------------------------------------------------
+# polygon helpers
+
+
+def newell_normal(ring: np.ndarray) -> np.ndarray:
+    """Unit normal of a planar ring by Newell's method (sign from the ring's orientation)."""
+    r = np.asarray(ring, dtype=np.float64)
+    c = r - r.mean(0)
+    nxt = np.roll(c, -1, axis=0)
+    n = np.array(
+        [
+            np.sum((c[:, 1] - nxt[:, 1]) * (c[:, 2] + nxt[:, 2])),
+            np.sum((c[:, 2] - nxt[:, 2]) * (c[:, 0] + nxt[:, 0])),
+            np.sum((c[:, 0] - nxt[:, 0]) * (c[:, 1] + nxt[:, 1])),
+        ]
+    )
+    norm = np.linalg.norm(n)
+    return n / norm if norm > 0 else n
+
+
+def plane_basis(normal: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(u, v) orthonormal in-plane axes: u horizontal where possible, v = n x u."""
+    n = normal / np.linalg.norm(normal)
+    u = np.cross([0.0, 0.0, 1.0], n)
+    if np.linalg.norm(u) < 1e-6:  # horizontal plane: u along x
+        u = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    u /= np.linalg.norm(u)
+    return u, np.cross(n, u)
+
+
+def triangulate_rings(exterior: np.ndarray, holes=()) -> np.ndarray:
+    """(K,3,3) triangles of a planar 3D polygon with holes (earcut in the polygon's plane)."""
+    rings = [np.asarray(exterior, dtype=np.float64)] + [np.asarray(h, dtype=np.float64)
+                                                        for h in holes]
+    pts = np.concatenate(rings)
+    n = newell_normal(rings[0])
+    if not np.any(n):
+        return np.zeros((0, 3, 3))
+    u, v = plane_basis(n)
+    c = pts - pts.mean(0)
+    xy = np.stack([c @ u, c @ v], axis=1)
+    ends = np.cumsum([len(r) for r in rings]).astype(np.uint32)
+    idx = mapbox_earcut.triangulate_float64(xy, ends)
+    return pts[np.asarray(idx, dtype=np.int64).reshape(-1, 3)]
+
+
+def semantic_from_normal(normal: np.ndarray) -> str:
+    if normal[2] >= 0.7:
+        return "RoofSurface"
+    if normal[2] <= -0.7:
+        return "OuterCeilingSurface"
+    return "WallSurface"
+
+
+class MeshBuilder:
+    """Accumulates labelled triangles and the building polygons they come from."""
+
+    def __init__(self):
+        self._tris: list[np.ndarray] = []
+        self._labels: list[np.ndarray] = []
+        self.polygons: list[RawPolygon] = []
+
+    def add(self, exterior, holes=(), *, label: int, building_id: str = "",
+            semantic: str | None = None, polygon: bool = True) -> None:
+        exterior = np.asarray(exterior, dtype=np.float64)
+        holes = [np.asarray(h, dtype=np.float64) for h in holes]
+        tris = triangulate_rings(exterior, holes)
+        if len(tris) == 0:
+            return
+        self._tris.append(tris)
+        self._labels.append(np.full(len(tris), label, dtype=np.int8))
+        if polygon and label != LABEL_CLUTTER and label != LABEL_GROUND:
+            self.polygons.append(
+                RawPolygon(
+                    exterior=exterior,
+                    holes=holes,
+                    semantic=semantic or semantic_from_normal(newell_normal(exterior)),
+                    building_id=building_id,
+                    gml_id="",
+                )
+            )
+
+    def add_triangles(self, tris: np.ndarray, label: int) -> None:
+        self._tris.append(np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3))
+        self._labels.append(np.full(len(self._tris[-1]), label, dtype=np.int8))
+
+    def scene(self, num_clutter_objects: int = 0) -> TrueScene:
+        tris = np.concatenate(self._tris) if self._tris else np.zeros((0, 3, 3))
+        labels = np.concatenate(self._labels) if self._labels else np.zeros(0, np.int8)
+        return TrueScene(tris, labels, self.polygons, num_clutter_objects)
+
+
+@dataclass
+class _Frame:
+    """A facade frame: origin, u (horizontal along the wall), v (up the wall), n (outward)."""
+
+    origin: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+    n: np.ndarray
+
+    def to3d(self, xy: np.ndarray, depth: float = 0.0) -> np.ndarray:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return self.origin + xy[:, :1] * self.u + xy[:, 1:2] * self.v + depth * self.n
+
+    def to2d(self, pts: np.ndarray) -> np.ndarray:
+        c = np.asarray(pts, dtype=np.float64) - self.origin
+        return np.stack([c @ self.u, c @ self.v], axis=1)
+
+
+def _rings2d(poly: Polygon) -> list[np.ndarray]:
+    poly = orient(poly, 1.0)  # exterior counter-clockwise, holes clockwise
+    return [np.asarray(poly.exterior.coords)[:-1]] + [
+        np.asarray(r.coords)[:-1] for r in poly.interiors
+    ]
+
+
+def _polygons_of(geom) -> list[Polygon]:
+    if geom.is_empty:
+        return []
+    if isinstance(geom, Polygon):
+        return [geom]
+    return [g for g in getattr(geom, "geoms", []) if isinstance(g, Polygon) and g.area > 1e-6]
+
+
+def _cap(mb: MeshBuilder, fr: _Frame, region: Polygon, depth: float, facing: float,
+         label: int, bid: str) -> None:
+    """A planar face of `region` at `depth`; facing=+1 looks along n, -1 against it."""
+    rings = _rings2d(region)
+    ext3 = fr.to3d(rings[0], depth)
+    holes3 = [fr.to3d(r, depth) for r in rings[1:]]
+    if facing < 0:
+        ext3 = ext3[::-1]
+        holes3 = [h[::-1] for h in holes3]
+    mb.add(ext3, holes3, label=label, building_id=bid,
+           semantic="WallSurface" if abs(fr.n[2]) < 0.7 else None)
+
+
+def _extrude(mb: MeshBuilder, fr: _Frame, region: Polygon, d0: float, d1: float, *,
+             cap0: bool, cap1: bool, label: int, bid: str) -> None:
+    """A prism of the 2D `region` between depths d0 and d1 along the facade normal."""
+    if region.is_empty or region.area < 1e-4:
+        return
+    if cap1:
+        _cap(mb, fr, region, d1, 1.0 if d1 >= d0 else -1.0, label, bid)
+    if cap0:
+        _cap(mb, fr, region, d0, -1.0 if d1 >= d0 else 1.0, label, bid)
+    for ring in _rings2d(region):
+        nxt = np.roll(ring, -1, axis=0)
+        for a, b in zip(ring, nxt):
+            if np.linalg.norm(b - a) < 1e-6:
+                continue
+            quad = np.vstack([fr.to3d(a, d0), fr.to3d(b, d0), fr.to3d(b, d1), fr.to3d(a, d1)])
+            # orient outward: the 2D outward normal of a CCW ring edge a->b is (dy, -dx)
+            out2 = np.array([b[1] - a[1], a[0] - b[0]])
+            out3 = out2[0] * fr.u + out2[1] * fr.v
+            if np.dot(newell_normal(quad), out3) < 0:
+                quad = quad[::-1]
+            mb.add(quad, label=label, building_id=bid)
+
+
+# ----------------------------------------------------------------------------------------------
+# the given model
+
+
+def procedural_street(options: ProceduralOptions, seed: int):
+    """The LOD2 model of a procedural street: polygons (CRS coordinates), semantics, building
+    ids. Buildings stand side by side along +x, street facades at y = setback facing -y."""
+    rng = np.random.default_rng([seed, STAGE_PROCEDURAL])
+    o = np.asarray(options.origin, dtype=np.float64)
+    polygons, semantics, bids = [], [], []
+    x = 0.0
+    for i in range(options.num_buildings):
+        if i > 0 and rng.random() < options.gap_probability:
+            x += rng.uniform(*options.gap_range)
+        w = rng.uniform(*options.width_range)
+        d = rng.uniform(*options.depth_range)
+        y0 = rng.uniform(*options.setback_range)
+        h = rng.uniform(*options.eave_height_range)
+        pitch = math.radians(rng.uniform(*options.roof_pitch_range_deg))
+        kind = options.roof_types[rng.integers(len(options.roof_types))]
+        if kind == "hip" and w < d + 2.0:
+            kind = "gable"
+        bid = f"BLDG_{i:04d}"
+        for ring, sem in _box_building(x, x + w, y0, y0 + d, h, pitch, kind):
+            polygons.append(ring + o)
+            semantics.append(sem)
+            bids.append(bid)
+        x += w
+    return polygons, semantics, bids
+
+
+def _box_building(x0, x1, y0, y1, h, pitch, kind):
+    """Rings (local, outward counter-clockwise) of one building on z = 0."""
+    c = np.array([(x0 + x1) / 2, (y0 + y1) / 2, h / 2])
+    out = []
+
+    def add(pts, sem):
+        ring = np.asarray(pts, dtype=np.float64)
+        nrm = newell_normal(ring)
+        centre = ring.mean(0)
+        ref = centre - c
+        if sem == "GroundSurface":
+            ref = np.array([0.0, 0.0, -1.0])
+        if np.dot(nrm, ref) < 0:
+            ring = ring[::-1]
+        out.append((ring, sem))
+
+    add([[x0, y0, 0], [x1, y0, 0], [x1, y1, 0], [x0, y1, 0]], "GroundSurface")
+    ym, xm = (y0 + y1) / 2, (x0 + x1) / 2
+    if kind == "flat":
+        for a, b in [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)),
+                     ((x0, y1), (x0, y0))]:
+            add([[*a, 0], [*b, 0], [*b, h], [*a, h]], "WallSurface")
+        add([[x0, y0, h], [x1, y0, h], [x1, y1, h], [x0, y1, h]], "RoofSurface")
+    elif kind == "gable":  # ridge along x (eaves to the street)
+        H = h + (y1 - y0) / 2 * math.tan(pitch)
+        add([[x0, y0, 0], [x1, y0, 0], [x1, y0, h], [x0, y0, h]], "WallSurface")
+        add([[x0, y1, 0], [x1, y1, 0], [x1, y1, h], [x0, y1, h]], "WallSurface")
+        add([[x0, y0, 0], [x0, y1, 0], [x0, y1, h], [x0, ym, H], [x0, y0, h]], "WallSurface")
+        add([[x1, y0, 0], [x1, y1, 0], [x1, y1, h], [x1, ym, H], [x1, y0, h]], "WallSurface")
+        add([[x0, y0, h], [x1, y0, h], [x1, ym, H], [x0, ym, H]], "RoofSurface")
+        add([[x0, y1, h], [x1, y1, h], [x1, ym, H], [x0, ym, H]], "RoofSurface")
+    elif kind == "gable_street":  # ridge along y (gable facing the street)
+        H = h + (x1 - x0) / 2 * math.tan(pitch)
+        add([[x0, y0, 0], [x1, y0, 0], [x1, y0, h], [xm, y0, H], [x0, y0, h]], "WallSurface")
+        add([[x0, y1, 0], [x1, y1, 0], [x1, y1, h], [xm, y1, H], [x0, y1, h]], "WallSurface")
+        add([[x0, y0, 0], [x0, y1, 0], [x0, y1, h], [x0, y0, h]], "WallSurface")
+        add([[x1, y0, 0], [x1, y1, 0], [x1, y1, h], [x1, y0, h]], "WallSurface")
+        add([[x0, y0, h], [x0, y1, h], [xm, y1, H], [xm, y0, H]], "RoofSurface")
+        add([[x1, y0, h], [x1, y1, h], [xm, y1, H], [xm, y0, H]], "RoofSurface")
+    elif kind == "hip":
+        r = (y1 - y0) / 2
+        H = h + r * math.tan(pitch)
+        for a, b in [((x0, y0), (x1, y0)), ((x1, y0), (x1, y1)), ((x1, y1), (x0, y1)),
+                     ((x0, y1), (x0, y0))]:
+            add([[*a, 0], [*b, 0], [*b, h], [*a, h]], "WallSurface")
+        add([[x0, y0, h], [x1, y0, h], [x1 - r, ym, H], [x0 + r, ym, H]], "RoofSurface")
+        add([[x0, y1, h], [x1, y1, h], [x1 - r, ym, H], [x0 + r, ym, H]], "RoofSurface")
+        add([[x0, y0, h], [x0, y1, h], [x0 + r, ym, H]], "RoofSurface")
+        add([[x1, y0, h], [x1, y1, h], [x1 - r, ym, H]], "RoofSurface")
+    else:
+        raise ValueError(f"unknown roof type {kind!r}")
+    return out
+
+
+def procedural_store(options: ProceduralOptions, seed: int) -> PlaneStore:
+    from .crs import user_crs
+
+    polygons, semantics, bids = procedural_street(options, seed)
+    return store_from_polygons(polygons, semantics=semantics, building_ids=bids,
+                               crs=user_crs(options.crs))
+
+
+def building_footprints(store: PlaneStore) -> dict[str, Polygon]:
+    """Horizontal footprint per building: union of its ground/roof faces projected to xy (walls
+    alone when a building has neither)."""
+    groups: dict[str, list] = {}
+    for f, face in enumerate(store.faces):
+        groups.setdefault(face.building_id, []).append(f)
+    out = {}
+    for bid, faces in groups.items():
+        areal = [f for f in faces if store.faces[f].semantic in ("GroundSurface", "RoofSurface")]
+        geoms = []
+        for f in areal or faces:
+            xy = store.vertices[store.faces[f].exterior][:, :2]
+            p = Polygon(xy)
+            if not p.is_valid:
+                p = p.buffer(0)
+            if p.area > 1e-3:
+                geoms.append(p)
+        if not geoms:  # only vertical faces: hull of their vertices
+            pts = np.concatenate([store.vertices[store.faces[f].exterior][:, :2] for f in faces])
+            geoms = [shapely.MultiPoint(pts).convex_hull]
+        out[bid] = shapely.unary_union(geoms).buffer(0)
+    return out
+
+
+class GroundModel:
+    """Terrain height: linear interpolation of the buildings' lowest vertices (nearest outside
+    their hull). Real LOD2 models put GroundSurfaces at the terrain; this is the street level."""
+
+    def __init__(self, store: PlaneStore):
+        from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+
+        pts = []
+        groups: dict[str, list[int]] = {}
+        for f, face in enumerate(store.faces):
+            groups.setdefault(face.building_id, []).append(f)
+        for faces in groups.values():
+            ids = np.unique(np.concatenate([store.faces[f].exterior for f in faces]))
+            v = store.vertices[ids]
+            zmin = v[:, 2].min()
+            low = v[v[:, 2] < zmin + 0.5]
+            pts.append(np.c_[low[:, :2], np.full(len(low), zmin)])
+        pts = np.concatenate(pts)
+        self._nearest = NearestNDInterpolator(pts[:, :2], pts[:, 2])
+        self._linear = None
+        if len(pts) >= 4 and np.ptp(pts[:, 0]) > 1 and np.ptp(pts[:, 1]) > 1:
+            try:
+                self._linear = LinearNDInterpolator(pts[:, :2], pts[:, 2])
+            except Exception:  # degenerate (collinear) input: nearest only
+                self._linear = None
+
+    def __call__(self, xy: np.ndarray) -> np.ndarray:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        z = np.full(len(xy), np.nan)
+        if self._linear is not None:
+            z = self._linear(xy)
+        bad = ~np.isfinite(z)
+        if bad.any():
+            z[bad] = self._nearest(xy[bad])
+        return z
+
+
+# ----------------------------------------------------------------------------------------------
+# model variants
+
+
+def perturb_planes(store: PlaneStore, options: ModelErrorOptions, seed: int) -> PlaneStore:
+    """Unger's "original" model: systematic plane errors with shared vertices moved consistently.
+
+    Per face f: the plane turns by N(0, rotation_sigma) about a random in-plane axis through its
+    centroid and shifts by N(0, shift_sigma) along its normal. Each vertex then moves to
+    argmin_x sum_f (n_f' x + d_f')^2 + lam |x - x0 - s|^2 over its faces f (s: the mean normal
+    shift of those faces; lam = 1e-4 only fixes the directions no plane constrains, e.g. along
+    the ridge line of a vertex on two planes). Faces whose vertices lie on more than three planes
+    become slightly non-planar; the store refits their planes (eq. 2-4).
+    """
+    rng = np.random.default_rng([seed, STAGE_ERRORS])
+    nf = store.num_faces
+    normals = store.normals.copy()
+    cents = store.centroids
+    shifts = rng.normal(0.0, options.shift_sigma, nf)
+    angles = np.radians(rng.normal(0.0, options.rotation_sigma_deg, nf))
+    phis = rng.uniform(0.0, 2 * np.pi, nf)
+    new_n = np.empty_like(normals)
+    for f in range(nf):
+        a = store.rotations[f, :, 0] * math.cos(phis[f]) + store.rotations[f, :, 1] * math.sin(
+            phis[f])
+        # Rodrigues rotation of the normal about the in-plane axis a
+        n = normals[f]
+        new_n[f] = n * math.cos(angles[f]) + np.cross(a, n) * math.sin(angles[f])
+    new_p0 = cents + shifts[:, None] * normals
+    new_d = -np.einsum("fi,fi->f", new_n, new_p0)
+    indptr, owners = store.vertex_faces
+    lam = 1e-4
+    out = store.vertices.copy()
+    for vi in range(len(store.vertices)):
+        fs = owners[indptr[vi]:indptr[vi + 1]]
+        if len(fs) == 0:
+            continue
+        x0 = store.vertices[vi] + np.mean(shifts[fs][:, None] * normals[fs], axis=0)
+        N = new_n[fs]
+        A = N.T @ N + lam * np.eye(3)
+        b = -N.T @ new_d[fs] + lam * x0
+        out[vi] = np.linalg.solve(A, b)
+    return store.with_vertices(out)
+
+
+def perturb_polygons(polygons: list[RawPolygon], shift_sigma: float, rotation_sigma_deg: float,
+                     seed: int, stage: int) -> list[RawPolygon]:
+    """Independent small plane errors per polygon (the detailed model's own imperfections)."""
+    rng = np.random.default_rng([seed, stage])
+    out = []
+    for p in polygons:
+        n = newell_normal(p.exterior)
+        c = p.exterior.mean(0)
+        u, v = plane_basis(n)
+        phi = rng.uniform(0, 2 * np.pi)
+        axis = u * math.cos(phi) + v * math.sin(phi)
+        ang = math.radians(rng.normal(0.0, rotation_sigma_deg))
+        shift = rng.normal(0.0, shift_sigma)
+        K = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        R = np.eye(3) + math.sin(ang) * K + (1 - math.cos(ang)) * K @ K
+
+        def move(r):
+            return (r - c) @ R.T + c + shift * n
+
+        out.append(RawPolygon(exterior=move(p.exterior), holes=[move(h) for h in p.holes],
+                              semantic=p.semantic, building_id=p.building_id,
+                              part_id=p.part_id, gml_id=p.gml_id, lod=p.lod))
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# the true scene
+
+
+def _wall_frame(store: PlaneStore, f: int, building_centre: np.ndarray) -> _Frame:
+    n = store.normals[f].copy()
+    c = store.centroids[f]
+    horiz = np.array([n[0], n[1], 0.0])
+    # outward: away from the building's centre (the store's orientation is not trusted for
+    # multisurface-only buildings)
+    if np.dot(horiz, c - building_centre) < 0:
+        n = -n
+    u, v = plane_basis(n)
+    return _Frame(c, u, v, n)
+
+
+def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: DetailOptions,
+                   rng: np.random.Generator, bid: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Windows, entrances, pilasters and balconies on one wall. Returns clutter anchor points
+    (bottom centre of the facade, outward normal) for trees/cars."""
+    face = store.faces[f]
+    ext = fr.to2d(store.vertices[face.exterior])
+    holes = [fr.to2d(store.vertices[h]) for h in face.holes]
+    poly = Polygon(ext, holes)
+    if not poly.is_valid:
+        poly = poly.buffer(0)
+    polys = _polygons_of(poly)
+    if not polys:
+        return []
+    poly = max(polys, key=lambda p: p.area) if len(polys) > 1 else polys[0]
+    umin, vmin, umax, vmax = poly.bounds
+    length, height = umax - umin, vmax - vmin
+    if length < opt.min_wall_length or height < 2.5 or abs(fr.n[2]) > 0.3:
+        _cap(mb, fr, poly, 0.0, 1.0, LABEL_WALL, bid)
+        return []
+    inner = poly.buffer(-0.3)
+    nbays = max(int(length // opt.bay_width), 1)
+    bay = length / nbays
+    nstoreys = max(int(height // opt.storey_height), 1)
+    openings: list[tuple[Polygon, float]] = []  # (rectangle, depth behind the wall)
+    balconies: list[tuple[float, float, float]] = []  # (u0, u1, floor v)
+    ww, wh = opt.window_size
+    for b in range(nbays):
+        uc = umin + (b + 0.5) * bay
+        for s in range(nstoreys):
+            base = vmin + s * opt.storey_height
+            if s == 0:
+                r = rng.random()
+                size = None
+                if r < opt.garage_probability and bay >= 3.0:
+                    size = (1.3, 2.3)  # garage door: half width, height
+                elif r < opt.garage_probability + opt.entrance_probability:
+                    size = (0.7, 2.4)  # entrance
+                if size is not None:
+                    half, top = size
+                    depth = rng.uniform(*opt.entrance_depth_range)
+                    # doors reach the ground: test containment above the bottom margin
+                    if inner.contains(box(uc - half, vmin + 0.3, uc + half, vmin + top)):
+                        openings.append((box(uc - half, vmin, uc + half, vmin + top), depth))
+                        continue
+            sill = base + 0.9
+            rect = box(uc - ww / 2, sill, uc + ww / 2, sill + wh)
+            if inner.contains(rect):
+                openings.append((rect, opt.window_depth))
+                if s >= 1 and nstoreys >= 3 and rng.random() < opt.balcony_probability:
+                    u0, u1 = uc - min(1.3, bay / 2 - 0.3), uc + min(1.3, bay / 2 - 0.3)
+                    if inner.contains(box(u0, base - 0.15, u1, base + 1.0)):
+                        balconies.append((u0, u1, base))
+    holes_union = shapely.unary_union([r for r, _ in openings]) if openings else None
+    wall = poly.difference(holes_union) if holes_union is not None else poly
+    for part in _polygons_of(wall):
+        _cap(mb, fr, part, 0.0, 1.0, LABEL_WALL, bid)
+    for rect, depth in openings:
+        _extrude(mb, fr, rect, 0.0, -depth, cap0=False, cap1=True, label=LABEL_DETAIL, bid=bid)
+    if opt.pilaster_every > 0 and opt.pilaster_depth > 0:
+        for k in range(0, nbays + 1, opt.pilaster_every):
+            uc = umin + k * bay
+            strip = box(uc - opt.pilaster_width / 2, vmin - 1, uc + opt.pilaster_width / 2,
+                        vmax + 1)
+            region = poly.intersection(strip)
+            if holes_union is not None:
+                region = region.difference(holes_union.buffer(0.05))
+            for part in _polygons_of(region):
+                if part.area > 0.2:
+                    _extrude(mb, fr, part, 0.0, opt.pilaster_depth, cap0=False, cap1=True,
+                             label=LABEL_DETAIL, bid=bid)
+    for u0, u1, floor in balconies:
+        slab = box(u0, floor - 0.15, u1, floor)
+        _extrude(mb, fr, slab, 0.0, opt.balcony_depth, cap0=False, cap1=True,
+                 label=LABEL_DETAIL, bid=bid)
+        rail = box(u0, floor, u1, floor + opt.balustrade_height)
+        _extrude(mb, fr, rail, opt.balcony_depth - 0.05, opt.balcony_depth, cap0=True,
+                 cap1=True, label=LABEL_DETAIL, bid=bid)
+    # clutter anchors every metre along the bottom edge
+    anchors = []
+    for uu in np.arange(umin + 1.0, umax - 1.0, 1.0):
+        anchors.append((fr.to3d([uu, vmin])[0], fr.n.copy()))
+    return anchors
+
+
+def _roof_edges(store: PlaneStore) -> dict[tuple[int, int], list[int]]:
+    edges: dict[tuple[int, int], list[int]] = {}
+    for f, face in enumerate(store.faces):
+        for ring in [face.exterior] + list(face.holes):
+            for a, b in zip(ring, np.roll(ring, -1)):
+                edges.setdefault((min(a, b), max(a, b)), []).append(f)
+    return edges
+
+
+def _decorate_roof(mb: MeshBuilder, store: PlaneStore, f: int, edges, opt: DetailOptions,
+                   rng: np.random.Generator, bid: str) -> None:
+    face = store.faces[f]
+    V = store.vertices
+    ext = V[face.exterior]
+    mb.add(ext, [V[h] for h in face.holes], label=LABEL_ROOF, building_id=bid,
+           semantic="RoofSurface")
+    n = store.normals[f].copy()
+    if n[2] < 0:
+        n = -n
+    centre = store.centroids[f]
+    flat = n[2] > 0.97
+    ring = face.exterior
+    for a, b in zip(ring, np.roll(ring, -1)):
+        others = [g for g in edges.get((min(a, b), max(a, b)), []) if g != f]
+        if not any(store.faces[g].semantic == "WallSurface" for g in others):
+            continue
+        pa, pb = V[a], V[b]
+        e = pb - pa
+        le = np.linalg.norm(e)
+        if le < 0.5:
+            continue
+        e /= le
+        o = np.cross(e, n)  # in the roof plane, perpendicular to the edge
+        if np.dot(o, (pa + pb) / 2 - centre) < 0:
+            o = -o
+        if flat:
+            if opt.parapet_height <= 0:
+                continue
+            oh = o - o[2] * np.array([0, 0, 1.0])
+            oh /= np.linalg.norm(oh)
+            up = np.array([0, 0, opt.parapet_height])
+            t = -oh * opt.parapet_thickness
+            mb.add([pa, pb, pb + up, pa + up], label=LABEL_DETAIL, building_id=bid)
+            mb.add([pa + t, pb + t, pb + t + up, pa + t + up][::-1], label=LABEL_DETAIL,
+                   building_id=bid)
+            mb.add([pa + up, pb + up, pb + up + t, pa + up + t], label=LABEL_DETAIL,
+                   building_id=bid)
+        elif opt.roof_overhang > 0:
+            horiz = math.hypot(o[0], o[1])
+            if horiz < 0.2:
+                continue
+            off = o * (opt.roof_overhang / horiz)
+            mb.add([pa, pb, pb + off, pa + off], label=LABEL_DETAIL, building_id=bid)
+    # roof furniture: boxes standing on the roof plane
+    area = store.areas[f]
+    k = rng.poisson(area * opt.roof_furniture_per_100m2 / 100.0) if area > 10 else 0
+    if k == 0:
+        return
+    u, v = plane_basis(n)
+    xy = np.stack([(ext - centre) @ u, (ext - centre) @ v], axis=1)
+    poly2 = Polygon(xy)
+    if not poly2.is_valid:
+        poly2 = poly2.buffer(0)
+    inner = poly2.buffer(-1.0)
+    if inner.is_empty:
+        return
+    minx, miny, maxx, maxy = inner.bounds
+    d = -np.dot(n, centre)
+    for _ in range(k):
+        for _try in range(20):
+            p2 = np.array([rng.uniform(minx, maxx), rng.uniform(miny, maxy)])
+            if inner.contains(shapely.Point(p2)):
+                break
+        else:
+            continue
+        q = centre + p2[0] * u + p2[1] * v
+        sx, sy = rng.uniform(0.5, 2.0, 2)
+        hgt = rng.uniform(0.6, 1.8)
+        yaw = math.atan2(u[1], u[0])
+        corners = np.array([[-sx, -sy], [sx, -sy], [sx, sy], [-sx, sy]]) / 2
+        rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
+        cxy = corners @ rot.T + q[:2]
+        zr = -(n[0] * cxy[:, 0] + n[1] * cxy[:, 1] + d) / n[2]
+        _add_box(mb, cxy, zr.min() - 0.1, zr.max() + hgt, LABEL_DETAIL, bid, bottom=False)
+
+
+def _add_box(mb: MeshBuilder, cxy: np.ndarray, z0: float, z1: float, label: int, bid: str,
+             bottom: bool = False) -> None:
+    """A vertical prism over the counter-clockwise footprint `cxy` (4,2) from z0 to z1."""
+    if Polygon(cxy).exterior.is_ccw is False:
+        cxy = cxy[::-1]
+    top = np.c_[cxy, np.full(len(cxy), z1)]
+    mb.add(top, label=label, building_id=bid)
+    if bottom:
+        mb.add(np.c_[cxy, np.full(len(cxy), z0)][::-1], label=label, building_id=bid)
+    for i in range(len(cxy)):
+        a, b = cxy[i], cxy[(i + 1) % len(cxy)]
+        mb.add([[*a, z0], [*b, z0], [*b, z1], [*a, z1]], label=label, building_id=bid)
+
+
+def _tree_triangles(base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+    import trimesh
+
+    trunk_h = rng.uniform(2.0, 3.5)
+    r = rng.uniform(1.5, 2.8)
+    sphere = trimesh.creation.icosphere(subdivisions=2, radius=r)
+    v = sphere.vertices * np.array([1.0, 1.0, rng.uniform(0.8, 1.2)])
+    # an irregular crown: radial noise per vertex
+    v = v * (1 + rng.uniform(-0.15, 0.15, (len(v), 1)))
+    v = v + base + np.array([0, 0, trunk_h + r])
+    crown = v[sphere.faces]
+    t = 0.15
+    cxy = np.array([[-t, -t], [t, -t], [t, t], [-t, t]]) + base[:2]
+    mb = MeshBuilder()
+    _add_box(mb, cxy, base[2], base[2] + trunk_h + 0.5, LABEL_CLUTTER, "", bottom=False)
+    return np.concatenate([crown, mb.scene().triangles])
+
+
+def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
+                     roi_centres: np.ndarray, roi_radius: float,
+                     ground: GroundModel | None = None,
+                     avoid_points: np.ndarray | None = None) -> TrueScene:
+    """The true scene around the flight: buildings with at least one face within `roi_radius`
+    of a camera centre (`roi_centres`, local) get generalisation effects, all others stay plain
+    LOD2; clutter stands in front of decorated facades, away from `avoid_points` (cameras);
+    terrain covers the cameras' surroundings."""
+    from scipy.spatial import cKDTree
+
+    ground = ground or GroundModel(store)
+    tree = cKDTree(roi_centres)
+    groups: dict[str, list[int]] = {}
+    for f, face in enumerate(store.faces):
+        groups.setdefault(face.building_id, []).append(f)
+    near = set()
+    for bid, faces in groups.items():
+        pts = np.concatenate([store.vertices[np.unique(np.concatenate(
+            [store.faces[f].exterior for f in faces]))], store.centroids[faces]])
+        if np.min(tree.query(pts)[0]) < roi_radius:
+            near.add(bid)
+    edges = _roof_edges(store)
+    mb = MeshBuilder()
+    anchors: list[tuple[np.ndarray, np.ndarray]] = []
+    for bid in sorted(groups):
+        faces = groups[bid]
+        ids = np.unique(np.concatenate([store.faces[f].exterior for f in faces]))
+        centre = store.vertices[ids].mean(0)
+        for f in faces:
+            face = store.faces[f]
+            if face.semantic in ("GroundSurface", "ClosureSurface"):
+                continue  # invisible from outside; not part of the visible scene
+            rng = np.random.default_rng([seed, STAGE_DETAILS, f])
+            if bid not in near:
+                label = LABEL_ROOF if face.semantic == "RoofSurface" else LABEL_WALL
+                mb.add(store.vertices[face.exterior], [store.vertices[h] for h in face.holes],
+                       label=label, building_id=bid, semantic=face.semantic)
+            elif face.semantic == "RoofSurface" or (
+                    face.semantic != "WallSurface" and abs(store.normals[f][2]) > 0.7):
+                _decorate_roof(mb, store, f, edges, options, rng, bid)
+            else:
+                fr = _wall_frame(store, f, centre)
+                anchors += _decorate_wall(mb, store, f, fr, options, rng, bid)
+    # terrain around the cameras
+    lo = roi_centres[:, :2].min(0) - roi_radius
+    hi = roi_centres[:, :2].max(0) + roi_radius
+    cell = options.ground_cell
+    xs = np.arange(lo[0], hi[0] + cell, cell)
+    ys = np.arange(lo[1], hi[1] + cell, cell)
+    gx, gy = np.meshgrid(xs, ys, indexing="xy")
+    gz = ground(np.c_[gx.ravel(), gy.ravel()]).reshape(gx.shape)
+    P = np.stack([gx, gy, gz], axis=-1)
+    a, b, c, d = P[:-1, :-1], P[:-1, 1:], P[1:, 1:], P[1:, :-1]
+    tris = np.concatenate([np.stack([a, b, c], -2).reshape(-1, 3, 3),
+                           np.stack([a, c, d], -2).reshape(-1, 3, 3)])
+    cen = tris.mean(1)
+    keep = tree.query(cen)[0] < roi_radius
+    mb.add_triangles(tris[keep], LABEL_GROUND)
+    # clutter in front of facades
+    n_clutter = _add_clutter(mb, store, anchors, options, seed, avoid_points)
+    return mb.scene(num_clutter_objects=n_clutter)
+
+
+def _add_clutter(mb: MeshBuilder, store: PlaneStore, anchors, opt: DetailOptions, seed: int,
+                 avoid_points: np.ndarray | None) -> int:
+    from scipy.spatial import cKDTree
+
+    if not anchors or (opt.tree_spacing <= 0 and opt.car_spacing <= 0):
+        return 0
+    rng = np.random.default_rng([seed, STAGE_CLUTTER])
+    footprints = shapely.unary_union(list(building_footprints(store).values())).buffer(0.5)
+    shapely.prepare(footprints)
+    cams = cKDTree(avoid_points) if avoid_points is not None and len(avoid_points) else None
+    placed: list[np.ndarray] = []
+    count = 0
+    p_tree = 1.0 / opt.tree_spacing if opt.tree_spacing > 0 else 0.0
+    p_car = 1.0 / opt.car_spacing if opt.car_spacing > 0 else 0.0
+    for base, n in anchors:  # one anchor per metre of facade
+        r = rng.random()
+        kind = "tree" if r < p_tree else ("car" if r < p_tree + p_car else None)
+        if kind is None:
+            continue
+        nh = np.array([n[0], n[1], 0.0])
+        if np.linalg.norm(nh) < 1e-6:
+            continue
+        nh /= np.linalg.norm(nh)
+        dist = rng.uniform(3.0, 5.5) if kind == "tree" else rng.uniform(2.5, 4.0)
+        pos = base + dist * nh
+        if footprints.contains(shapely.Point(pos[:2])):
+            continue
+        if any(np.linalg.norm(pos[:2] - q[:2]) < 3.0 for q in placed[-50:]):
+            continue
+        if kind == "tree":
+            tris = _tree_triangles(pos, rng)
+        else:
+            along = np.array([-nh[1], nh[0]])
+            acr = nh[:2]
+            L, W, H = rng.uniform(3.8, 4.8), rng.uniform(1.7, 1.9), rng.uniform(1.4, 1.7)
+            cxy = np.array([pos[:2] + s1 * L / 2 * along + s2 * W / 2 * acr
+                            for s1, s2 in [(-1, -1), (1, -1), (1, 1), (-1, 1)]])
+            tmp = MeshBuilder()
+            _add_box(tmp, cxy, pos[2] + 0.2, pos[2] + H, LABEL_CLUTTER, "")
+            tris = tmp.scene().triangles
+        if cams is not None:
+            pts = tris.reshape(-1, 3)
+            if np.min(cams.query(pts)[0]) < opt.camera_clearance:
+                continue
+        mb.add_triangles(tris, LABEL_CLUTTER)
+        placed.append(pos)
+        count += 1
+    return count
+
+
+def detailed_polygons(scene: TrueScene, min_area: float) -> list[RawPolygon]:
+    """The true scene's building polygons of at least `min_area` (the detailed model)."""
+    out = []
+    for p in scene.polygons:
+        tris = triangulate_rings(p.exterior, p.holes)
+        area = 0.5 * np.linalg.norm(
+            np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1).sum()
+        if area >= min_area:
+            out.append(p)
+    return out
