@@ -47,7 +47,26 @@ def _add_evaluate(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_evaluate]
+def _add_simulate(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate", help="simulate a UAV flight through a city model and map it with COLMAP")
+    p.add_argument("scenario", help="scenario TOML (see workspaces/*.toml)")
+    p.add_argument("--output_path", required=True, help="workspace directory to create")
+    p.add_argument("--seed", type=int, default=None, help="override the scenario's seed")
+    p.add_argument("--cache_path", default=None,
+                   help="directory of built sequences, reused by scenarios of the same sequence")
+    p.add_argument("--overwrite", action="store_true", help="replace an existing workspace")
+
+    def run(args):
+        from .simulate import main
+
+        main(args.scenario, args.output_path, seed=args.seed, cache_path=args.cache_path,
+             overwrite=args.overwrite)
+
+    p.set_defaults(func=run)
+
+
+SUBCOMMANDS = [_add_model_info, _add_evaluate, _add_simulate]
 
 
 def build_parser() -> argparse.ArgumentParser:
