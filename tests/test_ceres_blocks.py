@@ -148,3 +148,16 @@ def test_add_residual_rejects_arrays_pyceres_would_copy(core):
             None,
             [np.zeros(3, dtype=np.float32), plane.normal, plane.offset],
         )
+
+
+def test_sensor_from_rig_of_a_non_reference_camera_is_a_block():
+    reconstruction = _scene(num_cameras_per_rig=2)
+    problem = _adjuster(reconstruction, pycolmap.BundleAdjustmentGauge.UNSPECIFIED).problem
+    rig = next(iter(reconstruction.rigs.values()))
+    sensors = list(rig.non_ref_sensors)
+    assert len(sensors) == 1
+    params = reconstruction.rigs[rig.rig_id].sensor_from_rig(sensors[0]).params
+    again = reconstruction.rigs[rig.rig_id].sensor_from_rig(sensors[0]).params
+    assert params.__array_interface__["data"][0] == again.__array_interface__["data"][0]
+    assert problem.has_parameter_block(params)
+    assert problem.parameter_block_tangent_size(params) == 6
