@@ -9,8 +9,9 @@ as COLMAP's reprojection residuals (see docs/ceres_blocks.md for what was verifi
 - frame:  `reconstruction.frames[id].rig_from_world.params` (7: qx, qy, qz, qw, tx, ty, tz;
           one block on a product manifold EigenQuaternion x R^3, tangent size 6, or 5 when the
           gauge fixes a frame's translation direction)
-- sensor: `reconstruction.rigs[id].sensor_from_rig(sensor_id).params` (7, only for non-reference
-          sensors of real rigs)
+- sensor: `reconstruction.rigs[id].non_ref_sensors[sensor_id].params` (7, non-reference sensors
+          of real rigs). Not `rig.sensor_from_rig(sensor_id)`: through `rec.rigs[id]` it was
+          seen to return a copy.
 - camera: `reconstruction.cameras[id].params`               (model dependent)
 
 Lifetime rule (verified by crashing it): pyceres keeps a cost function, loss function and the
@@ -63,6 +64,18 @@ def frame_pose_block(reconstruction: pycolmap.Reconstruction, frame_id: int) -> 
     return _check_view(
         params, reconstruction.frames[frame_id].rig_from_world.params, f"frame {frame_id} pose"
     )
+
+
+def sensor_from_rig_block(
+    reconstruction: pycolmap.Reconstruction, rig_id: int, sensor_id: pycolmap.sensor_t
+) -> np.ndarray:
+    """The (7,) sensor_from_rig.params of a non-reference sensor (a block when refined)."""
+    sensors = reconstruction.rigs[rig_id].non_ref_sensors
+    if sensor_id not in sensors:
+        raise ValueError(f"sensor {sensor_id} is not a non-reference sensor of rig {rig_id}")
+    params = sensors[sensor_id].params
+    again = reconstruction.rigs[rig_id].non_ref_sensors[sensor_id].params
+    return _check_view(params, again, f"rig {rig_id} sensor {sensor_id}")
 
 
 def camera_block(reconstruction: pycolmap.Reconstruction, camera_id: int) -> np.ndarray:

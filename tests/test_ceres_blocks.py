@@ -156,8 +156,8 @@ def test_sensor_from_rig_of_a_non_reference_camera_is_a_block():
     rig = next(iter(reconstruction.rigs.values()))
     sensors = list(rig.non_ref_sensors)
     assert len(sensors) == 1
-    params = reconstruction.rigs[rig.rig_id].sensor_from_rig(sensors[0]).params
-    again = reconstruction.rigs[rig.rig_id].sensor_from_rig(sensors[0]).params
-    assert params.__array_interface__["data"][0] == again.__array_interface__["data"][0]
-    assert problem.has_parameter_block(params)
-    assert problem.parameter_block_tangent_size(params) == 6
+    block = ceres_blocks.sensor_from_rig_block(reconstruction, rig.rig_id, sensors[0])
+    assert problem.has_parameter_block(block)
+    assert problem.parameter_block_tangent_size(block) == 6
+    block[4] += 1.0
+    np.testing.assert_allclose(rig.sensor_from_rig(sensors[0]).translation[0], block[4])
