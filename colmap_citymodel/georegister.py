@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -114,7 +114,7 @@ def estimate_georegistration(
     """
     import pycolmap
 
-    options = options or GeoregistrationOptions()
+    options = replace(options or GeoregistrationOptions())  # never alter the caller's options
     if max_error is not None:
         options.max_error = max_error
     min_inliers = max(3, int(min_inliers if min_inliers is not None else options.min_inliers))

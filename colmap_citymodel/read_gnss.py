@@ -107,7 +107,10 @@ def _crs_info(text: str, path=None) -> CRSInfo:
     except ImportError:
         user_crs = None
     if user_crs is not None:
-        return user_crs(text)
+        try:
+            return user_crs(text)
+        except CRSError as error:
+            raise CRSError(f"GNSS CRS {text!r}: {error.message}", path) from None
     import pyproj
 
     try:

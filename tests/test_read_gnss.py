@@ -278,3 +278,13 @@ def test_match_to_reconstruction_and_lever_arm():
     corrected = apply_lever_arm(with_arm, rotations)
     np.testing.assert_allclose(corrected.positions, gnss.positions, atol=1e-12)
     assert corrected.lever_arm is None
+
+
+def test_text_unknown_gnss_crs_names_file(tmp_path):
+    from colmap_citymodel.errors import CRSError
+
+    path = tmp_path / "gnss.txt"
+    path.write_text("a.jpg 1 2 3\n")
+    with pytest.raises(CRSError, match="GNSS CRS 'EPSG:999999'") as info:
+        read_gnss_text(path, "EPSG:999999", UTM32_DHHN)
+    assert "gnss.txt" in str(info.value)
