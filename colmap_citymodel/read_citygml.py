@@ -101,6 +101,19 @@ class _Ref:
 @dataclass
 class _RingRef:
     target: str
+    reversed: bool = False
+
+
+_EMPTY = np.zeros((0, 3))
+
+
+def _inherited_dim(el, walker) -> int:
+    """srsDimension of the nearest ancestor that names one (GML default 3)."""
+    for anc in el.iterancestors():
+        d = anc.get("srsDimension")
+        if d:
+            return walker._dim(d)
+    return 3
 
 
 class _Pending:
@@ -129,6 +142,12 @@ class _Walker:
         self.refs: list[_Ref] = []
         self.containers: dict[str, tuple[int, int]] = {}  # aggregate gml:id -> polygon index range
         self.pending: list[_Pending] = []
+        self.poly_rings: list[tuple[RawPolygon, list, bool]] = []
+        self.tokens: list[str] = []
+        self.ring_start: list[int] = []
+        self.ring_len: list[int] = []
+        self.ring_dim: list[int] = []
+        self.ring_gid: list[str] = []
         self.buildings: list[str] = []
         self.parts: list[str] = []
         self._ring_index: dict | None = None
@@ -190,6 +209,9 @@ class _Walker:
                 self.srs_names.add(srs)
 
     # -- GML geometry -------------------------------------------------------------------------
+    # Coordinates are not parsed ring by ring: the text of every ring of the city object is split
+    # into one token list and converted by one numpy call in finalize() (per-ring numpy calls
+    # cost more than the conversion itself). Rings are referred to by index until then.
     def _property(self, prop, semantic: str, in_solid: bool, rev: bool, dim: int) -> None:
         """A property element (surfaceMember, baseSurface, lod2Solid, exterior of a Solid, ...):
         either a reference or inline geometry."""
@@ -200,8 +222,12 @@ class _Walker:
             )
             return
         for child in prop:
-            if isinstance(child.tag, str):
-                self._geometry(child, semantic, in_solid, rev, dim)
+            tag = child.tag
+            if isinstance(tag, str):
+                if _local_cache.get(tag) == "Polygon":  # fast path for the common case
+                    self._polygon(child, semantic, in_solid, rev, dim, _gml_id(child))
+                else:
+                    self._geometry(child, semantic, in_solid, rev, dim)
 
     def _geometry(self, el, semantic: str, in_solid: bool, rev: bool, dim: int) -> None:
         srs = el.get("srsName")
@@ -264,15 +290,26 @@ class _Walker:
             self.srs_names.add(srs)
         rings: list = []
         for child in el:
-            name = _local(child.tag)
-            if name in ("exterior", "outerBoundaryIs"):
-                rings.insert(0, self._ring_property(child, dim, gid))
-            elif name in ("interior", "innerBoundaryIs"):
-                rings.append(self._ring_property(child, dim, gid))
+            tag = child.tag
+            name = _local_cache.get(tag) if isinstance(tag, str) else ""
+            if name is None:
+                name = _local(tag)
+            if name == "exterior" or name == "interior":
+                ring = self._fast_ring(child, dim, gid)
+                if ring is None:
+                    ring = self._ring_property(child, dim, gid)
+            elif name == "outerBoundaryIs" or name == "innerBoundaryIs":
+                ring = self._ring_property(child, dim, gid)
+            else:
+                continue
+            if name == "exterior" or name == "outerBoundaryIs":
+                rings.insert(0, ring)
+            else:
+                rings.append(ring)
         if not rings:
             raise CityGMLError(f"polygon {gid or '(without gml:id)'} has no exterior ring", self.path)
         polygon = RawPolygon(
-            exterior=None,  # type: ignore[arg-type]
+            exterior=_EMPTY,
             semantic=semantic,
             building_id=self.building,
             part_id=self.part,
@@ -280,17 +317,33 @@ class _Walker:
             lod=self.lod,
             from_solid=in_solid and not rev,
         )
-        if rev:
-            rings = [r[::-1].copy() if isinstance(r, np.ndarray) else _RingRef(r.target + "\0rev") for r in rings]
-        if any(isinstance(r, _RingRef) for r in rings):
-            self.pending.append(_Pending(polygon, rings))
-            polygon.exterior = np.zeros((0, 3))
-        else:
-            polygon.exterior = rings[0]
-            polygon.holes = rings[1:]
         self.polygons.append(polygon)
+        self.poly_rings.append((polygon, rings, rev))
+
+    def _fast_ring(self, prop, dim: int, gid: str) -> int | None:
+        """The common case inline: <exterior><LinearRing><posList>...; None for anything else."""
+        if len(prop) != 1 or prop.get(XLINK_HREF) is not None:
+            return None
+        ring = prop[0]
+        if _local_cache.get(ring.tag) != "LinearRing" or ring.get("srsDimension") or len(ring) != 1:
+            return None
+        pos_list = ring[0]
+        if _local_cache.get(pos_list.tag) != "posList" or pos_list.get("srsDimension") not in (None, "3"):
+            return None
+        if dim != 3 and pos_list.get("srsDimension") is None:
+            return None
+        start = len(self.tokens)
+        text = pos_list.text
+        if text:
+            self.tokens.extend(text.split())
+        self.ring_start.append(start)
+        self.ring_len.append(len(self.tokens) - start)
+        self.ring_dim.append(3)
+        self.ring_gid.append(gid)
+        return len(self.ring_start) - 1
 
     def _ring_property(self, prop, dim: int, gid: str):
+        """Index of the ring of an exterior/interior property, or a _RingRef to resolve later."""
         href = prop.get(XLINK_HREF)
         if href is not None:
             target = _href_id(href)
@@ -301,7 +354,7 @@ class _Walker:
                 return self._ring(ring, dim, gid)
         raise CityGMLError(f"polygon {gid or '(without gml:id)'} has an empty ring", self.path)
 
-    def _ring_by_id(self, target: str):
+    def _ring_by_id(self, target: str) -> int | None:
         """A ring referenced by id inside the current city object (index built on first need)."""
         if self.member is None:
             return None
@@ -314,85 +367,134 @@ class _Walker:
         el = self._ring_index.get(target)
         if el is None:
             return None
-        dim = 3
-        for anc in el.iterancestors():
-            d = anc.get("srsDimension")
-            if d:
-                dim = self._dim(d)
-                break
-        return self._ring(el, dim, target)
+        return self._ring(el, _inherited_dim(el, self), target)
 
-    def _ring(self, ring, dim: int, gid: str) -> np.ndarray:
+    def _ring(self, ring, dim: int, gid: str) -> int:
         d = ring.get("srsDimension")
         if d:
             dim = self._dim(d)
         name = _local(ring.tag)
-        if name == "Ring":  # a ring of curve members: concatenate their points
-            parts = [self._curve_points(m, dim, gid) for m in ring if _local(m.tag) == "curveMember"]
-            pts = np.concatenate(parts) if parts else np.zeros((0, 3))
-        elif name == "LinearRing":
-            pts = self._points(ring, dim, gid)
+        start = len(self.tokens)
+        if name == "LinearRing":
+            dim = self._collect(ring, dim, gid)
+        elif name == "Ring":  # a ring of curve members: concatenate their points
+            for member in ring:
+                if _local(member.tag) == "curveMember":
+                    for el in member.iter("{*}LineString", "{*}LineStringSegment"):
+                        dim = self._collect(el, dim, gid)
         else:
             raise CityGMLError(f"polygon {gid or '(without gml:id)'}: unsupported ring {name}", self.path)
-        # rings are closed in GML; the store wants them open
-        if len(pts) > 1 and (pts[0] == pts[-1]).all():
-            pts = pts[:-1]
-        return pts
+        self.ring_start.append(start)
+        self.ring_len.append(len(self.tokens) - start)
+        self.ring_dim.append(dim)
+        self.ring_gid.append(gid)
+        return len(self.ring_start) - 1
 
-    def _curve_points(self, member, dim: int, gid: str) -> np.ndarray:
-        out = []
-        for el in member.iter("{*}LineString", "{*}LineStringSegment"):
-            pts = self._points(el, dim, gid)
-            if out and len(pts) and (out[-1][-1] == pts[0]).all():
-                pts = pts[1:]
-            out.append(pts)
-        return np.concatenate(out) if out else np.zeros((0, 3))
-
-    def _points(self, el, dim: int, gid: str) -> np.ndarray:
-        """Coordinates of a LinearRing/LineString from posList, pos sequence or coordinates."""
-        values: list[str] = []
+    def _collect(self, el, dim: int, gid: str) -> int:
+        """Append the coordinate tokens of a LinearRing/LineString (posList, pos sequence or
+        coordinates) to the token list; returns the dimension."""
+        tokens = self.tokens
         for child in el:
             name = _local(child.tag)
             if name == "posList":
                 d = child.get("srsDimension")
                 if d:
                     dim = self._dim(d)
-                values = (child.text or "").split()
+                text = child.text
+                if text:
+                    tokens.extend(text.split())
                 break
             if name == "pos":
                 d = child.get("srsDimension")
                 if d:
                     dim = self._dim(d)
-                values.extend((child.text or "").split())
+                text = child.text
+                if text:
+                    tokens.extend(text.split())
             elif name == "coordinates":
                 cs = child.get("cs", ",")
                 ts = child.get("ts", " ")
                 decimal = child.get("decimal", ".")
                 text = child.text or ""
                 if decimal != ".":
-                    text = text.replace(".", "\0").replace(decimal, ".")
-                tuples = text.split() if ts.isspace() else text.split(ts)
-                parts = [t.split(cs) for t in tuples if t.strip()]
-                if parts:
-                    dim = len(parts[0])
-                values = [v for t in parts for v in t]
+                    text = text.replace(decimal, ".")
+                tuples = [t.split(cs) for t in (text.split() if ts.isspace() else text.split(ts)) if t.strip()]
+                if tuples:
+                    dim = len(tuples[0])
+                for t in tuples:
+                    tokens.extend(t)
+        return dim
+
+    def finalize(self) -> list[np.ndarray]:
+        """Convert all ring tokens to arrays (one numpy call) and attach them to the polygons.
+
+        Returns the ring arrays (N,3), closing points removed."""
+        arrays = self._ring_arrays()
+        for polygon, rings, rev in self.poly_rings:
+            out = []
+            unresolved = False
+            for r in rings:
+                if isinstance(r, _RingRef):
+                    unresolved = True
+                    out.append(_RingRef(r.target, r.reversed != rev))
+                else:
+                    a = arrays[r]
+                    out.append(a[::-1].copy() if rev else a)
+            if unresolved:
+                self.pending.append(_Pending(polygon, out))
+            else:
+                polygon.exterior = out[0]
+                if len(out) > 1:
+                    polygon.holes = out[1:]
+        self.poly_rings = []
+        return arrays
+
+    def _ring_arrays(self) -> list[np.ndarray]:
+        if not self.ring_start:
+            return []
         try:
-            arr = np.array(values, dtype=np.float64)
+            vals = np.array(self.tokens, dtype=np.float64)
         except ValueError:
+            for k, (s, n) in enumerate(zip(self.ring_start, self.ring_len)):
+                try:
+                    np.array(self.tokens[s:s + n], dtype=np.float64)
+                except ValueError:
+                    gid = self.ring_gid[k]
+                    raise CityGMLError(
+                        f"polygon {gid or '(without gml:id)'}: coordinates that are not numbers", self.path
+                    ) from None
+            raise
+        start = np.array(self.ring_start, dtype=np.int64)
+        length = np.array(self.ring_len, dtype=np.int64)
+        dim = np.array(self.ring_dim, dtype=np.int64)
+        bad = np.flatnonzero(length % dim)
+        if len(bad):
+            k = int(bad[0])
+            gid = self.ring_gid[k]
             raise CityGMLError(
-                f"polygon {gid or '(without gml:id)'}: coordinates that are not numbers", self.path
-            ) from None
-        if len(arr) % dim:
-            raise CityGMLError(
-                f"polygon {gid or '(without gml:id)'}: {len(arr)} coordinate values are not a "
-                f"multiple of srsDimension {dim}",
+                f"polygon {gid or '(without gml:id)'}: {length[k]} coordinate values are not a "
+                f"multiple of srsDimension {dim[k]}",
                 self.path,
             )
-        arr = arr.reshape(-1, dim)
-        if dim == 2:
-            self.num_2d_rings += 1
-            arr = np.column_stack([arr, np.zeros(len(arr))])
-        return arr
+        # rings are closed in GML (last point = first point); the store wants them open
+        closed = np.zeros(len(start), dtype=bool)
+        check = np.flatnonzero(length >= 2 * dim)
+        if len(check):
+            first, last, d = start[check], start[check] + length[check] - dim[check], dim[check]
+            eq = (vals[first] == vals[last]) & (vals[first + 1] == vals[last + 1])
+            three = d == 3
+            eq[three] &= vals[first[three] + 2] == vals[last[three] + 2]
+            closed[check] = eq
+        end = (start + length - closed * dim).tolist()
+        arrays = []
+        for s, e, d in zip(self.ring_start, end, self.ring_dim):
+            if d == 3:
+                arrays.append(vals[s:e].reshape(-1, 3))
+            else:
+                flat = vals[s:e].reshape(-1, 2)
+                self.num_2d_rings += 1
+                arrays.append(np.column_stack([flat, np.zeros(len(flat))]))
+        return arrays
 
     # -- per city object resolution ------------------------------------------------------------
     def resolve_local(self) -> list[_Ref]:
@@ -607,7 +709,6 @@ def read_citygml(
     num_features = [0]
     num_dropped = 0
     num_duplicates = 0
-    kept_ids_by_building: set[str] = set()
 
     tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
     try:
@@ -632,6 +733,7 @@ def read_citygml(
                     walker.feature(feature, num_features)
                     if not walker.buildings:
                         continue
+                    walker.finalize()
                     num_duplicates += walker.dedupe()
                     unresolved = walker.resolve_local()
                     state.add(walker.srs_names)
@@ -648,7 +750,6 @@ def read_citygml(
                     polygons.extend(walker.polygons)
                     building_ids.extend(walker.buildings)
                     part_ids.extend(walker.parts)
-                    kept_ids_by_building.update(walker.buildings)
                     pending_refs.extend(unresolved)
                     pending_polys.extend(walker.pending)
             # free the member and everything before it
@@ -740,7 +841,7 @@ def _resolve_pending(
             merge_reference(target, ref)
         else:
             open_refs.append(ref)
-    ring_ids = {r.target.split("\0")[0] for pp in pending for r in pp.rings if isinstance(r, _RingRef)}
+    ring_ids = {r.target for pp in pending for r in pp.rings if isinstance(r, _RingRef)}
     if not open_refs and not ring_ids:
         return []
     found_surfaces, found_rings = _rescan(path, walker.lod, {r.target for r in open_refs}, ring_ids)
@@ -774,11 +875,10 @@ def _resolve_pending(
         rings = []
         for r in pp.rings:
             if isinstance(r, _RingRef):
-                rid, _, rev = r.target.partition("\0")
-                ring = found_rings.get(rid)
+                ring = found_rings.get(r.target)
                 if ring is None:
-                    raise CityGMLError(f"unresolved xlink:href to ring '{rid}': no ring has this gml:id", path)
-                if rev:
+                    raise CityGMLError(f"unresolved xlink:href to ring '{r.target}': no ring has this gml:id", path)
+                if r.reversed:
                     ring = ring[::-1].copy()
                 rings.append(ring)
             else:
@@ -811,17 +911,14 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
             gid = _gml_id(el)
             if not gid or (gid not in surface_ids and gid not in ring_ids):
                 continue
-            dim = 3
-            for anc in el.iterancestors():
-                d = anc.get("srsDimension")
-                if d:
-                    dim = walker._dim(d)
-                    break
-            if _local(el.tag) in ("LinearRing", "Ring"):
-                rings.setdefault(gid, walker._ring(el, dim, gid))
-                continue
+            dim = _inherited_dim(el, walker)
             walker.reset(None)
+            if _local(el.tag) in ("LinearRing", "Ring"):
+                k = walker._ring(el, dim, gid)
+                rings.setdefault(gid, walker.finalize()[k])
+                continue
             walker._geometry(el, "Unknown", False, False, dim)
+            walker.finalize()
             if walker.refs or walker.pending:
                 raise CityGMLError(f"xlink:href to '{gid}' leads to further references (not supported)", path)
             surfaces.setdefault(gid, [[p.exterior, *p.holes] for p in walker.polygons])
