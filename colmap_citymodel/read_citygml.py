@@ -709,6 +709,7 @@ def read_citygml(
     num_features = [0]
     num_dropped = 0
     num_duplicates = 0
+    num_without = 0
 
     tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
     try:
@@ -739,8 +740,7 @@ def read_citygml(
                     state.add(walker.srs_names)
                     walker.srs_names = set()
                     if not walker.polygons:
-                        building_ids.extend(walker.buildings)  # a building without LOD-n geometry
-                        part_ids.extend(walker.parts)
+                        num_without += len(walker.buildings)  # no geometry at this LOD
                         continue
                     state.require()
                     keep = _place(walker, state, bbox)
@@ -777,6 +777,8 @@ def read_citygml(
     warnings = list(state.warnings)
     if pending_refs or pending_polys:
         polygons += _resolve_pending(path, walker, state, polygons, pending_refs, pending_polys)
+    if num_without:
+        warnings.append(f"{num_without} buildings without LOD {lod} geometry skipped")
     if num_duplicates:
         warnings.append(f"{num_duplicates} polygons defined twice with the same gml:id (kept the first)")
     if walker.num_2d_rings:

@@ -639,12 +639,16 @@ def test_lod_selection(tmp_path):
         f"<bldg:lod1Solid><gml:Solid><gml:exterior><gml:CompositeSurface>{lod1}</gml:CompositeSurface>"
         "</gml:exterior></gml:Solid></bldg:lod1Solid></bldg:Building>",
     )
-    path = write(tmp_path, city_xml([b], srs="EPSG:25832"))
+    only_lod2, _ = building_xml("B2", 20.0)
+    path = write(tmp_path, city_xml([b, only_lod2], srs="EPSG:25832"))
     raw1 = read_citygml(path, lod=1)
     assert len(raw1.polygons) == 6 and all(p.gml_id.startswith("L1_") and p.lod == 1 for p in raw1.polygons)
+    assert raw1.building_ids == ["B1"]
+    assert "1 buildings without LOD 1 geometry skipped" in raw1.warnings
     assert all(p.from_solid and p.semantic == "Unknown" for p in raw1.polygons)
     raw2 = read_citygml(path, lod=2)
-    assert len(raw2.polygons) == 6 and not any(p.gml_id.startswith("L1_") for p in raw2.polygons)
+    assert raw2.building_ids == ["B1", "B2"]
+    assert len(raw2.polygons) == 12 and not any(p.gml_id.startswith("L1_") for p in raw2.polygons)
     with pytest.raises(CityGMLError, match=r"no building geometry at LOD 3 \(it has LOD 1, 2"):
         read_citygml(path, lod=3)
 
