@@ -98,6 +98,12 @@ def filter_faces(points: np.ndarray, face_index: np.ndarray, options: Assignment
     return face_index
 
 
+def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:
+    """Indices of faces whose semantic class takes no tie points."""
+    return np.array([i for i, f in enumerate(store.faces)
+                     if f.semantic in options.excluded_classes], dtype=np.int64)
+
+
 def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
                   threshold: float, options: AssignmentOptions) -> Assignment:
     """Method (a): each tie point to its closest model face, if closer than `threshold`.
@@ -107,6 +113,9 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     """
     face_index, distance = store.closest_faces(points, max_distance=threshold,
                                                margin=options.polygon_margin)
+    excluded = excluded_faces(store, options)
+    if len(excluded):
+        face_index = np.where(np.isin(face_index, excluded), -1, face_index)
     rejected: dict[str, int] = {}
     face_index = filter_faces(points, face_index, options, rejected)
     distance = np.where(face_index >= 0, distance, np.nan)

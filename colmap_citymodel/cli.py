@@ -66,7 +66,61 @@ def _add_simulate(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_evaluate, _add_simulate]
+def _add_refine(subparsers) -> None:
+    p = subparsers.add_parser(
+        "refine", help="georeference and refine a COLMAP model with a city building model")
+    p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
+    p.add_argument("--citymodel", required=True, nargs="+",
+                   help="CityGML/CityJSON file(s) or a directory of tiles")
+    p.add_argument("--output_path", required=True, help="new directory for the results")
+    gnss = p.add_argument_group("GNSS (one source) or an initial transform")
+    gnss.add_argument("--database", help="COLMAP database with pose priors")
+    gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
+    gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:4979 or EPSG:25832+7837")
+    gnss.add_argument("--exif", help="directory of the images with EXIF GPS")
+    gnss.add_argument("--initial_transform",
+                      help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
+    p.add_argument("--preset", default="generalised",
+                   choices=["generalised", "detailed", "correct_model"],
+                   help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane)")
+    p.add_argument("--options", dest="options_file", help="TOML file overriding options")
+    p.add_argument("--lod", type=int, default=2, help="level of detail of the model to use")
+    p.add_argument("--crs", dest="model_crs", help="CRS of a model file that names none")
+    p.add_argument("--target_crs", help="projected CRS to reproject a geographic model to")
+    p.add_argument("--output_type", choices=["bin", "txt"], default="bin")
+    p.add_argument("--output_frame", choices=["crs", "local"], default="crs",
+                   help="crs: model CRS coordinates; local: CRS minus the recorded origin")
+    p.add_argument("--no_progress", action="store_true", help="no progress bars")
+
+    def run(args):
+        from .refine import main
+
+        main(args.input_path, args.citymodel, args.output_path, database=args.database,
+             gnss=args.gnss, gnss_crs=args.gnss_crs, exif=args.exif,
+             initial_transform=args.initial_transform, preset=args.preset,
+             options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
+             target_crs=args.target_crs, output_type=args.output_type,
+             output_frame=args.output_frame, progress=not args.no_progress)
+
+    p.set_defaults(func=run)
+
+
+def _add_demo(subparsers) -> None:
+    p = subparsers.add_parser(
+        "demo", help="simulate a flight, refine it with the city model, evaluate check points")
+    p.add_argument("--output_path", default="demo_output", help="directory for all outputs")
+    p.add_argument("--scenario", default=None, help="scenario TOML (default workspaces/demo.toml)")
+    p.add_argument("--no_progress", action="store_true")
+
+    def run(args):
+        from .demo import main
+
+        main(args.output_path, scenario=args.scenario, progress=not args.no_progress)
+
+    p.set_defaults(func=run)
+
+
+SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate]
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -144,11 +144,13 @@ def estimate_georegistration(
         )
     sigma_axis = np.median(sigmas, axis=0)
     spread_tgt = _principal_std(target)
-    if spread_tgt[0] < options.min_baseline_sigmas * float(sigma_axis.max()):
+    # The main axis of a flight is horizontal: compare it with the horizontal sigma.
+    sigma_horizontal = float(sigma_axis[:2].max())
+    if spread_tgt[0] < options.min_baseline_sigmas * sigma_horizontal:
         raise GeoregistrationError(
             f"the GNSS positions spread only {spread_tgt[0]:.2f} m (std along the main axis), "
-            f"not more than {options.min_baseline_sigmas:g} x their sigma "
-            f"({sigma_axis.max():.2f} m): not enough baseline for a similarity transform"
+            f"not more than {options.min_baseline_sigmas:g} x their horizontal sigma "
+            f"({sigma_horizontal:.2f} m): not enough baseline for a similarity transform"
         )
     scale_guess = spread_tgt[0] / spread_src[0]
     if spread_src[1] * scale_guess < float(sigma_axis[:2].max()):

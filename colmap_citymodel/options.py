@@ -35,6 +35,8 @@ class AssignmentOptions:
     """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
+    excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
+    """Faces no tie point can lie on: a building's ground is under it, closures are virtual."""
 
 
 @dataclass
@@ -113,7 +115,7 @@ class RefineOptions:
                     raise InputError(f"unknown option {section}.{key}", source)
                 current = getattr(target, key)
                 if isinstance(current, tuple):
-                    value = tuple(float(v) for v in value)
+                    value = tuple(type(current[0])(v) if current else v for v in value)
                 elif isinstance(current, float) and isinstance(value, int):
                     value = float(value)
                 elif not isinstance(value, type(current)):

@@ -38,6 +38,9 @@ logger = logging.getLogger("colmap_citymodel.refine")
 SAME_ORIENTATION_DEG = 10.0
 # A direction whose weight in sum(n n^T) is below this fraction of the largest is "weak".
 WEAK_DIRECTION_RATIO = 0.05
+# Tie points this close to a model face count as "on the model" when searching the roll of a
+# straight flight line.
+SEARCH_DISTANCE = 1.0
 
 
 @dataclass
@@ -207,7 +210,8 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
         to_local = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), -store.origin)
         sim3 = to_local * initial_transform
     elif priors is not None:
-        result = estimate_georegistration(rec, priors.positions, priors.image_ids)
+        result = estimate_georegistration(rec, priors.positions, priors.image_ids,
+                                          sigmas=priors.sigmas)
         sim3, rms = result.sim3, result.rms
         logger.info("georegistration to %d GNSS positions: scale %.4f, RMS %.2f m, %d inliers",
                     len(priors), sim3.scale, rms, int(np.count_nonzero(result.inlier_mask)))
@@ -217,6 +221,56 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
             "--initial_transform")
     rec.transform(sim3)
     return sim3, priors, rms
+
+
+def _lateral_spread(centres: np.ndarray) -> float:
+    """Standard deviation (m) of the camera centres across their main direction."""
+    singular = np.linalg.svd(centres - centres.mean(0), compute_uv=False)
+    return float(singular[1] / np.sqrt(len(centres)))
+
+
+def roll_about_flight_line(rec: pycolmap.Reconstruction, store: PlaneStore,
+                           step_deg: float = 1.0, max_points: int = 5000) -> pycolmap.Sim3d:
+    """The rotation about the flight line that best puts the tie points on the model.
+
+    A flight along one street leaves the 7-parameter fit to GNSS almost free to rotate about
+    the flight line (the centres deviate from a line by less than the GNSS noise), and
+    side-looking images carry no roll cue either (that rotation is their tilt). The model does:
+    among the rotations about the line through the centres' centroid, take the one that puts
+    the most tie points within `SEARCH_DISTANCE` of a model face (a subsample of points, a
+    `step_deg` grid, then a finer grid around the best). Returns it as a Sim3d (identity when
+    no angle is clearly better than none).
+    """
+    centres = camera_centres(rec)
+    centroid = centres.mean(0)
+    direction = np.linalg.svd(centres - centroid)[2][0]
+    _, points = tie_points(rec)
+    rng = np.random.default_rng(0)
+    if len(points) > max_points:
+        points = points[rng.choice(len(points), max_points, replace=False)]
+    points = points - centroid
+
+    def rotation(theta: float) -> np.ndarray:
+        return np.asarray(pycolmap.Rotation3d(direction * theta).matrix())
+
+    def score(theta: float) -> int:
+        moved = points @ rotation(theta).T + centroid
+        faces, _ = store.closest_faces(moved, max_distance=SEARCH_DISTANCE, margin=0.5)
+        return int(np.count_nonzero(faces >= 0))
+
+    coarse = np.radians(np.arange(-180.0, 180.0, step_deg))
+    scores = np.array([score(t) for t in coarse])
+    best = coarse[int(np.argmax(scores))]
+    fine = best + np.radians(np.linspace(-step_deg, step_deg, 11))
+    fine_scores = np.array([score(t) for t in fine])
+    theta = float(fine[int(np.argmax(fine_scores))])
+    if fine_scores.max() <= 1.2 * score(0.0):
+        return pycolmap.Sim3d()
+    matrix = rotation(theta)
+    logger.info("flight line nearly straight: rotated the block by %.1f deg about it to fit the "
+                "model (%d of %d sampled tie points near a face, %d before)",
+                np.degrees(theta), fine_scores.max(), len(points), score(0.0))
+    return pycolmap.Sim3d(1.0, pycolmap.Rotation3d(matrix), centroid - matrix @ centroid)
 
 
 def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
@@ -233,6 +287,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform)
+    if priors is not None and initial_transform is None and \
+            _lateral_spread(camera_centres(rec)) < float(np.median(priors.sigmas[:, :2])):
+        roll = roll_about_flight_line(rec, city_model)
+        rec.transform(roll)
+        sim3 = roll * sim3
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
@@ -320,3 +379,116 @@ def _current_from(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
     vertices = current.vertices.copy()
     vertices[blocks.vertex_ids] = blocks.vertex_array
     return current.with_vertices(vertices)
+
+
+# -- CLI entry: read inputs, refine, write outputs ------------------------------------------------
+
+#: Metres around the GNSS positions in which city model buildings are read.
+GNSS_READ_MARGIN = 250.0
+
+
+def peek_crs(citymodel, assumed: str | None = None):
+    """The CRS of the first city model file from its first srsName / referenceSystem, read
+    from the file's head only (so GNSS can bound what is read of a large model); None when
+    the head names none (the model is then read whole first)."""
+    import re
+
+    from .crs import resolve_crs, user_crs
+    from .read_city_model import city_model_files
+
+    files = city_model_files(citymodel)
+    with open(files[0], "rb") as f:
+        head = f.read(1 << 20).decode("utf-8", errors="ignore")
+    found = re.search(r'srsName="([^"]+)"', head) or \
+        re.search(r'"referenceSystem"\s*:\s*"([^"]+)"', head)
+    if found:
+        info = resolve_crs(found.group(1), path=files[0])
+        return info if info.is_projected else None
+    return user_crs(assumed) if assumed else None
+
+
+def read_reconstruction(path: str | Path) -> pycolmap.Reconstruction:
+    from .errors import InputError
+
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("COLMAP model directory does not exist", path)
+    if not any((path / f"cameras.{ext}").exists() for ext in ("bin", "txt")):
+        raise InputError("not a COLMAP model directory (no cameras.bin or cameras.txt)", path)
+    try:
+        rec = pycolmap.Reconstruction(str(path))
+    except Exception as error:  # pycolmap raises plain RuntimeErrors for broken files
+        raise InputError(f"cannot read the COLMAP model: {error}", path) from None
+    if rec.num_reg_images() < 3:
+        raise InputError(f"the model has only {rec.num_reg_images()} registered images", path)
+    return rec
+
+
+def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
+              default_sigma=(3.0, 3.0, 5.0)):
+    """GNSS from exactly one source: COLMAP database pose priors, a text file or EXIF."""
+    from .errors import InputError
+    from . import read_gnss as rg
+
+    given = [name for name, value in (("--database", database), ("--gnss", gnss),
+                                      ("--exif", exif)) if value]
+    if len(given) > 1:
+        raise InputError(f"give one GNSS source, not {' and '.join(given)}")
+    if database:
+        return rg.read_gnss_database(database, target_crs, default_sigma)
+    if gnss:
+        if not gnss_crs:
+            raise InputError("--gnss needs --gnss_crs (e.g. EPSG:4979 or EPSG:25832+7837)", gnss)
+        return rg.read_gnss_text(gnss, gnss_crs, target_crs, default_sigma)
+    if exif:
+        return rg.read_gnss_exif(exif, target_crs, default_sigma)
+    return None
+
+
+def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
+         exif=None, initial_transform=None, preset="generalised", options_file=None,
+         lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
+         progress=True) -> RefineResult:
+    """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically."""
+    from .crs import user_crs
+    from .georegister import read_initial_transform
+    from .read_city_model import read_city_model
+    from .write_output import atomic_directory, write_refined
+
+    options = (RefineOptions.from_toml(options_file, preset) if options_file
+               else RefineOptions.preset(preset))
+    # Fail on a taken output directory before the expensive work.
+    with atomic_directory(output_path):
+        pass
+    Path(output_path).rmdir()
+    reconstruction = read_reconstruction(input_path)
+    crs = user_crs(target_crs) if target_crs else peek_crs(citymodel, model_crs)
+    observations = None
+    if crs is not None:
+        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
+                                 target_crs=crs, default_sigma=options.adjustment.sigma_gnss)
+    bbox = None
+    if observations is not None:
+        bbox = np.array([observations.positions.min(0) - GNSS_READ_MARGIN,
+                         observations.positions.max(0) + GNSS_READ_MARGIN])
+    store = read_city_model(citymodel, lod=lod, crs=model_crs, target_crs=target_crs,
+                            bbox_crs=bbox)
+    if observations is None and crs is None:
+        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
+                                 target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
+    transform = read_initial_transform(initial_transform) if initial_transform else None
+    result = refine(reconstruction, store, observations, options,
+                    initial_transform=transform, progress=progress)
+    inputs = {"input_path": str(input_path), "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
+              "gnss_source": observations.source if observations is not None else None,
+              "initial_transform": str(initial_transform) if initial_transform else None,
+              "preset": preset, "options_file": str(options_file) if options_file else None}
+    write_refined(result, output_path, output_type=output_type, output_frame=output_frame,
+                  inputs=inputs)
+    last = result.iterations[-1]
+    print(f"refined {result.reconstruction.num_reg_images()} images, "
+          f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points on "
+          f"{last.num_faces} planes; s0 {np.sqrt(last.final.sigma0_squared):.3f}")
+    print(f"output: {output_path} (COLMAP model in {store.crs.label}"
+          f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
+    return result

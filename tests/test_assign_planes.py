@@ -1,0 +1,101 @@
+"""Direct assignment (a): closest face, threshold schedule, minimum points and planarity."""
+
+import numpy as np
+import pytest
+
+from colmap_citymodel.assign_planes import (Assignment, assign, next_threshold, planarity)
+from colmap_citymodel.errors import InputError
+from colmap_citymodel.options import AssignmentOptions
+from colmap_citymodel.plane_store import store_from_polygons
+
+
+def box_store():
+    """A 10 x 10 x 10 m box (5 faces without ground), local frame = CRS."""
+    a = 10.0
+    rings = [
+        [(0, 0, 0), (a, 0, 0), (a, 0, a), (0, 0, a)],  # y = 0 wall, normal -y
+        [(a, 0, 0), (a, a, 0), (a, a, a), (a, 0, a)],  # x = a wall, normal +x
+        [(a, a, 0), (0, a, 0), (0, a, a), (a, a, a)],  # y = a wall, normal +y
+        [(0, a, 0), (0, 0, 0), (0, 0, a), (0, a, a)],  # x = 0 wall, normal -x
+        [(0, 0, a), (a, 0, a), (a, a, a), (0, a, a)],  # roof, normal +z
+    ]
+    return store_from_polygons([np.array(r, float) for r in rings], origin=np.zeros(3),
+                               semantics=["WallSurface"] * 4 + ["RoofSurface"])
+
+
+def wall_points(rng, n, offset_sigma=0.05):
+    """Points in front of the y = 0 wall (normal -y) at small distances."""
+    x = rng.uniform(1, 9, n)
+    z = rng.uniform(1, 9, n)
+    y = -np.abs(rng.normal(0, offset_sigma, n)) - 0.01
+    return np.column_stack([x, y, z])
+
+
+def test_points_go_to_the_closest_face_within_the_threshold():
+    rng = np.random.default_rng(1)
+    store = box_store()
+    near = wall_points(rng, 40)
+    far = near + [0, -3.0, 0]  # 3 m in front of the wall: beyond the 2 m threshold
+    roof = np.column_stack([rng.uniform(1, 9, 30), rng.uniform(1, 9, 30),
+                            10 + rng.normal(0, 0.05, 30)])
+    points = np.vstack([near, far, roof])
+    ids = np.arange(len(points)) + 100
+    result = assign(points, ids, store, 2.0, AssignmentOptions())
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    top = int(np.argmax(store.normals[:, 2]))
+    assert np.all(result.face_index[:40] == wall)
+    assert np.all(result.face_index[40:80] == -1)
+    assert np.all(result.face_index[80:] == top)
+    np.testing.assert_allclose(np.abs(result.distance[:40]), np.abs(near[:, 1]), atol=1e-9)
+    assert np.all(np.isnan(result.distance[40:80]))
+    assert result.num_faces == 2 and result.num_assigned == 70
+    np.testing.assert_array_equal(result.points_of_face(top), ids[80:])
+
+
+def test_faces_with_too_few_points_or_collinear_points_are_rejected():
+    rng = np.random.default_rng(2)
+    store = box_store()
+    few = wall_points(rng, 10)  # below 15
+    line = np.column_stack([np.linspace(1, 9, 30), np.full(30, 10.02),
+                            np.full(30, 5.0)])  # on the y = 10 wall but a line
+    result = assign(np.vstack([few, line]), np.arange(40), store, 2.0, AssignmentOptions())
+    assert result.num_assigned == 0
+    assert result.rejected_faces == {"too_few_points": 1, "not_planar": 1}
+    relaxed = AssignmentOptions(min_points_per_plane=5)
+    assert assign(few, np.arange(10), store, 2.0, relaxed).num_assigned == 10
+
+
+def test_planarity_measure():
+    rng = np.random.default_rng(3)
+    plane = np.column_stack([rng.uniform(0, 5, 100), rng.uniform(0, 5, 100), np.zeros(100)])
+    line = np.column_stack([np.linspace(0, 5, 100), 1e-4 * rng.normal(size=100), np.zeros(100)])
+    assert planarity(plane) > 0.5
+    assert planarity(line) < 1e-3
+
+
+def test_threshold_schedule_follows_mean_distance_with_bounds():
+    rng = np.random.default_rng(4)
+    store = box_store()
+    options = AssignmentOptions()
+    points = wall_points(rng, 50, offset_sigma=0.3)
+    first = assign(points, np.arange(50), store, 2.0, options)
+    mean_distance = np.mean(np.abs(first.distance[first.assigned]))
+    expected = np.clip(3.5 * mean_distance, 0.4, 2.0)
+    assert next_threshold(first, points, store, options, sigma_dtp=0.2) == pytest.approx(expected)
+    # Points very close to the plane: the lower bound 2 x sigma_dTP applies.
+    close = wall_points(rng, 50, offset_sigma=0.001)
+    a = assign(close, np.arange(50), store, 2.0, options)
+    assert next_threshold(a, close, store, options, sigma_dtp=0.2) == pytest.approx(0.4)
+    assert next_threshold(a, close, store, options, sigma_dtp=0.05) == pytest.approx(0.1)
+
+
+def test_without_unassigns_only_the_masked_points():
+    a = Assignment(np.arange(4), np.array([0, 0, 1, -1]), np.array([0.1, -0.2, 0.3, np.nan]), 2.0)
+    b = a.without(np.array([False, True, False, False]))
+    np.testing.assert_array_equal(b.face_index, [0, -1, 1, -1])
+    np.testing.assert_array_equal(a.face_index, [0, 0, 1, -1])  # the original is unchanged
+
+
+def test_unknown_method_is_a_clear_error():
+    with pytest.raises(InputError, match="unknown assignment method 'bogus'"):
+        assign(np.zeros((1, 3)), np.arange(1), box_store(), 2.0, AssignmentOptions(method="bogus"))

@@ -1,0 +1,143 @@
+"""The refine step on a synthetic street with known truth (issue 3, "Done when").
+
+The SfM input is the truth in an arbitrary frame with a smooth drift; GNSS has a bias of about
+2 m plus noise, as in a street canyon. GNSS alone must stay metres off; with the LOD2 model the
+camera centres must come within 0.1 m RMS of the truth.
+"""
+
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_citymodel.errors import DatumError, NoOverlapError
+from colmap_citymodel.options import RefineOptions
+from colmap_citymodel.refine import check_datum, georegister, refine, step2_bundle_adjustment
+from colmap_citymodel.synthetic_scene import (StreetSceneOptions, centre_errors,
+                                              make_street_scene)
+from colmap_citymodel.write_output import write_refined
+
+
+def rms(values):
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return make_street_scene(StreetSceneOptions(seed=7))
+
+
+@pytest.fixture(scope="module")
+def refined(scene):
+    return refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+
+
+def test_gnss_only_adjustment_is_metres_off(scene):
+    rec = pycolmap.Reconstruction(scene.sfm)
+    _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
+    step2_bundle_adjustment(rec, priors, RefineOptions())
+    assert rms(centre_errors(rec, scene.truth)) > 1.0
+
+
+def test_refine_brings_camera_centres_within_a_decimetre(scene, refined):
+    errors = centre_errors(refined.reconstruction, scene.truth)
+    assert len(errors) == scene.truth.num_reg_images()
+    assert rms(errors) < 0.10
+
+
+def test_refine_puts_tie_points_on_the_true_surfaces(scene, refined):
+    # Tie points keep their ids through refine: compare with the true points directly.
+    rec = refined.reconstruction
+    errors = [np.linalg.norm(rec.point3D(i).xyz - scene.truth.point3D(i).xyz)
+              for i in rec.point3D_ids()]
+    assert np.median(errors) < 0.10
+
+
+def test_refine_does_not_modify_its_inputs(scene, refined):
+    before = {i: im.projection_center() for i, im in scene.sfm.images.items()}
+    again = make_street_scene(StreetSceneOptions(seed=7))
+    for i, im in again.sfm.images.items():
+        np.testing.assert_allclose(before[i], im.projection_center())
+
+
+def test_iterations_converge_and_report_groups(refined):
+    its = refined.iterations
+    assert 1 <= len(its) <= 10
+    last = its[-1]
+    assert last.num_faces >= 8
+    assert last.num_assigned > 500
+    # The threshold schedule starts at the upper limit and ends at or above 2 sigma_dTP.
+    assert its[0].threshold == pytest.approx(2.0)
+    assert its[-1].threshold >= 0.4 - 1e-12
+    for group in ("image", "gnss", "dTP", "dVT", "VT"):
+        assert last.final.count[group] > 0
+    # Normalised image residuals: noise 0.5 px against sigma 1 px.
+    assert 0.3 < last.final.rms["image"] < 0.7
+    # The model stays "almost fixed": vertices move by millimetres only.
+    moved = np.abs(refined.adjusted_store.vertices - refined.store.vertices).max()
+    assert moved < 0.02
+
+
+def test_plane_residuals_are_small_and_unbiased(refined):
+    residuals = refined.plane_residuals()
+    assert len(residuals) == refined.assignment.num_faces
+    all_d = np.concatenate(list(residuals.values()))
+    assert abs(np.mean(all_d)) < 0.05
+    assert rms(all_d) < 0.15
+
+
+def test_written_output_is_georeferenced(refined, tmp_path, scene):
+    out = write_refined(refined, tmp_path / "refined")
+    rec = pycolmap.Reconstruction(str(out))
+    assert rec.num_reg_images() == scene.truth.num_reg_images()
+    truth_crs = {im.name: im.projection_center() + scene.store.origin
+                 for im in scene.truth.images.values()}
+    errors = [np.linalg.norm(im.projection_center() - truth_crs[im.name])
+              for im in rec.images.values()]
+    assert rms(errors) < 0.10
+    geo = json.loads((out / "georeference.json").read_text())
+    np.testing.assert_allclose(geo["origin"], scene.store.origin)
+    assert geo["output_frame"] == "crs"
+    report = json.loads((out / "report.json").read_text())
+    assert report["num_planes"] == refined.assignment.num_faces
+    assert len(report["iterations"]) == len(refined.iterations)
+    assert (out / "report.md").read_text().startswith("# colmap-citymodel refine report")
+    header = (out / "assignments.ply").read_bytes()[:300].decode(errors="ignore")
+    assert "property double x" in header
+    assert f"element vertex {rec.num_points3D()}" in header
+
+
+def test_local_output_frame_and_text_format(refined, tmp_path):
+    out = write_refined(refined, tmp_path / "local", output_type="txt", output_frame="local")
+    assert (out / "images.txt").exists()
+    rec = pycolmap.Reconstruction(str(out))
+    centre = np.mean([im.projection_center() for im in rec.images.values()], axis=0)
+    assert np.all(np.abs(centre) < 1000)  # small local coordinates, not 6-7 digits
+
+
+def test_existing_output_directory_is_refused(refined, tmp_path):
+    (tmp_path / "taken").mkdir()
+    (tmp_path / "taken" / "keep.txt").write_text("user data")
+    from colmap_citymodel.errors import InputError
+
+    with pytest.raises(InputError, match="not an empty directory"):
+        write_refined(refined, tmp_path / "taken")
+    assert (tmp_path / "taken" / "keep.txt").read_text() == "user data"
+
+
+def test_datum_check_without_gnss(scene, refined):
+    facades = [f for f in refined.assignment.faces
+               if abs(refined.store.normals[f][1]) > 0.99]
+    only_parallel = refined.assignment.without(~np.isin(refined.assignment.face_index, facades))
+    with pytest.raises(DatumError, match="at least 4 different orientations"):
+        check_datum(refined.store, only_parallel, has_gnss=False)
+    warnings = check_datum(refined.store, only_parallel, has_gnss=True)
+    assert any("horizontal direction" in w for w in warnings)
+    assert check_datum(refined.store, refined.assignment, has_gnss=False) == []
+
+
+def test_model_far_away_is_a_clear_error(scene):
+    far = make_street_scene(StreetSceneOptions(seed=7), crs_origin=(700000.0, 5335000.0, 500.0))
+    with pytest.raises(NoOverlapError, match="does not overlap"):
+        refine(scene.sfm, far.store, scene.gnss(), RefineOptions(), progress=False)
