@@ -471,7 +471,7 @@ def visibility(flight: Flight, points: np.ndarray, normals: np.ndarray, raycaste
     P, F, UV, RAY = [], [], [], []
     m = opt.image_margin
     frames = range(len(flight.names))
-    for k in tqdm(frames, desc="visibility", disable=not progress, leave=False):
+    for k in tqdm(frames, desc="visibility", disable=None if progress else True, leave=False):
         C = flight.centres[k]
         idx = np.asarray(tree.query_ball_point(C, opt.max_distance), dtype=np.int64)
         if len(idx) == 0:
@@ -591,7 +591,7 @@ def simulate_observations(flight: Flight, scene: TrueScene, raycaster,
         i, j = int(I[s]), int(J[s])
         m = np.stack([KI[s:e], KJ[s:e]], axis=1)
         n_out = rng.binomial(len(m), opt.outlier_ratio) if opt.outlier_ratio > 0 else 0
-        if n_out:
+        if n_out and len(m) + n_out >= opt.min_matches:
             free_i = np.setdiff1d(np.arange(len(keypoints[i])), m[:, 0])
             free_j = np.setdiff1d(np.arange(len(keypoints[j])), m[:, 1])
             n_out = min(n_out, len(free_i), len(free_j))
@@ -599,9 +599,9 @@ def simulate_observations(flight: Flight, scene: TrueScene, raycaster,
                             rng.choice(free_j, n_out, replace=False)], axis=1)
             m = np.concatenate([m, out])
             m = m[rng.permutation(len(m))]
-            n_out_total += n_out
         if len(m) >= opt.min_matches:
             pairs[(i, j)] = m.astype(np.uint32)
+            n_out_total += len(m) - (e - s)
     return Observations(track_xyz, track, f_idx, kp_index, uv, keypoints, pairs, n_out_total,
                         len(pts), num_visible)
 
@@ -1040,7 +1040,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         "num_keypoints": int(sum(len(k) for k in obs.keypoints)),
         "num_matched_pairs": len(obs.pairs),
         "num_matches": int(sum(len(m) for m in obs.pairs.values())),
-        "num_outlier_matches": obs.num_outlier_matches,
+        "num_outlier_matches": int(obs.num_outlier_matches),
         "num_checkpoints": int(len(cps.ids)),
         "num_checkpoint_observations": int(len(cps.obs_id)),
         "build_seconds": t_built - t_start,

@@ -220,6 +220,24 @@ class MeshBuilder:
                 )
             )
 
+    def add_quads(self, quads: np.ndarray, *, label: int, building_id: str = "",
+                  polygon: bool = True) -> None:
+        """Planar convex quads (K,4,3), already oriented: two triangles each, no earcut."""
+        quads = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 3)
+        if len(quads) == 0:
+            return
+        tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
+        self._tris.append(tris)
+        self._labels.append(np.full(len(tris), label, dtype=np.int8))
+        if polygon and label != LABEL_CLUTTER and label != LABEL_GROUND:
+            nrm = np.cross(quads[:, 1] - quads[:, 0], quads[:, 2] - quads[:, 0])
+            nz = nrm[:, 2] / np.maximum(np.linalg.norm(nrm, axis=1), 1e-15)
+            for q, z in zip(quads, nz):
+                sem = "RoofSurface" if z >= 0.7 else (
+                    "OuterCeilingSurface" if z <= -0.7 else "WallSurface")
+                self.polygons.append(RawPolygon(exterior=q, semantic=sem,
+                                                building_id=building_id))
+
     def add_triangles(self, tris: np.ndarray, label: int) -> None:
         self._tris.append(np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3))
         self._labels.append(np.full(len(self._tris[-1]), label, dtype=np.int8))
@@ -267,6 +285,10 @@ def _cap(mb: MeshBuilder, fr: _Frame, region: Polygon, depth: float, facing: flo
          label: int, bid: str) -> None:
     """A planar face of `region` at `depth`; facing=+1 looks along n, -1 against it."""
     rings = _rings2d(region)
+    if len(rings) == 1 and len(rings[0]) == 4:  # rectangles (most details): no earcut
+        quad = fr.to3d(rings[0], depth)  # counter-clockwise in (u, v): faces +n
+        mb.add_quads((quad if facing > 0 else quad[::-1])[None], label=label, building_id=bid)
+        return
     ext3 = fr.to3d(rings[0], depth)
     holes3 = [fr.to3d(r, depth) for r in rings[1:]]
     if facing < 0:
@@ -287,16 +309,18 @@ def _extrude(mb: MeshBuilder, fr: _Frame, region: Polygon, d0: float, d1: float,
         _cap(mb, fr, region, d0, -1.0 if d1 >= d0 else 1.0, label, bid)
     for ring in _rings2d(region):
         nxt = np.roll(ring, -1, axis=0)
-        for a, b in zip(ring, nxt):
-            if np.linalg.norm(b - a) < 1e-6:
-                continue
-            quad = np.vstack([fr.to3d(a, d0), fr.to3d(b, d0), fr.to3d(b, d1), fr.to3d(a, d1)])
-            # orient outward: the 2D outward normal of a CCW ring edge a->b is (dy, -dx)
-            out2 = np.array([b[1] - a[1], a[0] - b[0]])
-            out3 = out2[0] * fr.u + out2[1] * fr.v
-            if np.dot(newell_normal(quad), out3) < 0:
-                quad = quad[::-1]
-            mb.add(quad, label=label, building_id=bid)
+        keep = np.linalg.norm(nxt - ring, axis=1) > 1e-6
+        a, b = ring[keep], nxt[keep]
+        if len(a) == 0:
+            continue
+        quads = np.stack([fr.to3d(a, d0), fr.to3d(b, d0), fr.to3d(b, d1), fr.to3d(a, d1)],
+                         axis=1)
+        # orient outward: the 2D outward normal of a CCW ring edge a->b is (dy, -dx)
+        out3 = (b[:, 1] - a[:, 1])[:, None] * fr.u - (b[:, 0] - a[:, 0])[:, None] * fr.v
+        nrm = np.cross(quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0])
+        flip = np.einsum("ij,ij->i", nrm, out3) < 0
+        quads[flip] = quads[flip][:, ::-1]
+        mb.add_quads(quads, label=label, building_id=bid)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -745,9 +769,8 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
                      roi_centres: np.ndarray, roi_radius: float,
                      ground: GroundModel | None = None,
                      avoid_points: np.ndarray | None = None) -> TrueScene:
-    """The true scene around the flight: buildings with at least one face within `roi_radius`
-    of a camera centre (`roi_centres`, local) get generalisation effects, all others stay plain
-    LOD2; clutter stands in front of decorated facades, away from `avoid_points` (cameras);
+    """The true scene around the flight: faces within `roi_radius` of a camera centre
+    (`roi_centres`, local) get generalisation effects, all others stay plain LOD2; clutter stands in front of decorated facades, away from `avoid_points` (cameras);
     terrain covers the cameras' surroundings."""
     from scipy.spatial import cKDTree
 
@@ -756,12 +779,16 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
     groups: dict[str, list[int]] = {}
     for f, face in enumerate(store.faces):
         groups.setdefault(face.building_id, []).append(f)
-    near = set()
-    for bid, faces in groups.items():
-        pts = np.concatenate([store.vertices[np.unique(np.concatenate(
-            [store.faces[f].exterior for f in faces]))], store.centroids[faces]])
-        if np.min(tree.query(pts)[0]) < roi_radius:
-            near.add(bid)
+    # faces near the flight get generalisation effects (vertices, centroid and triangle
+    # centroids within roi_radius of a camera); far ones stay plain LOD2
+    near = np.zeros(store.num_faces, dtype=bool)
+    for f, face in enumerate(store.faces):
+        pts = [store.vertices[face.exterior], store.centroids[f][None]]
+        tris = triangulate_rings(store.vertices[face.exterior],
+                                 [store.vertices[h] for h in face.holes])
+        if len(tris):
+            pts.append(tris.mean(1))
+        near[f] = np.min(tree.query(np.concatenate(pts))[0]) < roi_radius
     edges = _roof_edges(store)
     mb = MeshBuilder()
     anchors: list[tuple[np.ndarray, np.ndarray]] = []
@@ -774,7 +801,7 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
             if face.semantic in ("GroundSurface", "ClosureSurface"):
                 continue  # invisible from outside; not part of the visible scene
             rng = np.random.default_rng([seed, STAGE_DETAILS, f])
-            if bid not in near:
+            if not near[f]:
                 label = LABEL_ROOF if face.semantic == "RoofSurface" else LABEL_WALL
                 mb.add(store.vertices[face.exterior], [store.vertices[h] for h in face.holes],
                        label=label, building_id=bid, semantic=face.semantic)
