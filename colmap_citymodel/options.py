@@ -63,7 +63,8 @@ class AdjustmentOptions:
     """Degrees; tie points below it are removed with the image outliers in step 2."""
     refine_intrinsics: bool = False
     """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
-    max_solver_iterations: int = 100
+    max_solver_iterations: int = 300
+    """Ceres iterations per solve (COLMAP: 100); a drifted block needs more to converge."""
     num_threads: int = -1
 
 

@@ -287,17 +287,18 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform)
-    if priors is not None and initial_transform is None and \
-            _lateral_spread(camera_centres(rec)) < float(np.median(priors.sigmas[:, :2])):
-        roll = roll_about_flight_line(rec, city_model)
-        rec.transform(roll)
-        sim3 = roll * sim3
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
     timer["georegistration"] = time.perf_counter() - timer["start"]
 
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
+    if priors is not None and initial_transform is None and \
+            _lateral_spread(camera_centres(rec)) < float(np.median(priors.sigmas[:, :2])):
+        # After step 2: GNSS alone has moved the block freely about the flight line there.
+        roll = roll_about_flight_line(rec, store)
+        rec.transform(roll)
+        sim3 = roll * sim3
     timer["step2"] = time.perf_counter() - timer["start"] - timer["georegistration"]
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow

@@ -25,11 +25,12 @@ DEFAULT_CRS_ORIGIN = (691000.0, 5335000.0, 500.0)
 
 @dataclass
 class StreetSceneOptions:
-    num_stations: int = 24  # camera positions along the street (two images each)
+    num_stations: int = 24  # camera positions along the street (three images each)
     station_spacing: float = 2.0  # metres between stations
     street_half_width: float = 10.0  # facade to street centre
     flight_height: float = 18.0
-    tilt_deg: float = 25.0  # camera pitched down
+    tilt_deg: float = 25.0  # side-looking cameras pitched down
+    forward_tilt_deg: float = 10.0  # the forward-looking camera pitched down
     point_spacing: float = 1.0  # metres between sampled tie points on surfaces
     relief_sigma: float = 0.03  # facade/roof relief the model does not have (m)
     clutter_fraction: float = 0.05  # points on balconies/clutter 0.3-1.0 m off the planes
@@ -168,12 +169,17 @@ def make_street_scene(options: StreetSceneOptions | None = None,
                              params=[o.focal_length, o.focal_length, o.width / 2, o.height / 2],
                              camera_id=1)
     tilt = np.radians(o.tilt_deg)
+    o_forward_tilt = np.radians(o.forward_tilt_deg)
     poses, names = [], []
     for s in range(o.num_stations):
         centre = np.array([s * o.station_spacing, 0.0, o.flight_height]) + shift
         centre[2] += 1.5 * np.sin(s / 5.0)  # height profile
-        for side, tag in ((1.0, "L"), (-1.0, "R")):
-            rotation = look_rotation(np.array([0.0, side * np.cos(tilt), -np.sin(tilt)]))
+        # Left, right and a forward view: the forward one sees both facade rows, so the
+        # block is one connected reconstruction, as COLMAP would need it.
+        for forward, tag in (((0.0, np.cos(tilt), -np.sin(tilt)), "L"),
+                             ((0.0, -np.cos(tilt), -np.sin(tilt)), "R"),
+                             ((np.cos(o_forward_tilt), 0.0, -np.sin(o_forward_tilt)), "F")):
+            rotation = look_rotation(np.array(forward))
             poses.append((rotation, -rotation @ centre, centre))
             names.append(f"s{s:04d}_{tag}.jpg")
 
