@@ -472,8 +472,14 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     if observations is not None:
         bbox = np.array([observations.positions.min(0) - GNSS_READ_MARGIN,
                          observations.positions.max(0) + GNSS_READ_MARGIN])
-    store = read_city_model(citymodel, lod=lod, crs=model_crs, target_crs=target_crs,
-                            bbox_crs=bbox)
+    try:
+        store = read_city_model(citymodel, lod=lod, crs=model_crs, target_crs=target_crs,
+                                bbox_crs=bbox)
+    except NoOverlapError as error:
+        raise NoOverlapError(
+            f"the city model does not overlap the GNSS positions ({observations.source}, "
+            f"{GNSS_READ_MARGIN:.0f} m margin): {error.message}; check the GNSS CRS and the "
+            "model tiles", error.path) from None
     if observations is None and crs is None:
         observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
                                  target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
