@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import logging
 import math
+import operator
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -82,8 +84,11 @@ def local_engineering_crs() -> CRSInfo:
     )
 
 
-@dataclass
+@dataclass(slots=True)
 class Face:
+    """One face as the public API sees it; `store.faces[i]` builds it on access from the
+    store's flat ring arrays (exterior/holes are views into them: read, do not write)."""
+
     exterior: np.ndarray  # (N,) int64 vertex indices, ring order, not closed
     holes: list[np.ndarray]  # each (M,) int64
     semantic: str  # "WallSurface", "RoofSurface", "GroundSurface", "ClosureSurface", ...
@@ -91,6 +96,135 @@ class Face:
     part_id: str
     gml_id: str
     lod: int
+
+
+def _segment_gather(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
+    """Indices of the concatenated segments [starts[i], starts[i] + lengths[i])."""
+    total = int(lengths.sum())
+    if total == 0:
+        return np.zeros(0, np.int64)
+    offs = np.cumsum(lengths) - lengths
+    return np.arange(total, dtype=np.int64) + np.repeat(starts - offs, lengths)
+
+
+def _ptr(counts: np.ndarray) -> np.ndarray:
+    ptr = np.zeros(len(counts) + 1, dtype=np.int64)
+    np.cumsum(counts, out=ptr[1:])
+    return ptr
+
+
+class FaceList(Sequence):
+    """All faces of a store in flat arrays (CSR), behaving like a list of `Face`.
+
+    ring_vertex (K,) int64 vertex ids of all rings; ring_ptr (R+1,) ring r is
+    ring_vertex[ring_ptr[r]:ring_ptr[r+1]]; face_ring (F+1,) face f owns rings
+    face_ring[f]:face_ring[f+1], the first is its exterior, the others its holes. Per-face
+    attributes are plain lists (strings shared with the reader's output) and an int16 lod array.
+    A 250k-face city costs ~60 bytes per face here instead of ~600 for Face objects.
+    """
+
+    __slots__ = ("ring_vertex", "ring_ptr", "face_ring", "semantic", "building_id", "part_id",
+                 "gml_id", "lod")
+
+    def __init__(self, ring_vertex, ring_ptr, face_ring, semantic, building_id, part_id, gml_id,
+                 lod):
+        self.ring_vertex = np.asarray(ring_vertex, dtype=np.int64)
+        self.ring_ptr = np.asarray(ring_ptr, dtype=np.int64)
+        self.face_ring = np.asarray(face_ring, dtype=np.int64)
+        self.semantic = list(semantic)
+        self.building_id = list(building_id)
+        self.part_id = list(part_id)
+        self.gml_id = list(gml_id)
+        self.lod = np.asarray(lod, dtype=np.int16)
+
+    @classmethod
+    def from_faces(cls, faces) -> FaceList:
+        if isinstance(faces, FaceList):
+            return faces
+        faces = list(faces)
+        rings = [np.asarray(r, dtype=np.int64).ravel() for f in faces for r in (f.exterior, *f.holes)]
+        return cls(
+            np.concatenate(rings) if rings else np.zeros(0, np.int64),
+            _ptr(np.array([len(r) for r in rings], dtype=np.int64)),
+            _ptr(np.array([1 + len(f.holes) for f in faces], dtype=np.int64)),
+            [f.semantic for f in faces], [f.building_id for f in faces],
+            [f.part_id for f in faces], [f.gml_id for f in faces], [int(f.lod) for f in faces],
+        )
+
+    def __len__(self) -> int:
+        return len(self.face_ring) - 1
+
+    def _face(self, f: int, fr, rp) -> Face:
+        a, b = fr[f], fr[f + 1]
+        rv = self.ring_vertex
+        return Face(
+            exterior=rv[rp[a]:rp[a + 1]],
+            holes=[rv[rp[r]:rp[r + 1]] for r in range(a + 1, b)],
+            semantic=self.semantic[f],
+            building_id=self.building_id[f],
+            part_id=self.part_id[f],
+            gml_id=self.gml_id[f],
+            lod=int(self.lod[f]),
+        )
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        f = operator.index(i)
+        n = len(self)
+        if f < 0:
+            f += n
+        if not 0 <= f < n:
+            raise IndexError("face index out of range")
+        return self._face(f, self.face_ring, self.ring_ptr)
+
+    def __iter__(self):
+        fr, rp = self.face_ring.tolist(), self.ring_ptr.tolist()
+        for f in range(len(self)):
+            yield self._face(f, fr, rp)
+
+    def __repr__(self) -> str:
+        return f"FaceList({len(self)} faces, {len(self.ring_ptr) - 1} rings)"
+
+    @property
+    def num_holes(self) -> np.ndarray:
+        return np.diff(self.face_ring) - 1
+
+    def rings(self) -> _Rings:
+        F = len(self)
+        nr = np.diff(self.face_ring)
+        face = np.repeat(np.arange(F, dtype=np.int64), nr)
+        is_hole = np.ones(len(face), dtype=bool)
+        is_hole[self.face_ring[:-1]] = False
+        return _Rings(self.ring_vertex, self.ring_ptr, face, is_hole)
+
+    def entry_face(self) -> np.ndarray:
+        """(K,) the face of each entry of ring_vertex."""
+        nr = np.diff(self.face_ring)
+        return np.repeat(np.repeat(np.arange(len(self), dtype=np.int64), nr), np.diff(self.ring_ptr))
+
+    def take(self, sel: np.ndarray) -> FaceList:
+        """The faces `sel` (int indices, in that order), with their rings gathered."""
+        sel = np.asarray(sel, dtype=np.int64)
+        nr = np.diff(self.face_ring)[sel]
+        rings = _segment_gather(self.face_ring[sel], nr)
+        rlen = np.diff(self.ring_ptr)[rings]
+        entries = _segment_gather(self.ring_ptr[rings], rlen)
+        s = sel.tolist()
+        return FaceList(
+            self.ring_vertex[entries], _ptr(rlen), _ptr(nr),
+            [self.semantic[f] for f in s], [self.building_id[f] for f in s],
+            [self.part_id[f] for f in s], [self.gml_id[f] for f in s], self.lod[sel],
+        )
+
+    def with_ring_vertex(self, ring_vertex: np.ndarray) -> FaceList:
+        return FaceList(ring_vertex, self.ring_ptr, self.face_ring, self.semantic,
+                        self.building_id, self.part_id, self.gml_id, self.lod)
+
+    def nbytes(self) -> int:
+        """Bytes of the arrays plus the list slots (not the shared strings)."""
+        return (self.ring_vertex.nbytes + self.ring_ptr.nbytes + self.face_ring.nbytes
+                + self.lod.nbytes + 8 * 4 * len(self))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -108,50 +242,42 @@ class _Rings:
     is_hole: np.ndarray  # (R,) bool
 
     @classmethod
-    def from_faces(cls, faces: list[Face]) -> _Rings:
-        rings, ring_face, is_hole = [], [], []
-        for f, face in enumerate(faces):
-            for k, ring in enumerate([face.exterior, *face.holes]):
-                rings.append(np.asarray(ring, dtype=np.int64))
-                ring_face.append(f)
-                is_hole.append(k > 0)
-        lengths = np.array([len(r) for r in rings], dtype=np.int64)
-        ptr = np.zeros(len(rings) + 1, dtype=np.int64)
-        np.cumsum(lengths, out=ptr[1:])
-        vertex = np.concatenate(rings) if rings else np.zeros(0, np.int64)
-        return cls(vertex, ptr, np.array(ring_face, np.int64), np.array(is_hole, bool))
+    def from_faces(cls, faces) -> _Rings:
+        return FaceList.from_faces(faces).rings()
 
     def next_index(self) -> np.ndarray:
         """Index (into `vertex`) of the next vertex along each ring, wrapping at the ring end."""
         nxt = np.arange(1, len(self.vertex) + 1, dtype=np.int64)
-        nxt[self.ptr[1:] - 1] = self.ptr[:-1]
+        nonempty = self.ptr[1:] > self.ptr[:-1]
+        nxt[self.ptr[1:][nonempty] - 1] = self.ptr[:-1][nonempty]
         return nxt
 
     def ring_of_entry(self) -> np.ndarray:
         return np.repeat(np.arange(len(self.ptr) - 1), np.diff(self.ptr))
 
 
-def _face_unique_vertices(faces: list[Face]) -> tuple[np.ndarray, np.ndarray]:
+def _unique_per_group(owner: np.ndarray, ids: np.ndarray, num_groups: int, n: int):
+    """CSR (ptr, ids) of the distinct ids of each group, ids sorted; owner must be sorted."""
+    # keys are sorted by owner already, so a stable (merge) sort has short runs to fix only
+    key = np.sort(owner * n + ids, kind="stable")
+    key = key[np.r_[True, key[1:] != key[:-1]]] if len(key) else key
+    fo, ids = np.divmod(key, n)
+    return _ptr(np.bincount(fo, minlength=num_groups)), ids
+
+
+def _face_unique_vertices(faces) -> tuple[np.ndarray, np.ndarray]:
     """CSR (ptr, ids) of the unique vertex ids of each face (exterior + holes), ids sorted."""
-    F = len(faces)
+    fl = FaceList.from_faces(faces)
+    F = len(fl)
     if F == 0:
         return np.zeros(1, np.int64), np.zeros(0, np.int64)
-    rings = [r for f in faces for r in (f.exterior, *f.holes)]
-    owner = np.repeat(
-        np.repeat(np.arange(F), [1 + len(f.holes) for f in faces]), [len(r) for r in rings]
-    )
-    ids = np.concatenate(rings).astype(np.int64)
+    ids = fl.ring_vertex
     n = int(ids.max()) + 1 if len(ids) else 1
-    key = np.sort(owner * n + ids)
-    key = key[np.r_[True, key[1:] != key[:-1]]]
-    fo, ids = key // n, key % n
-    ptr = np.zeros(F + 1, dtype=np.int64)
-    np.cumsum(np.bincount(fo, minlength=F), out=ptr[1:])
-    return ptr, ids
+    return _unique_per_group(fl.entry_face(), ids, F, n)
 
 
-def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.ndarray]:
-    """Planes of all faces (eq. 2-4), vectorised.
+def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 32768) -> dict[str, np.ndarray]:
+    """Planes of all faces (eq. 2-4), vectorised, in chunks of faces to bound temporaries.
 
     P0 = centroid of the face's distinct vertices (Unger: "all vertices that belong to a
     plane", so holes count too), M = their covariance (eq. 2-3), R = eigenvectors of M sorted
@@ -159,14 +285,34 @@ def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.nda
     vector of the exterior ring (outward for counter-clockwise-from-outside rings); column 1 is
     flipped if needed so that det(R) = +1.
     """
-    F = len(faces)
-    if F == 0:
-        z = np.zeros(0)
-        return dict(
-            centroids=np.zeros((0, 3)), rotations=np.zeros((0, 3, 3)), areas=z, rms=z,
-            eigvals=np.zeros((0, 3)), newell_area=z, num_distinct=np.zeros(0, np.int64),
+    fl = FaceList.from_faces(faces)
+    F = len(fl)
+    out = dict(
+        centroids=np.zeros((F, 3)), rotations=np.zeros((F, 3, 3)), areas=np.zeros(F),
+        rms=np.zeros(F), eigvals=np.zeros((F, 3)), newell_area=np.zeros(F),
+        num_distinct=np.zeros(F, np.int64),
+    )
+    n = len(vertices) or 1
+    for f0 in range(0, F, chunk_faces):
+        f1 = min(F, f0 + chunk_faces)
+        r0, r1 = int(fl.face_ring[f0]), int(fl.face_ring[f1])
+        e0, e1 = int(fl.ring_ptr[r0]), int(fl.ring_ptr[r1])
+        face_ring = fl.face_ring[f0:f1 + 1] - r0
+        ring_ptr = fl.ring_ptr[r0:r1 + 1] - e0
+        rings = _Rings(
+            fl.ring_vertex[e0:e1], ring_ptr,
+            np.repeat(np.arange(f1 - f0, dtype=np.int64), np.diff(face_ring)),
+            np.ones(r1 - r0, dtype=bool),
         )
-    ptr, ids = _face_unique_vertices(faces)
+        rings.is_hole[face_ring[:-1]] = False
+        _planes_chunk(vertices, rings, f1 - f0, n, out, slice(f0, f1))
+    return out
+
+
+def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice) -> None:
+    ring_of = rings.ring_of_entry()
+    face_of_entry = rings.face[ring_of]
+    ptr, ids = _unique_per_group(face_of_entry, rings.vertex, F, n)
     counts = np.diff(ptr)
     owner = np.repeat(np.arange(F), counts)
     X = vertices[ids]
@@ -174,6 +320,7 @@ def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.nda
         counts, 1
     )[:, None]
     D = X - centroids[owner]
+    del X
     M = np.zeros((F, 3, 3))
     for a in range(3):
         for b in range(a, 3):
@@ -184,14 +331,13 @@ def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.nda
     R = eigvecs[:, :, ::-1].copy()
 
     # Newell area vectors per ring (relative to the face centroid for precision)
-    rings = _Rings.from_faces(faces)
     nxt = rings.next_index()
-    ring_of = rings.ring_of_entry()
-    face_of_entry = rings.face[ring_of]
     P = vertices[rings.vertex] - centroids[face_of_entry]
     C = 0.5 * np.cross(P, P[nxt])
+    del P
     nring = len(rings.ptr) - 1
     ring_area_vec = np.stack([np.bincount(ring_of, C[:, k], nring) for k in range(3)], 1)
+    del C
     ext = np.flatnonzero(~rings.is_hole)  # exactly one exterior per face, in face order
     ext_vec = ring_area_vec[ext]
 
@@ -208,15 +354,13 @@ def _compute_planes(vertices: np.ndarray, faces: list[Face]) -> dict[str, np.nda
 
     resid = np.einsum("ki,ki->k", D, normals[owner])
     rms = np.sqrt(np.bincount(owner, resid**2, F) / np.maximum(counts, 1))
-    return dict(
-        centroids=centroids,
-        rotations=R,
-        areas=areas,
-        rms=rms,
-        eigvals=np.clip(eigvals, 0.0, None),
-        newell_area=np.linalg.norm(ext_vec, axis=1),
-        num_distinct=counts,
-    )
+    out["centroids"][sl] = centroids
+    out["rotations"][sl] = R
+    out["areas"][sl] = areas
+    out["rms"][sl] = rms
+    out["eigvals"][sl] = np.clip(eigvals, 0.0, None)
+    out["newell_area"][sl] = np.linalg.norm(ext_vec, axis=1)
+    out["num_distinct"][sl] = counts
 
 
 def merge_vertices(
@@ -283,7 +427,7 @@ class PlaneStore:
     origin: np.ndarray
     crs: CRSInfo
     vertices: np.ndarray
-    faces: list[Face]
+    faces: FaceList  # a Sequence of Face (flat ring arrays inside); a list[Face] is converted
     centroids: np.ndarray
     rotations: np.ndarray
     areas: np.ndarray
@@ -298,6 +442,10 @@ class PlaneStore:
     warnings: list[str] = field(default_factory=list)
     tolerances: Tolerances = DEFAULT_TOLERANCES
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.faces, FaceList):
+            self.faces = FaceList.from_faces(self.faces)
 
     # -- derived ---------------------------------------------------------------------------
     @property
@@ -356,7 +504,7 @@ class PlaneStore:
     def _edges2d(self) -> dict[str, np.ndarray]:
         """All ring edges of all faces in each face's 2D frame (R columns 0, 1), grouped by face."""
         if "edges" not in self._cache:
-            rings = _Rings.from_faces(self.faces)
+            rings = self.faces.rings()
             nxt = rings.next_index()
             face_of = rings.face[rings.ring_of_entry()]  # sorted by face (rings are in order)
             R = self.rotations[face_of]
@@ -588,21 +736,13 @@ class PlaneStore:
         np.maximum.at(hi, owner, self.vertices[ids])
         keep = np.all((hi[:, :dim] >= bmin) & (lo[:, :dim] <= bmax), axis=1)
         sel = np.flatnonzero(keep)
-        used = np.unique(np.concatenate([self.face_vertex_ids(f) for f in sel])) if len(
-            sel
-        ) else np.zeros(0, np.int64)
+        faces = self.faces.take(sel)
+        used = np.unique(faces.ring_vertex)
         remap = np.full(len(self.vertices), -1, dtype=np.int64)
         remap[used] = np.arange(len(used))
-        faces = [
-            replace(
-                self.faces[f],
-                exterior=remap[self.faces[f].exterior],
-                holes=[remap[h] for h in self.faces[f].holes],
-            )
-            for f in sel
-        ]
-        buildings = {f.building_id for f in faces}
-        parts = {(f.building_id, f.part_id) for f in faces if f.part_id}
+        faces = faces.with_ring_vertex(remap[faces.ring_vertex])
+        buildings = set(faces.building_id)
+        parts = {(b, p) for b, p in zip(faces.building_id, faces.part_id) if p}
         return replace(
             self,
             vertices=self.vertices[used].copy(),
@@ -620,7 +760,8 @@ class PlaneStore:
 
     def summary(self) -> dict:
         """Plain-data summary for `model-info` (JSON-serialisable)."""
-        by_class = Counter(f.semantic for f in self.faces)
+        by_class = Counter(self.faces.semantic)
+        num_holes = self.faces.num_holes
         return {
             "format": self.format,
             "version": self.version,
@@ -637,8 +778,8 @@ class PlaneStore:
             "num_faces": int(self.num_faces),
             "num_vertices": int(len(self.vertices)),
             "faces_by_class": dict(sorted(by_class.items())),
-            "faces_with_holes": int(sum(1 for f in self.faces if f.holes)),
-            "num_holes": int(sum(len(f.holes) for f in self.faces)),
+            "faces_with_holes": int(np.count_nonzero(num_holes)),
+            "num_holes": int(num_holes.sum()),
             "bbox": self.bbox_crs.tolist(),
             "origin": self.origin.tolist(),
             "num_dropped_degenerate": int(self.num_dropped_degenerate),
@@ -660,6 +801,95 @@ def default_origin(points_crs: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(points_crs, dtype=np.float64).min(0))
 
 
+def _splitmix(x: np.ndarray) -> np.ndarray:
+    """64-bit mixing (splitmix64 finaliser), wrapping uint64 arithmetic."""
+    x = x.astype(np.uint64, copy=True)
+    x += np.uint64(0x9E3779B97F4A7C15)
+    x ^= x >> np.uint64(30)
+    x *= np.uint64(0xBF58476D1CE4E5B9)
+    x ^= x >> np.uint64(27)
+    x *= np.uint64(0x94D049BB133111EB)
+    x ^= x >> np.uint64(31)
+    return x
+
+
+def _ring_hashes(ids: np.ndarray, ptr: np.ndarray) -> np.ndarray:
+    """(R,) uint64 hash of each ring up to its starting vertex (rotation to the smallest id,
+    orientation kept), i.e. equal for rings with equal `_ring_key`. Rings must be non-empty."""
+    R = len(ptr) - 1
+    if R == 0:
+        return np.zeros(0, np.uint64)
+    starts, lengths = ptr[:-1], np.diff(ptr)
+    ring = np.repeat(np.arange(R), lengths)
+    pos = np.arange(len(ids), dtype=np.int64) - starts[ring]
+    ring_min = np.minimum.reduceat(ids, starts)
+    first_min = np.minimum.reduceat(np.where(ids == ring_min[ring], pos, len(ids)), starts)
+    rot = pos - first_min[ring]
+    rot[rot < 0] += lengths[ring][rot < 0]
+    # polynomial hash of the rotated sequence: sum mix(id) * B^rot (mod 2^64)
+    powers = np.cumprod(np.full(int(lengths.max()), 0x100000001B3, dtype=np.uint64))
+    with np.errstate(over="ignore"):
+        terms = _splitmix(ids) * powers[rot]
+        h = np.add.reduceat(terms, starts)
+    return _splitmix(h ^ lengths.astype(np.uint64))
+
+
+def _dedupe_faces(
+    polys: list[RawPolygon], valid: np.ndarray, ext_hash: np.ndarray, hole_hash_sum: np.ndarray,
+    gml_ids: list[str], semantic: list[str], ring_lists,
+) -> tuple[np.ndarray, int]:
+    """Which valid polygons become faces: a polygon whose gml:id or rings (up to the starting
+    vertex; holes as a set) equal an earlier face's is merged into it (semantic class and id
+    completed from the duplicate). Candidates come from hashes; the exact comparison (the
+    original tuple keys) runs only on the few polygons that share a hash or an id.
+    Returns (is_face bool (n,), number of duplicates); `semantic`/`gml_ids` updated in place."""
+    n = len(polys)
+    is_face = valid.copy()
+    key = _splitmix(ext_hash) + hole_hash_sum  # wraps
+    cand = np.zeros(n, dtype=bool)
+    vidx = np.flatnonzero(valid)
+    if len(vidx) > 1:
+        k = key[vidx]
+        order = np.argsort(k, kind="stable")
+        ks = k[order]
+        same = ks[1:] == ks[:-1]
+        hit = np.zeros(len(vidx), dtype=bool)
+        hit[1:] |= same
+        hit[:-1] |= same
+        cand[vidx[order[hit]]] = True
+    if len(dict.fromkeys(gml_ids)) < n:
+        counts = Counter(gml_ids)
+        repeated = {g for g, c in counts.items() if c > 1 and g}
+        if repeated:
+            cand |= np.fromiter((g in repeated for g in gml_ids), bool, n)
+    cand &= valid
+    duplicates = 0
+    seen: dict = {}
+    for i in np.flatnonzero(cand).tolist():
+        gid = gml_ids[i]
+        ext, holes = ring_lists(i)
+        key_ring = (_ring_key(ext), tuple(sorted(_ring_key(h) for h in holes)) if holes else ())
+        prev = seen.get(("id", gid)) if gid else None
+        if prev is None:
+            prev = seen.get(key_ring)
+        if prev is not None:
+            duplicates += 1
+            is_face[i] = False
+            sem = polys[i].semantic
+            # the thematic surface knows the class; the solid only references the polygon
+            if semantic[prev] in ("", "Unknown") and sem not in ("", "Unknown"):
+                semantic[prev] = sem
+            if not gml_ids[prev] and gid:
+                gml_ids[prev] = gid
+            if gid:
+                seen[("id", gid)] = prev
+            continue
+        seen[key_ring] = i
+        if gid:
+            seen[("id", gid)] = i
+    return is_face, duplicates
+
+
 def build_store(
     raw: RawCityModel,
     merge_tolerance: float = DEFAULT_TOLERANCES.merge,
@@ -668,90 +898,116 @@ def build_store(
     tolerances: Tolerances | None = None,
 ) -> PlaneStore:
     """Turn reader output into a PlaneStore: local frame, merged vertices, de-duplicated faces,
-    planes; degenerate faces dropped (counted), non-planar faces flagged (counted)."""
+    planes; degenerate faces dropped (counted), non-planar faces flagged (counted).
+
+    Vectorised over all polygons (a 250k-polygon city in about a second): the only per-polygon
+    Python work is reading the polygons' attributes once."""
     tol = replace(
         tolerances or DEFAULT_TOLERANCES, merge=merge_tolerance, nonplanar=nonplanar_tolerance
     )
     warnings = list(raw.warnings)
     polys = raw.polygons
-    rings = [p.exterior for p in polys] + [h for p in polys for h in p.holes]
-    allpts = (
-        np.concatenate([np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rings])
-        if rings
-        else np.zeros((0, 3))
-    )
+    n = len(polys)
+    # rings in the order: all exteriors, then all holes (polygon order); vertex numbering
+    # follows first appearance in this order
+    rings = [p.exterior for p in polys]
+    num_holes = np.fromiter((len(p.holes) for p in polys), np.int64, n)
+    if num_holes.any():
+        rings += [h for p in polys if p.holes for h in p.holes]
+    R = len(rings)
+    try:
+        allpts = np.concatenate(rings).astype(np.float64, copy=False) if rings else np.zeros((0, 3))
+        lengths = np.fromiter(map(len, rings), np.int64, R)
+        if allpts.ndim != 2 or allpts.shape[1] != 3:
+            raise ValueError
+    except ValueError:  # rings not (N,3): normalise each
+        rings = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rings]
+        allpts = np.concatenate(rings) if rings else np.zeros((0, 3))
+        lengths = np.fromiter(map(len, rings), np.int64, R)
+    del rings
     origin = default_origin(allpts) if origin is None else np.asarray(origin, dtype=np.float64)
-    merged, index, extent = merge_vertices(allpts - origin, tol.merge, tol.merge_slack)
+    allpts -= origin
+    merged, index, extent = merge_vertices(allpts, tol.merge, tol.merge_slack)
+    del allpts
     if extent > tol.chain_warning:
         warnings.append(
             f"vertex merging (tolerance {tol.merge * 1000:.1f} mm) chained points up to "
             f"{extent * 1000:.1f} mm apart into one vertex"
         )
 
-    # ring vertex ids (Python lists) in the same order as `rings`, consecutive repeats (and the
-    # closing point) removed, vectorised over all rings
-    lengths = np.array([len(r) for r in rings], dtype=np.int64)
-    ring_of = np.repeat(np.arange(len(rings)), lengths)
+    # ring vertex ids, consecutive repeats (and the closing point) removed
+    ring_of = np.repeat(np.arange(R), lengths)
     prev = np.arange(len(index)) - 1
     starts = np.cumsum(lengths) - lengths
     nonempty = lengths > 0
     prev[starts[nonempty]] = (starts + lengths - 1)[nonempty]
     keep = index != index[prev] if len(index) else np.zeros(0, bool)
-    offsets = np.r_[0, np.cumsum(np.bincount(ring_of[keep], minlength=len(rings)))].tolist()
-    flat = index[keep].tolist()
-    ring_ids = [flat[offsets[i] : offsets[i + 1]] for i in range(len(rings))]
-    hole_start = len(polys)
-    faces: list[Face] = []
-    seen: dict = {}
-    dropped = 0
-    duplicates = 0
-    dropped_holes = 0
-    for i, p in enumerate(polys):
-        ext = ring_ids[i]
-        holes = []
-        for _ in p.holes:
-            h = ring_ids[hole_start]
-            hole_start += 1
-            if len(set(h)) >= 3:
-                holes.append(h)
-            else:
-                dropped_holes += 1
-        if len(set(ext)) < 3:
-            dropped += 1
-            continue
-        key_ring = (_ring_key(ext), tuple(sorted(_ring_key(h) for h in holes)) if holes else ())
-        prev = seen.get(("id", p.gml_id)) if p.gml_id else None
-        if prev is None:
-            prev = seen.get(key_ring)
-        if prev is not None:
-            duplicates += 1
-            face = faces[prev]
-            # the thematic surface knows the class; the solid only references the polygon
-            if face.semantic in ("", "Unknown") and p.semantic not in ("", "Unknown"):
-                face.semantic = p.semantic
-            if not face.gml_id and p.gml_id:
-                face.gml_id = p.gml_id
-            if p.gml_id:
-                seen[("id", p.gml_id)] = prev
-            continue
-        faces.append(
-            Face(
-                exterior=np.array(ext, dtype=np.int64),
-                holes=[np.array(h, dtype=np.int64) for h in holes],
-                semantic=p.semantic or "Unknown",
-                building_id=p.building_id,
-                part_id=p.part_id,
-                gml_id=p.gml_id,
-                lod=int(p.lod),
-            )
-        )
-        seen[key_ring] = len(faces) - 1
-        if p.gml_id:
-            seen[("id", p.gml_id)] = len(faces) - 1
+    del prev
+    ids = index[keep]
+    ring_of = ring_of[keep]
+    del index, keep
+    rlen = np.bincount(ring_of, minlength=R)
+    rptr = _ptr(rlen)
+    # >= 3 distinct ids: (no consecutive repeats left) some id differs from the first two
+    first = ids[np.minimum(rptr[:-1], max(len(ids) - 1, 0))] if len(ids) else np.zeros(R, np.int64)
+    second = ids[np.minimum(rptr[:-1] + 1, max(len(ids) - 1, 0))] if len(ids) else first
+    other = (ids != first[ring_of]) & (ids != second[ring_of])
+    ring_ok = (rlen >= 3) & (np.bincount(ring_of, other, R) > 0)
+    del other, ring_of
+    valid = ring_ok[:n].copy()
+    hole_owner = np.repeat(np.arange(n), num_holes)
+    hole_ok = ring_ok[n:]
+    dropped_holes = int(np.count_nonzero(~hole_ok))
+    dropped = int(np.count_nonzero(~valid))
+
+    # duplicate detection on hashes of the valid rings
+    ring_hash = np.zeros(R, np.uint64)
+    sel = np.flatnonzero(ring_ok)
+    if len(sel):
+        entries = _segment_gather(rptr[sel], rlen[sel])
+        ring_hash[sel] = _ring_hashes(ids[entries], _ptr(rlen[sel]))
+        del entries
+    hole_sum = np.zeros(n, np.uint64)
+    if len(hole_owner):
+        hh = np.where(hole_ok, _splitmix(ring_hash[n:] ^ np.uint64(0x5BD1E995)), np.uint64(0))
+        np.add.at(hole_sum, hole_owner, hh)
+    gml_ids = [p.gml_id for p in polys]
+    semantic = [p.semantic or "Unknown" for p in polys]
+    hole_first = np.cumsum(num_holes) - num_holes + n
+
+    def ring_lists(i: int):
+        ext = ids[rptr[i]:rptr[i + 1]].tolist()
+        hs = [ids[rptr[r]:rptr[r + 1]].tolist()
+              for r in range(hole_first[i], hole_first[i] + num_holes[i]) if ring_ok[r]]
+        return ext, hs
+
+    is_face, duplicates = _dedupe_faces(
+        polys, valid, ring_hash[:n], hole_sum, gml_ids, semantic, ring_lists
+    )
     if duplicates:
         logger.debug("%d polygons referenced twice became one face each", duplicates)
     if dropped_holes:
         warnings.append(f"{dropped_holes} degenerate interior rings dropped")
+
+    # the faces in flat arrays: per face its exterior, then its valid holes
+    src = np.flatnonzero(is_face)
+    hole_rings = n + np.flatnonzero(hole_ok & is_face[hole_owner])
+    face_rings = np.concatenate([src, hole_rings])
+    owner = np.concatenate([src, hole_owner[hole_rings - n]])
+    face_rings = face_rings[np.argsort(owner, kind="stable")]
+    entries = _segment_gather(rptr[face_rings], rlen[face_rings])
+    s = src.tolist()
+    faces = FaceList(
+        ids[entries],
+        _ptr(rlen[face_rings]),
+        _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src]),
+        [semantic[i] for i in s],
+        [polys[i].building_id for i in s],
+        [polys[i].part_id for i in s],
+        [gml_ids[i] for i in s],
+        np.fromiter((polys[i].lod for i in s), np.int16, len(s)),
+    )
+    del entries, ids, semantic, gml_ids
 
     planes = _compute_planes(merged, faces)
     degenerate = (planes["areas"] < tol.min_area) | (
@@ -760,18 +1016,16 @@ def build_store(
     if degenerate.any():
         dropped += int(degenerate.sum())
         keep = np.flatnonzero(~degenerate)
-        faces = [faces[k] for k in keep]
+        faces = faces.take(keep)
         planes = {k: v[keep] for k, v in planes.items()}
     if dropped:
         warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
 
     # drop vertices no face uses any more and re-index
-    used = np.flatnonzero(np.bincount(_face_unique_vertices(faces)[1], minlength=len(merged)))
+    used = np.flatnonzero(np.bincount(faces.ring_vertex, minlength=len(merged)))
     remap = np.full(len(merged), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    for f in faces:
-        f.exterior = remap[f.exterior]
-        f.holes = [remap[h] for h in f.holes]
+    faces = faces.with_ring_vertex(remap[faces.ring_vertex])
     vertices = merged[used]
 
     _orient_by_semantics(planes, faces, warnings)
@@ -780,8 +1034,10 @@ def build_store(
         warnings.append(
             f"{int(nonplanar.sum())} non-planar faces (RMS out-of-plane > {tol.nonplanar} m) kept"
         )
-    parts = set(raw.part_ids) | {(f.part_id) for f in faces if f.part_id}
-    buildings = set(raw.building_ids) | {f.building_id for f in faces if not f.part_id}
+    parts = set(raw.part_ids) | set(faces.part_id)
+    buildings = set(raw.building_ids) | {
+        b for b, p in zip(faces.building_id, faces.part_id) if not p
+    }
     store = PlaneStore(
         origin=origin,
         crs=raw.crs,
@@ -808,21 +1064,29 @@ def build_store(
     return store
 
 
-def _orient_by_semantics(planes: dict, faces: list[Face], warnings: list[str]) -> None:
+def _orient_by_semantics(planes: dict, faces: FaceList, warnings: list[str]) -> None:
     """Rings give the orientation; a roof whose ring says "facing down" or a ground surface
     "facing up" has a reversed ring (seen in real data), so the semantics win there."""
-    if not faces:
+    F = len(faces)
+    if not F:
         return
     nz = planes["rotations"][:, 2, 2]
-    sem = np.array([f.semantic for f in faces])
-    flip = ((sem == "RoofSurface") & (nz < -0.1)) | ((sem == "GroundSurface") & (nz > 0.1))
+    roof = np.fromiter((s == "RoofSurface" for s in faces.semantic), bool, F)
+    ground = np.fromiter((s == "GroundSurface" for s in faces.semantic), bool, F)
+    flip = (roof & (nz < -0.1)) | (ground & (nz > 0.1))
     if flip.any():
         R = planes["rotations"]
         R[flip, :, 2] *= -1
         R[flip, :, 1] *= -1  # keep det(R) = +1
-        for f in np.flatnonzero(flip):
-            faces[f].exterior = faces[f].exterior[::-1].copy()
-            faces[f].holes = [h[::-1].copy() for h in faces[f].holes]
+        # reverse every ring of the flipped faces in place
+        fsel = np.flatnonzero(flip)
+        rsel = _segment_gather(faces.face_ring[fsel], np.diff(faces.face_ring)[fsel])
+        s, L = faces.ring_ptr[rsel], np.diff(faces.ring_ptr)[rsel]
+        src = _segment_gather(s, L)
+        ring = np.repeat(np.arange(len(rsel)), L)
+        dst = 2 * s[ring] + L[ring] - 1 - src  # s + (L - 1 - (src - s))
+        rv = faces.ring_vertex
+        rv[dst] = rv[src].copy()
         warnings.append(
             f"{int(flip.sum())} roof/ground faces had reversed rings; oriented by their class"
         )
