@@ -113,6 +113,10 @@ class FlightOptions:
     image_width: int = 4096
     image_height: int = 2160
     focal_length: float = 2400.0
+    # lens distortion (COLMAP SIMPLE_RADIAL k1) of the true camera, and the k1 the database
+    # camera states (its calibration); a difference is an unmodelled systematic image error
+    radial_k1: float = 0.0
+    calibrated_radial_k1: float = 0.0
 
 
 @dataclass
@@ -315,6 +319,8 @@ class Flight:
     width: int
     height: int
     focal: float
+    k1: float = 0.0  # true radial distortion
+    k1_calibrated: float = 0.0  # the database camera's
 
     @property
     def translations(self) -> np.ndarray:
@@ -325,8 +331,10 @@ class Flight:
         Xc = (X - self.centres[k]) @ self.rotations[k].T
         z = Xc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            uv = self.focal * Xc[:, :2] / z[:, None] + np.array([self.width / 2,
-                                                                  self.height / 2])
+            n = Xc[:, :2] / z[:, None]
+            if self.k1:
+                n = n * (1.0 + self.k1 * np.sum(n * n, axis=1, keepdims=True))
+            uv = self.focal * n + np.array([self.width / 2, self.height / 2])
         return uv, z
 
 
@@ -418,7 +426,8 @@ def plan_flight(store, options: FlightOptions, seed: int, ground: GroundModel) -
         rotations[k] = _look_rotation(fwd, jitter[k, 2])
     names = [f"frame_{k + 1:05d}.jpg" for k in range(n)]
     return Flight(names, centres, rotations, arc - s0, options.image_width,
-                  options.image_height, options.focal_length)
+                  options.image_height, options.focal_length, options.radial_k1,
+                  options.calibrated_radial_k1)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -716,11 +725,13 @@ def quiet_colmap(log_path: Path):
             os.close(saved[1])
 
 
-def make_camera(flight: Flight):
+def make_camera(flight: Flight, true: bool = False):
+    """The camera as calibrated (database, COLMAP) or, with true=True, as it really is."""
     import pycolmap
 
-    cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=flight.width, height=flight.height,
-                          params=[flight.focal, flight.width / 2, flight.height / 2])
+    k1 = flight.k1 if true else flight.k1_calibrated
+    cam = pycolmap.Camera(model="SIMPLE_RADIAL", width=flight.width, height=flight.height,
+                          params=[flight.focal, flight.width / 2, flight.height / 2, k1])
     cam.camera_id = 1
     cam.has_prior_focal_length = True
     return cam
@@ -897,7 +908,7 @@ def truth_reconstruction(flight: Flight, obs: Observations):
     import pycolmap
 
     rec = pycolmap.Reconstruction()
-    rec.add_camera_with_trivial_rig(make_camera(flight))
+    rec.add_camera_with_trivial_rig(make_camera(flight, true=True))
     for k, name in enumerate(flight.names):
         image = pycolmap.Image(name=name, keypoints=obs.keypoints[k], camera_id=1,
                                image_id=k + 1)

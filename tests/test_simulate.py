@@ -15,6 +15,7 @@ from colmap_citymodel.simulate import (
     build_sequence,
     load_scenario,
     main,
+    make_camera,
     plan_flight,
     sample_surface_points,
     simulate_checkpoints,
@@ -41,6 +42,7 @@ def tiny_options(**flight) -> SimulationOptions:
     o.scene.procedural.num_buildings = 3
     o.flight.num_key_frames = flight.get("num_key_frames", 8)
     o.flight.image_width, o.flight.image_height, o.flight.focal_length = 1024, 540, 600.0
+    o.flight.radial_k1 = 0.01  # the true lens distorts; the database camera does not know it
     o.observations.points_per_m2 = 0.5
     o.checkpoints.count = 6
     return o
@@ -122,9 +124,9 @@ def test_visible_points_are_in_front_and_unoccluded(tiny):
         assert np.all(z > 0)
         np.testing.assert_allclose(uv2, uv[sel])
         assert np.all((uv[sel] >= 0) & (uv[sel] < [flight.width, flight.height]))
-    # pycolmap's projection agrees with ours
-    cam = pycolmap.Camera(model="SIMPLE_PINHOLE", width=flight.width, height=flight.height,
-                          params=[flight.focal, flight.width / 2, flight.height / 2])
+    # pycolmap's projection with the true camera (SIMPLE_RADIAL) agrees with ours
+    cam = make_camera(flight, true=True)
+    assert cam.params[3] == 0.01 and make_camera(flight).params[3] == 0.0
     k = int(f[0])
     Xc = (pts[p[f == k]] - flight.centres[k]) @ flight.rotations[k].T
     np.testing.assert_allclose(cam.img_from_cam(Xc), uv[f == k], atol=1e-6)
@@ -365,3 +367,37 @@ def test_drift_with_gnss_only_at_start(tmp_path):
     # the block is internally consistent: after a Helmert transform errors are centimetres
     h = helmert_transform(np.array([known[i] for i in ids]), np.array([est[i] for i in ids]))
     assert h.rms_3d < 0.1
+
+
+def test_gnss_noise_model():
+    from colmap_citymodel.simulate import Flight, GNSSOptions, simulate_gnss
+
+    n = 4000
+    arc = np.arange(n, dtype=float)
+    centres = np.c_[arc, np.zeros(n), np.full(n, 10.0)]
+    fl = Flight([f"{i}" for i in range(n)], centres, np.repeat(np.eye(3)[None], n, 0), arc,
+                100, 100, 100.0)
+    g = simulate_gnss(fl, GNSSOptions(sigma=(3, 3, 5), bias_sigma=(1, 1, 1.5),
+                                      bias_length=100.0), seed=1)
+    err = g - centres
+    np.testing.assert_allclose(err.std(0), np.sqrt([10, 10, 25 + 2.25]), rtol=0.15)
+    # the white part does not correlate between neighbours; the bias does (slowly varying)
+    smooth = np.convolve(err[:, 0], np.ones(51) / 51, mode="valid")  # averages the white noise
+    assert 0.5 < smooth.std() < 1.5  # ~ the bias sigma, not 3/sqrt(51)
+    assert np.corrcoef(smooth[:-20], smooth[20:])[0, 1] > 0.8
+    g2 = simulate_gnss(fl, GNSSOptions(), seed=1)
+    np.testing.assert_array_equal(g, g2)
+
+
+def test_forward_mode_looks_along_the_path():
+    o = tiny_options()
+    o.flight.mode = "forward"
+    o.flight.attitude_sigma_deg = (0.0, 0.0, 0.0)
+    store = procedural_store(o.scene.procedural, o.seed)
+    fl = plan_flight(store, o.flight, o.seed, GroundModel(store))
+    fwd = fl.rotations[:, 2]
+    step = np.diff(fl.centres[:, :2], axis=0)
+    step /= np.linalg.norm(step, axis=1, keepdims=True)
+    horiz = fwd[:-1, :2] / np.linalg.norm(fwd[:-1, :2], axis=1, keepdims=True)
+    assert np.all(np.einsum("ij,ij->i", horiz, step) > 0.9)
+    np.testing.assert_allclose(np.degrees(np.arcsin(-fwd[:, 2])), o.flight.pitch_deg, atol=1e-9)
