@@ -1,0 +1,507 @@
+"""A posteriori precision of an adjustment: variance factor, global test, covariances.
+
+Method.md sections 7 and 9 (Unger eq. 12-14, Mulder eq. 2.7). For a (hybrid) bundle adjustment
+with whitened residuals v (each divided by its a priori sigma, so P = I):
+
+- variance factor s0^2 = v^T P v / r with the redundancy r = n - u (n observations, u unknowns
+  in the tangent space); per observation group g: s0_g^2 = v_g^T P v_g / r_g;
+- r_g is either the sum of the redundancy numbers r_i = 1 - (J Q J^T)_ii of the group's
+  observations ("hat_matrix", exact at the solution; needs the cofactor matrix Q = N^-1), or
+  the share n_g / n * r ("proportional", an approximation used when covariances are skipped;
+  it over-states r_g for groups that mostly determine their own unknowns, e.g. f_VT);
+- global model test: T = v^T P v ~ chi^2(r) under H0 "the a priori sigmas are right" (sigma0
+  a priori = 1); two-sided at level alpha, so both optimistic and pessimistic sigmas fail;
+- covariances Sigma = s0^2 Q in the tangent space of every parameter block.
+
+Q is computed by Schur elimination of the tie points from the normal matrix N = J^T J:
+
+    N = [[U, E^T], [E, W]]    c = cameras/poses, planes, vertices, intrinsics; p = points
+    S = U - E^T W^-1 E,  Q_cc = S^-1
+    Q_pp (point i, marginal)    = W_i^-1 + W_i^-1 E_i Q_cc E_i^T W_i^-1
+    Q_pp (point i, conditional) = W_i^-1            (all other unknowns held fixed)
+
+`pycolmap.estimate_ba_covariance_from_problem` does the same elimination (verified equal in
+tests/test_precision.py, also with our plane and vertex blocks in the problem, which keep the
+Schur structure: every residual touches at most one point), but its `get_point_cov` is the
+*conditional* W_i^-1 and it exposes no camera-plane cross covariances, which the marginal point
+covariance needs; so the numbers reported here come from our own sparse normal matrix built from
+`problem.evaluate_jacobian`, and both point covariances are kept (`point_cov` marginal,
+`point_cov_conditional`). Poses: frame tangent [rotation (left perturbation, camera frame, half
+angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres X0, Y0, Z0 and omega, phi, kappa in the model
+frame (local = CRS minus origin, same axes).
+
+COLMAP's reprojection residuals are in pixels and unweighted; they are whitened here by
+`sigma_image` (as `HybridProblem.group_residuals` does). The solve itself weighs them with 1 px,
+so for sigma_image != 1 the covariances are those of the stated stochastic model, not of the
+weights the solver used.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pycolmap
+import pyceres
+import scipy.linalg
+import scipy.sparse as sp
+from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
+
+from .hybrid_adjustment import GROUPS, HybridProblem
+
+logger = logging.getLogger("colmap_citymodel.precision")
+
+#: Rows of the point-camera block processed at once (memory ~ rows x camera unknowns x 8 B).
+CHUNK_ROWS = 6000
+#: Relative eigenvalue below which the reduced normal matrix counts as singular (datum defect).
+RANK_TOLERANCE = 1e-12
+#: Step of the numerical derivative of X0 and omega/phi/kappa w.r.t. the pose tangent.
+POSE_STEP = 1e-6
+#: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
+PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
+
+
+# -- variance factor and global test -----------------------------------------------------------
+
+@dataclass
+class GlobalTest:
+    """Two-sided chi-square test of v^T P v against its redundancy (sigma0 a priori = 1)."""
+
+    statistic: float
+    redundancy: float
+    p_value: float
+    alpha: float
+    lower: float  # acceptance interval of the statistic
+    upper: float
+    accepted: bool
+
+    def todict(self) -> dict:
+        return {"statistic": self.statistic, "redundancy": self.redundancy,
+                "p_value": self.p_value, "alpha": self.alpha,
+                "acceptance_interval": [self.lower, self.upper], "accepted": self.accepted,
+                "h0": "a priori sigmas correct (sigma0 = 1); two-sided chi-square test"}
+
+
+def global_test(vtpv: float, redundancy: float, alpha: float = 0.05) -> GlobalTest:
+    """Global model test: T = v^T P v ~ chi^2(r) if the functional and stochastic models hold."""
+    if redundancy <= 0:
+        raise ValueError(f"the global test needs a positive redundancy, got {redundancy}")
+    lower = float(chi2.ppf(alpha / 2, redundancy))
+    upper = float(chi2.ppf(1 - alpha / 2, redundancy))
+    p_value = float(min(1.0, 2 * min(chi2.cdf(vtpv, redundancy), chi2.sf(vtpv, redundancy))))
+    return GlobalTest(float(vtpv), float(redundancy), p_value, alpha, lower, upper,
+                      bool(lower <= vtpv <= upper))
+
+
+@dataclass
+class VarianceFactors:
+    """s0^2 overall and per observation group, with the redundancy used for each."""
+
+    sigma0_squared: float
+    vtpv: float
+    redundancy: float
+    count: dict[str, int]
+    vtpv_by_group: dict[str, float]
+    redundancy_by_group: dict[str, float]
+    method: str  # "hat_matrix" or "proportional"
+    test: GlobalTest | None
+
+    @property
+    def sigma0(self) -> float:
+        return float(np.sqrt(self.sigma0_squared))
+
+    @property
+    def sigma0_by_group(self) -> dict[str, float | None]:
+        return {g: (float(np.sqrt(self.vtpv_by_group[g] / r)) if r > 0 else None)
+                for g, r in self.redundancy_by_group.items()}
+
+    def todict(self) -> dict:
+        return {"sigma0": self.sigma0, "sigma0_by_group": self.sigma0_by_group,
+                "vtpv": self.vtpv, "redundancy": self.redundancy,
+                "count_by_group": self.count, "vtpv_by_group": self.vtpv_by_group,
+                "redundancy_by_group": self.redundancy_by_group,
+                "redundancy_method": self.method,
+                "global_test": self.test.todict() if self.test else None}
+
+
+def variance_factors(residuals: dict[str, np.ndarray], num_unknowns: int,
+                     redundancy_by_group: dict[str, float] | None = None,
+                     alpha: float = 0.05) -> VarianceFactors:
+    """s0^2 = v^T P v / (n - u) overall and per group from whitened residuals.
+
+    Without `redundancy_by_group` (redundancy numbers summed per group) the group redundancy is
+    the proportional share n_g / n * r, an approximation."""
+    count = {g: int(len(v)) for g, v in residuals.items()}
+    vtpv_g = {g: float(np.sum(np.square(v))) for g, v in residuals.items()}
+    n = sum(count.values())
+    vtpv = sum(vtpv_g.values())
+    if redundancy_by_group is None:
+        r = float(n - num_unknowns)
+        method = "proportional"
+        redundancy_by_group = {g: (c / n * r if n else 0.0) for g, c in count.items()}
+    else:
+        method = "hat_matrix"
+        redundancy_by_group = {g: float(redundancy_by_group.get(g, 0.0)) for g in count}
+        r = float(sum(redundancy_by_group.values()))
+    s0sq = vtpv / r if r > 0 else float("nan")
+    test = global_test(vtpv, r, alpha) if r > 0 else None
+    return VarianceFactors(s0sq, vtpv, r, count, vtpv_g, redundancy_by_group, method, test)
+
+
+# -- covariances ---------------------------------------------------------------------------------
+
+@dataclass
+class _Layout:
+    """Column layout of the Jacobian: camera-side blocks first, then one block per point."""
+
+    blocks: list[np.ndarray]
+    names: list[tuple[str, int]]  # ("frame", frame_id), ("camera", id), ("plane_normal", k) ...
+    starts: list[int]
+    sizes: list[int]
+    num_c: int
+    point_ids: np.ndarray
+
+    def columns(self, kind: str, key: int) -> slice | None:
+        for (k, i), s, n in zip(self.names, self.starts, self.sizes):
+            if k == kind and i == key:
+                return slice(s, s + n)
+        return None
+
+
+def _layout(problem: HybridProblem) -> _Layout:
+    rec = problem.reconstruction
+    ceres = problem.problem
+    blocks, names, sizes = [], [], []
+    known = 0
+
+    def add(kind: str, key: int, block: np.ndarray) -> None:
+        nonlocal known
+        if not ceres.has_parameter_block(block):
+            return
+        known += 1
+        if ceres.is_parameter_block_constant(block):
+            return
+        blocks.append(block)
+        names.append((kind, key))
+        sizes.append(int(ceres.parameter_block_tangent_size(block)))
+
+    for frame_id in sorted({rec.image(i).frame_id for i in rec.reg_image_ids()}):
+        add("frame", frame_id, rec.frame(frame_id).rig_from_world.params)
+    for rig_id, rig in rec.rigs.items():
+        for sensor_id, sensor_from_rig in rig.non_ref_sensors.items():
+            add("sensor", rig_id * 1000 + int(sensor_id.id), sensor_from_rig.params)
+    for camera_id, camera in rec.cameras.items():
+        add("camera", camera_id, camera.params)
+    b = problem.blocks
+    for k in range(len(b.faces)):
+        add("plane_normal", k, b.normals[k])
+        add("plane_offset", k, b.offsets[k])
+    for k in range(len(b.vertex_ids)):
+        add("vertex", k, b.vertices[k])
+    num_c = int(sum(sizes))
+    point_ids = []
+    for point_id in rec.point3D_ids():
+        before = len(blocks)
+        add("point", int(point_id), rec.point3D(point_id).xyz)
+        if len(blocks) > before:
+            point_ids.append(int(point_id))
+    if known != ceres.num_parameter_blocks():
+        raise RuntimeError(f"the problem has {ceres.num_parameter_blocks()} parameter blocks, "
+                           f"only {known} are known to the precision estimator")
+    if any(s != 3 for s in sizes[len(sizes) - len(point_ids):]):
+        raise RuntimeError("tie point blocks must have 3 free coordinates")
+    starts = list(np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(int)) if sizes else []
+    return _Layout(blocks, names, starts, sizes, num_c, np.array(point_ids, np.int64))
+
+
+def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
+                      ) -> tuple[sp.csr_matrix, _Layout]:
+    """The Jacobian of the whitened residuals (rows in `GROUPS` order, loss functions not
+    applied) w.r.t. the tangent spaces of the variable blocks, in `layout` column order."""
+    layout = layout or _layout(problem)
+    evaluate = pyceres.EvaluateOptions()
+    evaluate.apply_loss_function = False
+    evaluate.set_parameter_blocks(layout.blocks)
+    crs = problem.problem.evaluate_jacobian(evaluate)
+    jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
+                             shape=(crs.num_rows, crs.num_cols))
+    n_image = problem.counts["image"]
+    weights = np.ones(jacobian.shape[0])
+    weights[:n_image] = 1.0 / problem.options.sigma_image
+    return sp.diags(weights) @ jacobian, layout
+
+
+@dataclass
+class Cofactors:
+    """Unscaled cofactor matrices (Q = N^-1 of the whitened problem) and redundancy numbers."""
+
+    layout: _Layout
+    q_cc: np.ndarray  # (num_c, num_c) camera-side unknowns, dense
+    q_points: np.ndarray  # (P, 3, 3) marginal
+    q_points_conditional: np.ndarray  # (P, 3, 3) W_i^-1
+    redundancy_by_group: dict[str, float]
+    datum_defect: int
+    seconds: float
+
+
+def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
+    matrix = matrix.tocsr()
+    index = np.arange(num) * 3
+    out = np.empty((num, 3, 3))
+    for i in range(3):
+        for j in range(3):
+            out[:, i, j] = np.asarray(matrix[index + i, index + j]).ravel()
+    return out
+
+
+def _bsr_blocks(blocks: np.ndarray) -> sp.bsr_matrix:
+    num = len(blocks)
+    return sp.bsr_matrix((blocks, np.arange(num), np.arange(num + 1)), shape=(3 * num, 3 * num))
+
+
+def _inverse(s: np.ndarray) -> tuple[np.ndarray, int]:
+    """Inverse of the symmetric reduced normal matrix; a pseudo-inverse with the number of
+    zero eigenvalues when it is singular (a datum defect: free network)."""
+    try:
+        factor = scipy.linalg.cho_factor(s, lower=True)
+        q = scipy.linalg.cho_solve(factor, np.eye(len(s)))
+        return 0.5 * (q + q.T), 0
+    except np.linalg.LinAlgError:
+        values, vectors = np.linalg.eigh(s)
+        keep = values > RANK_TOLERANCE * max(values.max(), 1.0)
+        defect = int(np.count_nonzero(~keep))
+        logger.warning("the normal matrix is singular (datum defect %d): covariances of a "
+                       "minimum-norm (free network) solution", defect)
+        q = (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
+        return q, defect
+
+
+def cofactors(problem: HybridProblem, *, redundancy: bool = True) -> Cofactors:
+    """Q_cc, marginal and conditional point cofactors and (optionally) the redundancy numbers
+    summed per observation group, all by Schur elimination of the tie points."""
+    start = time.perf_counter()
+    jacobian, layout = whitened_jacobian(problem)
+    nc = layout.num_c
+    num_points = len(layout.point_ids)
+    jacobian = jacobian.tocsc()
+    j_c = jacobian[:, :nc].tocsr()
+    j_p = jacobian[:, nc:].tocsr()
+    u = (j_c.T @ j_c).toarray()
+    e = (j_p.T @ j_c).tocsr()  # (3P, nc)
+    w = _block_diagonal_3x3(j_p.T @ j_p, num_points)
+    w_inv = np.linalg.inv(w) if num_points else w
+    b = (_bsr_blocks(w_inv) @ e).tocsr() if num_points else sp.csr_matrix((0, nc))
+    s = u - (e.T @ b).toarray()
+    q_cc, defect = _inverse(0.5 * (s + s.T))
+
+    # Row ranges of the groups and their point-side normal contributions.
+    bounds, first = {}, 0
+    for g in GROUPS:
+        bounds[g] = (first, first + problem.counts[g])
+        first += problem.counts[g]
+    with_points = {}
+    trace = {}
+    for g, (lo, hi) in bounds.items():
+        if not redundancy or hi == lo:
+            continue
+        jc_g, jp_g = j_c[lo:hi], j_p[lo:hi]
+        trace[g] = float((jc_g.T @ jc_g).multiply(q_cc).sum())
+        if jp_g.nnz:
+            with_points[g] = ((jp_g.T @ jc_g).tocsr(), _block_diagonal_3x3(jp_g.T @ jp_g,
+                                                                          num_points))
+
+    q_points = np.empty((num_points, 3, 3))
+    chunk = max(1, CHUNK_ROWS // 3)
+    for lo in range(0, num_points, chunk):
+        hi = min(num_points, lo + chunk)
+        b_chunk = b[3 * lo:3 * hi]
+        m = np.asarray(b_chunk @ q_cc)  # = -Q_pc for these points
+        for i in range(3):
+            for j in range(3):
+                q_points[lo:hi, i, j] = np.asarray(b_chunk[j::3].multiply(m[i::3]).sum(1)).ravel()
+        for g, (e_g, _) in with_points.items():
+            trace[g] -= 2.0 * float(e_g[3 * lo:3 * hi].multiply(m).sum())
+    q_points += w_inv
+    for g, (_, w_g) in with_points.items():
+        trace[g] += float(np.einsum("kij,kji->", q_points, w_g))
+    redundancy_by_group = ({g: (hi - lo) - trace.get(g, 0.0) for g, (lo, hi) in bounds.items()}
+                           if redundancy else {})
+    return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
+                     time.perf_counter() - start)
+
+
+# -- image quantities ----------------------------------------------------------------------------
+
+def omega_phi_kappa(cam_from_world: pycolmap.Rigid3d) -> np.ndarray:
+    """(omega, phi, kappa) in radians of R = Rx(omega) Ry(phi) Rz(kappa), the rotation from
+    photogrammetric camera axes (x right, y up, z backwards) to the model frame."""
+    rotation = np.asarray(cam_from_world.rotation.matrix()).T @ PHOTOGRAMMETRIC_FLIP
+    return Rotation.from_matrix(rotation).as_euler("XYZ")
+
+
+def _image_quantities(rec: pycolmap.Reconstruction, image: pycolmap.Image,
+                      rig_from_world: pycolmap.Rigid3d) -> np.ndarray:
+    frame = rec.frame(image.frame_id)
+    if image.is_ref_in_frame():
+        cam_from_world = rig_from_world
+    else:
+        sensor_from_rig = rec.rig(frame.rig_id).sensor_from_rig(image.camera.sensor_id)
+        cam_from_world = sensor_from_rig * rig_from_world
+    centre = np.asarray(cam_from_world.inverse().translation)
+    return np.concatenate([centre, omega_phi_kappa(cam_from_world)])
+
+
+def _perturbed(pose: pycolmap.Rigid3d, delta: np.ndarray) -> pycolmap.Rigid3d:
+    """Ceres' product manifold EigenQuaternion x R^3: q <- [sin|d| d/|d|, cos|d|] q (a left
+    rotation by the angle 2|d|: the tangent is half the rotation vector), t <- t + delta_t."""
+    rotation = pycolmap.Rotation3d(2.0 * np.asarray(delta[:3], float)) * pose.rotation
+    return pycolmap.Rigid3d(rotation, np.asarray(pose.translation) + delta[3:])
+
+
+def image_jacobian(rec: pycolmap.Reconstruction, image_id: int) -> np.ndarray:
+    """(6, 6) d(X0, Y0, Z0, omega, phi, kappa) / d(frame pose tangent), central differences."""
+    image = rec.image(image_id)
+    pose = rec.frame(image.frame_id).rig_from_world
+    out = np.empty((6, 6))
+    for k in range(6):
+        delta = np.zeros(6)
+        delta[k] = POSE_STEP
+        plus = _image_quantities(rec, image, _perturbed(pose, delta))
+        minus = _image_quantities(rec, image, _perturbed(pose, -delta))
+        diff = plus - minus
+        diff[3:] = (diff[3:] + np.pi) % (2 * np.pi) - np.pi
+        out[:, k] = diff / (2 * POSE_STEP)
+    return out
+
+
+# -- the result ----------------------------------------------------------------------------------
+
+@dataclass
+class PrecisionResult:
+    """Variance factors and, if computed, a posteriori covariances scaled by s0^2.
+
+    Coordinates are in the problem's frame (refine: model CRS minus `origin`; add it back)."""
+
+    variance: VarianceFactors
+    datum_defect: int = 0
+    image_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    image_names: list[str] = field(default_factory=list)
+    centres: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    angles_deg: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    image_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
+    """(N, 6, 6) covariance of X0, Y0, Z0 (m) and omega, phi, kappa (rad)."""
+    image_num_observations: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    point_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    point_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    """(P, 3, 3) marginal covariance of each tie point (the honest one)."""
+    point_cov_conditional: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    """(P, 3, 3) covariance with every other unknown held fixed (pycolmap's get_point_cov x s0^2)."""
+    plane_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    plane_offset_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    seconds: dict[str, float] = field(default_factory=dict)
+
+    @property
+    def has_covariances(self) -> bool:
+        return len(self.image_cov) > 0 or len(self.point_cov) > 0
+
+    @property
+    def image_sigmas(self) -> np.ndarray:
+        """(N, 6) sigma X0, Y0, Z0 (m), omega, phi, kappa (deg)."""
+        sigma = np.sqrt(np.maximum(np.diagonal(self.image_cov, axis1=1, axis2=2), 0.0))
+        sigma[:, 3:] = np.degrees(sigma[:, 3:])
+        return sigma
+
+    @property
+    def point_sigmas(self) -> np.ndarray:
+        """(P, 3) marginal sigma X, Y, Z (m)."""
+        return np.sqrt(np.maximum(np.diagonal(self.point_cov, axis1=1, axis2=2), 0.0))
+
+    @property
+    def point_sigmas_conditional(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diagonal(self.point_cov_conditional, axis1=1, axis2=2),
+                                  0.0))
+
+    def point_covariance(self, point_id: int) -> np.ndarray:
+        index = np.flatnonzero(self.point_ids == point_id)
+        if not len(index):
+            raise KeyError(f"no covariance for point3D {point_id}")
+        return self.point_cov[index[0]]
+
+    def summary(self) -> dict:
+        """Medians for the report (Mulder Table 5.2 style)."""
+        out = {**self.variance.todict(), "datum_defect": self.datum_defect,
+               "covariances": self.has_covariances, "seconds": self.seconds}
+        if self.has_covariances:
+            out["scaled_by"] = "s0^2"
+            out["median_image_sigma"] = dict(zip(
+                ("X0_m", "Y0_m", "Z0_m", "omega_deg", "phi_deg", "kappa_deg"),
+                np.median(self.image_sigmas, axis=0).tolist()))
+            out["median_point_sigma_m"] = dict(zip("XYZ", np.median(self.point_sigmas, 0)
+                                                   .tolist()))
+            out["median_point_sigma_conditional_m"] = dict(zip(
+                "XYZ", np.median(self.point_sigmas_conditional, 0).tolist()))
+            out["point_covariance_note"] = (
+                "point sigmas are marginal (all other unknowns uncertain too); the conditional "
+                "ones hold poses, planes and vertices fixed, as pycolmap's get_point_cov")
+        return out
+
+
+def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
+                       alpha: float = 0.05) -> PrecisionResult:
+    """Variance factors, global test and (optionally) covariances at the current state of a
+    solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem)."""
+    start = time.perf_counter()
+    residuals = problem.group_residuals()
+    if not covariances:
+        variance = variance_factors(residuals, problem.num_unknowns(), alpha=alpha)
+        return PrecisionResult(variance, seconds={"variance": time.perf_counter() - start})
+
+    cof = cofactors(problem)
+    variance = variance_factors(residuals, problem.num_unknowns(), cof.redundancy_by_group,
+                                alpha=alpha)
+    s0sq = variance.sigma0_squared
+    rec = problem.reconstruction
+    layout = cof.layout
+    t1 = time.perf_counter()
+    image_ids, names, centres, angles, image_cov, num_obs = [], [], [], [], [], []
+    for image_id in rec.reg_image_ids():
+        image = rec.image(image_id)
+        columns = layout.columns("frame", image.frame_id)
+        if columns is None or columns.stop - columns.start != 6:
+            continue  # a constant or gauge-reduced frame has no full covariance
+        g = image_jacobian(rec, image_id)
+        image_ids.append(image_id)
+        names.append(image.name)
+        values = _image_quantities(rec, image, rec.frame(image.frame_id).rig_from_world)
+        centres.append(values[:3])
+        angles.append(np.degrees(values[3:]))
+        image_cov.append(s0sq * g @ cof.q_cc[columns, columns] @ g.T)
+        num_obs.append(image.num_points3D)
+    plane_sigma = []
+    for k in range(len(problem.blocks.faces)):
+        columns = layout.columns("plane_offset", k)
+        plane_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
+                           if columns is not None else np.nan)
+    points = np.array([rec.point3D(int(i)).xyz for i in layout.point_ids]).reshape(-1, 3)
+    seconds = {"cofactors": cof.seconds, "images": time.perf_counter() - t1,
+               "total": time.perf_counter() - start}
+    logger.info("precision: s0 %.3f (%s), global test %s (T %.0f, r %.0f, p %.3g); "
+                "covariances in %.1f s", variance.sigma0, ", ".join(
+                    f"{g} {s:.3f}" for g, s in variance.sigma0_by_group.items() if s),
+                "accepted" if variance.test and variance.test.accepted else "rejected",
+                variance.vtpv, variance.redundancy,
+                variance.test.p_value if variance.test else float("nan"), seconds["total"])
+    return PrecisionResult(
+        variance=variance, datum_defect=cof.datum_defect,
+        image_ids=np.array(image_ids, np.int64), image_names=names,
+        centres=np.array(centres).reshape(-1, 3), angles_deg=np.array(angles).reshape(-1, 3),
+        image_cov=np.array(image_cov).reshape(-1, 6, 6),
+        image_num_observations=np.array(num_obs, np.int64),
+        point_ids=layout.point_ids, points=points, point_cov=s0sq * cof.q_points,
+        point_cov_conditional=s0sq * cof.q_points_conditional,
+        plane_faces=np.asarray(problem.blocks.faces), plane_offset_sigma=np.array(plane_sigma),
+        seconds=seconds)
