@@ -107,6 +107,17 @@ def _segment_gather(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     return np.arange(total, dtype=np.int64) + np.repeat(starts - offs, lengths)
 
 
+def _pick(values: list, idx: np.ndarray) -> list:
+    """values[i] for i in idx (a C-level gather; idx sorted or not)."""
+    if len(idx) == len(values) and np.array_equal(idx, np.arange(len(idx))):
+        return list(values)
+    if len(idx) == 0:
+        return []
+    if len(idx) == 1:
+        return [values[int(idx[0])]]
+    return list(operator.itemgetter(*idx.tolist())(values))
+
+
 def _ptr(counts: np.ndarray) -> np.ndarray:
     ptr = np.zeros(len(counts) + 1, dtype=np.int64)
     np.cumsum(counts, out=ptr[1:])
@@ -210,11 +221,10 @@ class FaceList(Sequence):
         rings = _segment_gather(self.face_ring[sel], nr)
         rlen = np.diff(self.ring_ptr)[rings]
         entries = _segment_gather(self.ring_ptr[rings], rlen)
-        s = sel.tolist()
         return FaceList(
             self.ring_vertex[entries], _ptr(rlen), _ptr(nr),
-            [self.semantic[f] for f in s], [self.building_id[f] for f in s],
-            [self.part_id[f] for f in s], [self.gml_id[f] for f in s], self.lod[sel],
+            _pick(self.semantic, sel), _pick(self.building_id, sel),
+            _pick(self.part_id, sel), _pick(self.gml_id, sel), self.lod[sel],
         )
 
     def with_ring_vertex(self, ring_vertex: np.ndarray) -> FaceList:
@@ -363,6 +373,26 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     out["num_distinct"][sl] = counts
 
 
+def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Distinct points in lexicographic order: (uniq (U,3), inverse (N,) into uniq, first (U,)
+    the smallest input index of each)."""
+    N = len(points)
+    order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))  # stable
+    new = np.empty(N, dtype=bool)
+    new[0] = True
+    for k in range(3):
+        col = points[:, k][order]
+        if k == 0:
+            np.not_equal(col[1:], col[:-1], out=new[1:])
+        else:
+            new[1:] |= col[1:] != col[:-1]
+    del col
+    first = order[new]  # the stable sort puts the smallest input index first
+    inverse = np.empty(N, dtype=np.int64)
+    inverse[order] = np.cumsum(new) - 1
+    return points[first], inverse, first
+
+
 def merge_vertices(
     points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack
 ) -> tuple[np.ndarray, np.ndarray, float]:
@@ -373,13 +403,9 @@ def merge_vertices(
     """
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
-    # exact duplicates first (lexsort: several times faster than np.unique(axis=0))
-    order = np.lexsort(points.T[::-1])
-    srt = points[order]
-    new = np.r_[True, np.any(srt[1:] != srt[:-1], axis=1)]
-    uniq = srt[new]
-    inverse = np.empty(len(points), dtype=np.int64)
-    inverse[order] = np.cumsum(new) - 1
+    points = np.ascontiguousarray(points, dtype=np.float64)
+    # exact duplicates first (most points are corners shared by several rings)
+    uniq, inverse, first = _exact_duplicates(points)
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -387,13 +413,13 @@ def merge_vertices(
     n = len(uniq)
     if len(pairs):
         graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-        _, labels = connected_components(graph, directed=False)
+        nlab, labels = connected_components(graph, directed=False)
     else:
-        labels = np.arange(n)
+        nlab, labels = n, np.arange(n)
     # renumber clusters by first appearance in the input
-    point_label = labels[inverse]
-    _, first = np.unique(point_label, return_index=True)
-    order = np.argsort(first)
+    first_c = np.full(nlab, len(points), dtype=np.int64)
+    np.minimum.at(first_c, labels, first)
+    order = np.argsort(first_c)
     renum = np.empty_like(order)
     renum[order] = np.arange(len(order))
     cluster = renum[labels]
@@ -401,11 +427,14 @@ def merge_vertices(
     merged = np.stack([np.bincount(cluster, uniq[:, k]) for k in range(3)], 1) / counts[:, None]
     extent = 0.0
     if len(pairs):
+        # only clusters with more than one point can be wider than 0
+        members = np.unique(pairs)
         lo = np.full((len(counts), 3), np.inf)
         hi = np.full((len(counts), 3), -np.inf)
-        np.minimum.at(lo, cluster, uniq)
-        np.maximum.at(hi, cluster, uniq)
-        extent = float(np.linalg.norm(hi - lo, axis=1).max())
+        np.minimum.at(lo, cluster[members], uniq[members])
+        np.maximum.at(hi, cluster[members], uniq[members])
+        wide = counts > 1
+        extent = float(np.linalg.norm(hi[wide] - lo[wide], axis=1).max())
     return merged, cluster[inverse].astype(np.int64), extent
 
 
@@ -801,6 +830,11 @@ def default_origin(points_crs: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(points_crs, dtype=np.float64).min(0))
 
 
+_RAW_FIELDS = operator.attrgetter(
+    "exterior", "holes", "gml_id", "semantic", "building_id", "part_id", "lod"
+)
+
+
 def _splitmix(x: np.ndarray) -> np.ndarray:
     """64-bit mixing (splitmix64 finaliser), wrapping uint64 arithmetic."""
     x = x.astype(np.uint64, copy=True)
@@ -835,7 +869,7 @@ def _ring_hashes(ids: np.ndarray, ptr: np.ndarray) -> np.ndarray:
 
 
 def _dedupe_faces(
-    polys: list[RawPolygon], valid: np.ndarray, ext_hash: np.ndarray, hole_hash_sum: np.ndarray,
+    raw_semantic: list[str], valid: np.ndarray, ext_hash: np.ndarray, hole_hash_sum: np.ndarray,
     gml_ids: list[str], semantic: list[str], ring_lists,
 ) -> tuple[np.ndarray, int]:
     """Which valid polygons become faces: a polygon whose gml:id or rings (up to the starting
@@ -843,7 +877,7 @@ def _dedupe_faces(
     completed from the duplicate). Candidates come from hashes; the exact comparison (the
     original tuple keys) runs only on the few polygons that share a hash or an id.
     Returns (is_face bool (n,), number of duplicates); `semantic`/`gml_ids` updated in place."""
-    n = len(polys)
+    n = len(raw_semantic)
     is_face = valid.copy()
     key = _splitmix(ext_hash) + hole_hash_sum  # wraps
     cand = np.zeros(n, dtype=bool)
@@ -875,7 +909,7 @@ def _dedupe_faces(
         if prev is not None:
             duplicates += 1
             is_face[i] = False
-            sem = polys[i].semantic
+            sem = raw_semantic[i]
             # the thematic surface knows the class; the solid only references the polygon
             if semantic[prev] in ("", "Unknown") and sem not in ("", "Unknown"):
                 semantic[prev] = sem
@@ -910,10 +944,14 @@ def build_store(
     n = len(polys)
     # rings in the order: all exteriors, then all holes (polygon order); vertex numbering
     # follows first appearance in this order
-    rings = [p.exterior for p in polys]
-    num_holes = np.fromiter((len(p.holes) for p in polys), np.int64, n)
+    # one C-level pass over the polygons' attributes
+    cols = list(zip(*map(_RAW_FIELDS, polys))) or [()] * 7
+    rings, hole_lists, gml_ids, semantic, building_ids, part_ids, lods = map(list, cols)
+    del cols
+    num_holes = np.fromiter(map(len, hole_lists), np.int64, n)
     if num_holes.any():
-        rings += [h for p in polys if p.holes for h in p.holes]
+        rings += [h for hs in hole_lists if hs for h in hs]
+    del hole_lists
     R = len(rings)
     try:
         allpts = np.concatenate(rings).astype(np.float64, copy=False) if rings else np.zeros((0, 3))
@@ -971,8 +1009,8 @@ def build_store(
     if len(hole_owner):
         hh = np.where(hole_ok, _splitmix(ring_hash[n:] ^ np.uint64(0x5BD1E995)), np.uint64(0))
         np.add.at(hole_sum, hole_owner, hh)
-    gml_ids = [p.gml_id for p in polys]
-    semantic = [p.semantic or "Unknown" for p in polys]
+    raw_semantic = semantic
+    semantic = [s or "Unknown" for s in raw_semantic]
     hole_first = np.cumsum(num_holes) - num_holes + n
 
     def ring_lists(i: int):
@@ -982,7 +1020,7 @@ def build_store(
         return ext, hs
 
     is_face, duplicates = _dedupe_faces(
-        polys, valid, ring_hash[:n], hole_sum, gml_ids, semantic, ring_lists
+        raw_semantic, valid, ring_hash[:n], hole_sum, gml_ids, semantic, ring_lists
     )
     if duplicates:
         logger.debug("%d polygons referenced twice became one face each", duplicates)
@@ -996,18 +1034,17 @@ def build_store(
     owner = np.concatenate([src, hole_owner[hole_rings - n]])
     face_rings = face_rings[np.argsort(owner, kind="stable")]
     entries = _segment_gather(rptr[face_rings], rlen[face_rings])
-    s = src.tolist()
     faces = FaceList(
         ids[entries],
         _ptr(rlen[face_rings]),
         _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src]),
-        [semantic[i] for i in s],
-        [polys[i].building_id for i in s],
-        [polys[i].part_id for i in s],
-        [gml_ids[i] for i in s],
-        np.fromiter((polys[i].lod for i in s), np.int16, len(s)),
+        _pick(semantic, src),
+        _pick(building_ids, src),
+        _pick(part_ids, src),
+        _pick(gml_ids, src),
+        np.array(lods, dtype=np.int16)[src] if n else np.zeros(0, np.int16),
     )
-    del entries, ids, semantic, gml_ids
+    del entries, ids, semantic, gml_ids, building_ids, part_ids, lods
 
     planes = _compute_planes(merged, faces)
     degenerate = (planes["areas"] < tol.min_area) | (
@@ -1071,8 +1108,8 @@ def _orient_by_semantics(planes: dict, faces: FaceList, warnings: list[str]) -> 
     if not F:
         return
     nz = planes["rotations"][:, 2, 2]
-    roof = np.fromiter((s == "RoofSurface" for s in faces.semantic), bool, F)
-    ground = np.fromiter((s == "GroundSurface" for s in faces.semantic), bool, F)
+    roof = np.fromiter(map("RoofSurface".__eq__, faces.semantic), bool, F)
+    ground = np.fromiter(map("GroundSurface".__eq__, faces.semantic), bool, F)
     flip = (roof & (nz < -0.1)) | (ground & (nz > 0.1))
     if flip.any():
         R = planes["rotations"]
