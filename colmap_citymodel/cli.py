@@ -91,6 +91,9 @@ def _add_refine(subparsers) -> None:
     p.add_argument("--output_frame", choices=["crs", "local"], default="crs",
                    help="crs: model CRS coordinates; local: CRS minus the recorded origin")
     p.add_argument("--no_progress", action="store_true", help="no progress bars")
+    p.add_argument("--precision", choices=["auto", "on", "off"], default=None,
+                   help="a posteriori covariances of images and tie points (default auto: on "
+                        "below 500 images; s0 and the global test are always reported)")
 
     def run(args):
         from .refine import main
@@ -100,7 +103,8 @@ def _add_refine(subparsers) -> None:
              initial_transform=args.initial_transform, preset=args.preset,
              options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
              target_crs=args.target_crs, output_type=args.output_type,
-             output_frame=args.output_frame, progress=not args.no_progress)
+             output_frame=args.output_frame, progress=not args.no_progress,
+             precision=args.precision)
 
     p.set_defaults(func=run)
 

@@ -81,10 +81,25 @@ class WorkflowOptions:
 
 
 @dataclass
+class PrecisionOptions:
+    """A posteriori precision after the last solve (method.md 7 and 9; precision.py)."""
+
+    covariances: str = "auto"
+    """"on", "off" or "auto": covariances of images and tie points (Schur elimination, dense in
+    the camera-side unknowns) only for blocks of fewer than `max_images_auto` images. Without
+    them s0 and the global test are still reported, with proportional group redundancies."""
+    max_images_auto: int = 500
+    """Image count up to which "auto" computes covariances (~2 s for 72 images / 4k points)."""
+    alpha: float = 0.05
+    """Significance level of the global model test (two-sided chi-square)."""
+
+
+@dataclass
 class RefineOptions:
     assignment: AssignmentOptions = field(default_factory=AssignmentOptions)
     adjustment: AdjustmentOptions = field(default_factory=AdjustmentOptions)
     workflow: WorkflowOptions = field(default_factory=WorkflowOptions)
+    precision: PrecisionOptions = field(default_factory=PrecisionOptions)
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":

@@ -505,3 +505,29 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         point_cov_conditional=s0sq * cof.q_points_conditional,
         plane_faces=np.asarray(problem.blocks.faces), plane_offset_sigma=np.array(plane_sigma),
         seconds=seconds)
+
+
+def wants_covariances(options, num_images: int) -> bool:
+    """`PrecisionOptions.covariances`: "on", "off", or "auto" (fewer than max_images_auto)."""
+    mode = str(options.covariances).lower()
+    if mode not in ("on", "off", "auto"):
+        from .errors import InputError
+
+        raise InputError(f"precision.covariances must be on, off or auto, not {mode!r}")
+    return mode == "on" or (mode == "auto" and num_images < options.max_images_auto)
+
+
+def precision_after_refine(problem: HybridProblem | None, options) -> PrecisionResult | None:
+    """What refine() keeps: the precision of its last hybrid solve. A failure of the covariance
+    step (e.g. an unexpected parameter block) costs the covariances, not the refine result."""
+    if problem is None:
+        return None
+    covariances = wants_covariances(options, problem.reconstruction.num_reg_images())
+    if not covariances:
+        logger.info("precision: covariances skipped (%d images; precision.covariances=%s)",
+                    problem.reconstruction.num_reg_images(), options.covariances)
+    try:
+        return estimate_precision(problem, covariances=covariances, alpha=options.alpha)
+    except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
+        logger.warning("precision: covariances failed (%s); reporting s0 only", error)
+        return estimate_precision(problem, covariances=False, alpha=options.alpha)

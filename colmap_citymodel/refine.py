@@ -21,6 +21,7 @@ import logging
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
@@ -31,6 +32,9 @@ from .errors import DatumError, GeoregistrationError, NoOverlapError
 from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
 from .options import RefineOptions
 from .plane_store import PlaneStore
+
+if TYPE_CHECKING:
+    from .precision import PrecisionResult
 
 logger = logging.getLogger("colmap_citymodel.refine")
 
@@ -84,6 +88,8 @@ class RefineResult:
     options: RefineOptions
     warnings: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    gnss_priors: GNSSPriors | None = None  # the GNSS priors of the last solve (local frame)
+    precision: "PrecisionResult | None" = None  # precision.py: s0, global test, covariances
 
     @property
     def origin(self) -> np.ndarray:
@@ -360,6 +366,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             break
     bar.close()
 
+    from .precision import precision_after_refine
+
+    precision = precision_after_refine(last, options.precision)
     blocks = last.blocks
     timer.update(assignment=assign_seconds, hybrid_solves=solve_seconds,
                  total=time.perf_counter() - timer["start"])
@@ -369,7 +378,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         plane_faces=blocks.faces, plane_normals=blocks.normal_array,
         plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
         step2=report2, step2_eliminated=eliminated2, iterations=iterations, options=options,
-        warnings=warnings, seconds=timer)
+        warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision)
 
 
 def _current_from(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
@@ -449,7 +458,7 @@ def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
 def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
          exif=None, initial_transform=None, preset="generalised", options_file=None,
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True) -> RefineResult:
+         progress=True, precision=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically."""
     from .crs import user_crs
     from .georegister import read_initial_transform
@@ -458,6 +467,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
 
     options = (RefineOptions.from_toml(options_file, preset) if options_file
                else RefineOptions.preset(preset))
+    if precision is not None:  # --precision on/off/auto overrides the options file
+        options.precision.covariances = precision
     # Fail on a taken output directory before the expensive work.
     with atomic_directory(output_path):
         pass

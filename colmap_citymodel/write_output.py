@@ -201,8 +201,12 @@ def write_refined(result: RefineResult, output_path: str | Path, *, output_type:
         except ImportError:  # pragma: no cover - mesh export is optional for the result
             logger.warning("model mesh not written: export_mesh is unavailable")
         report = report_dict(result, inputs)
+        from .precision_report import write_precision_outputs
+
+        # Adds sigma0_by_group, global_test, precision to `report`; CSV, PLY, plots, HTML.
+        precision_md = write_precision_outputs(result, tmp, report, offset)
         (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
-        (tmp / "report.md").write_text(report_markdown(report))
+        (tmp / "report.md").write_text(report_markdown(report) + precision_md)
     logger.info("wrote the refined model and report to %s", output_path)
     return output_path
 

@@ -1,0 +1,283 @@
+"""The precision outputs people look at: per-image CSV, tie point sigmas as PLY scalars, plots
+and a self-contained HTML report next to `report.json`.
+
+- `image_precision.csv`: per image X0, Y0, Z0 (CRS or local, as the model output) and omega,
+  phi, kappa with their a posteriori sigmas (scaled by s0^2);
+- `point_precision.ply`: tie points coloured by their 3D sigma, scalar fields sigma_x/y/z
+  (marginal) and sigma_x/y/z_conditional (poses, planes, vertices held fixed), num_images;
+- `report.html` with embedded PNGs (also written to `plots/`): residual histograms per plane
+  (Unger Fig. 17), a plan-view tie point sigma map (Mulder Fig. 5.5), image sigmas along the
+  flight, and the check point Delta/sigma table when check points were evaluated.
+
+Plots use matplotlib's object API with the Agg canvas (no display, no pyplot state).
+"""
+
+from __future__ import annotations
+
+import base64
+import csv
+import html
+import io
+import logging
+from pathlib import Path
+
+import numpy as np
+
+from .precision import PrecisionResult
+
+logger = logging.getLogger("colmap_citymodel.precision_report")
+
+#: At most this many planes get their own residual histogram (the ones with most points).
+MAX_PLANE_HISTOGRAMS = 11
+
+CSV_COLUMNS = ("image_id", "name", "X0", "Y0", "Z0", "omega_deg", "phi_deg", "kappa_deg",
+               "sigma_X0_m", "sigma_Y0_m", "sigma_Z0_m", "sigma_omega_deg", "sigma_phi_deg",
+               "sigma_kappa_deg", "num_points3D")
+
+
+# -- files ---------------------------------------------------------------------------------------
+
+def write_image_csv(path: Path, precision: PrecisionResult, offset: np.ndarray) -> None:
+    sigma = precision.image_sigmas
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(CSV_COLUMNS)
+        for k, image_id in enumerate(precision.image_ids):
+            centre = precision.centres[k] + offset
+            writer.writerow([int(image_id), precision.image_names[k]]
+                            + [f"{v:.4f}" for v in centre]
+                            + [f"{v:.6f}" for v in precision.angles_deg[k]]
+                            + [f"{v:.5f}" for v in sigma[k, :3]]
+                            + [f"{v:.6f}" for v in sigma[k, 3:]]
+                            + [int(precision.image_num_observations[k])])
+
+
+def sigma_colours(values: np.ndarray) -> np.ndarray:
+    """uint8 RGB of a viridis ramp between the 2nd and 98th percentile of `values`."""
+    from matplotlib import colormaps
+
+    if not len(values):
+        return np.zeros((0, 3), np.uint8)
+    lo, hi = np.percentile(values, [2, 98])
+    t = np.clip((values - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    return (colormaps["viridis"](t)[:, :3] * 255).astype(np.uint8)
+
+
+def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
+                    num_images: np.ndarray | None = None) -> None:
+    from .write_output import write_point_ply as write_ply
+
+    sigma = precision.point_sigmas
+    conditional = precision.point_sigmas_conditional
+    scalars = {f"sigma_{a}": sigma[:, i].astype(np.float32) for i, a in enumerate("xyz")}
+    scalars.update({f"sigma_{a}_conditional": conditional[:, i].astype(np.float32)
+                    for i, a in enumerate("xyz")})
+    scalars["sigma_3d"] = np.linalg.norm(sigma, axis=1).astype(np.float32)
+    if num_images is not None:
+        scalars["num_images"] = num_images.astype(np.float32)
+    write_ply(path, precision.points + offset, sigma_colours(scalars["sigma_3d"]), scalars)
+
+
+# -- plots ---------------------------------------------------------------------------------------
+
+def _figure(width: float, height: float):
+    from matplotlib.figure import Figure
+
+    # A fixed layout: constrained/tight layout measure every text and cost seconds per figure.
+    figure = Figure(figsize=(width, height), dpi=90)
+    figure.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.9, wspace=0.3, hspace=0.6)
+    return figure
+
+
+def _png(figure) -> bytes:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    FigureCanvasAgg(figure)
+    buffer = io.BytesIO()
+    figure.savefig(buffer, format="png")
+    return buffer.getvalue()
+
+
+def plot_plane_histograms(residuals: dict[int, np.ndarray], labels: dict[int, str] | None = None
+                          ) -> bytes | None:
+    """Histograms of tie point -> plane distances per plane, like Unger Fig. 17."""
+    if not residuals:
+        return None
+    labels = labels or {}
+    order = sorted(residuals, key=lambda f: -len(residuals[f]))[:MAX_PLANE_HISTOGRAMS]
+    panels = [("all planes", np.concatenate(list(residuals.values())))] + [
+        (labels.get(f, f"face {f}"), residuals[f]) for f in order]
+    columns = 4
+    rows = int(np.ceil(len(panels) / columns))
+    figure = _figure(3.2 * columns, 2.4 * rows)
+    everything = panels[0][1]
+    limit = max(float(np.percentile(np.abs(everything), 99)), 1e-3)
+    bins = np.linspace(-limit, limit, 31)
+    for k, (title, d) in enumerate(panels):
+        ax = figure.add_subplot(rows, columns, k + 1)
+        ax.hist(np.clip(d, -limit, limit), bins=bins, color="C0" if k else "C1")
+        ax.axvline(0.0, color="k", lw=0.6)
+        ax.set_title(f"{title}\nn {len(d)}, mean {np.mean(d):+.3f}, std {np.std(d):.3f} m",
+                     fontsize=8)
+        ax.tick_params(labelsize=7)
+        if k >= len(panels) - columns:
+            ax.set_xlabel("distance to plane (m)", fontsize=8)
+    return _png(figure)
+
+
+def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> bytes | None:
+    """Plan view of the tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5), with cameras."""
+    if not len(precision.point_ids):
+        return None
+    figure = _figure(15, 4.6)
+    xy = precision.points[:, :2] - precision.points[:, :2].mean(0)
+    centres = precision.centres[:, :2] - precision.points[:, :2].mean(0)
+    sigma = precision.point_sigmas * 100.0
+    for i, axis in enumerate("XYZ"):
+        ax = figure.add_subplot(1, 3, i + 1)
+        hi = float(np.percentile(sigma[:, i], 98))
+        scatter = ax.scatter(xy[:, 0], xy[:, 1], c=sigma[:, i], s=3, cmap="viridis", vmin=0,
+                             vmax=max(hi, 1e-6))
+        if len(centres):
+            ax.plot(centres[:, 0], centres[:, 1], "r.", ms=3, label="cameras")
+        ax.set_aspect("equal")
+        ax.set_title(f"tie point sigma {axis} (cm), median {np.median(sigma[:, i]):.2f}",
+                     fontsize=9)
+        ax.set_xlabel("X - mean (m)", fontsize=8)
+        ax.set_ylabel("Y - mean (m)", fontsize=8)
+        ax.tick_params(labelsize=7)
+        figure.colorbar(scatter, ax=ax, shrink=0.8)
+    return _png(figure)
+
+
+def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
+    """Sigma of X0, Y0, Z0 and omega, phi, kappa per image, in image order."""
+    if not len(precision.image_ids):
+        return None
+    order = np.argsort(precision.image_names)
+    sigma = precision.image_sigmas[order]
+    figure = _figure(12, 4)
+    ax = figure.add_subplot(1, 2, 1)
+    for i, axis in enumerate(("X0", "Y0", "Z0")):
+        ax.plot(sigma[:, i] * 100.0, ".-", ms=3, lw=0.6, label=axis)
+    ax.set_ylabel("sigma (cm)")
+    ax.set_xlabel("image (sorted by name)")
+    ax.legend(fontsize=8)
+    ax.set_title("projection centres", fontsize=9)
+    ax = figure.add_subplot(1, 2, 2)
+    for i, axis in enumerate(("omega", "phi", "kappa")):
+        ax.plot(sigma[:, 3 + i] * 3600.0, ".-", ms=3, lw=0.6, label=axis)
+    ax.set_ylabel("sigma (arc seconds)")
+    ax.set_xlabel("image (sorted by name)")
+    ax.set_yscale("log")
+    ax.legend(fontsize=8)
+    ax.set_title("rotations", fontsize=9)
+    return _png(figure)
+
+
+# -- report text ---------------------------------------------------------------------------------
+
+def precision_report_dict(precision: PrecisionResult) -> dict:
+    """The keys report.json gains: sigma0, sigma0_by_group, global_test, precision."""
+    summary = precision.summary()
+    return {"sigma0": summary["sigma0"], "sigma0_by_group": summary["sigma0_by_group"],
+            "global_test": summary["global_test"], "precision": summary}
+
+
+def _fmt(value, spec: str = ".4f") -> str:
+    return "-" if value is None else format(value, spec)
+
+
+def precision_markdown(report: dict) -> str:
+    p = report.get("precision")
+    if not p:
+        return ""
+    lines = ["", "## A posteriori precision", "",
+             f"s0 = {p['sigma0']:.4f} (redundancy {p['redundancy']:.1f}, group redundancies "
+             f"from {p['redundancy_method'].replace('_', ' ')}).", "",
+             "| group | observations | redundancy | v'Pv | s0 |", "|---|---|---|---|---|"]
+    for g, s0 in p["sigma0_by_group"].items():
+        lines.append(f"| {g} | {p['count_by_group'][g]} | {p['redundancy_by_group'][g]:.1f} | "
+                     f"{p['vtpv_by_group'][g]:.2f} | {_fmt(s0)} |")
+    t = p.get("global_test")
+    if t:
+        lines += ["", f"Global test (two-sided chi-square, alpha {t['alpha']}): T = "
+                  f"{t['statistic']:.1f}, r = {t['redundancy']:.1f}, acceptance interval "
+                  f"[{t['acceptance_interval'][0]:.1f}, {t['acceptance_interval'][1]:.1f}], "
+                  f"p = {t['p_value']:.3g}: **{'accepted' if t['accepted'] else 'rejected'}**."]
+    if p.get("covariances"):
+        m, mp, mc = p["median_image_sigma"], p["median_point_sigma_m"], \
+            p["median_point_sigma_conditional_m"]
+        lines += ["", "Median a posteriori sigmas (scaled by s0^2):", "",
+                  f"- projection centres X0/Y0/Z0: {m['X0_m'] * 100:.2f} / {m['Y0_m'] * 100:.2f}"
+                  f" / {m['Z0_m'] * 100:.2f} cm; omega/phi/kappa: {m['omega_deg'] * 3600:.1f} / "
+                  f"{m['phi_deg'] * 3600:.1f} / {m['kappa_deg'] * 3600:.1f} arc seconds",
+                  f"- tie points X/Y/Z (marginal): {mp['X'] * 100:.2f} / {mp['Y'] * 100:.2f} / "
+                  f"{mp['Z'] * 100:.2f} cm",
+                  f"- tie points X/Y/Z (conditional on poses, planes, vertices): "
+                  f"{mc['X'] * 100:.2f} / {mc['Y'] * 100:.2f} / {mc['Z'] * 100:.2f} cm",
+                  "", "Per image: `image_precision.csv`; per tie point: `point_precision.ply`; "
+                  "plots: `report.html`."]
+    else:
+        lines += ["", "Covariances were not computed (precision.covariances / --precision)."]
+    return "\n".join(lines) + "\n"
+
+
+def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-citymodel report"
+                ) -> str:
+    """A self-contained page: the markdown summary as preformatted text and the PNGs inline."""
+    from .write_output import report_markdown
+
+    try:
+        text = report_markdown(report) + precision_markdown(report)
+    except (KeyError, TypeError):  # a report from another stage (e.g. evaluate)
+        text = precision_markdown(report)
+    parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
+             f"<title>{html.escape(title)}</title>",
+             "<style>body{font-family:sans-serif;max-width:1300px;margin:auto;padding:1em}"
+             "pre{background:#f6f6f6;padding:1em;overflow-x:auto}img{max-width:100%}</style>",
+             "</head><body>", f"<h1>{html.escape(title)}</h1>"]
+    for name, png in plots.items():
+        encoded = base64.b64encode(png).decode("ascii")
+        parts += [f"<h2>{html.escape(name)}</h2>",
+                  f"<img alt='{html.escape(name)}' src='data:image/png;base64,{encoded}'>"]
+    parts += ["<h2>Summary</h2>", f"<pre>{html.escape(text)}</pre>", "</body></html>"]
+    return "\n".join(parts)
+
+
+# -- refine's outputs ----------------------------------------------------------------------------
+
+def refine_plots(result, offset: np.ndarray) -> dict[str, bytes]:
+    plots: dict[str, bytes | None] = {}
+    faces = result.store.faces
+    labels = {f: f"{faces[f].semantic} {faces[f].building_id}" for f in result.plane_faces}
+    plots["residuals per plane (Unger Fig. 17)"] = plot_plane_histograms(
+        result.plane_residuals(), labels)
+    precision = result.precision
+    if precision is not None and precision.has_covariances:
+        plots["tie point sigma map (Mulder Fig. 5.5)"] = plot_point_sigma_map(precision, offset)
+        plots["image sigmas"] = plot_image_sigmas(precision)
+    return {k: v for k, v in plots.items() if v is not None}
+
+
+def write_precision_outputs(result, directory: Path, report: dict, offset: np.ndarray) -> str:
+    """Called by write_output.write_refined: add the precision keys to `report`, write the CSV,
+    the PLY, the plots and report.html into `directory`; return the markdown section."""
+    precision: PrecisionResult | None = result.precision
+    if precision is not None:
+        report.update(precision_report_dict(precision))
+        if precision.has_covariances:
+            write_image_csv(directory / "image_precision.csv", precision, offset)
+            rec = result.reconstruction
+            num_images = np.array([rec.point3D(int(i)).track.length()
+                                   for i in precision.point_ids])
+            write_point_ply(directory / "point_precision.ply", precision, offset, num_images)
+    plots = refine_plots(result, offset)
+    if plots:
+        (directory / "plots").mkdir(exist_ok=True)
+        for k, (name, png) in enumerate(plots.items()):
+            slug = "".join(c if c.isalnum() else "_" for c in name.split(" (")[0]).strip("_")
+            (directory / "plots" / f"{k}_{slug}.png").write_bytes(png)
+    (directory / "report.html").write_text(html_report(report, plots,
+                                                       "colmap-citymodel refine report"))
+    return precision_markdown(report)
