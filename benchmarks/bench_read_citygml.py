@@ -113,21 +113,34 @@ def _reset_peak() -> bool:
 
 
 def store_nbytes(store) -> tuple[int, int]:
-    """(nbytes of numpy arrays + faces' index arrays, that + Python objects of the faces)."""
+    """(nbytes of the store's numpy arrays incl. the faces' ring index arrays,
+    that + the Python objects that stay with the store: per-face lists/Face objects, id strings)."""
     arrays = [store.origin, store.vertices, store.centroids, store.rotations, store.areas,
               store.rms_out_of_plane, store.nonplanar]
     n = sum(a.nbytes for a in arrays)
-    py = n
+    faces = store.faces
     seen: set[int] = set()
-    for face in store.faces:
-        k = face.exterior.nbytes + sum(h.nbytes for h in face.holes)
-        n += k
-        py += sys.getsizeof(face) + sys.getsizeof(face.__dict__) if hasattr(face, "__dict__") else sys.getsizeof(face)
-        py += sys.getsizeof(face.exterior) + sys.getsizeof(face.holes) + sum(sys.getsizeof(h) for h in face.holes)
-        for s in (face.gml_id, face.building_id, face.part_id, face.semantic):
+
+    def strings(values) -> int:
+        k = 0
+        for s in values:
             if id(s) not in seen:
                 seen.add(id(s))
-                py += sys.getsizeof(s)
+                k += sys.getsizeof(s)
+        return k
+
+    if hasattr(faces, "ring_vertex"):  # flat ring arrays (FaceList)
+        n += faces.ring_vertex.nbytes + faces.ring_ptr.nbytes + faces.face_ring.nbytes + faces.lod.nbytes
+        py = n + sys.getsizeof(faces)
+        for values in (faces.semantic, faces.building_id, faces.part_id, faces.gml_id):
+            py += sys.getsizeof(values) + strings(values)
+        return n, py
+    py = n  # a list of Face objects with their own index arrays
+    for face in faces:
+        n += face.exterior.nbytes + sum(h.nbytes for h in face.holes)
+        py += sys.getsizeof(face) + (sys.getsizeof(face.__dict__) if hasattr(face, "__dict__") else 0)
+        py += sys.getsizeof(face.exterior) + sys.getsizeof(face.holes) + sum(sys.getsizeof(h) for h in face.holes)
+        py += strings((face.gml_id, face.building_id, face.part_id, face.semantic))
     return n, py
 
 
@@ -181,6 +194,7 @@ def main() -> None:
     parser.add_argument("--quick", action="store_true", help="~20 MB instead of 200 MB")
     parser.add_argument("--size_mb", type=float, default=None, help="file size to generate (MB)")
     parser.add_argument("--keep", action="store_true", help="keep the generated file")
+    parser.add_argument("--file", default=None, help="read this (earlier generated) file instead of generating one")
     parser.add_argument("--child", default=None, help=argparse.SUPPRESS)
     parser.add_argument("--mode", default="full", help=argparse.SUPPRESS)
     args = parser.parse_args()
@@ -190,14 +204,20 @@ def main() -> None:
     if not SOURCE.is_file():
         raise SystemExit(f"source file not found: {SOURCE}")
     size_mb = args.size_mb or (20.0 if args.quick else 205.0)
-    tmp = Path(tempfile.mkdtemp(prefix="bench_citygml_"))
-    path = tmp / "synthetic_city.gml"
+    if args.file:
+        path = Path(args.file)
+        tmp = None
+    else:
+        tmp = Path(tempfile.mkdtemp(prefix="bench_citygml_"))
+        path = tmp / "synthetic_city.gml"
     try:
-        t0 = time.perf_counter()
-        info = make_city(path, size_mb)
+        if tmp is not None:
+            t0 = time.perf_counter()
+            info = make_city(path, size_mb)
+            print(f"generated {path.stat().st_size / 1e6:.1f} MB ({info['copies']} copies, "
+                  f"{info['buildings']} buildings, {info['polygons']} polygons) in "
+                  f"{time.perf_counter() - t0:.1f} s: {path}")
         file_mb = path.stat().st_size / 1e6
-        print(f"generated {file_mb:.1f} MB ({info['copies']} copies, {info['buildings']} buildings, "
-              f"{info['polygons']} polygons) in {time.perf_counter() - t0:.1f} s: {path}")
         parse = run_child(path, "parse")
         full = run_child(path, "full")
         peak_parse = (parse["peak_rss_kb"] - parse["base_rss_kb"]) / 1024
@@ -224,7 +244,9 @@ def main() -> None:
         if not full["peak_reset"]:
             print("note: peak RSS could not be reset; peak includes the warm-up")
     finally:
-        if args.keep:
+        if tmp is None:
+            pass
+        elif args.keep:
             print(f"kept {path}")
         else:
             path.unlink(missing_ok=True)

@@ -286,7 +286,7 @@ def _face_unique_vertices(faces) -> tuple[np.ndarray, np.ndarray]:
     return _unique_per_group(fl.entry_face(), ids, F, n)
 
 
-def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 32768) -> dict[str, np.ndarray]:
+def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 8192) -> dict[str, np.ndarray]:
     """Planes of all faces (eq. 2-4), vectorised, in chunks of faces to bound temporaries.
 
     P0 = centroid of the face's distinct vertices (Unger: "all vertices that belong to a
@@ -326,6 +326,7 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     counts = np.diff(ptr)
     owner = np.repeat(np.arange(F), counts)
     X = vertices[ids]
+    del ids
     centroids = np.stack([np.bincount(owner, X[:, k], F) for k in range(3)], 1) / np.maximum(
         counts, 1
     )[:, None]
@@ -337,17 +338,20 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
             M[:, a, b] = M[:, b, a] = np.bincount(owner, D[:, a] * D[:, b], F)
     M /= np.maximum(counts - 1, 1)[:, None, None]
     eigvals, eigvecs = np.linalg.eigh(M)  # ascending
+    del M
     eigvals = eigvals[:, ::-1]
     R = eigvecs[:, :, ::-1].copy()
+    del eigvecs
 
     # Newell area vectors per ring (relative to the face centroid for precision)
     nxt = rings.next_index()
     P = vertices[rings.vertex] - centroids[face_of_entry]
-    C = 0.5 * np.cross(P, P[nxt])
-    del P
+    C = np.cross(P, P[nxt])
+    C *= 0.5
+    del P, nxt
     nring = len(rings.ptr) - 1
     ring_area_vec = np.stack([np.bincount(ring_of, C[:, k], nring) for k in range(3)], 1)
-    del C
+    del C, ring_of, face_of_entry
     ext = np.flatnonzero(~rings.is_hole)  # exactly one exterior per face, in face order
     ext_vec = ring_area_vec[ext]
 
@@ -830,9 +834,7 @@ def default_origin(points_crs: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(points_crs, dtype=np.float64).min(0))
 
 
-_RAW_FIELDS = operator.attrgetter(
-    "exterior", "holes", "gml_id", "semantic", "building_id", "part_id", "lod"
-)
+_RAW_FIELDS = ("exterior", "holes", "gml_id", "semantic", "building_id", "part_id", "lod")
 
 
 def _splitmix(x: np.ndarray) -> np.ndarray:
@@ -891,7 +893,7 @@ def _dedupe_faces(
         hit[1:] |= same
         hit[:-1] |= same
         cand[vidx[order[hit]]] = True
-    if len(dict.fromkeys(gml_ids)) < n:
+    if len(set(gml_ids)) < n:
         counts = Counter(gml_ids)
         repeated = {g for g, c in counts.items() if c > 1 and g}
         if repeated:
@@ -944,10 +946,10 @@ def build_store(
     n = len(polys)
     # rings in the order: all exteriors, then all holes (polygon order); vertex numbering
     # follows first appearance in this order
-    # one C-level pass over the polygons' attributes
-    cols = list(zip(*map(_RAW_FIELDS, polys))) or [()] * 7
-    rings, hole_lists, gml_ids, semantic, building_ids, part_ids, lods = map(list, cols)
-    del cols
+    # the polygons' attributes, one C-level pass each
+    rings, hole_lists, gml_ids, semantic, building_ids, part_ids, lods = (
+        list(map(operator.attrgetter(name), polys)) for name in _RAW_FIELDS
+    )
     num_holes = np.fromiter(map(len, hole_lists), np.int64, n)
     if num_holes.any():
         rings += [h for hs in hole_lists if hs for h in hs]
