@@ -531,3 +531,103 @@ def precision_after_refine(problem: HybridProblem | None, options) -> PrecisionR
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("precision: covariances failed (%s); reporting s0 only", error)
         return estimate_precision(problem, covariances=False, alpha=options.alpha)
+
+
+# -- variance component estimation ---------------------------------------------------------------
+
+#: Groups whose sigma VCE estimates by default. f_VT / f_dVT are design choices ("the model is
+#: almost fixed") with little redundancy; estimating them drives them to zero on a good model.
+VCE_GROUPS = ("image", "gnss", "dTP")
+
+
+@dataclass
+class VarianceComponents:
+    """Result of iterated variance component estimation (Foerstner 1979 / Helmert type).
+
+    `factors[g]` multiplies group g's a priori sigmas (image: sigma_image; gnss: each prior's
+    sigmas; dTP/dVT/VT: sigma_dtp/dvt/vt); `sigmas` are the resulting absolute values for the
+    scalar groups."""
+
+    factors: dict[str, float]
+    sigmas: dict[str, float]
+    history: list[dict[str, float]]  # per iteration: the factors estimated from that solve
+    converged: bool
+    precision: PrecisionResult  # of the last solve, with the estimated sigmas
+    seconds: float
+
+    def todict(self) -> dict:
+        return {"factors": self.factors, "sigmas": self.sigmas, "history": self.history,
+                "converged": self.converged, "seconds": self.seconds,
+                "sigma0_by_group": self.precision.variance.sigma0_by_group}
+
+
+def estimate_variance_components(build, initial_sigmas: dict[str, float],
+                                 groups: tuple[str, ...] = VCE_GROUPS, *,
+                                 max_iterations: int = 15, tolerance: float = 0.01,
+                                 alpha: float = 0.05) -> VarianceComponents:
+    """Iterate: solve with the current sigmas, s_g^2 = v_g^T P v_g / r_g (redundancy numbers
+    from the hat matrix), sigma_g <- sigma_g * s_g, until no factor changes by more than
+    `tolerance` (relative). The iteration converges linearly (on the synthetic street the
+    f_dTP factor shrinks its step by ~0.6 per iteration), so a loose tolerance stops early.
+
+    `build(factors) -> HybridProblem` returns a fresh, unsolved problem whose group sigmas are
+    the a priori ones times `factors[g]`. COLMAP's reprojection residuals are always weighted
+    with 1 px, so the solve uses factors relative to the image group (only ratios change the
+    estimate) and the image component is carried along outside the problem."""
+    start = time.perf_counter()
+    factors = {g: 1.0 for g in GROUPS}
+    history: list[dict[str, float]] = []
+    converged = False
+    precision = None
+    for _ in range(max_iterations):
+        # Sigmas of the solve relative to the image component (its weight is fixed at 1 px).
+        relative = {g: f / factors["image"] for g, f in factors.items()}
+        relative["image"] = 1.0
+        problem = build(relative)
+        problem.solve()
+        precision = estimate_precision(problem, alpha=alpha)
+        s0 = precision.variance.sigma0_by_group
+        step = {g: s0[g] for g in groups if s0.get(g)}
+        history.append({g: float(relative[g] * s) for g, s in step.items()})
+        # The residuals are absolute: group g's sigma is sigma_g0 * relative_g * s_g.
+        updated = {g: relative[g] * s for g, s in step.items()}
+        change = max(abs(updated[g] / factors[g] - 1.0) for g in updated)
+        factors.update(updated)
+        if change < tolerance:
+            converged = True
+            break
+    sigmas = {g: initial_sigmas[g] * factors[g] for g in initial_sigmas}
+    logger.info("variance components: %s after %d iterations%s", ", ".join(
+        f"{g} x{factors[g]:.3f}" for g in groups), len(history),
+        "" if converged else " (not converged)")
+    return VarianceComponents(dict(factors), sigmas, history, converged, precision,
+                              time.perf_counter() - start)
+
+
+def variance_components_after_refine(result, groups: tuple[str, ...] = VCE_GROUPS,
+                                     **kwargs) -> VarianceComponents:
+    """VCE on refine's final assignment: re-solves copies of the refined reconstruction with
+    the final assignment and model (the RefineResult itself is not changed)."""
+    import dataclasses
+
+    options = result.options.adjustment
+    priors = result.gnss_priors
+    initial = {"image": options.sigma_image, "dTP": options.sigma_dtp,
+               "dVT": options.sigma_dvt, "VT": options.sigma_vt}
+    if priors is not None and len(priors):
+        initial["gnss"] = float(np.median(priors.sigmas))
+    elif "gnss" in groups:
+        groups = tuple(g for g in groups if g != "gnss")
+
+    def build(factors: dict[str, float]) -> HybridProblem:
+        adjusted = dataclasses.replace(options, sigma_dtp=options.sigma_dtp * factors["dTP"],
+                                       sigma_dvt=options.sigma_dvt * factors["dVT"],
+                                       sigma_vt=options.sigma_vt * factors["VT"])
+        scaled = None
+        if priors is not None:
+            scaled = dataclasses.replace(priors, sigmas=priors.sigmas * factors["gnss"])
+        return HybridProblem(pycolmap.Reconstruction(result.reconstruction), result.store,
+                             result.assignment, scaled, adjusted, robust_images=False,
+                             robust_planes=False, current=result.adjusted_store)
+
+    return estimate_variance_components(build, initial, groups, **kwargs)

@@ -260,3 +260,36 @@ def test_omega_phi_kappa_convention():
     cam_from_world = (world_from_photo @ PHOTOGRAMMETRIC_FLIP).T
     pose = pycolmap.Rigid3d(pycolmap.Rotation3d(cam_from_world), np.zeros(3))
     np.testing.assert_allclose(omega_phi_kappa(pose), [omega, phi, kappa], atol=1e-10)
+
+
+def test_variance_components_recover_the_true_sigmas():
+    # Relief of 3 cm off the planes (no clutter), image noise 1 px, GNSS noise GNSS_SIGMA; the
+    # stated sigmas are sigma_dTP 0.2 m (generalised preset) and GNSS 3x too large.
+    from colmap_citymodel.precision import estimate_variance_components
+
+    scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=1.5,
+                                                 image_noise_px=1.0, relief_sigma=0.03,
+                                                 clutter_fraction=0.0, seed=4))
+    truth = scene.truth
+    rng = np.random.default_rng(4)
+    ids = np.array(truth.reg_image_ids())
+    centres = np.array([truth.image(i).projection_center() for i in ids])
+    observed = centres + rng.normal(size=centres.shape) * GNSS_SIGMA
+    point_ids, xyz = tie_points(truth)
+    assignment = assign(xyz, point_ids, scene.store, 0.5, AssignmentOptions(min_points_per_plane=5))
+    stated = AdjustmentOptions(sigma_dtp=0.2)
+
+    def build(factors):
+        options = AdjustmentOptions(sigma_dtp=0.2 * factors["dTP"],
+                                    sigma_dvt=0.01 * factors["dVT"], sigma_vt=0.01 * factors["VT"])
+        priors = GNSSPriors(ids, observed, np.tile(3 * GNSS_SIGMA * factors["gnss"], (len(ids), 1)))
+        return HybridProblem(pycolmap.Reconstruction(truth), scene.store, assignment, priors,
+                             options, robust_images=False, robust_planes=False)
+
+    vce = estimate_variance_components(build, {"image": 1.0, "gnss": 1.0, "dTP": stated.sigma_dtp})
+    assert vce.converged and len(vce.history) <= 15
+    assert vce.factors["image"] == pytest.approx(1.0, abs=0.05)
+    assert vce.factors["gnss"] == pytest.approx(1 / 3, rel=0.35)  # 36 GNSS observations only
+    assert vce.sigmas["dTP"] == pytest.approx(0.03, rel=0.15)
+    # With the estimated sigmas the global test accepts the model.
+    assert vce.precision.variance.test.accepted
