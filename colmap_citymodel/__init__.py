@@ -17,5 +17,9 @@ if not logger.handlers:
     logger.propagate = False
 
 from .errors import CityModelError  # noqa: E402
+from .options import RefineOptions  # noqa: E402
+from .read_city_model import read_city_model  # noqa: E402
+from .refine import RefineResult, refine  # noqa: E402  (the function shadows the module name)
 
-__all__ = ["CityModelError", "logger", "__version__"]
+__all__ = ["CityModelError", "RefineOptions", "RefineResult", "logger", "read_city_model",
+           "refine", "__version__"]

@@ -78,6 +78,9 @@ def _add_refine(subparsers) -> None:
     gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
     gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:4979 or EPSG:25832+7837")
     gnss.add_argument("--exif", help="directory of the images with EXIF GPS")
+    gnss.add_argument("--gnss_height_offset", type=float, default=None,
+                      help="metres added to GNSS heights (model height minus GNSS height) when "
+                           "PROJ cannot convert them, e.g. ellipsoidal to national heights")
     gnss.add_argument("--initial_transform",
                       help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
     p.add_argument("--preset", default="generalised",
@@ -104,7 +107,7 @@ def _add_refine(subparsers) -> None:
              options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
              target_crs=args.target_crs, output_type=args.output_type,
              output_frame=args.output_frame, progress=not args.no_progress,
-             precision=args.precision)
+             precision=args.precision, gnss_height_offset=args.gnss_height_offset)
 
     p.set_defaults(func=run)
 

@@ -48,7 +48,8 @@ def write_baseline(workspace: Path, out: Path) -> Path:
 
 def main(output_path: str | Path, *, scenario: str | Path | None = None,
          progress: bool = True) -> dict:
-    from . import evaluate, refine, simulate
+    from . import evaluate, simulate
+    from .refine import main as refine_main
 
     scenario = Path(scenario) if scenario else DEMO_SCENARIO
     if not scenario.is_file():
@@ -67,7 +68,7 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     logger.info("2/4 GNSS-only baseline")
     baseline = write_baseline(workspace, out / "gnss_only")
     logger.info("3/4 refine with the city model")
-    refine.main(workspace / "sparse" / "0", workspace / "given_model.gml", out / "refined",
+    refine_main(workspace / "sparse" / "0", workspace / "given_model.gml", out / "refined",
                 database=workspace / "database.db", progress=progress)
     logger.info("4/4 check points")
     results = {}

@@ -28,7 +28,7 @@ import pycolmap
 from tqdm import tqdm
 
 from .assign_planes import Assignment, assign, filter_faces, next_threshold
-from .errors import DatumError, GeoregistrationError, NoOverlapError
+from .errors import DatumError, GeoregistrationError, GNSSError, NoOverlapError
 from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
 from .options import RefineOptions
 from .plane_store import PlaneStore
@@ -171,6 +171,8 @@ def crop_to_reconstruction(store: PlaneStore, rec: pycolmap.Reconstruction, marg
     xyz = np.vstack([points, camera_centres(rec)])
     lower = np.percentile(xyz, 1, axis=0) - margin
     upper = np.percentile(xyz, 99, axis=0) + margin
+    # Heights are not trusted yet (GNSS heights may be ellipsoidal): crop in plan only.
+    lower[2], upper[2] = -1e9, 1e9
     cropped = store.subset_bbox(lower, upper)
     if len(cropped.faces) == 0:
         raise NoOverlapError(
@@ -209,6 +211,13 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
     priors = None
     rms = None
     if gnss is not None:
+        if getattr(gnss, "vertical_applied", None) is False:
+            raise GNSSError(
+                f"the GNSS heights ({gnss.source}) could not be converted to the model's height "
+                f"system {store.crs.label} (PROJ lacks the geoid grid; see the warning above): "
+                "install the grid, or give the heights already converted, or "
+                "--gnss_height_offset METRES (model height minus GNSS height, e.g. about -47 "
+                "for ellipsoidal heights in Germany)")
         image_ids, positions, sigmas = match_to_reconstruction(gnss, rec, store.origin)
         priors = GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas))
     if initial_transform is not None:
@@ -298,6 +307,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                 len(store.vertices))
     timer["georegistration"] = time.perf_counter() - timer["start"]
 
+    warnings: list[str] = []
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
     if priors is not None and initial_transform is None and \
             _lateral_spread(camera_centres(rec)) < float(np.median(priors.sigmas[:, :2])):
@@ -312,7 +322,6 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     threshold = o_a.max_threshold
     assignment: Assignment | None = None
     iterations: list[IterationRecord] = []
-    warnings: list[str] = []
     previous_rms = None
     solve_seconds = assign_seconds = 0.0
     last = None
@@ -458,7 +467,7 @@ def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
 def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
          exif=None, initial_transform=None, preset="generalised", options_file=None,
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True, precision=None) -> RefineResult:
+         progress=True, precision=None, gnss_height_offset=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically."""
     from .crs import user_crs
     from .georegister import read_initial_transform
@@ -494,6 +503,11 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     if observations is None and crs is None:
         observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
                                  target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
+    if observations is not None and gnss_height_offset is not None:
+        observations.positions = observations.positions + [0.0, 0.0, float(gnss_height_offset)]
+        observations.vertical_applied = True
+        observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
+                                  "(--gnss_height_offset)")
     transform = read_initial_transform(initial_transform) if initial_transform else None
     result = refine(reconstruction, store, observations, options,
                     initial_transform=transform, progress=progress)

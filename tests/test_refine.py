@@ -30,7 +30,11 @@ def scene():
 
 @pytest.fixture(scope="module")
 def refined(scene):
-    return refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    import colmap_citymodel
+
+    # The package-level API, on pycolmap objects in memory.
+    return colmap_citymodel.refine(scene.sfm, scene.store, scene.gnss(),
+                                   colmap_citymodel.RefineOptions(), progress=False)
 
 
 def test_gnss_only_adjustment_is_metres_off(scene):
@@ -141,3 +145,14 @@ def test_model_far_away_is_a_clear_error(scene):
     far = make_street_scene(StreetSceneOptions(seed=7), crs_origin=(700000.0, 5335000.0, 500.0))
     with pytest.raises(NoOverlapError, match="does not overlap"):
         refine(scene.sfm, far.store, scene.gnss(), RefineOptions(), progress=False)
+
+
+def test_gnss_heights_in_another_height_system_are_a_clear_error(scene):
+    # Ellipsoidal GNSS heights against a model in a national height system, no geoid grid:
+    # the readers mark this with vertical_applied=False (about 40 m in Europe).
+    gnss = scene.gnss()
+    gnss.vertical_applied = False
+    from colmap_citymodel.errors import GNSSError
+
+    with pytest.raises(GNSSError, match="--gnss_height_offset"):
+        refine(scene.sfm, scene.store, gnss, RefineOptions(), progress=False)
