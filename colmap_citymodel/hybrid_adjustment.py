@@ -13,6 +13,11 @@ Planes are unknowns with 3 degrees of freedom: a unit normal on a sphere manifol
 offset, so the signed distance of X is n . X + d. The gauge is left free: GNSS and the model
 planes give the datum. Everything is in the plane store's local frame (CRS minus origin).
 
+COLMAP's reprojection residuals are in pixels, weighted as if sigma_image were 1 px; so that the
+weights stay right for another sigma_image, our cost functions get their sigmas divided by
+sigma_image (the whole objective is then scaled by sigma_image^2, which moves no minimum), and
+`group_residuals` divides every group by sigma_image.
+
 Residual order in the problem is the order of addition (nothing is ever removed), which lets
 `group_residuals` split `evaluate_residuals` into the observation groups without bookkeeping
 inside Ceres.
@@ -179,7 +184,7 @@ class HybridProblem:
             if not self.problem.has_parameter_block(rig_from_world):
                 continue
             cost = core.ProjectionCenterPriorCost(np.asarray(position, float),
-                                                  np.asarray(sigma, float),
+                                                  np.asarray(sigma, float) / self.options.sigma_image,
                                                   _position_in_rig(rec, image))
             self.problem.add_residual_block(cost, None, [rig_from_world])
             self.counts["gnss"] += 3
@@ -200,7 +205,7 @@ class HybridProblem:
             problem.add_parameter_block(blocks.offsets[-1], 1)
 
         # f_dTP: one residual per assigned tie point, in the order of `point_ids`.
-        tie_cost = core.PointPlaneDistanceCost(o.sigma_dtp)
+        tie_cost = core.PointPlaneDistanceCost(o.sigma_dtp / o.sigma_image)
         tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
         assigned = assignment.assigned
         self.point_ids = assignment.point_ids[assigned]
@@ -217,8 +222,8 @@ class HybridProblem:
         vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
         blocks.vertex_ids = vertex_ids
         indptr, indices = store.vertex_faces
-        vertex_cost = core.PointPlaneDistanceCost(o.sigma_dvt)
-        sigma_vt = np.full(3, o.sigma_vt)
+        vertex_cost = core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image)
+        sigma_vt = np.full(3, o.sigma_vt / o.sigma_image)
         n_dvt = 0
         for v in vertex_ids:
             blocks.vertices.append(np.array(current.vertices[v], dtype=np.float64))
@@ -258,7 +263,7 @@ class HybridProblem:
             n = self.counts[group]
             out[group] = values[start:start + n]
             start += n
-        out["image"] = out["image"] / self.options.sigma_image
+        out = {group: r / self.options.sigma_image for group, r in out.items()}
         return out
 
     def solve(self) -> SolveReport:

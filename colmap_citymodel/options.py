@@ -88,8 +88,9 @@ class PrecisionOptions:
     """"on", "off" or "auto": covariances of images and tie points (Schur elimination, dense in
     the camera-side unknowns) only for blocks of fewer than `max_images_auto` images. Without
     them s0 and the global test are still reported, with proportional group redundancies."""
-    max_images_auto: int = 500
-    """Image count up to which "auto" computes covariances (~2 s for 72 images / 4k points)."""
+    max_images_auto: int = 200
+    """Image count up to which "auto" computes covariances (~2 s for 72 images / 4k points;
+    at 300 images / 29k points it cost ~2.5 hybrid solves)."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
 

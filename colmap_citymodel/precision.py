@@ -30,10 +30,10 @@ covariance needs; so the numbers reported here come from our own sparse normal m
 angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres X0, Y0, Z0 and omega, phi, kappa in the model
 frame (local = CRS minus origin, same axes).
 
-COLMAP's reprojection residuals are in pixels and unweighted; they are whitened here by
-`sigma_image` (as `HybridProblem.group_residuals` does). The solve itself weighs them with 1 px,
-so for sigma_image != 1 the covariances are those of the stated stochastic model, not of the
-weights the solver used.
+COLMAP's reprojection residuals are in pixels and unweighted; HybridProblem gives our cost
+functions their sigmas divided by sigma_image, so every group is evaluated in units of
+sigma_image and is whitened here by dividing by it (as `HybridProblem.group_residuals` does);
+solve weights and the stated stochastic model agree for any sigma_image.
 """
 
 from __future__ import annotations
@@ -228,10 +228,8 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
     crs = problem.problem.evaluate_jacobian(evaluate)
     jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
                              shape=(crs.num_rows, crs.num_cols))
-    n_image = problem.counts["image"]
-    weights = np.ones(jacobian.shape[0])
-    weights[:n_image] = 1.0 / problem.options.sigma_image
-    return sp.diags(weights) @ jacobian, layout
+    # Every group is evaluated in units of sigma_image (see hybrid_adjustment's docstring).
+    return jacobian / problem.options.sigma_image, layout
 
 
 @dataclass

@@ -156,3 +156,31 @@ def test_gnss_heights_in_another_height_system_are_a_clear_error(scene):
 
     with pytest.raises(GNSSError, match="--gnss_height_offset"):
         refine(scene.sfm, scene.store, gnss, RefineOptions(), progress=False)
+
+
+def test_image_sigma_scales_all_groups_consistently(scene):
+    """sigma_image = 2 px with all other sigmas doubled is the same relative weighting as the
+    default (so the same minimum): every group's normalised residuals are exactly halved."""
+    from colmap_citymodel.hybrid_adjustment import HybridProblem
+
+    rec = pycolmap.Reconstruction(scene.sfm)
+    _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
+    from colmap_citymodel.assign_planes import assign
+    from colmap_citymodel.refine import tie_points
+
+    ids, xyz = tie_points(rec)
+    default = RefineOptions().adjustment
+    assignment = assign(xyz, ids, scene.store, 2.0, RefineOptions().assignment)
+    doubled = RefineOptions().adjustment
+    doubled.sigma_image, doubled.sigma_dtp = 2.0, 2 * default.sigma_dtp
+    doubled.sigma_dvt, doubled.sigma_vt = 2 * default.sigma_dvt, 2 * default.sigma_vt
+    scaled_priors = type(priors)(priors.image_ids, priors.positions, 2 * priors.sigmas)
+    results = []
+    for options, p in ((default, priors), (doubled, scaled_priors)):
+        copy = pycolmap.Reconstruction(rec)
+        problem = HybridProblem(copy, scene.store, assignment, p, options,
+                                robust_images=False, robust_planes=False)
+        results.append(problem.group_residuals())
+    for group in ("image", "gnss", "dTP", "dVT", "VT"):
+        assert len(results[0][group]) > 0
+        np.testing.assert_allclose(results[1][group], 0.5 * results[0][group], rtol=1e-9)
