@@ -25,7 +25,7 @@ from colmap_citymodel import logger
 from colmap_citymodel.assign_planes import assign
 from colmap_citymodel.hybrid_adjustment import HybridProblem
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.refine import georegister, refine, tie_points
+from colmap_citymodel.workflow import georegister, refine, tie_points
 from colmap_citymodel.synthetic_scene import StreetSceneOptions, centre_errors, make_street_scene
 
 

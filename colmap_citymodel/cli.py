@@ -99,7 +99,7 @@ def _add_refine(subparsers) -> None:
                         "below 500 images; s0 and the global test are always reported)")
 
     def run(args):
-        from .refine import main
+        from .workflow import main
 
         main(args.input_path, args.citymodel, args.output_path, database=args.database,
              gnss=args.gnss, gnss_crs=args.gnss_crs, exif=args.exif,

@@ -27,7 +27,7 @@ def write_baseline(workspace: Path, out: Path) -> Path:
     """GNSS-only baseline: similarity to GNSS, then BA with GNSS priors, written in CRS."""
     from .options import RefineOptions
     from .read_city_model import read_city_model
-    from .refine import georegister, read_gnss, read_reconstruction, step2_bundle_adjustment
+    from .workflow import georegister, read_gnss, read_reconstruction, step2_bundle_adjustment
     from .write_output import atomic_directory
 
     store = read_city_model(workspace / "given_model.gml")
@@ -49,7 +49,7 @@ def write_baseline(workspace: Path, out: Path) -> Path:
 def main(output_path: str | Path, *, scenario: str | Path | None = None,
          progress: bool = True) -> dict:
     from . import evaluate, simulate
-    from .refine import main as refine_main
+    from .workflow import main as refine_main
 
     scenario = Path(scenario) if scenario else DEMO_SCENARIO
     if not scenario.is_file():

@@ -18,7 +18,7 @@ import numpy as np
 import pycolmap
 
 from .errors import InputError
-from .refine import RefineResult
+from .workflow import RefineResult
 
 logger = logging.getLogger("colmap_citymodel.write_output")
 

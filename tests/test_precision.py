@@ -17,7 +17,7 @@ from colmap_citymodel.options import AdjustmentOptions, AssignmentOptions
 from colmap_citymodel.precision import (PHOTOGRAMMETRIC_FLIP, cofactors, estimate_precision,
                                         global_test, image_jacobian, omega_phi_kappa,
                                         variance_factors, whitened_jacobian)
-from colmap_citymodel.refine import tie_points
+from colmap_citymodel.workflow import tie_points
 from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
 
 GNSS_SIGMA = np.array([0.5, 0.5, 0.8])

@@ -12,7 +12,7 @@ import pytest
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import PrecisionOptions, RefineOptions
 from colmap_citymodel.precision import PrecisionResult, wants_covariances
-from colmap_citymodel.refine import refine
+from colmap_citymodel.workflow import refine
 from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
 from colmap_citymodel.write_output import write_refined
 
@@ -129,8 +129,9 @@ def test_report_without_covariances(refined, tmp_path):
 
 
 def test_covariance_switch(tmp_path):
-    assert wants_covariances(PrecisionOptions(), 499)
-    assert not wants_covariances(PrecisionOptions(), 500)
+    limit = PrecisionOptions().max_images_auto
+    assert wants_covariances(PrecisionOptions(), limit - 1)
+    assert not wants_covariances(PrecisionOptions(), limit)
     assert wants_covariances(PrecisionOptions(covariances="on"), 10_000)
     assert not wants_covariances(PrecisionOptions(covariances="off"), 3)
     with pytest.raises(InputError, match="on, off or auto"):

@@ -13,7 +13,7 @@ import pytest
 
 from colmap_citymodel.errors import DatumError, NoOverlapError
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.refine import check_datum, georegister, refine, step2_bundle_adjustment
+from colmap_citymodel.workflow import check_datum, georegister, refine, step2_bundle_adjustment
 from colmap_citymodel.synthetic_scene import (StreetSceneOptions, centre_errors,
                                               make_street_scene)
 from colmap_citymodel.write_output import write_refined
@@ -33,7 +33,7 @@ def refined(scene):
     import colmap_citymodel
 
     # The package-level API, on pycolmap objects in memory.
-    return colmap_citymodel.refine(scene.sfm, scene.store, scene.gnss(),
+    return colmap_citymodel.workflow(scene.sfm, scene.store, scene.gnss(),
                                    colmap_citymodel.RefineOptions(), progress=False)
 
 
@@ -166,7 +166,7 @@ def test_image_sigma_scales_all_groups_consistently(scene):
     rec = pycolmap.Reconstruction(scene.sfm)
     _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
     from colmap_citymodel.assign_planes import assign
-    from colmap_citymodel.refine import tie_points
+    from colmap_citymodel.workflow import tie_points
 
     ids, xyz = tie_points(rec)
     default = RefineOptions().adjustment

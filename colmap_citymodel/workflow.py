@@ -1,4 +1,5 @@
-"""The refine step: global workflow of Unger Table 3 with direct assignment (a).
+"""The refine step (`colmap_citymodel.refine`): global workflow of Unger Table 3 with direct
+assignment (a). A sliding-window workflow (Unger 3.3.2) will sit beside it.
 
 1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform);
 2. bundle adjustment with GNSS priors and no model, robust on image observations; image
@@ -36,7 +37,7 @@ from .plane_store import PlaneStore
 if TYPE_CHECKING:
     from .precision import PrecisionResult
 
-logger = logging.getLogger("colmap_citymodel.refine")
+logger = logging.getLogger("colmap_citymodel.workflow")
 
 # Two plane normals closer than this (either sign) count as the same orientation for the datum.
 SAME_ORIENTATION_DEG = 10.0
