@@ -81,6 +81,9 @@ def _add_refine(subparsers) -> None:
     gnss.add_argument("--gnss_height_offset", type=float, default=None,
                       help="metres added to GNSS heights (model height minus GNSS height) when "
                            "PROJ cannot convert them, e.g. ellipsoidal to national heights")
+    gnss.add_argument("--lever_arm", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                      help="GNSS antenna in the camera (rig) frame, metres: x right, y down, "
+                           "z along the view")
     gnss.add_argument("--initial_transform",
                       help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
     p.add_argument("--preset", default="generalised",
@@ -107,7 +110,8 @@ def _add_refine(subparsers) -> None:
              options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
              target_crs=args.target_crs, output_type=args.output_type,
              output_frame=args.output_frame, progress=not args.no_progress,
-             precision=args.precision, gnss_height_offset=args.gnss_height_offset)
+             precision=args.precision, gnss_height_offset=args.gnss_height_offset,
+             lever_arm=args.lever_arm)
 
     p.set_defaults(func=run)
 

@@ -49,6 +49,9 @@ class GNSSPriors:
     image_ids: np.ndarray  # (N,) int
     positions: np.ndarray  # (N, 3)
     sigmas: np.ndarray  # (N, 3)
+    # GNSS antenna in the rig frame (for a single camera: x right, y down, z along the view);
+    # None: the positions are of the projection centres.
+    lever_arm: np.ndarray | None = None
 
     def __len__(self) -> int:
         return len(self.image_ids)
@@ -183,9 +186,11 @@ class HybridProblem:
             rig_from_world = frame.rig_from_world.params
             if not self.problem.has_parameter_block(rig_from_world):
                 continue
-            cost = core.ProjectionCenterPriorCost(np.asarray(position, float),
-                                                  np.asarray(sigma, float) / self.options.sigma_image,
-                                                  _position_in_rig(rec, image))
+            observed_in_rig = (_position_in_rig(rec, image) if gnss.lever_arm is None
+                               else np.asarray(gnss.lever_arm, float))
+            cost = core.ProjectionCenterPriorCost(
+                np.asarray(position, float), np.asarray(sigma, float) / self.options.sigma_image,
+                observed_in_rig)
             self.problem.add_residual_block(cost, None, [rig_from_world])
             self.counts["gnss"] += 3
 

@@ -220,7 +220,9 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
                 "--gnss_height_offset METRES (model height minus GNSS height, e.g. about -47 "
                 "for ellipsoidal heights in Germany)")
         image_ids, positions, sigmas = match_to_reconstruction(gnss, rec, store.origin)
-        priors = GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas))
+        lever_arm = getattr(gnss, "lever_arm", None)
+        priors = GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas),
+                            None if lever_arm is None else np.asarray(lever_arm, float))
     if initial_transform is not None:
         # The given transform maps the input frame to model CRS coordinates.
         to_local = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), -store.origin)
@@ -468,7 +470,8 @@ def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
 def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
          exif=None, initial_transform=None, preset="generalised", options_file=None,
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True, precision=None, gnss_height_offset=None) -> RefineResult:
+         progress=True, precision=None, gnss_height_offset=None, lever_arm=None
+         ) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically."""
     from .crs import user_crs
     from .georegister import read_initial_transform
@@ -504,6 +507,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     if observations is None and crs is None:
         observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
                                  target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
+    if observations is not None and lever_arm is not None:
+        observations.lever_arm = np.asarray(lever_arm, dtype=np.float64).reshape(3)
     if observations is not None and gnss_height_offset is not None:
         observations.positions = observations.positions + [0.0, 0.0, float(gnss_height_offset)]
         observations.vertical_applied = True
