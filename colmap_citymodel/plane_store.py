@@ -19,6 +19,7 @@ All tolerances live in `Tolerances` below.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 import operator
@@ -115,6 +116,10 @@ def _pick(values: list, idx: np.ndarray) -> list:
         return []
     if len(idx) == 1:
         return [values[int(idx[0])]]
+    if np.all(idx[1:] > idx[:-1]):  # increasing: no intermediate tuple
+        mask = np.zeros(len(values), dtype=bool)
+        mask[idx] = True
+        return list(itertools.compress(values, mask.tolist()))
     return list(operator.itemgetter(*idx.tolist())(values))
 
 
@@ -393,7 +398,10 @@ def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     del col
     first = order[new]  # the stable sort puts the smallest input index first
     inverse = np.empty(N, dtype=np.int64)
-    inverse[order] = np.cumsum(new) - 1
+    group = np.cumsum(new)
+    del new
+    group -= 1
+    inverse[order] = group
     return points[first], inverse, first
 
 
@@ -439,7 +447,7 @@ def merge_vertices(
         np.maximum.at(hi, cluster[members], uniq[members])
         wide = counts > 1
         extent = float(np.linalg.norm(hi[wide] - lo[wide], axis=1).max())
-    return merged, cluster[inverse].astype(np.int64), extent
+    return merged, cluster[inverse].astype(np.int64, copy=False), extent
 
 
 def _ring_key(ids: list[int]) -> tuple:
@@ -849,12 +857,20 @@ def _splitmix(x: np.ndarray) -> np.ndarray:
     return x
 
 
-def _ring_hashes(ids: np.ndarray, ptr: np.ndarray) -> np.ndarray:
+def _ring_hashes(ids: np.ndarray, ptr: np.ndarray, chunk_rings: int = 65536) -> np.ndarray:
     """(R,) uint64 hash of each ring up to its starting vertex (rotation to the smallest id,
-    orientation kept), i.e. equal for rings with equal `_ring_key`. Rings must be non-empty."""
+    orientation kept), i.e. equal for rings with equal `_ring_key`. Rings must be non-empty.
+    In chunks of rings to bound the temporaries."""
     R = len(ptr) - 1
-    if R == 0:
-        return np.zeros(0, np.uint64)
+    out = np.zeros(R, np.uint64)
+    for r0 in range(0, R, chunk_rings):
+        r1 = min(R, r0 + chunk_rings)
+        out[r0:r1] = _ring_hashes_chunk(ids[ptr[r0]:ptr[r1]], ptr[r0:r1 + 1] - ptr[r0])
+    return out
+
+
+def _ring_hashes_chunk(ids: np.ndarray, ptr: np.ndarray) -> np.ndarray:
+    R = len(ptr) - 1
     starts, lengths = ptr[:-1], np.diff(ptr)
     ring = np.repeat(np.arange(R), lengths)
     pos = np.arange(len(ids), dtype=np.int64) - starts[ring]
@@ -1004,9 +1020,9 @@ def build_store(
     ring_hash = np.zeros(R, np.uint64)
     sel = np.flatnonzero(ring_ok)
     if len(sel):
-        entries = _segment_gather(rptr[sel], rlen[sel])
-        ring_hash[sel] = _ring_hashes(ids[entries], _ptr(rlen[sel]))
-        del entries
+        sub = ids[_segment_gather(rptr[sel], rlen[sel])]
+        ring_hash[sel] = _ring_hashes(sub, _ptr(rlen[sel]))
+        del sub
     hole_sum = np.zeros(n, np.uint64)
     if len(hole_owner):
         hh = np.where(hole_ok, _splitmix(ring_hash[n:] ^ np.uint64(0x5BD1E995)), np.uint64(0))
@@ -1052,11 +1068,14 @@ def build_store(
     degenerate = (planes["areas"] < tol.min_area) | (
         np.sqrt(planes["eigvals"][:, 1]) < tol.collinear
     )
+    for k in ("eigvals", "newell_area", "num_distinct"):  # not kept: free before copying
+        del planes[k]
     if degenerate.any():
         dropped += int(degenerate.sum())
         keep = np.flatnonzero(~degenerate)
         faces = faces.take(keep)
-        planes = {k: v[keep] for k, v in planes.items()}
+        for k in list(planes):  # one array at a time: bounded extra memory
+            planes[k] = planes[k][keep]
     if dropped:
         warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
 
