@@ -33,7 +33,7 @@ def refined(scene):
     import colmap_citymodel
 
     # The package-level API, on pycolmap objects in memory.
-    return colmap_citymodel.workflow(scene.sfm, scene.store, scene.gnss(),
+    return colmap_citymodel.refine(scene.sfm, scene.store, scene.gnss(),
                                    colmap_citymodel.RefineOptions(), progress=False)
 
 
