@@ -382,42 +382,51 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     out["num_distinct"][sl] = counts
 
 
-def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _exact_duplicates(points: np.ndarray, rank: np.ndarray | None = None):
     """Distinct points in lexicographic order: (uniq (U,3), inverse (N,) into uniq, first (U,)
-    the smallest input index of each)."""
+    the smallest input index of each, or the smallest `rank` when given)."""
     N = len(points)
     order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))  # stable
     new = np.empty(N, dtype=bool)
     new[0] = True
+    col = np.empty(N)
     for k in range(3):
-        col = points[:, k][order]
+        np.take(points[:, k], order, out=col)
         if k == 0:
             np.not_equal(col[1:], col[:-1], out=new[1:])
         else:
             new[1:] |= col[1:] != col[:-1]
     del col
     first = order[new]  # the stable sort puts the smallest input index first
-    inverse = np.empty(N, dtype=np.int64)
-    group = np.cumsum(new)
+    uniq = points[first]
+    if rank is not None:
+        first = np.minimum.reduceat(rank[order], np.flatnonzero(new))
+    # inverse[order] = cumsum(new) - 1, without a second N-sized temporary
+    group = np.cumsum(new, dtype=np.int64)
     del new
     group -= 1
+    inverse = np.empty(N, dtype=np.int64)
     inverse[order] = group
-    return points[first], inverse, first
+    return uniq, inverse, first
 
 
 def merge_vertices(
-    points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack
+    points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack,
+    rank: np.ndarray | None = None,
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Merge points closer than `tolerance + slack` (single linkage over a cKDTree).
 
     Returns (merged (V,3) = mean of each cluster, index (N,) into merged, widest cluster extent).
-    Clusters are numbered in order of first appearance so the result is deterministic.
+    Clusters are numbered in order of first appearance so the result is deterministic; `rank`
+    (N,) int64, distinct values, gives the order of appearance when it is not the input order.
     """
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
     points = np.ascontiguousarray(points, dtype=np.float64)
+    N = len(points)
     # exact duplicates first (most points are corners shared by several rings)
-    uniq, inverse, first = _exact_duplicates(points)
+    uniq, inverse, first = _exact_duplicates(points, rank)
+    del points
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -429,7 +438,7 @@ def merge_vertices(
     else:
         nlab, labels = n, np.arange(n)
     # renumber clusters by first appearance in the input
-    first_c = np.full(nlab, len(points), dtype=np.int64)
+    first_c = np.full(nlab, N if rank is None else np.iinfo(np.int64).max, dtype=np.int64)
     np.minimum.at(first_c, labels, first)
     order = np.argsort(first_c)
     renum = np.empty_like(order)
@@ -447,7 +456,10 @@ def merge_vertices(
         np.maximum.at(hi, cluster[members], uniq[members])
         wide = counts > 1
         extent = float(np.linalg.norm(hi[wide] - lo[wide], axis=1).max())
-    return merged, cluster[inverse].astype(np.int64, copy=False), extent
+    cluster = cluster.astype(np.int64, copy=False)
+    for a in range(0, N, 1 << 20):  # index = cluster[inverse], in place, in chunks
+        inverse[a:a + (1 << 20)] = cluster[inverse[a:a + (1 << 20)]]
+    return merged, inverse, extent
 
 
 def _ring_key(ids: list[int]) -> tuple:
@@ -842,9 +854,6 @@ def default_origin(points_crs: np.ndarray) -> np.ndarray:
     return np.floor(np.asarray(points_crs, dtype=np.float64).min(0))
 
 
-_RAW_FIELDS = ("exterior", "holes", "gml_id", "semantic", "building_id", "part_id", "lod")
-
-
 def _splitmix(x: np.ndarray) -> np.ndarray:
     """64-bit mixing (splitmix64 finaliser), wrapping uint64 arithmetic."""
     x = x.astype(np.uint64, copy=True)
@@ -948,53 +957,60 @@ def build_store(
     origin: np.ndarray | None = None,
     nonplanar_tolerance: float = DEFAULT_TOLERANCES.nonplanar,
     tolerances: Tolerances | None = None,
+    release_raw: bool = False,
 ) -> PlaneStore:
     """Turn reader output into a PlaneStore: local frame, merged vertices, de-duplicated faces,
     planes; degenerate faces dropped (counted), non-planar faces flagged (counted).
 
-    Vectorised over all polygons (a 250k-polygon city in about a second): the only per-polygon
-    Python work is reading the polygons' attributes once."""
+    Vectorised over all polygons (a 250k-polygon city in about a second), straight from the
+    flat RawPolygonTable. release_raw: the caller hands the raw model over; its coordinates are
+    released as soon as they are copied into the local frame (raw.polygons is unusable after)."""
     tol = replace(
         tolerances or DEFAULT_TOLERANCES, merge=merge_tolerance, nonplanar=nonplanar_tolerance
     )
     warnings = list(raw.warnings)
-    polys = raw.polygons
-    n = len(polys)
-    # rings in the order: all exteriors, then all holes (polygon order); vertex numbering
-    # follows first appearance in this order
-    # the polygons' attributes, one C-level pass each
-    rings, hole_lists, gml_ids, semantic, building_ids, part_ids, lods = (
-        list(map(operator.attrgetter(name), polys)) for name in _RAW_FIELDS
-    )
-    num_holes = np.fromiter(map(len, hole_lists), np.int64, n)
+    table = raw.polygon_table()
+    n = len(table)
+    R = table.num_rings
+    lengths = table.ring_len
+    poly_first = table.poly_ptr[:-1]
+    num_holes = table.poly_nring - 1
+    # Rings are numbered here in the order: all exteriors, then all holes (polygon order), and
+    # vertices are numbered by first appearance in that order; the table stores each polygon's
+    # rings together, so `canon` maps this order to table rings (None: the same)
+    canon = None
     if num_holes.any():
-        rings += [h for hs in hole_lists if hs for h in hs]
-    del hole_lists
-    R = len(rings)
-    try:
-        allpts = np.concatenate(rings).astype(np.float64, copy=False) if rings else np.zeros((0, 3))
-        lengths = np.fromiter(map(len, rings), np.int64, R)
-        if allpts.ndim != 2 or allpts.shape[1] != 3:
-            raise ValueError
-    except ValueError:  # rings not (N,3): normalise each
-        rings = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in rings]
-        allpts = np.concatenate(rings) if rings else np.zeros((0, 3))
-        lengths = np.fromiter(map(len, rings), np.int64, R)
-    del rings
-    origin = default_origin(allpts) if origin is None else np.asarray(origin, dtype=np.float64)
-    allpts -= origin
-    merged, index, extent = merge_vertices(allpts, tol.merge, tol.merge_slack)
-    del allpts
+        is_ext = np.zeros(R, dtype=bool)
+        is_ext[poly_first] = True
+        canon = np.concatenate([poly_first, np.flatnonzero(~is_ext)])
+        del is_ext
+    if origin is None:
+        origin = np.floor(table.coords_min()) if table.num_points else np.zeros(3)
+    else:
+        origin = np.asarray(origin, dtype=np.float64)
+    if release_raw:
+        allpts = table.pop_coords(origin)  # the raw coordinates are gone from here on
+    else:
+        allpts = table.coords - origin
+    rank = None
+    if canon is not None:  # each point's position in the numbering order
+        cstart = np.empty(R, dtype=np.int64)
+        cstart[canon] = _ptr(lengths[canon])[:-1]
+        rank = np.arange(len(allpts), dtype=np.int64)
+        rank += np.repeat(cstart - table.ring_ptr[:-1], lengths)
+        del cstart
+    merged, index, extent = merge_vertices(allpts, tol.merge, tol.merge_slack, rank=rank)
+    del allpts, rank
     if extent > tol.chain_warning:
         warnings.append(
             f"vertex merging (tolerance {tol.merge * 1000:.1f} mm) chained points up to "
             f"{extent * 1000:.1f} mm apart into one vertex"
         )
 
-    # ring vertex ids, consecutive repeats (and the closing point) removed
+    # ring vertex ids, consecutive repeats (and the closing point) removed (table ring order)
     ring_of = np.repeat(np.arange(R), lengths)
     prev = np.arange(len(index)) - 1
-    starts = np.cumsum(lengths) - lengths
+    starts = table.ring_ptr[:-1]
     nonempty = lengths > 0
     prev[starts[nonempty]] = (starts + lengths - 1)[nonempty]
     keep = index != index[prev] if len(index) else np.zeros(0, bool)
@@ -1009,7 +1025,12 @@ def build_store(
     second = ids[np.minimum(rptr[:-1] + 1, max(len(ids) - 1, 0))] if len(ids) else first
     other = (ids != first[ring_of]) & (ids != second[ring_of])
     ring_ok = (rlen >= 3) & (np.bincount(ring_of, other, R) > 0)
-    del other, ring_of
+    del other, ring_of, first, second
+    # from here on rings in the numbering order: ring r is ids[rs[r]:rs[r] + rl[r]]
+    rs, rl = rptr[:-1], rlen
+    if canon is not None:
+        rs, rl, ring_ok = rs[canon], rl[canon], ring_ok[canon]
+    del rptr, rlen, canon
     valid = ring_ok[:n].copy()
     hole_owner = np.repeat(np.arange(n), num_holes)
     hole_ok = ring_ok[n:]
@@ -1020,20 +1041,23 @@ def build_store(
     ring_hash = np.zeros(R, np.uint64)
     sel = np.flatnonzero(ring_ok)
     if len(sel):
-        sub = ids[_segment_gather(rptr[sel], rlen[sel])]
-        ring_hash[sel] = _ring_hashes(sub, _ptr(rlen[sel]))
+        sub = ids[_segment_gather(rs[sel], rl[sel])]
+        ring_hash[sel] = _ring_hashes(sub, _ptr(rl[sel]))
         del sub
     hole_sum = np.zeros(n, np.uint64)
     if len(hole_owner):
         hh = np.where(hole_ok, _splitmix(ring_hash[n:] ^ np.uint64(0x5BD1E995)), np.uint64(0))
         np.add.at(hole_sum, hole_owner, hh)
+    gml_ids = list(table.gml_id)  # completed in place by the de-duplication
+    building_ids, part_ids = table.building_id, table.part_id
+    semantic = table.semantic
     raw_semantic = semantic
     semantic = [s or "Unknown" for s in raw_semantic]
     hole_first = np.cumsum(num_holes) - num_holes + n
 
     def ring_lists(i: int):
-        ext = ids[rptr[i]:rptr[i + 1]].tolist()
-        hs = [ids[rptr[r]:rptr[r + 1]].tolist()
+        ext = ids[rs[i]:rs[i] + rl[i]].tolist()
+        hs = [ids[rs[r]:rs[r] + rl[r]].tolist()
               for r in range(hole_first[i], hole_first[i] + num_holes[i]) if ring_ok[r]]
         return ext, hs
 
@@ -1051,18 +1075,18 @@ def build_store(
     face_rings = np.concatenate([src, hole_rings])
     owner = np.concatenate([src, hole_owner[hole_rings - n]])
     face_rings = face_rings[np.argsort(owner, kind="stable")]
-    entries = _segment_gather(rptr[face_rings], rlen[face_rings])
+    entries = _segment_gather(rs[face_rings], rl[face_rings])
     faces = FaceList(
         ids[entries],
-        _ptr(rlen[face_rings]),
+        _ptr(rl[face_rings]),
         _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src]),
         _pick(semantic, src),
         _pick(building_ids, src),
         _pick(part_ids, src),
         _pick(gml_ids, src),
-        np.array(lods, dtype=np.int16)[src] if n else np.zeros(0, np.int16),
+        table.lod[src],
     )
-    del entries, ids, semantic, gml_ids, building_ids, part_ids, lods
+    del entries, ids, semantic, gml_ids, building_ids, part_ids, table
 
     planes = _compute_planes(merged, faces)
     degenerate = (planes["areas"] < tol.min_area) | (
