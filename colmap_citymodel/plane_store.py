@@ -32,7 +32,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .raw_model import CRSInfo, RawCityModel, RawPolygon
+from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonTable
 
 logger = logging.getLogger("colmap_citymodel.plane_store")
 
@@ -99,6 +99,20 @@ class Face:
     lod: int
 
 
+def _compact_rows(a: np.ndarray, keep: np.ndarray, step: int = 1 << 16) -> np.ndarray:
+    """a[keep] for increasing `keep`, written over `a` itself (which must own its memory and
+    have no views) and shrunk in place, so no second full-size array exists."""
+    m = len(keep)
+    if not (a.flags.owndata and a.flags.c_contiguous and a.flags.writeable):
+        return a[keep]
+    # keep[j] >= j: writing rows j (in increasing chunks) never overwrites a row still to read
+    for j in range(0, m, step):
+        k = min(m, j + step)
+        a[j:k] = a[keep[j:k]]
+    a.resize((m,) + a.shape[1:], refcheck=False)
+    return a
+
+
 def _segment_gather(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
     """Indices of the concatenated segments [starts[i], starts[i] + lengths[i])."""
     total = int(lengths.sum())
@@ -152,6 +166,16 @@ class FaceList(Sequence):
         self.part_id = list(part_id)
         self.gml_id = list(gml_id)
         self.lod = np.asarray(lod, dtype=np.int16)
+
+    @classmethod
+    def _own(cls, ring_vertex, ring_ptr, face_ring, semantic, building_id, part_id, gml_id,
+             lod) -> FaceList:
+        """A FaceList that takes the given arrays and (new) lists as they are, without copies."""
+        fl = cls.__new__(cls)
+        fl.ring_vertex, fl.ring_ptr, fl.face_ring = ring_vertex, ring_ptr, face_ring
+        fl.semantic, fl.building_id, fl.part_id, fl.gml_id = semantic, building_id, part_id, gml_id
+        fl.lod = lod
+        return fl
 
     @classmethod
     def from_faces(cls, faces) -> FaceList:
@@ -230,6 +254,24 @@ class FaceList(Sequence):
             self.ring_vertex[entries], _ptr(rlen), _ptr(nr),
             _pick(self.semantic, sel), _pick(self.building_id, sel),
             _pick(self.part_id, sel), _pick(self.gml_id, sel), self.lod[sel],
+        )
+
+    def compress(self, keep: np.ndarray) -> FaceList:
+        """The faces where `keep` (bool (F,)) is True, in order, reusing (overwriting) this
+        list's ring array: only for a FaceList about to be dropped (build_store)."""
+        nr = np.diff(self.face_ring)
+        ring_keep = np.repeat(keep, nr)
+        rlen = np.diff(self.ring_ptr)
+        entries = np.flatnonzero(np.repeat(ring_keep, rlen))
+        ring_vertex = _compact_rows(self.ring_vertex, entries)  # self's rings are gone after
+        del entries
+        mask = keep.tolist()
+        return FaceList._own(
+            ring_vertex, _ptr(rlen[ring_keep]), _ptr(nr[keep]),
+            list(itertools.compress(self.semantic, mask)),
+            list(itertools.compress(self.building_id, mask)),
+            list(itertools.compress(self.part_id, mask)),
+            list(itertools.compress(self.gml_id, mask)), self.lod[keep],
         )
 
     def with_ring_vertex(self, ring_vertex: np.ndarray) -> FaceList:
@@ -389,14 +431,11 @@ def _exact_duplicates(points: np.ndarray, rank: np.ndarray | None = None):
     order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))  # stable
     new = np.empty(N, dtype=bool)
     new[0] = True
-    col = np.empty(N)
-    for k in range(3):
-        np.take(points[:, k], order, out=col)
-        if k == 0:
-            np.not_equal(col[1:], col[:-1], out=new[1:])
-        else:
-            new[1:] |= col[1:] != col[:-1]
-    del col
+    step, P = 1 << 18, None
+    for a in range(1, N, step):  # new[i]: sorted point i differs from i - 1 (chunks: no N temps)
+        P = points[order[a - 1:a + step]]
+        np.any(P[1:] != P[:-1], axis=1, out=new[a:a + step])
+    del P
     first = order[new]  # the stable sort puts the smallest input index first
     uniq = points[first]
     if rank is not None:
@@ -420,13 +459,22 @@ def merge_vertices(
     Clusters are numbered in order of first appearance so the result is deterministic; `rank`
     (N,) int64, distinct values, gives the order of appearance when it is not the input order.
     """
+    return _merge_vertices([points, rank], tolerance, slack)
+
+
+def _merge_vertices(owned: list, tolerance: float, slack: float):
+    """merge_vertices on [points, rank] handed over in a list: both are dropped from it (and
+    freed, when the caller kept no reference) as soon as the exact duplicates are known."""
+    points = np.ascontiguousarray(owned.pop(0), dtype=np.float64)
+    rank = owned.pop(0)
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
-    points = np.ascontiguousarray(points, dtype=np.float64)
     N = len(points)
     # exact duplicates first (most points are corners shared by several rings)
     uniq, inverse, first = _exact_duplicates(points, rank)
     del points
+    has_rank = rank is not None
+    del rank
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -438,7 +486,7 @@ def merge_vertices(
     else:
         nlab, labels = n, np.arange(n)
     # renumber clusters by first appearance in the input
-    first_c = np.full(nlab, N if rank is None else np.iinfo(np.int64).max, dtype=np.int64)
+    first_c = np.full(nlab, np.iinfo(np.int64).max if has_rank else N, dtype=np.int64)
     np.minimum.at(first_c, labels, first)
     order = np.argsort(first_c)
     renum = np.empty_like(order)
@@ -970,6 +1018,8 @@ def build_store(
     )
     warnings = list(raw.warnings)
     table = raw.polygon_table()
+    if release_raw:  # nothing but this function holds the polygons from here on
+        raw.polygons = RawPolygonTable.empty()
     n = len(table)
     R = table.num_rings
     lengths = table.ring_len
@@ -999,8 +1049,9 @@ def build_store(
         rank = np.arange(len(allpts), dtype=np.int64)
         rank += np.repeat(cstart - table.ring_ptr[:-1], lengths)
         del cstart
-    merged, index, extent = merge_vertices(allpts, tol.merge, tol.merge_slack, rank=rank)
+    owned = [allpts, rank]
     del allpts, rank
+    merged, index, extent = _merge_vertices(owned, tol.merge, tol.merge_slack)
     if extent > tol.chain_warning:
         warnings.append(
             f"vertex merging (tolerance {tol.merge * 1000:.1f} mm) chained points up to "
@@ -1076,7 +1127,7 @@ def build_store(
     owner = np.concatenate([src, hole_owner[hole_rings - n]])
     face_rings = face_rings[np.argsort(owner, kind="stable")]
     entries = _segment_gather(rs[face_rings], rl[face_rings])
-    faces = FaceList(
+    faces = FaceList._own(
         ids[entries],
         _ptr(rl[face_rings]),
         _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src]),
@@ -1086,7 +1137,8 @@ def build_store(
         _pick(gml_ids, src),
         table.lod[src],
     )
-    del entries, ids, semantic, gml_ids, building_ids, part_ids, table
+    del entries, ids, semantic, gml_ids, building_ids, part_ids, table, ring_lists, raw_semantic
+    del rs, rl, ring_ok, ring_hash, hole_sum, valid, is_face, src, hole_rings, face_rings, owner
 
     planes = _compute_planes(merged, faces)
     degenerate = (planes["areas"] < tol.min_area) | (
@@ -1097,9 +1149,9 @@ def build_store(
     if degenerate.any():
         dropped += int(degenerate.sum())
         keep = np.flatnonzero(~degenerate)
-        faces = faces.take(keep)
-        for k in list(planes):  # one array at a time: bounded extra memory
-            planes[k] = planes[k][keep]
+        faces = faces.compress(~degenerate)
+        for k in list(planes):  # compacted in place: no second copy of the plane arrays
+            planes[k] = _compact_rows(planes[k], keep)
     if dropped:
         warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
 
@@ -1107,8 +1159,12 @@ def build_store(
     used = np.flatnonzero(np.bincount(faces.ring_vertex, minlength=len(merged)))
     remap = np.full(len(merged), -1, dtype=np.int64)
     remap[used] = np.arange(len(used))
-    faces = faces.with_ring_vertex(remap[faces.ring_vertex])
+    rv = faces.ring_vertex
+    for a in range(0, len(rv), 1 << 20):  # rv = remap[rv], in place, in chunks
+        rv[a:a + (1 << 20)] = remap[rv[a:a + (1 << 20)]]
+    del remap, rv
     vertices = merged[used]
+    del merged, used
 
     _orient_by_semantics(planes, faces, warnings)
     nonplanar = planes["rms"] > tol.nonplanar

@@ -16,7 +16,7 @@ import numpy as np
 from . import crs as crs_mod
 from .errors import CRSError, InputError, NoOverlapError
 from .plane_store import PlaneStore, build_store
-from .raw_model import RawCityModel
+from .raw_model import RawCityModel, RawPolygonTable
 
 logger = logging.getLogger("colmap_citymodel.read_city_model")
 
@@ -106,7 +106,7 @@ def merge_raw(models: list[RawCityModel]) -> RawCityModel:
         format="+".join(formats),
         version="+".join(versions),
         crs=model_crs,
-        polygons=[p for m in models for p in m.polygons],
+        polygons=RawPolygonTable.concatenate([m.polygon_table() for m in models]),  # no copy
         building_ids=building_ids,
         part_ids=[p for m in models for p in m.part_ids],
         warnings=warnings,
@@ -150,7 +150,10 @@ def read_city_model(
     if misses:
         logger.info("skipped %d of %d tiles outside the bounding box", len(misses), len(files))
     raw = merge_raw(models)
-    store = build_store(raw, merge_tolerance=merge_tolerance)
+    del models
+    # build_store owns the raw model: its coordinates are freed once they are in the local frame
+    store = build_store(raw, merge_tolerance=merge_tolerance, release_raw=True)
+    del raw
     logger.info(
         "read %d buildings, %d faces, %d vertices from %d file(s) (%s)",
         store.num_buildings, store.num_faces, len(store.vertices), len(files), store.crs.label,

@@ -1,8 +1,9 @@
 """Read building geometry from CityGML 1.0, 2.0 and 3.0 (GML 3.1.1 and 3.2) into a RawCityModel.
 
 Streaming: `lxml.etree.iterparse` delivers one top-level `cityObjectMember` / `featureMember` /
-`member` at a time; it is turned into polygons, then cleared and its previous siblings deleted, so
-memory holds one city object plus the polygons kept so far (the output), however large the file.
+`member` at a time; it is turned into polygons, appended to a flat RawPolygonTable (one coordinate
+array, no object per polygon), then cleared and its previous siblings deleted, so memory holds one
+city object plus the table of the polygons kept so far (the output), however large the file.
 
 What is read (namespace-agnostic, by local element name, so 1.0/2.0/3.0 and producers' prefix
 quirks all pass): `Building` and (nested) `BuildingPart` (`consistsOfBuildingPart`, 3.0
@@ -43,7 +44,7 @@ from lxml import etree
 
 from . import crs as crs_mod
 from .errors import CityGMLError, CRSError, InputError, NoOverlapError
-from .raw_model import CRSInfo, RawCityModel, RawPolygon
+from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonBuilder, RawPolygonTable
 
 logger = logging.getLogger("colmap_citymodel.read_citygml")
 
@@ -701,11 +702,11 @@ def read_citygml(
 
     walker = _Walker(path, lod)
     state = _CRSState(path, user, target)
-    polygons: list[RawPolygon] = []
+    builder = RawPolygonBuilder()
+    pending_rows: list[tuple[int, _Pending]] = []  # rows whose rings come from other objects
     building_ids: list[str] = []
     part_ids: list[str] = []
     pending_refs: list[_Ref] = []
-    pending_polys: list[_Pending] = []
     num_features = [0]
     num_dropped = 0
     num_duplicates = 0
@@ -747,11 +748,10 @@ def read_citygml(
                     if not keep:
                         num_dropped += len(walker.buildings)
                         continue
-                    polygons.extend(walker.polygons)
+                    _add_member(builder, walker, pending_rows)
                     building_ids.extend(walker.buildings)
                     part_ids.extend(walker.parts)
                     pending_refs.extend(unresolved)
-                    pending_polys.extend(walker.pending)
             # free the member and everything before it
             el.clear()
             while el.getprevious() is not None:
@@ -764,6 +764,7 @@ def read_citygml(
 
     if num_features[0] == 0:
         raise CityGMLError("no buildings in the file", path)
+    polygons = builder.finish()
     if not polygons and num_dropped == 0:
         seen = sorted(walker.lods_seen)
         other = f" (it has LOD {', '.join(map(str, seen))}; pass --lod {seen[-1] if 2 not in seen else 2})" if seen else ""
@@ -775,8 +776,8 @@ def read_citygml(
             path,
         )
     warnings = list(state.warnings)
-    if pending_refs or pending_polys:
-        polygons += _resolve_pending(path, walker, state, polygons, pending_refs, pending_polys)
+    if pending_refs or pending_rows:
+        polygons = _resolve_pending(path, walker, state, polygons, pending_refs, pending_rows)
     if num_without:
         warnings.append(f"{num_without} buildings without LOD {lod} geometry skipped")
     if num_duplicates:
@@ -822,30 +823,68 @@ def _place(walker: _Walker, state: _CRSState, bbox: np.ndarray | None) -> bool:
     return bool(np.all(lo[:d] <= bbox[1]) and np.all(hi[:d] >= bbox[0]))
 
 
+def _add_member(builder: RawPolygonBuilder, walker: _Walker, pending_rows: list) -> None:
+    """Append a kept city object's polygons to the table; polygons with a ring from another
+    city object get empty rings for now (filled by _resolve_pending)."""
+    polys = walker.polygons
+    waiting = {id(pp.polygon): pp for pp in walker.pending} if walker.pending else None
+    rings: list[np.ndarray] = []
+    ring_len: list[int] = []
+    nring: list[int] = []
+    row0 = len(builder)
+    for i, p in enumerate(polys):
+        pp = waiting.get(id(p)) if waiting else None
+        if pp is not None:
+            pending_rows.append((row0 + i, pp))
+            ring_len += [0] * len(pp.rings)
+            nring.append(len(pp.rings))
+            continue
+        rings.append(p.exterior)
+        ring_len.append(len(p.exterior))
+        if p.holes:
+            rings += p.holes
+            ring_len += [len(h) for h in p.holes]
+        nring.append(1 + len(p.holes))
+    builder.add_block(
+        np.concatenate(rings) if rings else _EMPTY, ring_len, nring,
+        [p.semantic for p in polys], [p.building_id for p in polys], [p.part_id for p in polys],
+        [p.gml_id for p in polys], [p.lod for p in polys], [p.from_solid for p in polys],
+    )
+
+
+def _merge_reference_row(table: RawPolygonTable, row: int, ref: _Ref) -> None:
+    """merge_reference for a polygon of the table."""
+    if ref.in_solid and not ref.reversed:
+        table.from_solid[row] = True
+    if table.semantic[row] == "Unknown" and ref.semantic != "Unknown":
+        table.semantic[row] = ref.semantic
+
+
 def _resolve_pending(
     path: Path,
     walker: _Walker,
     state: _CRSState,
-    polygons: list[RawPolygon],
+    polygons: RawPolygonTable,
     refs: list[_Ref],
-    pending: list[_Pending],
-) -> list[RawPolygon]:
-    """Resolve references across city objects; returns polygons to add (targets that lie in
-    dropped buildings, attributed to the referencing building)."""
-    index: dict[str, RawPolygon] = {}
-    for p in polygons:
-        if p.gml_id:
-            index.setdefault(p.gml_id, p)
+    pending: list[tuple[int, _Pending]],
+) -> RawPolygonTable:
+    """Resolve references across city objects; returns the table with the rings of pending
+    polygons filled in and the polygons added for targets that lie in dropped buildings
+    (attributed to the referencing building)."""
+    index: dict[str, int] = {}
+    for row, gid in enumerate(polygons.gml_id):
+        if gid:
+            index.setdefault(gid, row)
     open_refs = []
     for ref in refs:
         target = index.get(ref.target)
         if target is not None:
-            merge_reference(target, ref)
+            _merge_reference_row(polygons, target, ref)
         else:
             open_refs.append(ref)
-    ring_ids = {r.target for pp in pending for r in pp.rings if isinstance(r, _RingRef)}
+    ring_ids = {r.target for _, pp in pending for r in pp.rings if isinstance(r, _RingRef)}
     if not open_refs and not ring_ids:
-        return []
+        return polygons
     found_surfaces, found_rings = _rescan(path, walker.lod, {r.target for r in open_refs}, ring_ids)
     added: list[RawPolygon] = []
     added_by_id: dict[str, list[RawPolygon]] = {}
@@ -873,7 +912,8 @@ def _resolve_pending(
             )
         added_by_id[ref.target] = new
         added.extend(new)
-    for pp in pending:
+    filled: dict[int, list[np.ndarray]] = {}
+    for row, pp in pending:
         rings = []
         for r in pp.rings:
             if isinstance(r, _RingRef):
@@ -887,9 +927,25 @@ def _resolve_pending(
                 rings.append(r)
         if reproject:  # _place() skipped these polygons: all their rings are still in the source CRS
             rings = [state.reproject(r) for r in rings]
-        pp.polygon.exterior = rings[0]
-        pp.polygon.holes = rings[1:]
-    return added
+        filled[row] = rings
+    if filled:
+        polygons = _fill_rows(polygons, filled)
+    if added:
+        polygons = RawPolygonTable.concatenate([polygons, RawPolygonTable.from_polygons(added)])
+    return polygons
+
+
+def _fill_rows(table: RawPolygonTable, filled: dict[int, list[np.ndarray]]) -> RawPolygonTable:
+    """The table with the rings of the rows in `filled` replaced (same number of rings)."""
+    coords, rp, pp = table.coords, table.ring_ptr, table.poly_ptr
+    rings = [coords[rp[r]:rp[r + 1]] for r in range(table.num_rings)]
+    for row, new in filled.items():
+        rings[pp[row]:pp[row + 1]] = [np.asarray(r, dtype=np.float64).reshape(-1, 3) for r in new]
+    return RawPolygonTable(
+        np.concatenate(rings) if rings else _EMPTY, [len(r) for r in rings], table.poly_nring,
+        table.semantic, table.building_id, table.part_id, table.gml_id, table.lod,
+        table.from_solid,
+    )
 
 
 def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
