@@ -27,7 +27,7 @@ import numpy as np
 
 from .crs import output_crs, reproject_points, resolve_crs, user_crs
 from .errors import CityGMLError, CRSError, InputError, NoOverlapError
-from .raw_model import CRSInfo, RawCityModel, RawPolygon
+from .raw_model import CRSInfo, RawCityModel, RawPolygonBuilder, RawPolygonTable
 
 logger = logging.getLogger("colmap_citymodel.read_cityjson")
 
@@ -143,8 +143,9 @@ def _read_objects(
     found_lods: set,
     warnings: list[str],
     path: Path,
-) -> list[RawPolygon]:
-    polygons: list[RawPolygon] = []
+    polygons: RawPolygonBuilder,
+) -> None:
+    """Append the building polygons of one CityObjects dictionary to `polygons`."""
     skipped_templates = 0
     for obj_id, obj in objects.items():
         if obj.get("type") not in BUILDING_TYPES:
@@ -188,21 +189,12 @@ def _read_objects(
                     raise InputError(
                         f"CityObject {obj_id!r}: bad vertex index in {gtype} ({error})", path
                     ) from error
-                polygons.append(
-                    RawPolygon(
-                        exterior=rings[0],
-                        holes=rings[1:],
-                        semantic=semantic,
-                        building_id=building,
-                        part_id=obj_id if is_part else "",
-                        gml_id="",
-                        lod=lod,
-                        from_solid=gtype in SOLID_TYPES,
-                    )
+                polygons.add(
+                    rings[0], rings[1:], semantic, building, obj_id if is_part else "", "", lod,
+                    gtype in SOLID_TYPES,
                 )
     if skipped_templates:
         warnings.append(f"{skipped_templates} template geometries (GeometryInstance) ignored")
-    return polygons
 
 
 def _file_crs(doc: dict, path: Path) -> CRSInfo | None:
@@ -213,7 +205,7 @@ def _file_crs(doc: dict, path: Path) -> CRSInfo | None:
     return resolve_crs(str(ref), path=path)
 
 
-def _bbox_filter(polygons: list[RawPolygon], bbox: np.ndarray, path: Path) -> list[RawPolygon]:
+def _bbox_filter(polygons: RawPolygonTable, bbox: np.ndarray, path: Path) -> RawPolygonTable:
     """Keep whole buildings whose vertex bbox intersects `bbox` ((2,2) or (2,3), model CRS)."""
     bbox = np.asarray(bbox, dtype=np.float64)
     dim = bbox.shape[1]
@@ -224,8 +216,8 @@ def _bbox_filter(polygons: list[RawPolygon], bbox: np.ndarray, path: Path) -> li
         lo[p.building_id] = np.minimum(lo.get(p.building_id, a), a)
         hi[p.building_id] = np.maximum(hi.get(p.building_id, b), b)
     keep = {k for k in lo if np.all(hi[k] >= bbox[0]) and np.all(lo[k] <= bbox[1])}
-    out = [p for p in polygons if p.building_id in keep]
-    if polygons and not out:
+    out = polygons.take(np.fromiter((b in keep for b in polygons.building_id), bool, len(polygons)))
+    if len(polygons) and not len(out):
         raise NoOverlapError(
             f"no building intersects the bounding box {bbox.tolist()} (model CRS)", path
         )
@@ -265,12 +257,13 @@ def read_cityjson(
     src = file_crs or given
 
     found_lods: set = set()
-    polygons: list[RawPolygon] = []
+    builder = RawPolygonBuilder()
     documents = [doc] if not features else features
     for d in documents:
         V = _vertices(d, transform, path)
-        polygons += _read_objects(d.get("CityObjects") or {}, V, lod, found_lods, warnings, path)
-    if not polygons:
+        _read_objects(d.get("CityObjects") or {}, V, lod, found_lods, warnings, path, builder)
+    polygons = builder.finish()
+    if not len(polygons):
         have = ", ".join(sorted({str(x) for x in found_lods})) or "none"
         raise CityGMLError(
             f"no building geometry at LOD {lod} (LODs in the file: {have})", path
@@ -281,16 +274,7 @@ def read_cityjson(
         dst = user_crs(target_crs)
         if not dst.is_projected:
             raise CRSError(f"target CRS {target_crs} is not projected", path)
-        pts = np.concatenate([r for p in polygons for r in (p.exterior, *p.holes)])
-        moved = reproject_points(pts, src, dst)
-        k = 0
-        for p in polygons:
-            n = len(p.exterior)
-            p.exterior = moved[k : k + n]
-            k += n
-            for i, h in enumerate(p.holes):
-                p.holes[i] = moved[k : k + len(h)]
-                k += len(h)
+        polygons.coords = reproject_points(polygons.coords, src, dst)
         out_crs = output_crs(src, dst)
     elif not src.is_projected:
         raise CRSError(
@@ -301,8 +285,8 @@ def read_cityjson(
     if bbox_crs is not None:
         polygons = _bbox_filter(polygons, bbox_crs, path)
 
-    building_ids = sorted({p.building_id for p in polygons})
-    part_ids = sorted({p.part_id for p in polygons if p.part_id})
+    building_ids = sorted(set(polygons.building_id))
+    part_ids = sorted(set(polygons.part_id) - {""})
     logger.debug(
         "%s: CityJSON %s, %d buildings, %d parts, %d polygons",
         path, version, len(building_ids), len(part_ids), len(polygons),
