@@ -160,7 +160,12 @@ class HybridProblem:
         config = pycolmap.BundleAdjustmentConfig()
         for image_id in reconstruction.reg_image_ids():
             config.add_image(image_id)
-        # No gauge fixing: GNSS and the model planes give the datum (checked before solving).
+        # GNSS and the model planes give the datum (checked before solving). With neither
+        # (step 2 after an initial transform), fix it COLMAP's way to keep the problem regular.
+        with_model = store is not None and assignment is not None and assignment.num_assigned
+        self.gauge_fixed = gnss is None and not with_model
+        if self.gauge_fixed:
+            config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(
             bundle_adjustment_options(options, robust_images), config, reconstruction)
         self.problem: pyceres.Problem = self.adjuster.problem
@@ -168,7 +173,7 @@ class HybridProblem:
         self.point_ids = np.zeros(0, np.int64)
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
         self._add_gnss(core, gnss)
-        if store is not None and assignment is not None and assignment.num_assigned:
+        if with_model:
             self._add_model(core, store, current if current is not None else store, assignment,
                             robust_planes)
         else:
@@ -256,7 +261,7 @@ class HybridProblem:
         if self.options.refine_intrinsics:
             u += sum(len(c.params) - 2 for c in rec.cameras.values())  # principal point fixed
         u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
-        return u
+        return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
     def group_residuals(self) -> dict[str, np.ndarray]:
         """Normalised residuals per observation group (loss functions not applied)."""

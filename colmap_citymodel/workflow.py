@@ -180,7 +180,7 @@ def crop_to_reconstruction(store: PlaneStore, rec: pycolmap.Reconstruction, marg
             "the city model does not overlap the georegistered reconstruction: model bbox "
             f"{_fmt_box(store.bbox_crs)} vs reconstruction bbox "
             f"{_fmt_box(np.array([lower, upper]) + store.origin)} (model CRS); check the CRS "
-            "of the GNSS positions and the model", store.source)
+            "of the GNSS positions or the initial transform, and the model", store.source)
     return cropped
 
 

@@ -205,3 +205,22 @@ def test_lever_arm_moves_the_observed_point_into_the_rig_frame(scene):
                             robust_images=False, robust_planes=False)
     # 0.55 m offset over a 1 cm sigma.
     assert np.abs(without.group_residuals()["gnss"]).max() > 10
+
+
+def test_registration_without_gnss_from_an_initial_transform(scene):
+    """No GNSS: a rough initial similarity (a user's manual alignment, 0.5 m and 0.3 deg off)
+    and the model planes alone fix the datum."""
+    true_centres = {im.name: im.projection_center() + scene.store.origin
+                    for im in scene.truth.images.values()}
+    names = [im.name for im in scene.sfm.images.values()]
+    sfm_centres = np.array([scene.sfm.find_image_with_name(n).projection_center() for n in names])
+    exact = pycolmap.estimate_sim3d(sfm_centres, np.array([true_centres[n] for n in names]))
+    centre = np.mean(list(true_centres.values()), axis=0)
+    rotation = np.asarray(pycolmap.Rotation3d(np.radians([0.0, 0.0, 0.3])).matrix())
+    error = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rotation),
+                           centre - rotation @ centre + [0.3, -0.3, 0.25])
+    start = error * exact
+    result = refine(scene.sfm, scene.store, None, RefineOptions(), initial_transform=start,
+                    progress=False)
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+    assert result.iterations[-1].final.count["gnss"] == 0
