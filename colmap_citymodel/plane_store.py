@@ -424,23 +424,70 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     out["num_distinct"][sl] = counts
 
 
-def _exact_duplicates(points: np.ndarray, rank: np.ndarray | None = None):
+def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distinct points in lexicographic order: (uniq (U,3), inverse (N,) into uniq, first (U,)
-    the smallest input index of each, or the smallest `rank` when given)."""
+    the smallest input index of each).
+
+    Equal points are found by sorting a 64-bit hash of their coordinates (one key, one int64
+    order array: less memory and time than a 3-key lexsort of all points); only the distinct
+    points are sorted lexicographically. A hash collision between different points falls back
+    to the lexsort."""
+    N = len(points)
+    step = 1 << 18
+    h = np.empty(N, dtype=np.uint64)
+    with np.errstate(over="ignore"):
+        for a in range(0, N, step):
+            bits = (points[a:a + step] + 0.0).view(np.uint64)  # + 0.0: -0.0 hashes as 0.0
+            h[a:a + step] = _splitmix(bits[:, 0] ^ _splitmix(bits[:, 1] ^ _splitmix(bits[:, 2])))
+    order = np.argsort(h)
+    new = np.empty(N, dtype=bool)
+    new[0] = True
+    P = None
+    for a in range(1, N, step):  # new[i]: sorted point i differs from i - 1
+        o = order[a - 1:a + step]
+        P = points[o]
+        np.any(P[1:] != P[:-1], axis=1, out=new[a:a + step])
+        hs = h[o]
+        if np.any(new[a:a + step] & (hs[1:] == hs[:-1])):  # collision (or NaN): be exact
+            del h, order, new, P
+            return _exact_duplicates_lexsort(points)
+    del h, P
+    starts = np.flatnonzero(new)
+    first = np.minimum.reduceat(order, starts)  # equal points are in any order: take the min
+    del starts
+    inverse = np.empty(N, dtype=np.int64)
+    g0 = -1
+    for a in range(0, N, step):  # inverse[order] = cumsum(new) - 1, in chunks
+        g = np.cumsum(new[a:a + step], dtype=np.int64)
+        g += g0
+        inverse[order[a:a + step]] = g
+        g0 = int(g[-1])
+    del order, new
+    # number the distinct points in lexicographic order (ties: input order), as the lexsort did
+    uniq = points[first]
+    perm = np.lexsort((first, uniq[:, 2], uniq[:, 1], uniq[:, 0]))
+    uniq, first = uniq[perm], first[perm]
+    label = np.empty(len(perm), dtype=np.int64)
+    label[perm] = np.arange(len(perm))
+    del perm
+    for a in range(0, N, 1 << 20):
+        inverse[a:a + (1 << 20)] = label[inverse[a:a + (1 << 20)]]
+    return uniq, inverse, first
+
+
+def _exact_duplicates_lexsort(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """_exact_duplicates by a lexsort of all points (exact whatever the hashes do)."""
     N = len(points)
     order = np.lexsort((points[:, 2], points[:, 1], points[:, 0]))  # stable
     new = np.empty(N, dtype=bool)
     new[0] = True
     step, P = 1 << 18, None
-    for a in range(1, N, step):  # new[i]: sorted point i differs from i - 1 (chunks: no N temps)
+    for a in range(1, N, step):
         P = points[order[a - 1:a + step]]
         np.any(P[1:] != P[:-1], axis=1, out=new[a:a + step])
     del P
     first = order[new]  # the stable sort puts the smallest input index first
     uniq = points[first]
-    if rank is not None:
-        first = np.minimum.reduceat(rank[order], np.flatnonzero(new))
-    # inverse[order] = cumsum(new) - 1, without a second N-sized temporary
     group = np.cumsum(new, dtype=np.int64)
     del new
     group -= 1
@@ -450,31 +497,26 @@ def _exact_duplicates(points: np.ndarray, rank: np.ndarray | None = None):
 
 
 def merge_vertices(
-    points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack,
-    rank: np.ndarray | None = None,
+    points: np.ndarray, tolerance: float, slack: float = DEFAULT_TOLERANCES.merge_slack
 ) -> tuple[np.ndarray, np.ndarray, float]:
     """Merge points closer than `tolerance + slack` (single linkage over a cKDTree).
 
     Returns (merged (V,3) = mean of each cluster, index (N,) into merged, widest cluster extent).
-    Clusters are numbered in order of first appearance so the result is deterministic; `rank`
-    (N,) int64, distinct values, gives the order of appearance when it is not the input order.
+    Clusters are numbered in order of first appearance so the result is deterministic.
     """
-    return _merge_vertices([points, rank], tolerance, slack)
+    return _merge_vertices([points], tolerance, slack)
 
 
 def _merge_vertices(owned: list, tolerance: float, slack: float):
-    """merge_vertices on [points, rank] handed over in a list: both are dropped from it (and
+    """merge_vertices on [points] handed over in a list: the points are dropped from it (and
     freed, when the caller kept no reference) as soon as the exact duplicates are known."""
-    points = np.ascontiguousarray(owned.pop(0), dtype=np.float64)
-    rank = owned.pop(0)
+    points = np.ascontiguousarray(owned.pop(), dtype=np.float64)
     if len(points) == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
     N = len(points)
     # exact duplicates first (most points are corners shared by several rings)
-    uniq, inverse, first = _exact_duplicates(points, rank)
+    uniq, inverse, first = _exact_duplicates(points)
     del points
-    has_rank = rank is not None
-    del rank
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -486,7 +528,7 @@ def _merge_vertices(owned: list, tolerance: float, slack: float):
     else:
         nlab, labels = n, np.arange(n)
     # renumber clusters by first appearance in the input
-    first_c = np.full(nlab, np.iinfo(np.int64).max if has_rank else N, dtype=np.int64)
+    first_c = np.full(nlab, N, dtype=np.int64)
     np.minimum.at(first_c, labels, first)
     order = np.argsort(first_c)
     renum = np.empty_like(order)
@@ -1022,35 +1064,22 @@ def build_store(
         raw.polygons = RawPolygonTable.empty()
     n = len(table)
     R = table.num_rings
-    lengths = table.ring_len
-    poly_first = table.poly_ptr[:-1]
     num_holes = table.poly_nring - 1
-    # Rings are numbered here in the order: all exteriors, then all holes (polygon order), and
-    # vertices are numbered by first appearance in that order; the table stores each polygon's
-    # rings together, so `canon` maps this order to table rings (None: the same)
-    canon = None
+    # rings in the order: all exteriors, then all holes (polygon order); vertex numbering
+    # follows first appearance in this order (the table keeps each polygon's rings together)
     if num_holes.any():
         is_ext = np.zeros(R, dtype=bool)
-        is_ext[poly_first] = True
-        canon = np.concatenate([poly_first, np.flatnonzero(~is_ext)])
+        is_ext[table.poly_ptr[:-1]] = True
+        lengths = np.concatenate([table.ring_len[is_ext], table.ring_len[~is_ext]])
         del is_ext
+    else:
+        lengths = table.ring_len
     if origin is None:
         origin = np.floor(table.coords_min()) if table.num_points else np.zeros(3)
     else:
         origin = np.asarray(origin, dtype=np.float64)
-    if release_raw:
-        allpts = table.pop_coords(origin)  # the raw coordinates are gone from here on
-    else:
-        allpts = table.coords - origin
-    rank = None
-    if canon is not None:  # each point's position in the numbering order
-        cstart = np.empty(R, dtype=np.int64)
-        cstart[canon] = _ptr(lengths[canon])[:-1]
-        rank = np.arange(len(allpts), dtype=np.int64)
-        rank += np.repeat(cstart - table.ring_ptr[:-1], lengths)
-        del cstart
-    owned = [allpts, rank]
-    del allpts, rank
+    # release_raw: the raw coordinates are gone once they are copied to the local frame
+    owned = [table.points_exteriors_first(origin, release=release_raw)]
     merged, index, extent = _merge_vertices(owned, tol.merge, tol.merge_slack)
     if extent > tol.chain_warning:
         warnings.append(
@@ -1058,10 +1087,10 @@ def build_store(
             f"{extent * 1000:.1f} mm apart into one vertex"
         )
 
-    # ring vertex ids, consecutive repeats (and the closing point) removed (table ring order)
+    # ring vertex ids, consecutive repeats (and the closing point) removed
     ring_of = np.repeat(np.arange(R), lengths)
     prev = np.arange(len(index)) - 1
-    starts = table.ring_ptr[:-1]
+    starts = np.cumsum(lengths) - lengths
     nonempty = lengths > 0
     prev[starts[nonempty]] = (starts + lengths - 1)[nonempty]
     keep = index != index[prev] if len(index) else np.zeros(0, bool)
@@ -1077,11 +1106,7 @@ def build_store(
     other = (ids != first[ring_of]) & (ids != second[ring_of])
     ring_ok = (rlen >= 3) & (np.bincount(ring_of, other, R) > 0)
     del other, ring_of, first, second
-    # from here on rings in the numbering order: ring r is ids[rs[r]:rs[r] + rl[r]]
-    rs, rl = rptr[:-1], rlen
-    if canon is not None:
-        rs, rl, ring_ok = rs[canon], rl[canon], ring_ok[canon]
-    del rptr, rlen, canon
+    rs, rl = rptr[:-1], rlen  # ring r is ids[rs[r]:rs[r] + rl[r]]
     valid = ring_ok[:n].copy()
     hole_owner = np.repeat(np.arange(n), num_holes)
     hole_ok = ring_ok[n:]

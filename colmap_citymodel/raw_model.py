@@ -185,6 +185,37 @@ class RawPolygonTable(Sequence):
             del c
         return out
 
+    def points_exteriors_first(self, shift: np.ndarray, release: bool = False) -> np.ndarray:
+        """(P, 3) new array: coordinates minus `shift`, the points of all exteriors first (in
+        polygon order), then those of all holes (the ring order of plane_store.build_store).
+        release: drop the table's coordinates chunk by chunk while copying (peak: the result
+        plus one chunk); the table has no coordinates afterwards (for an owner only)."""
+        is_ext = np.zeros(self.num_rings, dtype=bool)
+        is_ext[self.poly_ptr[:-1]] = True
+        if is_ext.all():
+            return self.pop_coords(shift) if release else self.coords - shift
+        mask = np.repeat(is_ext, self.ring_len)
+        out = np.empty((len(mask), 3))
+        e, h = 0, int(np.count_nonzero(mask))  # next exterior / hole point
+        chunks = self._chunks
+        if release:
+            self._chunks = []
+            chunks.reverse()
+        k, step = 0, 1 << 16
+        for c in (chunks.pop() for _ in range(len(chunks))) if release else chunks:
+            for a in range(0, len(c), step):
+                piece = c[a:a + step]
+                m = mask[k + a:k + a + len(piece)]
+                ext = piece[m]
+                np.subtract(ext, shift, out=out[e:e + len(ext)])
+                e += len(ext)
+                hole = piece[~m]
+                np.subtract(hole, shift, out=out[h:h + len(hole)])
+                h += len(hole)
+            k += len(c)
+            del c
+        return out
+
     # -- structure ---------------------------------------------------------------------------
     @property
     def ring_ptr(self) -> np.ndarray:
