@@ -332,8 +332,9 @@ def _align_to_first(rec, truth, names, gnss_local, n):
 
 @pytest.mark.slow
 def test_drift_with_gnss_only_at_start(tmp_path):
-    """Scn6 on a 60-key-frame street: COLMAP's model aligned to the first 20 GNSS positions has
-    check point errors of metres, although the block itself is consistent (cm after Helmert)."""
+    """Scn6 on a 60-key-frame street (the long sequence's settings): COLMAP's model aligned to
+    the first 20 GNSS positions has check point errors of metres (measured 2.1 m), although the
+    block itself is consistent (3 cm after a Helmert fit)."""
     from colmap_citymodel.evaluate import (helmert_transform, read_checkpoint_observations,
                                            read_checkpoints, triangulate_checkpoints)
 
@@ -341,7 +342,9 @@ def test_drift_with_gnss_only_at_start(tmp_path):
     seq.write_text(
         'name = "drift"\nseed = 11\n[scene.procedural]\nnum_buildings = 8\n'
         '[flight]\nnum_key_frames = 60\nflight_height = 16.0\npitch_deg = 25.0\n'
-        '[observations]\npoints_per_m2 = 3.0\n'
+        'radial_k1 = 0.0007\n[observations]\npoints_per_m2 = 3.0\n'
+        '[gnss]\nwhite_sigma = [0.3, 0.3, 0.5]\nbias_sigma = [1.0, 1.0, 1.0]\n'
+        'bias_length = 200.0\n'
         '[scenario]\nmodel = "none"\ngnss = "first"\ngnss_first_n = 20\n')
     ws = main(seq, tmp_path / "ws", progress=False)
     stats = json.loads((ws / "simulation.json").read_text())
@@ -364,9 +367,10 @@ def test_drift_with_gnss_only_at_start(tmp_path):
     err = np.array([known[i] - est[i] for i in ids])
     rms = np.sqrt(np.mean(np.sum(err ** 2, axis=1)))
     assert rms > 1.0, f"check point RMS only {rms:.3f} m"
-    # the block is internally consistent: after a Helmert transform errors are centimetres
+    # the block bends a little (the unmodelled distortion) but stays consistent: after a
+    # Helmert transform errors are centimetres
     h = helmert_transform(np.array([known[i] for i in ids]), np.array([est[i] for i in ids]))
-    assert h.rms_3d < 0.1
+    assert 0.01 < h.rms_3d < 0.15
 
 
 def test_gnss_noise_model():
