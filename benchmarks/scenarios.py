@@ -2,7 +2,7 @@
 
 For each sequence (short ~90, long ~340 key frames) and scenario Scn1..Scn6
 (`workspaces/{short,long}_scnN.toml`), the workspace is built by the simulator (each sequence is
-mapped once by COLMAP and cached under benchmarks/cache/), then every method runs on copies of
+mapped once by COLMAP; workspaces under workspaces/generated/, as workspaces/README.md builds them), then every method runs on copies of
 the same `sparse/0` and is evaluated on the simulated check points:
 
 - refine_a:  colmap-citymodel refine (global workflow, direct assignment (a));
@@ -33,7 +33,7 @@ import pycolmap
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-CACHE = ROOT / "benchmarks" / "cache"
+GENERATED = ROOT / "workspaces" / "generated"
 SCENARIOS = ("Scn1", "Scn2", "Scn3", "Scn4", "Scn5", "Scn6")
 METHODS = ("refine_a", "gnss_ba", "gnss_sim3", "icp")
 # Unger chapter 6 (method.md 8): RMS 3D of check points, m.
@@ -45,9 +45,9 @@ def build_workspace(sequence: str, scenario: str) -> Path:
     from colmap_citymodel import simulate
 
     toml = ROOT / "workspaces" / f"{sequence}_{scenario.lower()}.toml"
-    out = CACHE / sequence / scenario
+    out = GENERATED / sequence / scenario
     if not (out / "sparse" / "0").is_dir():
-        simulate.main(toml, out, cache_path=CACHE / "sequences", overwrite=out.exists())
+        simulate.main(toml, out, cache_path=GENERATED / "cache", overwrite=out.exists())
     return out
 
 
@@ -163,6 +163,8 @@ def main() -> None:
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     args = parser.parse_args()
+    import colmap_citymodel  # noqa: F401  (sets up the package logger first)
+
     logging.getLogger("colmap_citymodel").setLevel(logging.WARNING)
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "scenarios.json"
