@@ -1,5 +1,8 @@
-"""Refine speed on a synthetic street of ~300 images and ~100k tie points (issue 3).
+"""Refine speed on a simulated flight mapped by COLMAP (issue 3).
 
+Default: the long sequence's Scn3 workspace (340 images, ~100k tie points, ~680k image
+observations; built by `colmap-citymodel simulate workspaces/long_scn3.toml ...` if missing);
+`--quick`: the short sequence's Scn3 (90 images, ~28k tie points), about 4x smaller.
 Measured in one run, all on copies of the same georegistered reconstruction:
 - plain_solve_s: one COLMAP bundle adjustment solve with GNSS priors and no model (the
   baseline a user already pays for);
@@ -9,7 +12,7 @@ Measured in one run, all on copies of the same georegistered reconstruction:
 Prints the figures and, last, the lines `plain_solve_s`, `hybrid_solve_s`, `hybrid_solve_ratio`,
 `assignment_fraction`, `refine_ratio` (targets: <= 1.2, <= 0.10, <= 4).
 
-    .venv/bin/python benchmarks/bench_refine.py [--quick]
+    .venv/bin/python benchmarks/bench_refine.py [--quick] [--workspace DIR]
 """
 
 from __future__ import annotations
@@ -17,6 +20,7 @@ from __future__ import annotations
 import argparse
 import logging
 import time
+from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -26,26 +30,41 @@ from colmap_citymodel.assign_planes import assign
 from colmap_citymodel.hybrid_adjustment import HybridProblem
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.workflow import georegister, refine, tie_points
-from colmap_citymodel.synthetic_scene import StreetSceneOptions, centre_errors, make_street_scene
+from colmap_citymodel.synthetic_scene import centre_errors
+
+
+def workspace_for(sequence: str) -> Path:
+    from colmap_citymodel import simulate
+
+    root = Path(__file__).resolve().parents[1] / "workspaces"
+    out = root / "generated" / sequence / "Scn3"
+    if not (out / "sparse" / "0").is_dir():
+        simulate.main(root / f"{sequence}_scn3.toml", out,
+                      cache_path=root / "generated" / "cache", overwrite=out.exists())
+    return out
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="a ~5x smaller scene")
+    parser.add_argument("--quick", action="store_true", help="the short sequence (~4x smaller)")
+    parser.add_argument("--workspace", type=Path, help="a simulated workspace to use instead")
     args = parser.parse_args()
     logger.setLevel(logging.WARNING)
-    # Three images per station: 100 stations = 300 images; ~100k tie points (quick: ~5x less).
-    stations = 20 if args.quick else 100
-    options = StreetSceneOptions(num_stations=stations, point_spacing=0.38, seed=3)
-    t = time.perf_counter()
-    scene = make_street_scene(options)
-    print(f"scene: {scene.sfm.num_reg_images()} images, {scene.sfm.num_points3D()} tie points, "
-          f"{scene.sfm.compute_num_observations()} image observations, "
-          f"{len(scene.store.faces)} model faces (built in {time.perf_counter() - t:.1f} s)")
-    refine_options = RefineOptions()
+    workspace = args.workspace or workspace_for("short" if args.quick else "long")
+    from colmap_citymodel.read_city_model import read_city_model
+    from colmap_citymodel.workflow import read_gnss, read_reconstruction
 
-    start = pycolmap.Reconstruction(scene.sfm)
-    _, priors, _ = georegister(start, scene.store, scene.gnss(), None)
+    store = read_city_model(workspace / "given_model.gml")
+    gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)
+    sfm = read_reconstruction(workspace / "sparse" / "0")
+    print(f"workspace {workspace}: {sfm.num_reg_images()} images, {sfm.num_points3D()} tie "
+          f"points, {sfm.compute_num_observations()} image observations, "
+          f"{len(store.faces)} model faces")
+    refine_options = RefineOptions()
+    refine_options.precision.covariances = "off"  # timed separately (precision.py)
+
+    start = pycolmap.Reconstruction(sfm)
+    _, priors, _ = georegister(start, store, gnss, None)
 
     plain_rec = pycolmap.Reconstruction(start)
     plain = HybridProblem(plain_rec, None, None, priors, refine_options.adjustment,
@@ -55,18 +74,19 @@ def main() -> None:
     hybrid_rec = pycolmap.Reconstruction(start)
     ids, xyz = tie_points(hybrid_rec)
     t = time.perf_counter()
-    assignment = assign(xyz, ids, scene.store, refine_options.assignment.max_threshold,
+    assignment = assign(xyz, ids, store, refine_options.assignment.max_threshold,
                         refine_options.assignment)
     first_assignment_s = time.perf_counter() - t
-    hybrid = HybridProblem(hybrid_rec, scene.store, assignment, priors,
+    hybrid = HybridProblem(hybrid_rec, store, assignment, priors,
                            refine_options.adjustment, robust_images=False, robust_planes=False)
     hybrid_report = hybrid.solve()
 
     t = time.perf_counter()
-    result = refine(scene.sfm, scene.store, scene.gnss(), refine_options, progress=False)
+    result = refine(sfm, store, gnss, refine_options, progress=False)
     refine_s = time.perf_counter() - t
     iterations = len(result.iterations)
-    error = float(np.sqrt(np.mean(centre_errors(result.reconstruction, scene.truth) ** 2)))
+    truth = pycolmap.Reconstruction(str(workspace / "truth"))
+    error = float(np.sqrt(np.mean(centre_errors(result.reconstruction, truth) ** 2)))
 
     print(f"plain solve: {plain_report.ceres_iterations} Ceres iterations, "
           f"{plain_report.count['image']} image residuals")
