@@ -10,7 +10,8 @@ Builds a synthetic city (>= 200 MB; `--quick` ~20 MB) by tiling the 35 real Berl
     parse_mb_per_s    file size / wall time of the streaming parse alone (read_citygml)
     parse_peak_rss_mb peak resident memory of that parse (RawCityModel) minus the memory before
     peak_rss_mb       peak resident memory during the read minus the resident memory before it
-    store_mb          nbytes of the store's numpy arrays + its faces' index arrays
+    store_mb          nbytes of the store's numpy arrays + its faces' arrays (rings, and the
+                      string columns: semantic/building/part codes, gml:id bytes + offsets)
     store_py_mb       the same plus the Python objects of the faces (Face, lists, id strings)
     peak_over_store   peak_rss_mb / store_mb   (target < 2)
     peak_over_store_py peak_rss_mb / store_py_mb
@@ -131,10 +132,14 @@ def store_nbytes(store) -> tuple[int, int]:
 
     if hasattr(faces, "ring_vertex"):  # flat ring arrays (FaceList)
         n += faces.ring_vertex.nbytes + faces.ring_ptr.nbytes + faces.face_ring.nbytes + faces.lod.nbytes
-        py = n + sys.getsizeof(faces)
+        py = sys.getsizeof(faces)
         for values in (faces.semantic, faces.building_id, faces.part_id, faces.gml_id):
-            py += sys.getsizeof(values) + strings(values)
-        return n, py
+            if isinstance(values, list):  # per-face str objects in a list
+                py += sys.getsizeof(values) + strings(values)
+            else:  # string columns: codes / UTF-8 bytes + offsets (arrays), distinct strings
+                n += values.nbytes()
+                py += sys.getsizeof(values) + strings(getattr(values, "categories", ()))
+        return n, n + py
     py = n  # a list of Face objects with their own index arrays
     for face in faces:
         n += face.exterior.nbytes + sum(h.nbytes for h in face.holes)

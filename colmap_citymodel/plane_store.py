@@ -19,11 +19,13 @@ All tolerances live in `Tolerances` below.
 
 from __future__ import annotations
 
-import itertools
+import ctypes
+import functools
 import logging
 import math
 import operator
-from collections import Counter
+import platform
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
@@ -32,7 +34,14 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonTable
+from .raw_model import (
+    CodedStrings,
+    CRSInfo,
+    PackedStrings,
+    RawCityModel,
+    RawPolygon,
+    RawPolygonTable,
+)
 
 logger = logging.getLogger("colmap_citymodel.plane_store")
 
@@ -99,18 +108,56 @@ class Face:
     lod: int
 
 
-def _compact_rows(a: np.ndarray, keep: np.ndarray, step: int = 1 << 16) -> np.ndarray:
-    """a[keep] for increasing `keep`, written over `a` itself (which must own its memory and
-    have no views) and shrunk in place, so no second full-size array exists."""
-    m = len(keep)
+@functools.lru_cache(maxsize=1)
+def _malloc_trim():
+    """glibc's malloc_trim(pad) (None on other platforms and C libraries)."""
+    if sys.platform != "linux" or platform.libc_ver()[0] != "glibc":
+        return None
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
+    trim.argtypes = [ctypes.c_size_t]
+    trim.restype = ctypes.c_int
+    return trim
+
+
+def release_free_memory() -> None:
+    """Hand memory that was freed but is still held by the C allocator back to the system.
+
+    glibc keeps freed heap memory (and, after freeing a large array, serves later arrays from
+    the heap instead of fresh mappings), so a big read's resident memory would keep the sum of
+    its phases' high-water marks; build_store calls this between its phases (a few ms each)."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+def _compress_rows(a: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """a[mask] (bool mask) written over `a` itself (which must own its memory and have no
+    views) and shrunk in place, in chunks of ~2 MB: no index array, no second full array."""
     if not (a.flags.owndata and a.flags.c_contiguous and a.flags.writeable):
-        return a[keep]
-    # keep[j] >= j: writing rows j (in increasing chunks) never overwrites a row still to read
-    for j in range(0, m, step):
-        k = min(m, j + step)
-        a[j:k] = a[keep[j:k]]
-    a.resize((m,) + a.shape[1:], refcheck=False)
+        return a[mask]
+    step = max(1024, (1 << 21) // max(1, a[:1].nbytes))
+    w = 0
+    for r in range(0, len(a), step):
+        piece = a[r:r + step][mask[r:r + step]]  # a copy: safe to write at w <= r
+        a[w:w + len(piece)] = piece
+        w += len(piece)
+    a.resize((w,) + a.shape[1:], refcheck=False)
     return a
+
+
+def _gather_segments(values: np.ndarray, starts: np.ndarray, lengths: np.ndarray,
+                     step: int = 1 << 16) -> np.ndarray:
+    """values[concatenated segments [starts[i], starts[i] + lengths[i])], in chunks of
+    segments (no index array of the full result)."""
+    ptr = _ptr(lengths)
+    out = np.empty(int(ptr[-1]), dtype=values.dtype)
+    for a in range(0, len(starts), step):
+        b = min(len(starts), a + step)
+        out[ptr[a]:ptr[b]] = values[_segment_gather(starts[a:b], lengths[a:b])]
+    return out
 
 
 def _segment_gather(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
@@ -120,21 +167,6 @@ def _segment_gather(starts: np.ndarray, lengths: np.ndarray) -> np.ndarray:
         return np.zeros(0, np.int64)
     offs = np.cumsum(lengths) - lengths
     return np.arange(total, dtype=np.int64) + np.repeat(starts - offs, lengths)
-
-
-def _pick(values: list, idx: np.ndarray) -> list:
-    """values[i] for i in idx (a C-level gather; idx sorted or not)."""
-    if len(idx) == len(values) and np.array_equal(idx, np.arange(len(idx))):
-        return list(values)
-    if len(idx) == 0:
-        return []
-    if len(idx) == 1:
-        return [values[int(idx[0])]]
-    if np.all(idx[1:] > idx[:-1]):  # increasing: no intermediate tuple
-        mask = np.zeros(len(values), dtype=bool)
-        mask[idx] = True
-        return list(itertools.compress(values, mask.tolist()))
-    return list(operator.itemgetter(*idx.tolist())(values))
 
 
 def _ptr(counts: np.ndarray) -> np.ndarray:
@@ -149,8 +181,10 @@ class FaceList(Sequence):
     ring_vertex (K,) int64 vertex ids of all rings; ring_ptr (R+1,) ring r is
     ring_vertex[ring_ptr[r]:ring_ptr[r+1]]; face_ring (F+1,) face f owns rings
     face_ring[f]:face_ring[f+1], the first is its exterior, the others its holes. Per-face
-    attributes are plain lists (strings shared with the reader's output) and an int16 lod array.
-    A 250k-face city costs ~60 bytes per face here instead of ~600 for Face objects.
+    attributes read like lists of str: semantic, building_id, part_id are CodedStrings (int32
+    codes + the distinct strings), gml_id is PackedStrings (UTF-8 bytes + int64 offsets); lists
+    given to the constructor are converted; lod is an int16 array. A 250k-face city costs
+    ~60 bytes per face here instead of ~600 for Face objects.
     """
 
     __slots__ = ("ring_vertex", "ring_ptr", "face_ring", "semantic", "building_id", "part_id",
@@ -161,16 +195,16 @@ class FaceList(Sequence):
         self.ring_vertex = np.asarray(ring_vertex, dtype=np.int64)
         self.ring_ptr = np.asarray(ring_ptr, dtype=np.int64)
         self.face_ring = np.asarray(face_ring, dtype=np.int64)
-        self.semantic = list(semantic)
-        self.building_id = list(building_id)
-        self.part_id = list(part_id)
-        self.gml_id = list(gml_id)
+        self.semantic = CodedStrings.from_values(semantic)
+        self.building_id = CodedStrings.from_values(building_id)
+        self.part_id = CodedStrings.from_values(part_id)
+        self.gml_id = PackedStrings.from_values(gml_id)
         self.lod = np.asarray(lod, dtype=np.int16)
 
     @classmethod
     def _own(cls, ring_vertex, ring_ptr, face_ring, semantic, building_id, part_id, gml_id,
              lod) -> FaceList:
-        """A FaceList that takes the given arrays and (new) lists as they are, without copies."""
+        """A FaceList that takes the given arrays and columns as they are, without copies."""
         fl = cls.__new__(cls)
         fl.ring_vertex, fl.ring_ptr, fl.face_ring = ring_vertex, ring_ptr, face_ring
         fl.semantic, fl.building_id, fl.part_id, fl.gml_id = semantic, building_id, part_id, gml_id
@@ -252,8 +286,8 @@ class FaceList(Sequence):
         entries = _segment_gather(self.ring_ptr[rings], rlen)
         return FaceList(
             self.ring_vertex[entries], _ptr(rlen), _ptr(nr),
-            _pick(self.semantic, sel), _pick(self.building_id, sel),
-            _pick(self.part_id, sel), _pick(self.gml_id, sel), self.lod[sel],
+            self.semantic.take(sel), self.building_id.take(sel),
+            self.part_id.take(sel), self.gml_id.take(sel), self.lod[sel],
         )
 
     def compress(self, keep: np.ndarray) -> FaceList:
@@ -262,16 +296,15 @@ class FaceList(Sequence):
         nr = np.diff(self.face_ring)
         ring_keep = np.repeat(keep, nr)
         rlen = np.diff(self.ring_ptr)
-        entries = np.flatnonzero(np.repeat(ring_keep, rlen))
-        ring_vertex = _compact_rows(self.ring_vertex, entries)  # self's rings are gone after
-        del entries
-        mask = keep.tolist()
+        entry_keep = np.repeat(ring_keep, rlen)
+        ring_vertex = _compress_rows(self.ring_vertex, entry_keep)  # self's rings are gone after
+        del entry_keep
         return FaceList._own(
             ring_vertex, _ptr(rlen[ring_keep]), _ptr(nr[keep]),
-            list(itertools.compress(self.semantic, mask)),
-            list(itertools.compress(self.building_id, mask)),
-            list(itertools.compress(self.part_id, mask)),
-            list(itertools.compress(self.gml_id, mask)), self.lod[keep],
+            CodedStrings(_compress_rows(self.semantic.codes, keep), self.semantic.categories),
+            CodedStrings(_compress_rows(self.building_id.codes, keep), self.building_id.categories),
+            CodedStrings(_compress_rows(self.part_id.codes, keep), self.part_id.categories),
+            self.gml_id.compress_owned(keep), self.lod[keep],
         )
 
     def with_ring_vertex(self, ring_vertex: np.ndarray) -> FaceList:
@@ -279,9 +312,10 @@ class FaceList(Sequence):
                         self.building_id, self.part_id, self.gml_id, self.lod)
 
     def nbytes(self) -> int:
-        """Bytes of the arrays plus the list slots (not the shared strings)."""
+        """Bytes of all arrays (rings, string columns' codes/bytes/offsets, lod)."""
         return (self.ring_vertex.nbytes + self.ring_ptr.nbytes + self.face_ring.nbytes
-                + self.lod.nbytes + 8 * 4 * len(self))
+                + self.lod.nbytes + self.semantic.nbytes() + self.building_id.nbytes()
+                + self.part_id.nbytes() + self.gml_id.nbytes())
 
 
 # ----------------------------------------------------------------------------------------------
@@ -333,7 +367,8 @@ def _face_unique_vertices(faces) -> tuple[np.ndarray, np.ndarray]:
     return _unique_per_group(fl.entry_face(), ids, F, n)
 
 
-def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 8192) -> dict[str, np.ndarray]:
+def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 8192,
+                    extras: bool = True) -> dict[str, np.ndarray]:
     """Planes of all faces (eq. 2-4), vectorised, in chunks of faces to bound temporaries.
 
     P0 = centroid of the face's distinct vertices (Unger: "all vertices that belong to a
@@ -341,14 +376,18 @@ def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 8192) -> dic
     by eigenvalue descending (eq. 4), column 2 = normal. The normal sign follows the Newell
     vector of the exterior ring (outward for counter-clockwise-from-outside rings); column 1 is
     flipped if needed so that det(R) = +1.
+
+    Returns centroids, rotations, areas, rms and eigvals (F,3); with extras also newell_area
+    and num_distinct (not needed by build_store: less memory without them).
     """
     fl = FaceList.from_faces(faces)
     F = len(fl)
     out = dict(
         centroids=np.zeros((F, 3)), rotations=np.zeros((F, 3, 3)), areas=np.zeros(F),
-        rms=np.zeros(F), eigvals=np.zeros((F, 3)), newell_area=np.zeros(F),
-        num_distinct=np.zeros(F, np.int64),
+        rms=np.zeros(F), eigvals=np.zeros((F, 3)),
     )
+    if extras:
+        out.update(newell_area=np.zeros(F), num_distinct=np.zeros(F, np.int64))
     n = len(vertices) or 1
     for f0 in range(0, F, chunk_faces):
         f1 = min(F, f0 + chunk_faces)
@@ -420,18 +459,21 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     out["areas"][sl] = areas
     out["rms"][sl] = rms
     out["eigvals"][sl] = np.clip(eigvals, 0.0, None)
-    out["newell_area"][sl] = np.linalg.norm(ext_vec, axis=1)
-    out["num_distinct"][sl] = counts
+    if "newell_area" in out:
+        out["newell_area"][sl] = np.linalg.norm(ext_vec, axis=1)
+        out["num_distinct"][sl] = counts
 
 
-def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _exact_duplicates(owned: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Distinct points in lexicographic order: (uniq (U,3), inverse (N,) into uniq, first (U,)
-    the smallest input index of each).
+    the smallest input index of each). The points come in a one-element list and are dropped
+    from it (freed, when the caller holds no other reference) once the distinct ones are copied.
 
     Equal points are found by sorting a 64-bit hash of their coordinates (one key, one int64
     order array: less memory and time than a 3-key lexsort of all points); only the distinct
     points are sorted lexicographically. A hash collision between different points falls back
     to the lexsort."""
+    points = owned[0]
     N = len(points)
     step = 1 << 18
     h = np.empty(N, dtype=np.uint64)
@@ -465,6 +507,8 @@ def _exact_duplicates(points: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nd
     del order, new
     # number the distinct points in lexicographic order (ties: input order), as the lexsort did
     uniq = points[first]
+    owned.clear()
+    del points
     perm = np.lexsort((first, uniq[:, 2], uniq[:, 1], uniq[:, 0]))
     uniq, first = uniq[perm], first[perm]
     label = np.empty(len(perm), dtype=np.int64)
@@ -510,13 +554,14 @@ def merge_vertices(
 def _merge_vertices(owned: list, tolerance: float, slack: float):
     """merge_vertices on [points] handed over in a list: the points are dropped from it (and
     freed, when the caller kept no reference) as soon as the exact duplicates are known."""
-    points = np.ascontiguousarray(owned.pop(), dtype=np.float64)
-    if len(points) == 0:
+    owned[0] = np.ascontiguousarray(owned[0], dtype=np.float64)
+    N = len(owned[0])
+    if N == 0:
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
-    N = len(points)
-    # exact duplicates first (most points are corners shared by several rings)
-    uniq, inverse, first = _exact_duplicates(points)
-    del points
+    # exact duplicates first (most points are corners shared by several rings); the points are
+    # released in there as soon as the distinct ones are known
+    uniq, inverse, first = _exact_duplicates(owned)
+    owned.clear()
     if tolerance > 0 and len(uniq) > 1:
         pairs = cKDTree(uniq).query_pairs(tolerance + slack, output_type="ndarray")
     else:
@@ -884,7 +929,7 @@ class PlaneStore:
         remap = np.full(len(self.vertices), -1, dtype=np.int64)
         remap[used] = np.arange(len(used))
         faces = faces.with_ring_vertex(remap[faces.ring_vertex])
-        buildings = set(faces.building_id)
+        buildings = faces.building_id.unique()
         parts = {(b, p) for b, p in zip(faces.building_id, faces.part_id) if p}
         return replace(
             self,
@@ -903,7 +948,7 @@ class PlaneStore:
 
     def summary(self) -> dict:
         """Plain-data summary for `model-info` (JSON-serialisable)."""
-        by_class = Counter(self.faces.semantic)
+        by_class = self.faces.semantic.counts()
         num_holes = self.faces.num_holes
         return {
             "format": self.format,
@@ -986,14 +1031,15 @@ def _ring_hashes_chunk(ids: np.ndarray, ptr: np.ndarray) -> np.ndarray:
 
 
 def _dedupe_faces(
-    raw_semantic: list[str], valid: np.ndarray, ext_hash: np.ndarray, hole_hash_sum: np.ndarray,
-    gml_ids: list[str], semantic: list[str], ring_lists,
-) -> tuple[np.ndarray, int]:
+    raw_semantic: CodedStrings, valid: np.ndarray, ext_hash: np.ndarray,
+    hole_hash_sum: np.ndarray, gml_ids: PackedStrings, semantic: CodedStrings, ring_lists,
+) -> tuple[np.ndarray, int, dict[int, str]]:
     """Which valid polygons become faces: a polygon whose gml:id or rings (up to the starting
     vertex; holes as a set) equal an earlier face's is merged into it (semantic class and id
     completed from the duplicate). Candidates come from hashes; the exact comparison (the
     original tuple keys) runs only on the few polygons that share a hash or an id.
-    Returns (is_face bool (n,), number of duplicates); `semantic`/`gml_ids` updated in place."""
+    Returns (is_face bool (n,), number of duplicates, {row: gml id completed from a
+    duplicate}); `semantic` is updated in place."""
     n = len(raw_semantic)
     is_face = valid.copy()
     key = _splitmix(ext_hash) + hole_hash_sum  # wraps
@@ -1008,12 +1054,9 @@ def _dedupe_faces(
         hit[1:] |= same
         hit[:-1] |= same
         cand[vidx[order[hit]]] = True
-    if len(set(gml_ids)) < n:
-        counts = Counter(gml_ids)
-        repeated = {g for g, c in counts.items() if c > 1 and g}
-        if repeated:
-            cand |= np.fromiter((g in repeated for g in gml_ids), bool, n)
+    cand |= gml_ids.repeated_candidates()  # a superset of the rows whose id repeats
     cand &= valid
+    filled: dict[int, str] = {}
     duplicates = 0
     seen: dict = {}
     for i in np.flatnonzero(cand).tolist():
@@ -1030,15 +1073,15 @@ def _dedupe_faces(
             # the thematic surface knows the class; the solid only references the polygon
             if semantic[prev] in ("", "Unknown") and sem not in ("", "Unknown"):
                 semantic[prev] = sem
-            if not gml_ids[prev] and gid:
-                gml_ids[prev] = gid
+            if gid and not filled.get(prev, gml_ids[prev]):
+                filled[prev] = gid
             if gid:
                 seen[("id", gid)] = prev
             continue
         seen[key_ring] = i
         if gid:
             seen[("id", gid)] = i
-    return is_face, duplicates
+    return is_face, duplicates, filled
 
 
 def build_store(
@@ -1080,30 +1123,43 @@ def build_store(
         origin = np.asarray(origin, dtype=np.float64)
     # release_raw: the raw coordinates are gone once they are copied to the local frame
     owned = [table.points_exteriors_first(origin, release=release_raw)]
+    table.drop_cached_pointers()
+    large = len(owned[0]) >= 1 << 17  # worth returning freed memory between the phases
+    if large:
+        release_free_memory()  # the parser's and the raw coordinates' memory
     merged, index, extent = _merge_vertices(owned, tol.merge, tol.merge_slack)
+    if large:
+        release_free_memory()
     if extent > tol.chain_warning:
         warnings.append(
             f"vertex merging (tolerance {tol.merge * 1000:.1f} mm) chained points up to "
             f"{extent * 1000:.1f} mm apart into one vertex"
         )
 
-    # ring vertex ids, consecutive repeats (and the closing point) removed
-    ring_of = np.repeat(np.arange(R), lengths)
-    prev = np.arange(len(index)) - 1
+    # ring vertex ids, consecutive repeats (and the closing point) removed: an id is kept when
+    # it differs from the previous one of its ring (cyclically)
     starts = np.cumsum(lengths) - lengths
     nonempty = lengths > 0
-    prev[starts[nonempty]] = (starts + lengths - 1)[nonempty]
-    keep = index != index[prev] if len(index) else np.zeros(0, bool)
-    del prev
-    ids = index[keep]
-    ring_of = ring_of[keep]
+    s0 = starts[nonempty]
+    keep = np.empty(len(index), dtype=bool)
+    rlen = np.zeros(R, np.int64)
+    if len(index):
+        np.not_equal(index[1:], index[:-1], out=keep[1:])
+        keep[s0] = index[s0] != index[(starts + lengths - 1)[nonempty]]
+        rlen[nonempty] = np.add.reduceat(keep, s0, dtype=np.int64)
+    del s0, starts, nonempty
+    ids = _compress_rows(index, keep)  # in place: index is gone
     del index, keep
-    rlen = np.bincount(ring_of, minlength=R)
     rptr = _ptr(rlen)
     # >= 3 distinct ids: (no consecutive repeats left) some id differs from the first two
     first = ids[np.minimum(rptr[:-1], max(len(ids) - 1, 0))] if len(ids) else np.zeros(R, np.int64)
     second = ids[np.minimum(rptr[:-1] + 1, max(len(ids) - 1, 0))] if len(ids) else first
-    other = (ids != first[ring_of]) & (ids != second[ring_of])
+    ring_of = np.repeat(np.arange(R, dtype=np.int32 if R < 2**31 else np.int64), rlen)
+    other = np.empty(len(ids), dtype=bool)
+    for a in range(0, len(ids), 1 << 18):  # in chunks: no (K,) int64 temporaries
+        r, v = ring_of[a:a + (1 << 18)], ids[a:a + (1 << 18)]
+        np.logical_and(v != first[r], v != second[r], out=other[a:a + (1 << 18)])
+        del r, v  # views: would keep ids alive after its del below
     ring_ok = (rlen >= 3) & (np.bincount(ring_of, other, R) > 0)
     del other, ring_of, first, second
     rs, rl = rptr[:-1], rlen  # ring r is ids[rs[r]:rs[r] + rl[r]]
@@ -1124,11 +1180,10 @@ def build_store(
     if len(hole_owner):
         hh = np.where(hole_ok, _splitmix(ring_hash[n:] ^ np.uint64(0x5BD1E995)), np.uint64(0))
         np.add.at(hole_sum, hole_owner, hh)
-    gml_ids = list(table.gml_id)  # completed in place by the de-duplication
+    gml_ids = table.gml_id
     building_ids, part_ids = table.building_id, table.part_id
-    semantic = table.semantic
-    raw_semantic = semantic
-    semantic = [s or "Unknown" for s in raw_semantic]
+    raw_semantic = table.semantic
+    semantic = raw_semantic.normalized({"": "Unknown"})  # completed by the de-duplication
     hole_first = np.cumsum(num_holes) - num_holes + n
 
     def ring_lists(i: int):
@@ -1137,7 +1192,7 @@ def build_store(
               for r in range(hole_first[i], hole_first[i] + num_holes[i]) if ring_ok[r]]
         return ext, hs
 
-    is_face, duplicates = _dedupe_faces(
+    is_face, duplicates, filled = _dedupe_faces(
         raw_semantic, valid, ring_hash[:n], hole_sum, gml_ids, semantic, ring_lists
     )
     if duplicates:
@@ -1151,35 +1206,46 @@ def build_store(
     face_rings = np.concatenate([src, hole_rings])
     owner = np.concatenate([src, hole_owner[hole_rings - n]])
     face_rings = face_rings[np.argsort(owner, kind="stable")]
-    entries = _segment_gather(rs[face_rings], rl[face_rings])
+    del owner
+    if len(face_rings) == R and np.array_equal(face_rings, np.arange(R)):
+        ring_vertex = ids  # every ring in place (no holes, nothing dropped)
+    else:
+        ring_vertex = _gather_segments(ids, rs[face_rings], rl[face_rings])
+    del ids, ring_lists
+    face_ptr = _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src])
     faces = FaceList._own(
-        ids[entries],
+        ring_vertex,
         _ptr(rl[face_rings]),
-        _ptr(1 + np.bincount(hole_owner[hole_rings - n], minlength=n)[src]),
-        _pick(semantic, src),
-        _pick(building_ids, src),
-        _pick(part_ids, src),
-        _pick(gml_ids, src),
+        face_ptr,
+        semantic.take(is_face),
+        building_ids.take(is_face),
+        part_ids.take(is_face),
+        gml_ids.take(is_face).replaced(
+            {int(np.searchsorted(src, row)): gid for row, gid in filled.items()}
+        ),
         table.lod[src],
     )
-    del entries, ids, semantic, gml_ids, building_ids, part_ids, table, ring_lists, raw_semantic
-    del rs, rl, ring_ok, ring_hash, hole_sum, valid, is_face, src, hole_rings, face_rings, owner
+    del ring_vertex, semantic, gml_ids, building_ids, part_ids, table, raw_semantic
+    del rs, rl, ring_ok, ring_hash, hole_sum, valid, is_face, src, hole_rings, face_rings
 
-    planes = _compute_planes(merged, faces)
+    if large:
+        release_free_memory()
+    planes = _compute_planes(merged, faces, extras=False)
     degenerate = (planes["areas"] < tol.min_area) | (
         np.sqrt(planes["eigvals"][:, 1]) < tol.collinear
     )
-    for k in ("eigvals", "newell_area", "num_distinct"):  # not kept: free before copying
-        del planes[k]
+    del planes["eigvals"]  # not kept: free before copying
     if degenerate.any():
         dropped += int(degenerate.sum())
-        keep = np.flatnonzero(~degenerate)
-        faces = faces.compress(~degenerate)
+        keep = ~degenerate
+        faces = faces.compress(keep)
         for k in list(planes):  # compacted in place: no second copy of the plane arrays
-            planes[k] = _compact_rows(planes[k], keep)
+            planes[k] = _compress_rows(planes[k], keep)
     if dropped:
         warnings.append(f"{dropped} degenerate faces dropped (< 3 vertices, tiny area, collinear)")
 
+    if large:
+        release_free_memory()
     # drop vertices no face uses any more and re-index
     used = np.flatnonzero(np.bincount(faces.ring_vertex, minlength=len(merged)))
     remap = np.full(len(merged), -1, dtype=np.int64)
@@ -1197,10 +1263,8 @@ def build_store(
         warnings.append(
             f"{int(nonplanar.sum())} non-planar faces (RMS out-of-plane > {tol.nonplanar} m) kept"
         )
-    parts = set(raw.part_ids) | set(faces.part_id)
-    buildings = set(raw.building_ids) | {
-        b for b, p in zip(faces.building_id, faces.part_id) if not p
-    }
+    parts = set(raw.part_ids) | faces.part_id.unique()
+    buildings = set(raw.building_ids) | faces.building_id.take(faces.part_id.mask("")).unique()
     store = PlaneStore(
         origin=origin,
         crs=raw.crs,
@@ -1234,8 +1298,8 @@ def _orient_by_semantics(planes: dict, faces: FaceList, warnings: list[str]) -> 
     if not F:
         return
     nz = planes["rotations"][:, 2, 2]
-    roof = np.fromiter(map("RoofSurface".__eq__, faces.semantic), bool, F)
-    ground = np.fromiter(map("GroundSurface".__eq__, faces.semantic), bool, F)
+    roof = faces.semantic.mask("RoofSurface")
+    ground = faces.semantic.mask("GroundSurface")
     flip = (roof & (nz < -0.1)) | (ground & (nz > 0.1))
     if flip.any():
         R = planes["rotations"]

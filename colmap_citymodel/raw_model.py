@@ -71,6 +71,297 @@ def _ptr(counts: np.ndarray) -> np.ndarray:
     return ptr
 
 
+class _Lookup(dict):
+    """str -> code, a new code for a new string (insertion order = code order)."""
+
+    __slots__ = ()
+
+    def __missing__(self, key: str) -> int:
+        code = self[key] = len(self)
+        return code
+
+
+_ROWS = 1 << 16  # rows per chunk when a column is iterated or gathered
+
+
+class CodedStrings(Sequence):
+    """A column of strings with few distinct values (semantic class, building and part id),
+    behaving like a list of str: int32 codes into a list of categories.
+
+    codes (N,) int32; categories: list of str (a string may appear twice after concatenation
+    or assignment; compare strings, not codes, across columns). `column[i] = value` is
+    supported (a few rows: readers completing a semantic class)."""
+
+    __slots__ = ("codes", "categories", "_lookup")
+
+    def __init__(self, codes, categories):
+        self.codes = np.asarray(codes, dtype=np.int32)
+        self.categories = list(categories)
+        self._lookup = None
+
+    @classmethod
+    def from_values(cls, values) -> CodedStrings:
+        if isinstance(values, CodedStrings):
+            return values
+        lookup = _Lookup()
+        codes = np.fromiter(map(lookup.__getitem__, values), np.int32)
+        return cls(codes, list(lookup))
+
+    @classmethod
+    def concatenate(cls, columns: list) -> CodedStrings:
+        columns = [cls.from_values(c) for c in columns]
+        if len(columns) == 1:
+            return columns[0]
+        lookup = _Lookup()
+        parts = []
+        for c in columns:
+            remap = np.fromiter(map(lookup.__getitem__, c.categories), np.int32, len(c.categories))
+            parts.append(remap[c.codes] if len(c.codes) else c.codes)
+        codes = np.concatenate(parts) if parts else np.zeros(0, np.int32)
+        return cls(codes, list(lookup))
+
+    def code(self, value: str) -> int:
+        """The code of `value` (a new category when it has none)."""
+        if self._lookup is None:  # first occurrence of each value
+            self._lookup = {c: i for i, c in reversed(list(enumerate(self.categories)))}
+        code = self._lookup.get(value)
+        if code is None:
+            code = self._lookup[value] = len(self.categories)
+            self.categories.append(value)
+        return code
+
+    def __len__(self) -> int:
+        return len(self.codes)
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return list(map(self.categories.__getitem__, self.codes[i].tolist()))
+        return self.categories[self.codes[i]]
+
+    def __setitem__(self, i, value: str) -> None:
+        self.codes[operator.index(i)] = self.code(value)
+
+    def __iter__(self):
+        cats = self.categories.__getitem__
+        for a in range(0, len(self.codes), _ROWS):
+            yield from map(cats, self.codes[a:a + _ROWS].tolist())
+
+    def __repr__(self) -> str:
+        return f"CodedStrings({len(self)} rows, {len(self.categories)} categories)"
+
+    def tolist(self) -> list[str]:
+        return list(self)
+
+    def take(self, sel) -> CodedStrings:
+        """Rows `sel` (indices or a bool mask)."""
+        return CodedStrings(self.codes[sel], list(self.categories))
+
+    def mask(self, value: str) -> np.ndarray:
+        """(N,) bool: rows equal to `value`."""
+        hits = [k for k, c in enumerate(self.categories) if c == value]
+        if not hits:
+            return np.zeros(len(self.codes), dtype=bool)
+        if len(hits) == 1:
+            return self.codes == hits[0]
+        return np.isin(self.codes, hits)
+
+    def counts(self) -> dict[str, int]:
+        """{value: number of rows} over the values that occur."""
+        out: dict[str, int] = {}
+        for k, n in enumerate(np.bincount(self.codes, minlength=len(self.categories)).tolist()):
+            if n:
+                out[self.categories[k]] = out.get(self.categories[k], 0) + n
+        return out
+
+    def unique(self) -> set[str]:
+        """The distinct values that occur."""
+        return set(self.counts())
+
+    def normalized(self, mapping: dict[str, str]) -> CodedStrings:
+        """A copy with values renamed by `mapping` (others kept) and equal values merged."""
+        lookup = _Lookup()
+        remap = np.fromiter((lookup[mapping.get(c, c)] for c in self.categories), np.int32,
+                            len(self.categories))
+        codes = remap[self.codes] if len(self.codes) else self.codes.copy()
+        return CodedStrings(codes, list(lookup))
+
+    def nbytes(self) -> int:
+        return self.codes.nbytes
+
+
+class PackedStrings(Sequence):
+    """A column of (mostly distinct) strings, the gml:ids, behaving like a read-only list of
+    str: all UTF-8 bytes in one uint8 array and (N+1,) int64 offsets. A 250k-row column of
+    20-character ids costs ~7 MB here instead of ~22 MB as str objects in a list."""
+
+    __slots__ = ("data", "offsets")
+
+    def __init__(self, data, offsets):
+        self.data = np.asarray(data, dtype=np.uint8)
+        self.offsets = np.asarray(offsets, dtype=np.int64)
+
+    @staticmethod
+    def _encode(values: list[str]) -> tuple[bytes, np.ndarray]:
+        joined = "".join(values).encode("utf-8")
+        n = len(values)
+        lengths = np.fromiter(map(len, values), np.int64, n)
+        if len(joined) != int(lengths.sum()):  # not all ASCII: byte lengths per string
+            lengths = np.fromiter((len(v.encode("utf-8")) for v in values), np.int64, n)
+        return joined, lengths
+
+    @classmethod
+    def from_values(cls, values) -> PackedStrings:
+        if isinstance(values, PackedStrings):
+            return values
+        values = list(values)
+        joined, lengths = cls._encode(values)
+        return cls(np.frombuffer(joined, np.uint8).copy(), _ptr(lengths))
+
+    @classmethod
+    def concatenate(cls, columns: list) -> PackedStrings:
+        columns = [cls.from_values(c) for c in columns]
+        if len(columns) == 1:
+            return columns[0]
+        lengths = [np.diff(c.offsets) for c in columns]
+        return cls(
+            np.concatenate([c.data for c in columns]) if columns else np.zeros(0, np.uint8),
+            _ptr(np.concatenate(lengths) if lengths else np.zeros(0, np.int64)),
+        )
+
+    def __len__(self) -> int:
+        return len(self.offsets) - 1
+
+    def __getitem__(self, i):
+        if isinstance(i, slice):
+            return [self[k] for k in range(*i.indices(len(self)))]
+        i = operator.index(i)
+        n = len(self)
+        if i < 0:
+            i += n
+        if not 0 <= i < n:
+            raise IndexError("string index out of range")
+        return self.data[self.offsets[i]:self.offsets[i + 1]].tobytes().decode("utf-8")
+
+    def __iter__(self):
+        o = self.offsets
+        for a in range(0, len(self), _ROWS):
+            b = min(len(self), a + _ROWS)
+            buf = self.data[o[a]:o[b]].tobytes()
+            offs = (o[a:b + 1] - o[a]).tolist()
+            for k in range(b - a):
+                yield buf[offs[k]:offs[k + 1]].decode("utf-8")
+
+    def __repr__(self) -> str:
+        return f"PackedStrings({len(self)} rows, {len(self.data)} bytes)"
+
+    def tolist(self) -> list[str]:
+        return list(self)
+
+    def take(self, sel) -> PackedStrings:
+        """Rows `sel` (indices or a bool mask), in that order."""
+        sel = np.asarray(sel)
+        lengths = np.diff(self.offsets)
+        if sel.dtype == bool:
+            ptr = _ptr(lengths[sel])
+            data = np.empty(int(ptr[-1]), np.uint8)
+            o, k = self.offsets, 0
+            for a in range(0, len(self), _ROWS):  # byte masks of a chunk of rows at a time
+                b = min(len(self), a + _ROWS)
+                piece = self.data[o[a]:o[b]][np.repeat(sel[a:b], lengths[a:b])]
+                data[k:k + len(piece)] = piece
+                k += len(piece)
+            return PackedStrings(data, ptr)
+        sel = sel.astype(np.int64, copy=False)
+        if len(sel) and np.all(sel[1:] > sel[:-1]):  # increasing: a byte mask, no index array
+            mask = np.zeros(len(self), dtype=bool)
+            mask[sel] = True
+            return self.take(mask)
+        new_len = lengths[sel]
+        ptr = _ptr(new_len)
+        data = np.empty(int(ptr[-1]), np.uint8)
+        for a in range(0, len(sel), _ROWS // 4):  # bounded index temporaries
+            b = min(len(sel), a + _ROWS // 4)
+            data[ptr[a]:ptr[b]] = self.data[_segment_gather(self.offsets[sel[a:b]], new_len[a:b])]
+        return PackedStrings(data, ptr)
+
+    def compress_owned(self, keep: np.ndarray) -> PackedStrings:
+        """The rows where `keep` (bool) is True, written over this column's own arrays (for
+        an owner about to drop this column: it is unusable afterwards)."""
+        data, offsets = self.data, self.offsets
+        if not (data.flags.owndata and offsets.flags.owndata and data.flags.writeable
+                and offsets.flags.writeable):
+            return self.take(keep)
+        w = 0
+        for a in range(0, len(self), _ROWS):  # bytes: w never passes the read position
+            b = min(len(self), a + _ROWS)
+            lengths = offsets[a + 1:b + 1] - offsets[a:b]
+            piece = data[offsets[a]:offsets[b]][np.repeat(keep[a:b], lengths)]
+            data[w:w + len(piece)] = piece
+            w += len(piece)
+        lengths = np.diff(offsets)[keep]
+        offsets[0] = 0
+        np.cumsum(lengths, out=offsets[1:len(lengths) + 1])
+        del lengths
+        offsets.resize(int(np.count_nonzero(keep)) + 1, refcheck=False)
+        data.resize(w, refcheck=False)
+        self.data = self.offsets = np.zeros(0, np.uint8)
+        return PackedStrings(data, offsets)
+
+    def replaced(self, values: dict[int, str]) -> PackedStrings:
+        """A copy with the rows in `values` set to new strings."""
+        if not values:
+            return self
+        rows = self.tolist()
+        for i, v in values.items():
+            rows[i] = v
+        return PackedStrings.from_values(rows)
+
+    def repeated_candidates(self) -> np.ndarray:
+        """(N,) bool: non-empty strings whose 64-bit hash another non-empty row shares (every
+        string that occurs twice is among them; a hash collision adds a false candidate)."""
+        n = len(self)
+        lengths = np.diff(self.offsets)
+        out = np.zeros(n, dtype=bool)
+        nonempty = np.flatnonzero(lengths > 0)
+        if len(nonempty) < 2:
+            return out
+        # Python's bytes hash (salted per process: only which rows share one matters), one
+        # short-lived bytes object at a time, in chunks of rows
+        h = np.empty(len(nonempty), dtype=np.int64)
+        for a in range(0, len(nonempty), _ROWS):
+            sel = nonempty[a:a + _ROWS]
+            o0 = int(self.offsets[sel[0]])
+            buf = self.data[o0:int(self.offsets[sel[-1] + 1])].tobytes()
+            starts = (self.offsets[sel] - o0).tolist()
+            ends = (self.offsets[sel + 1] - o0).tolist()
+            pieces = map(buf.__getitem__, map(slice, starts, ends))
+            h[a:a + len(sel)] = np.fromiter(map(hash, pieces), np.int64, len(sel))
+        order = np.argsort(h)
+        hs = h[order]
+        same = hs[1:] == hs[:-1]
+        hit = np.zeros(len(h), dtype=bool)
+        hit[1:] |= same
+        hit[:-1] |= same
+        out[nonempty[order[hit]]] = True
+        return out
+
+    def nbytes(self) -> int:
+        return self.data.nbytes + self.offsets.nbytes
+
+
+def _mix64(x: np.ndarray) -> np.ndarray:
+    """splitmix64 finaliser on uint64 (wrapping)."""
+    x = x.astype(np.uint64, copy=True)
+    with np.errstate(over="ignore"):
+        x += np.uint64(0x9E3779B97F4A7C15)
+        x ^= x >> np.uint64(30)
+        x *= np.uint64(0xBF58476D1CE4E5B9)
+        x ^= x >> np.uint64(27)
+        x *= np.uint64(0x94D049BB133111EB)
+        x ^= x >> np.uint64(31)
+    return x
+
+
 _NO_POINTS = np.zeros((0, 3))
 
 
@@ -80,13 +371,14 @@ class RawPolygonTable(Sequence):
     A city of 2.5e5 polygons held as RawPolygon objects costs ~500 bytes per polygon beyond its
     coordinates; here it is one float64 coordinate array (kept as a list of chunks until someone
     needs it whole, so readers and tile merging never copy it), ring lengths, rings per polygon
-    and per-polygon attribute lists (the strings are shared with the readers) and arrays.
+    and per-polygon string columns (codes, packed UTF-8 ids) and arrays.
 
     coords: (P, 3) float64, all rings one after the other: per polygon its exterior, then its
         holes (rings without the repeated closing point);
     ring_len: (R,) int64 points per ring; poly_nring: (N,) int64 rings per polygon (>= 1);
-    semantic, building_id, part_id, gml_id: lists of N str; lod: (N,) int16;
-    from_solid: (N,) bool.
+    semantic, building_id, part_id: CodedStrings (N rows: int32 codes + the distinct strings);
+    gml_id: PackedStrings (N rows: UTF-8 bytes + offsets); both read like lists of str (lists
+    given to the constructor are converted); lod: (N,) int16; from_solid: (N,) bool.
 
     `table[i]` builds a RawPolygon whose arrays are views into `coords`: changing the returned
     object does not change the table (use the arrays/lists here for that).
@@ -101,10 +393,10 @@ class RawPolygonTable(Sequence):
         self._chunks = [np.asarray(c, dtype=np.float64).reshape(-1, 3) for c in chunks]
         self.ring_len = np.asarray(ring_len, dtype=np.int64)
         self.poly_nring = np.asarray(poly_nring, dtype=np.int64)
-        self.semantic = semantic
-        self.building_id = building_id
-        self.part_id = part_id
-        self.gml_id = gml_id
+        self.semantic = CodedStrings.from_values(semantic)
+        self.building_id = CodedStrings.from_values(building_id)
+        self.part_id = CodedStrings.from_values(part_id)
+        self.gml_id = PackedStrings.from_values(gml_id)
         self.lod = np.asarray(lod, dtype=np.int16)
         self.from_solid = np.asarray(from_solid, dtype=bool)
         self._ring_ptr = None
@@ -131,13 +423,15 @@ class RawPolygonTable(Sequence):
         """One table from several (the coordinate chunks are shared, not copied)."""
         if len(tables) == 1:
             return tables[0]
-        cat = lambda name: [x for t in tables for x in getattr(t, name)]  # noqa: E731
+        coded = lambda name: CodedStrings.concatenate(  # noqa: E731
+            [getattr(t, name) for t in tables])
         arr = lambda name, dt: (np.concatenate([getattr(t, name) for t in tables])  # noqa: E731
                                 if tables else np.zeros(0, dt))
         return cls(
             [c for t in tables for c in t._chunks], arr("ring_len", np.int64),
-            arr("poly_nring", np.int64), cat("semantic"), cat("building_id"), cat("part_id"),
-            cat("gml_id"), arr("lod", np.int16), arr("from_solid", bool),
+            arr("poly_nring", np.int64), coded("semantic"), coded("building_id"), coded("part_id"),
+            PackedStrings.concatenate([t.gml_id for t in tables]), arr("lod", np.int16),
+            arr("from_solid", bool),
         )
 
     # -- coordinates ------------------------------------------------------------------------
@@ -231,6 +525,11 @@ class RawPolygonTable(Sequence):
             self._poly_ptr = _ptr(self.poly_nring)
         return self._poly_ptr
 
+    def drop_cached_pointers(self) -> None:
+        """Free the cached ring_ptr / poly_ptr (recomputed on the next use)."""
+        self._ring_ptr = None
+        self._poly_ptr = None
+
     @property
     def num_rings(self) -> int:
         return len(self.ring_len)
@@ -282,15 +581,15 @@ class RawPolygonTable(Sequence):
         rings = _segment_gather(pp[sel], nr)
         rl = self.ring_len[rings]
         pts = _segment_gather(rp[rings], rl)
-        pick = lambda values: [values[i] for i in sel.tolist()]  # noqa: E731
         return RawPolygonTable(
-            self.coords[pts], rl, nr, pick(self.semantic), pick(self.building_id),
-            pick(self.part_id), pick(self.gml_id), self.lod[sel], self.from_solid[sel],
+            self.coords[pts], rl, nr, self.semantic.take(sel), self.building_id.take(sel),
+            self.part_id.take(sel), self.gml_id.take(sel), self.lod[sel], self.from_solid[sel],
         )
 
     def nbytes(self) -> int:
         return (sum(c.nbytes for c in self._chunks) + self.ring_len.nbytes + self.poly_nring.nbytes
-                + self.lod.nbytes + self.from_solid.nbytes + 8 * 4 * len(self))
+                + self.lod.nbytes + self.from_solid.nbytes + self.semantic.nbytes()
+                + self.building_id.nbytes() + self.part_id.nbytes() + self.gml_id.nbytes())
 
 
 def _shift_owned(a: np.ndarray, shift: np.ndarray) -> np.ndarray:
@@ -328,13 +627,36 @@ class RawPolygonBuilder:
         self._pending_nr: list[int] = []
         self._pending_lod: list[int] = []
         self._pending_solid: list[bool] = []
-        self.semantic: list[str] = []
-        self.building_id: list[str] = []
-        self.part_id: list[str] = []
-        self.gml_id: list[str] = []
+        self._pending_gml_single: list[str] = []
+        # string columns: codes per distinct string; gml ids packed in blocks of bytes
+        self._lookups = (_Lookup(), _Lookup(), _Lookup())  # semantic, building_id, part_id
+        self._codes: tuple[list, list, list] = ([], [], [])  # int32 arrays per block
+        self._pending_codes: tuple[list, list, list] = ([], [], [])
+        self._gml_data: list[np.ndarray] = []
+        self._gml_len: list[np.ndarray] = []
+        self._pending_gml: list[str] = []
+        self._n = 0
 
     def __len__(self) -> int:
-        return len(self.semantic)
+        return self._n + len(self._pending_nr)
+
+    def _push_strings(self, semantic, building_id, part_id, gml_id) -> None:
+        """Append the string columns of n polygons (lists of str)."""
+        n = len(gml_id)
+        for lookup, codes, values in zip(self._lookups, self._codes,
+                                         (semantic, building_id, part_id)):
+            codes.append(np.fromiter(map(lookup.__getitem__, values), np.int32, n))
+        self._pending_gml.extend(gml_id)
+        self._n += n
+        if len(self._pending_gml) >= 4096:
+            self._flush_gml()
+
+    def _flush_gml(self) -> None:
+        if self._pending_gml:
+            joined, lengths = PackedStrings._encode(self._pending_gml)
+            self._gml_data.append(np.frombuffer(joined, np.uint8))
+            self._gml_len.append(lengths)
+            self._pending_gml = []
 
     def _push_coords(self, block: np.ndarray) -> None:
         if len(block) == 0:
@@ -355,6 +677,9 @@ class RawPolygonBuilder:
 
     def _flush_pending(self) -> None:
         if self._pending_nr:
+            self._push_strings(*self._pending_codes, self._pending_gml_single)
+            self._pending_codes = ([], [], [])
+            self._pending_gml_single = []
             self._ring_len.append(np.array(self._pending_rl, dtype=np.int64))
             self._poly_nring.append(np.array(self._pending_nr, dtype=np.int64))
             self._lod.append(np.array(self._pending_lod, dtype=np.int16))
@@ -373,13 +698,13 @@ class RawPolygonBuilder:
         self._pending_nr.append(len(rings))
         self._pending_lod.append(int(lod))
         self._pending_solid.append(bool(from_solid))
-        self.semantic.append(semantic)
-        self.building_id.append(building_id)
-        self.part_id.append(part_id)
-        self.gml_id.append(gml_id)
+        for values, v in zip(self._pending_codes, (semantic, building_id, part_id)):
+            values.append(v)
+        self._pending_gml_single.append(gml_id)
+        row = self._n + len(self._pending_nr) - 1
         if len(self._pending_nr) >= 4096:
             self._flush_pending()
-        return len(self.semantic) - 1
+        return row
 
     def add_block(self, coords: np.ndarray, ring_len, poly_nring, semantic: list[str],
                   building_id: list[str], part_id: list[str], gml_id: list[str], lod,
@@ -392,18 +717,19 @@ class RawPolygonBuilder:
         self._poly_nring.append(np.asarray(poly_nring, dtype=np.int64))
         self._lod.append(np.broadcast_to(np.asarray(lod, dtype=np.int16), (n,)))
         self._from_solid.append(np.broadcast_to(np.asarray(from_solid, dtype=bool), (n,)))
-        self.semantic.extend(semantic)
-        self.building_id.extend(building_id)
-        self.part_id.extend(part_id)
-        self.gml_id.extend(gml_id)
+        self._push_strings(semantic, building_id, part_id, gml_id)
 
     def finish(self) -> RawPolygonTable:
         self._flush_pending()
         self._flush_blocks()
+        self._flush_gml()
         cat = lambda parts, dt: np.concatenate(parts) if parts else np.zeros(0, dt)  # noqa: E731
+        coded = [CodedStrings(cat(codes, np.int32), list(lookup))
+                 for codes, lookup in zip(self._codes, self._lookups)]
         table = RawPolygonTable(
             self._chunks, cat(self._ring_len, np.int64), cat(self._poly_nring, np.int64),
-            self.semantic, self.building_id, self.part_id, self.gml_id,
+            *coded,
+            PackedStrings(cat(self._gml_data, np.uint8), _ptr(cat(self._gml_len, np.int64))),
             cat(self._lod, np.int16), cat(self._from_solid, bool),
         )
         self.__init__(self.chunk_points)
