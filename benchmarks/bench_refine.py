@@ -85,8 +85,11 @@ def main() -> None:
     result = refine(sfm, store, gnss, refine_options, progress=False)
     refine_s = time.perf_counter() - t
     iterations = len(result.iterations)
+    # Compare in model CRS: truth/ is local to the sequence's origin, the result to the store's.
     truth = pycolmap.Reconstruction(str(workspace / "truth"))
-    error = float(np.sqrt(np.mean(centre_errors(result.reconstruction, truth) ** 2)))
+    truth_origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")
+    truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), truth_origin))
+    error = float(np.sqrt(np.mean(centre_errors(result.reconstruction_in_crs(), truth) ** 2)))
 
     print(f"plain solve: {plain_report.ceres_iterations} Ceres iterations, "
           f"{plain_report.count['image']} image residuals")
