@@ -56,7 +56,7 @@ class IterationRecord:
     num_faces: int
     rejected_faces: dict[str, int]
     num_eliminated: int
-    robust: SolveReport
+    robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
     final: SolveReport
     relative_change: float
 
@@ -65,7 +65,8 @@ class IterationRecord:
             "iteration": self.iteration, "threshold": self.threshold,
             "num_assigned_points": self.num_assigned, "num_planes": self.num_faces,
             "rejected_planes": self.rejected_faces, "num_eliminated_dTP": self.num_eliminated,
-            "robust_solve": self.robust.todict(), "solve": self.final.todict(),
+            "robust_solve": self.robust.todict() if self.robust else None,
+            "solve": self.final.todict(),
             "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
         }
 
@@ -344,19 +345,32 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                              "GNSS: the datum is undefined", store.source)
 
         t1 = time.perf_counter()
-        robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                               robust_planes=True, current=current)
-        robust_report = robust.solve()
-        normalised = robust.group_residuals()["dTP"]
-        outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
-        assignment = assignment.without(np.isin(assignment.point_ids, outliers))
+        robust_report = None
+        outliers = np.zeros(0, np.int64)
         rejected = dict(assignment.rejected_faces)
-        assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
-        assignment.distance[assignment.face_index < 0] = np.nan
-        assignment.rejected_faces = rejected
-        final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                              robust_planes=False, current=_current_from(current, robust))
-        final_report = final.solve()
+        if iteration > 0:
+            # Förstner-Wrobel only where needed: with the original weights first; robust
+            # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
+            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                  robust_planes=False, current=current)
+            final_report = final.solve()
+            normalised = final.group_residuals()["dTP"]
+            needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
+        else:
+            needs_robust = True
+        if needs_robust:
+            robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                   robust_planes=True, current=current)
+            robust_report = robust.solve()
+            normalised = robust.group_residuals()["dTP"]
+            outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
+            assignment = assignment.without(np.isin(assignment.point_ids, outliers))
+            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
+            assignment.distance[assignment.face_index < 0] = np.nan
+            assignment.rejected_faces = rejected
+            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                  robust_planes=False, current=_current_from(current, robust))
+            final_report = final.solve()
         solve_seconds += time.perf_counter() - t1
         current = _current_from(current, final)
         last = final
