@@ -51,11 +51,16 @@ def build_workspace(sequence: str, scenario: str) -> Path:
     return out
 
 
-def has_model(workspace: Path) -> bool:
+def model_variant(workspace: Path) -> str:
+    """"detailed", "corrected", "original" or "none" (simulate's scenario.model)."""
     import tomllib
 
     scenario = tomllib.loads((workspace / "scenario.toml").read_text()).get("scenario", {})
-    return scenario.get("model", "original") != "none"
+    return scenario.get("model", "original")
+
+
+def has_model(workspace: Path) -> bool:
+    return model_variant(workspace) != "none"
 
 
 def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> dict:
@@ -88,7 +93,9 @@ def run_refine(workspace: Path):
     from colmap_citymodel.workflow import refine
 
     rec, store, gnss = inputs(workspace)
-    options = RefineOptions()
+    # Unger's settings for a detailed model (sigma_dTP 5 cm, 5 points per plane) in Scn1.
+    options = RefineOptions.preset(
+        "detailed" if model_variant(workspace) == "detailed" else "generalised")
     options.precision.covariances = "off"
     result = refine(rec, store, gnss, options, progress=False)
     return result.reconstruction, store
