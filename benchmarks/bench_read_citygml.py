@@ -113,14 +113,16 @@ def _reset_peak() -> bool:
         return False
 
 
-def store_nbytes(store) -> tuple[int, int]:
-    """(nbytes of the store's numpy arrays incl. the faces' ring index arrays,
-    that + the Python objects that stay with the store: per-face lists/Face objects, id strings)."""
+def store_nbytes(store) -> tuple[int, int, int]:
+    """(nbytes of the store's numpy arrays incl. the faces' ring index arrays and string columns,
+    that + the Python objects that stay with the store: per-face lists/Face objects, id strings,
+    the string columns' share of the first)."""
     arrays = [store.origin, store.vertices, store.centroids, store.rotations, store.areas,
               store.rms_out_of_plane, store.nonplanar]
     n = sum(a.nbytes for a in arrays)
     faces = store.faces
     seen: set[int] = set()
+    columns = 0
 
     def strings(values) -> int:
         k = 0
@@ -138,15 +140,16 @@ def store_nbytes(store) -> tuple[int, int]:
                 py += sys.getsizeof(values) + strings(values)
             else:  # string columns: codes / UTF-8 bytes + offsets (arrays), distinct strings
                 n += values.nbytes()
+                columns += values.nbytes()
                 py += sys.getsizeof(values) + strings(getattr(values, "categories", ()))
-        return n, n + py
+        return n, n + py, columns
     py = n  # a list of Face objects with their own index arrays
     for face in faces:
         n += face.exterior.nbytes + sum(h.nbytes for h in face.holes)
         py += sys.getsizeof(face) + (sys.getsizeof(face.__dict__) if hasattr(face, "__dict__") else 0)
         py += sys.getsizeof(face.exterior) + sys.getsizeof(face.holes) + sum(sys.getsizeof(h) for h in face.holes)
         py += strings((face.gml_id, face.building_id, face.part_id, face.semantic))
-    return n, py
+    return n, py, 0
 
 
 def child(path: str, mode: str) -> None:
@@ -176,7 +179,7 @@ def child(path: str, mode: str) -> None:
     peak = _status_kb("VmHWM") if reset else resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     result.update(seconds=seconds, cpu_seconds=cpu_seconds, base_rss_kb=base, peak_rss_kb=peak, peak_reset=reset, base_hwm_kb=base_hwm)
     if mode != "parse":
-        result["store_bytes"], result["store_py_bytes"] = store_nbytes(store)
+        result["store_bytes"], result["store_py_bytes"], result["store_column_bytes"] = store_nbytes(store)
     print("RESULT " + json.dumps(result))
 
 
@@ -241,8 +244,12 @@ def main() -> None:
         print(f"peak_rss_mb {peak:.1f}")
         print(f"store_mb {store_mb:.1f}")
         print(f"store_py_mb {store_py_mb:.1f}")
+        columns_mb = full.get("store_column_bytes", 0) / 2**20
+        print(f"store_string_columns_mb {columns_mb:.1f} (semantic/building/part codes, gml:id "
+              f"bytes + offsets; included in store_mb)")
         print(f"peak_over_store {peak / store_mb:.2f}")
         print(f"peak_over_store_py {peak / store_py_mb:.2f}")
+        print(f"peak_over_store_without_string_columns {peak / (store_mb - columns_mb):.2f}")
         print(f"parse_peak_over_store {peak_parse / store_mb:.2f}")
         print(f"parse_peak_over_store_py {peak_parse / store_py_mb:.2f}")
         print(f"load_average {os.getloadavg()[0]:.1f} (2 cores: wall-clock rates suffer above ~2)")

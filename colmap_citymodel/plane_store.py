@@ -377,17 +377,19 @@ def _compute_planes(vertices: np.ndarray, faces, chunk_faces: int = 8192,
     vector of the exterior ring (outward for counter-clockwise-from-outside rings); column 1 is
     flipped if needed so that det(R) = +1.
 
-    Returns centroids, rotations, areas, rms and eigvals (F,3); with extras also newell_area
-    and num_distinct (not needed by build_store: less memory without them).
+    Returns centroids, rotations, areas, rms and eigval1 (F,) the middle eigenvalue (>= 0, the
+    collinearity test); with extras also eigvals (F,3), newell_area and num_distinct (not needed
+    by build_store: less memory without them).
     """
     fl = FaceList.from_faces(faces)
     F = len(fl)
     out = dict(
         centroids=np.zeros((F, 3)), rotations=np.zeros((F, 3, 3)), areas=np.zeros(F),
-        rms=np.zeros(F), eigvals=np.zeros((F, 3)),
+        rms=np.zeros(F), eigval1=np.zeros(F),
     )
     if extras:
-        out.update(newell_area=np.zeros(F), num_distinct=np.zeros(F, np.int64))
+        out.update(eigvals=np.zeros((F, 3)), newell_area=np.zeros(F),
+                   num_distinct=np.zeros(F, np.int64))
     n = len(vertices) or 1
     for f0 in range(0, F, chunk_faces):
         f1 = min(F, f0 + chunk_faces)
@@ -458,8 +460,9 @@ def _planes_chunk(vertices, rings: _Rings, F: int, n: int, out: dict, sl: slice)
     out["rotations"][sl] = R
     out["areas"][sl] = areas
     out["rms"][sl] = rms
-    out["eigvals"][sl] = np.clip(eigvals, 0.0, None)
-    if "newell_area" in out:
+    out["eigval1"][sl] = np.clip(eigvals[:, 1], 0.0, None)
+    if "eigvals" in out:
+        out["eigvals"][sl] = np.clip(eigvals, 0.0, None)
         out["newell_area"][sl] = np.linalg.norm(ext_vec, axis=1)
         out["num_distinct"][sl] = counts
 
@@ -475,7 +478,7 @@ def _exact_duplicates(owned: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     to the lexsort."""
     points = owned[0]
     N = len(points)
-    step = 1 << 18
+    step = 1 << 16
     h = np.empty(N, dtype=np.uint64)
     with np.errstate(over="ignore"):
         for a in range(0, N, step):
@@ -514,8 +517,8 @@ def _exact_duplicates(owned: list) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     label = np.empty(len(perm), dtype=np.int64)
     label[perm] = np.arange(len(perm))
     del perm
-    for a in range(0, N, 1 << 20):
-        inverse[a:a + (1 << 20)] = label[inverse[a:a + (1 << 20)]]
+    for a in range(0, N, 1 << 16):
+        inverse[a:a + (1 << 16)] = label[inverse[a:a + (1 << 16)]]
     return uniq, inverse, first
 
 
@@ -592,8 +595,8 @@ def _merge_vertices(owned: list, tolerance: float, slack: float):
         wide = counts > 1
         extent = float(np.linalg.norm(hi[wide] - lo[wide], axis=1).max())
     cluster = cluster.astype(np.int64, copy=False)
-    for a in range(0, N, 1 << 20):  # index = cluster[inverse], in place, in chunks
-        inverse[a:a + (1 << 20)] = cluster[inverse[a:a + (1 << 20)]]
+    for a in range(0, N, 1 << 16):  # index = cluster[inverse], in place, in chunks
+        inverse[a:a + (1 << 16)] = cluster[inverse[a:a + (1 << 16)]]
     return merged, inverse, extent
 
 
@@ -898,7 +901,7 @@ class PlaneStore:
         V = np.asarray(vertices_local, dtype=np.float64)
         if V.shape != self.vertices.shape:
             raise ValueError(f"vertices must have shape {self.vertices.shape}, got {V.shape}")
-        planes = _compute_planes(V, self.faces)
+        planes = _compute_planes(V, self.faces, extras=False)
         return replace(
             self,
             vertices=V.copy(),
@@ -1231,10 +1234,12 @@ def build_store(
     if large:
         release_free_memory()
     planes = _compute_planes(merged, faces, extras=False)
+    if large:
+        release_free_memory()  # the plane chunks' temporaries
     degenerate = (planes["areas"] < tol.min_area) | (
-        np.sqrt(planes["eigvals"][:, 1]) < tol.collinear
+        np.sqrt(planes["eigval1"]) < tol.collinear
     )
-    del planes["eigvals"]  # not kept: free before copying
+    del planes["eigval1"]  # not kept: free before copying
     if degenerate.any():
         dropped += int(degenerate.sum())
         keep = ~degenerate
@@ -1247,14 +1252,14 @@ def build_store(
     if large:
         release_free_memory()
     # drop vertices no face uses any more and re-index
-    used = np.flatnonzero(np.bincount(faces.ring_vertex, minlength=len(merged)))
-    remap = np.full(len(merged), -1, dtype=np.int64)
-    remap[used] = np.arange(len(used))
+    used = np.bincount(faces.ring_vertex, minlength=len(merged)) > 0
+    remap = np.cumsum(used)
+    remap -= 1  # new index of each used vertex
     rv = faces.ring_vertex
-    for a in range(0, len(rv), 1 << 20):  # rv = remap[rv], in place, in chunks
-        rv[a:a + (1 << 20)] = remap[rv[a:a + (1 << 20)]]
+    for a in range(0, len(rv), 1 << 16):  # rv = remap[rv], in place, in chunks
+        rv[a:a + (1 << 16)] = remap[rv[a:a + (1 << 16)]]
     del remap, rv
-    vertices = merged[used]
+    vertices = _compress_rows(merged, used)  # in place
     del merged, used
 
     _orient_by_semantics(planes, faces, warnings)
