@@ -21,6 +21,7 @@ from typing import Iterable
 import numpy as np
 from lxml import etree
 
+from .plane_store import THEMATIC_CLASSES
 from .raw_model import RawCityModel, RawPolygon
 
 NS = {
@@ -34,14 +35,8 @@ SCHEMA_LOCATION = (
     "http://www.opengis.net/citygml/building/2.0 "
     "http://schemas.opengis.net/citygml/building/2.0/building.xsd"
 )
-THEMATIC = (
-    "WallSurface",
-    "RoofSurface",
-    "GroundSurface",
-    "ClosureSurface",
-    "OuterCeilingSurface",
-    "OuterFloorSurface",
-)
+# The thematic surface classes the store knows are the ones written as such.
+THEMATIC = THEMATIC_CLASSES
 
 
 def _q(prefix: str, name: str) -> str:
