@@ -631,6 +631,7 @@ class RawPolygonBuilder:
         # string columns: codes per distinct string; gml ids packed in blocks of bytes
         self._lookups = (_Lookup(), _Lookup(), _Lookup())  # semantic, building_id, part_id
         self._codes: tuple[list, list, list] = ([], [], [])  # int32 arrays per block
+        self._pending_str_codes: tuple[list, list, list] = ([], [], [])  # ints, not yet packed
         self._pending_codes: tuple[list, list, list] = ([], [], [])
         self._gml_data: list[np.ndarray] = []
         self._gml_len: list[np.ndarray] = []
@@ -641,18 +642,21 @@ class RawPolygonBuilder:
         return self._n + len(self._pending_nr)
 
     def _push_strings(self, semantic, building_id, part_id, gml_id) -> None:
-        """Append the string columns of n polygons (lists of str)."""
-        n = len(gml_id)
-        for lookup, codes, values in zip(self._lookups, self._codes,
+        """Append the string columns of n polygons (lists of str); codes and ids are kept as
+        plain lists for a few thousand rows, then packed into arrays."""
+        for lookup, codes, values in zip(self._lookups, self._pending_str_codes,
                                          (semantic, building_id, part_id)):
-            codes.append(np.fromiter(map(lookup.__getitem__, values), np.int32, n))
+            codes.extend(map(lookup.__getitem__, values))
         self._pending_gml.extend(gml_id)
-        self._n += n
-        if len(self._pending_gml) >= 4096:
+        self._n += len(gml_id)
+        if len(self._pending_gml) >= 8192:
             self._flush_gml()
 
     def _flush_gml(self) -> None:
         if self._pending_gml:
+            for codes, pending in zip(self._codes, self._pending_str_codes):
+                codes.append(np.array(pending, dtype=np.int32))
+                pending.clear()
             joined, lengths = PackedStrings._encode(self._pending_gml)
             self._gml_data.append(np.frombuffer(joined, np.uint8))
             self._gml_len.append(lengths)
