@@ -23,7 +23,6 @@ import ctypes
 import functools
 import logging
 import math
-import operator
 import platform
 import sys
 from collections.abc import Sequence
@@ -41,6 +40,7 @@ from .raw_model import (
     RawCityModel,
     RawPolygon,
     RawPolygonTable,
+    row_index,
 )
 
 logger = logging.getLogger("colmap_citymodel.plane_store")
@@ -244,12 +244,7 @@ class FaceList(Sequence):
     def __getitem__(self, i):
         if isinstance(i, slice):
             return [self[k] for k in range(*i.indices(len(self)))]
-        f = operator.index(i)
-        n = len(self)
-        if f < 0:
-            f += n
-        if not 0 <= f < n:
-            raise IndexError("face index out of range")
+        f = row_index(i, len(self), "face")
         return self._face(f, self.face_ring, self.ring_ptr)
 
     def __iter__(self):

@@ -15,6 +15,16 @@ from dataclasses import dataclass, field
 import numpy as np
 
 
+def row_index(i, n: int, what: str) -> int:
+    """A sequence index (negative counts from the end) checked against length n."""
+    i = operator.index(i)
+    if i < 0:
+        i += n
+    if not 0 <= i < n:
+        raise IndexError(f"{what} index out of range")
+    return i
+
+
 @dataclass
 class CRSInfo:
     """A resolved coordinate reference system of a city model."""
@@ -234,12 +244,7 @@ class PackedStrings(Sequence):
     def __getitem__(self, i):
         if isinstance(i, slice):
             return [self[k] for k in range(*i.indices(len(self)))]
-        i = operator.index(i)
-        n = len(self)
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError("string index out of range")
+        i = row_index(i, len(self), "string")
         return self.data[self.offsets[i]:self.offsets[i + 1]].tobytes().decode("utf-8")
 
     def __iter__(self):
@@ -553,12 +558,7 @@ class RawPolygonTable(Sequence):
     def __getitem__(self, i):
         if isinstance(i, slice):
             return [self[k] for k in range(*i.indices(len(self)))]
-        i = operator.index(i)
-        n = len(self)
-        if i < 0:
-            i += n
-        if not 0 <= i < n:
-            raise IndexError("polygon index out of range")
+        i = row_index(i, len(self), "polygon")
         return self._polygon(i, self.coords, self.ring_ptr, self.poly_ptr)
 
     def __iter__(self):
