@@ -397,21 +397,15 @@ class _Walker:
         tokens = self.tokens
         for child in el:
             name = _local(child.tag)
-            if name == "posList":
+            if name in ("posList", "pos"):
                 d = child.get("srsDimension")
                 if d:
                     dim = self._dim(d)
                 text = child.text
                 if text:
                     tokens.extend(text.split())
-                break
-            if name == "pos":
-                d = child.get("srsDimension")
-                if d:
-                    dim = self._dim(d)
-                text = child.text
-                if text:
-                    tokens.extend(text.split())
+                if name == "posList":  # one posList holds the whole ring
+                    break
             elif name == "coordinates":
                 cs = child.get("cs", ",")
                 ts = child.get("ts", " ")
