@@ -7,8 +7,10 @@
 // cost (take_ownership); pyceres wraps it in a non-owning CostFunctionWrapper
 // and keeps the Python object alive as long as the pyceres.Problem object.
 #include "colmap_citymodel/point_plane_distance.h"
+#include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
 #include "colmap_citymodel/projection_center_prior.h"
+#include "colmap_citymodel/scalar_prior.h"
 
 #include <stdexcept>
 #include <string>
@@ -68,6 +70,34 @@ PYBIND11_MODULE(_core, m) {
       "Point-to-plane distance, residual = (n.X/|n| + d) / sigma.\n"
       "Parameter blocks: point (3), normal (3, use pyceres.SphereManifold(3)),"
       " offset (1).");
+
+  m.def(
+      "PointPlaneOffsetDistanceCost",
+      [](double sigma) -> ceres::CostFunction* {
+        CheckSigma(sigma, "sigma");
+        return PointPlaneOffsetDistanceCostFunctor::Create(sigma);
+      },
+      "sigma"_a,
+      kTake,
+      "Point-to-plane distance with the plane's generalisation offset o,\n"
+      "residual = (n.X/|n| + d + o) / sigma.\nParameter blocks: point (3), "
+      "normal (3, use pyceres.SphereManifold(3)), offset (1), generalisation "
+      "offset (1).");
+
+  m.def(
+      "ScalarPriorCost",
+      [](double observed, double sigma) -> ceres::CostFunction* {
+        CheckSigma(sigma, "sigma");
+        if (!std::isfinite(observed)) {
+          throw std::invalid_argument("observed must be finite");
+        }
+        return ScalarPriorCostFunctor::Create(observed, sigma);
+      },
+      "observed"_a,
+      "sigma"_a,
+      kTake,
+      "Direct observation of a scalar, residual = (x - observed) / sigma.\n"
+      "Parameter block: x (1).");
 
   m.def(
       "PointPositionPriorCost",

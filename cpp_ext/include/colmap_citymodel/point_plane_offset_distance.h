@@ -1,0 +1,51 @@
+// Fictitious observation "distance of a tie point to its plane = 0" with a
+// per-plane generalisation offset (issue 5; Unger 2020 6.3: generalisation
+// errors are systematic per plane, so independent f_dTP sigmas make the a
+// posteriori precision over-optimistic).
+//
+//   residual = (n^T X / |n| + d + o) / sigma
+//
+// Parameter blocks:
+//   X (3): the tie point (a COLMAP point3D xyz block),
+//   n (3): plane normal (ceres::SphereManifold<3>), d (1): plane offset, as in
+//          PointPlaneDistanceCost; the model plane is n^T X + d = 0,
+//   o (1): the plane's generalisation offset: the surface the tie points lie
+//          on is n^T X + d + o = 0. One o per plane, shared by all its tie
+//          points, with a prior o ~ N(0, sigma_generalisation^2)
+//          (ScalarPriorCost), so that the plane's systematic deviation does
+//          not average out with the number of its points.
+#pragma once
+
+#include <ceres/autodiff_cost_function.h>
+#include <ceres/ceres.h>
+
+namespace colmap_citymodel {
+
+struct PointPlaneOffsetDistanceCostFunctor {
+  explicit PointPlaneOffsetDistanceCostFunctor(double sigma)
+      : inv_sigma_(1.0 / sigma) {}
+
+  template <typename T>
+  bool operator()(const T* const point,
+                  const T* const normal,
+                  const T* const offset,
+                  const T* const generalisation,
+                  T* residuals) const {
+    const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
+                               normal[2] * normal[2]);
+    const T dot = normal[0] * point[0] + normal[1] * point[1] +
+                  normal[2] * point[2];
+    residuals[0] = (dot / norm + offset[0] + generalisation[0]) * T(inv_sigma_);
+    return true;
+  }
+
+  static ceres::CostFunction* Create(double sigma) {
+    return new ceres::AutoDiffCostFunction<PointPlaneOffsetDistanceCostFunctor,
+                                           1, 3, 3, 1, 1>(
+        new PointPlaneOffsetDistanceCostFunctor(sigma));
+  }
+
+  const double inv_sigma_;
+};
+
+}  // namespace colmap_citymodel
