@@ -131,7 +131,44 @@ def _add_demo(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate]
+def _add_precision(subparsers) -> None:
+    p = subparsers.add_parser(
+        "precision", help="a posteriori sigmas of tie points and cameras per image subset "
+                          "(Mulder Table 5.2)")
+    p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
+    p.add_argument("--subset", dest="subsets", action="append", required=True,
+                   metavar="NAME=GLOB[,GLOB...]",
+                   help="named image subset by image-name globs, e.g. nadir='nadir/*', "
+                        "both='*'; repeat for each subset")
+    p.add_argument("--output_path", default=None,
+                   help="new directory for JSON, Markdown table, sigma maps and histograms")
+    gnss = p.add_argument_group("GNSS datum (optional; without it the gauge is fixed by two "
+                                "images, as COLMAP's BA does)")
+    gnss.add_argument("--database", help="COLMAP database with pose priors")
+    gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
+    gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:25832 or EPSG:4979")
+    gnss.add_argument("--target_crs", help="projected CRS for geographic GNSS (default: UTM)")
+    p.add_argument("--datum", choices=["solve", "inner"], default="solve",
+                   help="sigmas in the table: solve = in the solve's gauge (GNSS or fixed); "
+                        "inner = S-transformed to the inner constraints of the tie points")
+    p.add_argument("--max_images", type=int, default=None,
+                   help="largest subset whose covariances are computed (default 500)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--no_progress", action="store_true", help="no progress bars")
+
+    def run(args):
+        from .precision_subsets import main
+
+        main(args.input_path, args.subsets, output_path=args.output_path,
+             database=args.database, gnss=args.gnss, gnss_crs=args.gnss_crs,
+             target_crs=args.target_crs, datum=args.datum, max_images=args.max_images,
+             as_json=args.json, progress=not args.no_progress)
+
+    p.set_defaults(func=run)
+
+
+SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
+               _add_precision]
 
 
 def build_parser() -> argparse.ArgumentParser:
