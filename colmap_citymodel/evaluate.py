@@ -13,6 +13,15 @@ File formats (whitespace separated, `#` comments):
 
 Helmert convention: known = c + T + (1 + m) R (estimated - c), c = centroid of the estimated CPs,
 R = R_x(omega) R_y(phi) R_z(kappa), m = scale_ppm * 1e-6.
+
+Delta/sigma (Unger 6.3, Tables 12/13): when the a posteriori covariance of the check points is
+known (refine computes it, precision.checkpoint_cofactors, and writes
+`checkpoint_precision.json`), the table compares per axis the RMS of Delta = known - estimated
+with the RMS of sigma_CP, before and after the Helmert transform. As in Unger's Table 13 the
+ratio after Helmert divides by the same sigma_CP; beside it, `rms_sigma_residual` is the sigma
+of the Helmert residuals themselves (the joint covariance propagated through the residual
+projector I - A (A^T A)^-1 A^T of the linearised similarity), the fair yardstick for Delta after
+Helmert when sigma_CP is dominated by the datum.
 """
 
 from __future__ import annotations
@@ -31,6 +40,9 @@ logger = logging.getLogger("colmap_citymodel.evaluate")
 
 MIN_VIEWS = 2
 GN_ITERATIONS = 20
+AXES = ("X", "Y", "Z")
+#: File refine writes next to the model: ids, check points and their joint covariance.
+CHECKPOINT_PRECISION_FILE = "checkpoint_precision.json"
 
 
 # --------------------------------------------------------------------------------------------
@@ -304,6 +316,87 @@ def helmert_transform(known, estimated) -> HelmertResult:
     return result
 
 
+def helmert_design_matrix(points) -> np.ndarray:
+    """(3N, 7) derivative of the similarity c + T + (1 + m) R(w) (p - c) at T = w = m = 0 w.r.t.
+    (T, w, m), c = centroid of `points`: the directions a Helmert transform removes."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    q = points - points.mean(axis=0)
+    a = np.zeros((3 * len(q), 7))
+    for i, (x, y, z) in enumerate(q):
+        rows = slice(3 * i, 3 * i + 3)
+        a[rows, :3] = np.eye(3)
+        a[rows, 3:6] = [[0.0, z, -y], [-z, 0.0, x], [y, -x, 0.0]]  # d(w x q)/dw = -[q]x
+        a[rows, 6] = (x, y, z)
+    return a
+
+
+def helmert_residual_sigmas(points, covariance) -> np.ndarray:
+    """(N, 3) sigma of the residuals after a least-squares Helmert transform of `points`
+    (joint covariance (3N, 3N); the known coordinates taken as exact): the diagonal of
+    (I - P) C (I - P), P = A (A^T A)^-1 A^T the projector onto the similarity directions."""
+    a = helmert_design_matrix(points)
+    projector = np.eye(len(a)) - a @ np.linalg.solve(a.T @ a, a.T)
+    residual = projector @ np.asarray(covariance, dtype=np.float64) @ projector.T
+    return np.sqrt(np.maximum(np.diagonal(residual), 0.0)).reshape(-1, 3)
+
+
+def _axis_rows(delta: np.ndarray, sigma: np.ndarray, sigma_residual: np.ndarray | None = None
+               ) -> dict:
+    out = {}
+    for k, axis in enumerate(AXES):
+        rms_delta, rms_sigma = _rms(delta[:, k]), _rms(sigma[:, k])
+        row = {"rms_delta": rms_delta, "rms_sigma": rms_sigma,
+               "ratio": rms_delta / rms_sigma if rms_sigma > 0 else float("nan")}
+        if sigma_residual is not None:
+            rms_residual = _rms(sigma_residual[:, k])
+            row["rms_sigma_residual"] = rms_residual
+            row["ratio_residual"] = (rms_delta / rms_residual if rms_residual > 0
+                                     else float("nan"))
+        out[axis] = row
+    return out
+
+
+def delta_sigma_table(errors, sigmas, errors_after_helmert=None, covariance=None,
+                      estimated=None) -> dict:
+    """Unger Tables 12/13 per axis: RMS of Delta, RMS of sigma_CP and their ratio, before and
+    (if `errors_after_helmert`) after the Helmert transform, with the same sigma_CP; with the
+    joint `covariance` and the `estimated` points also the sigma of the Helmert residuals."""
+    errors = np.asarray(errors, dtype=np.float64).reshape(-1, 3)
+    sigmas = np.asarray(sigmas, dtype=np.float64).reshape(-1, 3)
+    table = {"num_checkpoints": int(len(errors)), "before_helmert": _axis_rows(errors, sigmas)}
+    if errors_after_helmert is not None:
+        residual = None
+        if covariance is not None and estimated is not None and len(errors) >= 3:
+            residual = helmert_residual_sigmas(estimated, covariance)
+        table["after_helmert"] = _axis_rows(np.asarray(errors_after_helmert).reshape(-1, 3),
+                                            sigmas, residual)
+    return table
+
+
+def format_delta_sigma(table: dict, title: str = "") -> str:
+    """The table as markdown (one row per stage, columns per axis like Unger 12/13)."""
+    lines = []
+    if title:
+        lines += [title, ""]
+    head = "| | " + " | ".join(f"RMS Delta {a} (m)" for a in AXES) + " | " + " | ".join(
+        f"RMS sigma {a} (m)" for a in AXES) + " | " + " | ".join(
+        f"Delta/sigma {a}" for a in AXES) + " |"
+    lines += [head, "|" + "---|" * 10]
+    for stage, label in (("before_helmert", "before Helmert"), ("after_helmert", "after Helmert")):
+        rows = table.get(stage)
+        if not rows:
+            continue
+        lines.append(f"| {label} | " + " | ".join(f"{rows[a]['rms_delta']:.3f}" for a in AXES)
+                     + " | " + " | ".join(f"{rows[a]['rms_sigma']:.4f}" for a in AXES) + " | "
+                     + " | ".join(f"{rows[a]['ratio']:.2f}" for a in AXES) + " |")
+        if "rms_sigma_residual" in rows[AXES[0]]:
+            lines.append("| after Helmert, sigma of the residuals | " + " | ".join(
+                f"{rows[a]['rms_delta']:.3f}" for a in AXES) + " | " + " | ".join(
+                f"{rows[a]['rms_sigma_residual']:.4f}" for a in AXES) + " | " + " | ".join(
+                f"{rows[a]['ratio_residual']:.2f}" for a in AXES) + " |")
+    return "\n".join(lines) + "\n"
+
+
 @dataclass
 class CheckpointEvaluation:
     ids: list[str]
@@ -315,6 +408,50 @@ class CheckpointEvaluation:
     missing: list[str]  # check points with observations that could not be triangulated
     frame: str  # "crs" or "local": the frame the evaluated model was in
     rms_px: dict[str, float] = field(default_factory=dict)
+    covariance: np.ndarray | None = None
+    """(3N, 3N) joint a posteriori covariance of the estimated check points in `ids` order
+    (NaN rows for check points without one), from the adjustment (refine)."""
+    sigma_note: str = ""
+
+    @property
+    def sigmas(self) -> np.ndarray | None:
+        """(N, 3) a posteriori sigma X, Y, Z (m) of the check points, if known."""
+        if self.covariance is None:
+            return None
+        return np.sqrt(np.maximum(np.diagonal(self.covariance), 0.0)).reshape(-1, 3)
+
+    def attach_covariance(self, ids, covariance, note: str = "") -> int:
+        """Take the joint covariance of check points `ids` (3N, 3N) for the ones evaluated here;
+        returns how many evaluated check points got one (the rest get NaN)."""
+        ids = [str(i) for i in ids]
+        covariance = np.asarray(covariance, dtype=np.float64).reshape(3 * len(ids), 3 * len(ids))
+        where = {pid: k for k, pid in enumerate(ids)}
+        index = np.full(3 * len(self.ids), -1, np.int64)
+        for k, pid in enumerate(self.ids):
+            if pid in where:
+                index[3 * k:3 * k + 3] = 3 * where[pid] + np.arange(3)
+        out = np.full((len(index), len(index)), np.nan)
+        known = index >= 0
+        out[np.ix_(known, known)] = covariance[np.ix_(index[known], index[known])]
+        self.covariance = out
+        self.sigma_note = note
+        return int(np.count_nonzero(known) // 3)
+
+    def delta_sigma(self) -> dict | None:
+        """Unger Tables 12/13 for the check points that have a covariance (`delta_sigma_table`)."""
+        if self.covariance is None:
+            return None
+        have = np.isfinite(np.diagonal(self.covariance).reshape(-1, 3)).all(axis=1)
+        if not have.any():
+            return None
+        rows = np.repeat(have, 3)
+        after = None
+        if self.helmert is not None:
+            after = self.helmert.residuals[have]
+        table = delta_sigma_table(self.errors[have], self.sigmas[have], after,
+                                  self.covariance[np.ix_(rows, rows)], self.estimated[have])
+        table["sigma_note"] = self.sigma_note
+        return table
 
     @property
     def rms_axes(self) -> np.ndarray:
@@ -345,9 +482,12 @@ class CheckpointEvaluation:
                     "error": [float(v) for v in err],
                     "views": int(self.num_views.get(pid, 0)),
                     "rms_px": float(self.rms_px.get(pid, float("nan"))),
+                    **({} if self.covariance is None else
+                       {"sigma": [float(v) for v in self.sigmas[k]]}),
                 }
-                for pid, err in zip(self.ids, self.errors)
+                for k, (pid, err) in enumerate(zip(self.ids, self.errors))
             },
+            **({} if self.delta_sigma() is None else {"delta_sigma": self.delta_sigma()}),
         }
 
     def summary(self) -> str:
@@ -365,6 +505,12 @@ class CheckpointEvaluation:
                     **h)
             )
             lines.append(f"RMS 3D after Helmert {self.rms_3d_after_helmert:.3f} m")
+        table = self.delta_sigma()
+        if table is not None:
+            lines.append(format_delta_sigma(
+                table, f"Delta/sigma of {table['num_checkpoints']} check points "
+                       f"(Unger Tables 12/13; {self.sigma_note or 'sigma from the adjustment'}):")
+                .rstrip())
         return "\n".join(lines)
 
 
@@ -430,6 +576,53 @@ def evaluate_checkpoints(
     )
 
 
+def evaluate_with_precision(reconstruction, checkpoints: dict[str, np.ndarray], observations,
+                            origin, precision) -> CheckpointEvaluation:
+    """refine's check point evaluation: Delta in its local frame (CRS minus `origin`) and the
+    check points' joint covariance from `precision` (precision.PrecisionResult), if it has one."""
+    evaluation = evaluate_checkpoints(reconstruction, checkpoints, observations, origin,
+                                      frame="local")
+    if precision is not None and len(precision.checkpoint_ids):
+        evaluation.attach_covariance(precision.checkpoint_ids, precision.checkpoint_cov,
+                                     CHECKPOINT_SIGMA_NOTE)
+    return evaluation
+
+
+#: What the check point sigmas of refine are.
+CHECKPOINT_SIGMA_NOTE = (
+    "marginal a posteriori sigma (all poses, planes, vertices and the datum uncertain; the "
+    "check points' image observations in the normal system, never on planes, never control), "
+    "scaled by s0^2 of the adjustment")
+
+
+def write_checkpoint_precision(path, evaluation: CheckpointEvaluation) -> None:
+    """`checkpoint_precision.json`: ids, estimated points (model CRS), the joint covariance
+    (3N x 3N, m^2; null where unknown) and what it is."""
+    if evaluation.covariance is None:
+        raise ValueError("the evaluation has no check point covariance")
+    Path(path).write_text(json.dumps({
+        "ids": list(evaluation.ids),
+        "points": evaluation.estimated.tolist(),
+        "covariance": np.where(np.isfinite(evaluation.covariance), evaluation.covariance,
+                               None).tolist(),
+        "note": evaluation.sigma_note, "units": "m, m^2"}, indent=1))
+
+
+def read_checkpoint_precision(path) -> tuple[list[str], np.ndarray, str]:
+    """ids, joint covariance (3N, 3N) and note from `checkpoint_precision.json`."""
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+        ids = [str(i) for i in data["ids"]]
+        covariance = np.array([[np.nan if v is None else v for v in row]
+                               for row in data["covariance"]], dtype=np.float64
+                              ).reshape(3 * len(ids), 3 * len(ids))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError,
+            ValueError) as error:
+        raise InputError(f"not a usable check point precision file: {error}", path) from None
+    return ids, covariance, str(data.get("note", ""))
+
+
 # --------------------------------------------------------------------------------------------
 # Entry point
 
@@ -488,13 +681,16 @@ def main(
     frame: str = "auto",
     as_json: bool = False,
     truth_path=None,
+    precision_file=None,
 ) -> dict:
     """Evaluate the COLMAP model in `input_path` on check points; print a summary (or JSON).
 
     The model may be in CRS coordinates (georeferenced output) or local (CRS minus an origin
     from `origin_file` or `input_path/georeference.json`). When a simulated workspace's `truth/`
     is found next to the model (DIR/../truth or DIR/../../truth, or `truth_path`), the truth
-    poses are evaluated the same way. Returns {"evaluated": {...}, "truth": {...} | None}.
+    poses are evaluated the same way. With the check points' covariance (`precision_file`, or
+    `input_path/checkpoint_precision.json` written by refine --checkpoints) the Delta/sigma
+    table of Unger Tables 12/13 is added. Returns {"evaluated": {...}, "truth": {...} | None}.
     """
     input_path = Path(input_path)
     reconstruction = _read_reconstruction(input_path)
@@ -511,6 +707,12 @@ def main(
     if not evaluation.ids:
         raise InputError("no check point could be triangulated in the model (no shared ids, "
                          "unknown image names or fewer than 2 views each)", Path(observations))
+    if precision_file is None and (input_path / CHECKPOINT_PRECISION_FILE).is_file():
+        precision_file = input_path / CHECKPOINT_PRECISION_FILE
+    if precision_file is not None:
+        # Sigmas of the adjustment that produced the model (refine --checkpoints ...); they
+        # belong to the same triangulation with the same poses as the Delta computed here.
+        evaluation.attach_covariance(*read_checkpoint_precision(precision_file))
     out = {"evaluated": evaluation.todict(), "truth": None}
     truth_dir = Path(truth_path) if truth_path is not None else _find_truth(input_path)
     truth_eval = None

@@ -7,7 +7,9 @@ registered images), to which this module adds, through the C++ extension's cost 
 - f_pos: GNSS projection centre priors on each frame's rig_from_world block (sigma 3, 3, 5 m);
 - f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
 - f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
-- f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed").
+- f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed");
+- optionally (sigma_generalisation) a generalisation offset o_p per plane in f_dTP,
+  (n.X + d + o_p) / sigma_dTP, with the prior o_p ~ N(0, sigma_generalisation^2) (group "gen").
 
 Planes are unknowns with 3 degrees of freedom: a unit normal on a sphere manifold plus an
 offset, so the signed distance of X is n . X + d. The gauge is left free: GNSS and the model
@@ -39,7 +41,10 @@ from .plane_store import PlaneStore
 
 logger = logging.getLogger("colmap_citymodel.hybrid_adjustment")
 
-GROUPS = ("image", "gnss", "dTP", "dVT", "VT")
+#: Observation groups in the order their residuals enter the problem. "gen": the priors
+#: o_p ~ N(0, sigma_generalisation^2) of the per-plane generalisation offsets (only with
+#: AdjustmentOptions.sigma_generalisation; otherwise empty).
+GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen")
 
 
 @dataclass
@@ -55,6 +60,16 @@ class GNSSPriors:
 
     def __len__(self) -> int:
         return len(self.image_ids)
+
+    def observed_points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
+        """Where the block currently puts what GNSS observed (antennas or centres): (N, 3)."""
+        out = np.empty((len(self), 3))
+        for k, image_id in enumerate(self.image_ids):
+            image = rec.image(int(image_id))
+            in_rig = (_position_in_rig(rec, image) if self.lever_arm is None
+                      else np.asarray(self.lever_arm, float))
+            out[k] = rec.frame(image.frame_id).rig_from_world.inverse() * in_rig
+        return out
 
 
 @dataclass
@@ -106,6 +121,8 @@ class PlaneBlocks:
     offsets: list[np.ndarray] = field(default_factory=list)
     vertex_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     vertices: list[np.ndarray] = field(default_factory=list)
+    # Per face (1): its generalisation offset o_p; empty in the classical model.
+    generalisation: list[np.ndarray] = field(default_factory=list)
 
     @property
     def normal_array(self) -> np.ndarray:
@@ -119,6 +136,15 @@ class PlaneBlocks:
     def vertex_array(self) -> np.ndarray:
         return np.array(self.vertices).reshape(-1, 3)
 
+    @property
+    def generalisation_array(self) -> np.ndarray:
+        """(F,) generalisation offsets o_p (m): the tie points' surface is n.X + d + o_p = 0."""
+        return np.array(self.generalisation).reshape(-1)
+
+
+IMAGE_LOSSES = {"huber": pycolmap.LossFunctionType.HUBER,
+                "cauchy": pycolmap.LossFunctionType.CAUCHY}
+
 
 def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
                               ) -> pycolmap.BundleAdjustmentOptions:
@@ -129,7 +155,7 @@ def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
     ba.refine_sensor_from_rig = False
     ba.print_summary = False
     if robust_images:
-        ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+        ba.ceres.loss_function_type = IMAGE_LOSSES[options.image_loss]
         ba.ceres.loss_function_scale = options.image_loss_scale
     else:
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
@@ -137,7 +163,8 @@ def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
     ba.ceres.solver_options.num_threads = options.num_threads
     # COLMAP stops on gradient_tolerance only; a relative cost tolerance ends the many
     # near-converged re-solves of the outer loop early without changing the optimum.
-    ba.ceres.solver_options.function_tolerance = 1e-8
+    ba.ceres.solver_options.function_tolerance = options.function_tolerance
+    ba.ceres.solver_options.initial_trust_region_radius = options.initial_trust_region_radius
     return ba
 
 
@@ -177,7 +204,7 @@ class HybridProblem:
             self._add_model(core, store, current if current is not None else store, assignment,
                             robust_planes)
         else:
-            self.counts.update(dTP=0, dVT=0, VT=0)
+            self.counts.update(dTP=0, dVT=0, VT=0, gen=0)
 
     # -- building ---------------------------------------------------------------------------
     def _add_gnss(self, core, gnss: GNSSPriors | None) -> None:
@@ -214,8 +241,21 @@ class HybridProblem:
             problem.set_manifold(blocks.normals[-1], sphere)
             problem.add_parameter_block(blocks.offsets[-1], 1)
 
+        # Generalisation-aware model: an offset unknown per plane, shared by its tie points.
+        with_offsets = o.sigma_generalisation is not None
+        if with_offsets and not o.sigma_generalisation > 0:
+            from .errors import InputError
+
+            raise InputError("adjustment.sigma_generalisation must be > 0 (or unset for the "
+                             f"classical model), got {o.sigma_generalisation}")
+        if with_offsets:
+            for _ in faces:
+                blocks.generalisation.append(np.zeros(1, dtype=np.float64))
+                problem.add_parameter_block(blocks.generalisation[-1], 1)
+
         # f_dTP: one residual per assigned tie point, in the order of `point_ids`.
-        tie_cost = core.PointPlaneDistanceCost(o.sigma_dtp / o.sigma_image)
+        tie_cost = (core.PointPlaneOffsetDistanceCost(o.sigma_dtp / o.sigma_image) if with_offsets
+                    else core.PointPlaneDistanceCost(o.sigma_dtp / o.sigma_image))
         tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
         assigned = assignment.assigned
         self.point_ids = assignment.point_ids[assigned]
@@ -225,7 +265,8 @@ class HybridProblem:
             k = slot_of_face[int(face)]
             problem.add_residual_block(tie_cost, tie_loss,
                                        [rec.point3D(int(point_id)).xyz, blocks.normals[k],
-                                        blocks.offsets[k]])
+                                        blocks.offsets[k]]
+                                       + ([blocks.generalisation[k]] if with_offsets else []))
         self.counts["dTP"] = len(self.point_ids)
 
         # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
@@ -250,6 +291,12 @@ class HybridProblem:
                 core.PointPositionPriorCost(np.array(store.vertices[v], dtype=np.float64),
                                             sigma_vt), None, [vertex])
         self.counts["VT"] = 3 * len(vertex_ids)
+        # Group "gen" last: the priors of the generalisation offsets.
+        if with_offsets:
+            prior = core.ScalarPriorCost(0.0, o.sigma_generalisation / o.sigma_image)
+            for block in blocks.generalisation:
+                problem.add_residual_block(prior, None, [block])
+        self.counts["gen"] = len(blocks.generalisation)
         self.blocks = blocks
 
     # -- solving ----------------------------------------------------------------------------
@@ -261,6 +308,7 @@ class HybridProblem:
         if self.options.refine_intrinsics:
             u += sum(len(c.params) - 2 for c in rec.cameras.values())  # principal point fixed
         u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
+        u += len(self.blocks.generalisation)
         return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
     def group_residuals(self) -> dict[str, np.ndarray]:
@@ -286,7 +334,7 @@ class HybridProblem:
         iterations = (ceres_summary.num_successful_steps + ceres_summary.num_unsuccessful_steps
                       if ceres_summary is not None else -1)
         if ceres_summary is not None:
-            logger.debug("ceres: %s", ceres_summary.BriefReport())
+            logger.debug("ceres: %s", ceres_summary.FullReport())
         residuals = self.group_residuals()
         return SolveReport(
             rms={g: float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")

@@ -39,6 +39,11 @@ class AssignmentOptions:
     """Faces no tie point can lie on: a building's ground is under it, closures are virtual."""
 
 
+#: sigma_generalisation (m) to use when the generalisation-aware model is switched on: Unger's
+#: sigma_dTP "as this is the expected typical size of generalisation effects" (5.3).
+GENERALISATION_SIGMA = 0.20
+
+
 @dataclass
 class AdjustmentOptions:
     """Stochastic model and solver settings of the hybrid bundle adjustment (Unger 3.2, 5.3)."""
@@ -53,8 +58,12 @@ class AdjustmentOptions:
     """Fictitious distance vertex -> each plane it belongs to (m)."""
     sigma_vt: float = 0.01
     """Direct observation of each model vertex (m); 0.5 to correct the model."""
+    image_loss: str = "huber"
+    """Robust loss on image observations in step 2: "huber" or "cauchy" (method.md allows
+    either). Huber is convex: from COLMAP's output it converged in 15 Ceres iterations where
+    Cauchy needed 103 (short Scn3, benchmarks/bench_refine.py), to the same eliminations."""
     image_loss_scale: float = 1.0
-    """Cauchy scale (px) of the robust reprojection loss in step 2."""
+    """Scale (px) of the robust reprojection loss in step 2."""
     plane_loss_scale: float = 2.0
     """Huber scale (in units of sigma_dTP) of the robust f_dTP loss in step 4."""
     elimination_threshold: float = 3.0
@@ -65,7 +74,26 @@ class AdjustmentOptions:
     """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
     max_solver_iterations: int = 300
     """Ceres iterations per solve (COLMAP: 100); a drifted block needs more to converge."""
+    function_tolerance: float = 1e-6
+    """A solve ends when a step lowers the cost by less than this fraction of it. The cost is
+    half the chi-square of n normalised residuals, whose own spread is sqrt(2n): a 1e-6
+    relative change (~0.1 at n = 4e5) is far below anything statistically visible. COLMAP
+    leaves it at 0 and then crawls for 100+ iterations at that level."""
+    initial_trust_region_radius: float = 1e8
+    """Levenberg-Marquardt starts close to Gauss-Newton (Ceres: 1e4). The hybrid problem is
+    nearly linear around SfM's block; a large first radius halved its iterations (22 -> 9)."""
     num_threads: int = -1
+    sigma_generalisation: float | None = None
+    """None: the classical stochastic model (independent f_dTP, as Unger). A value (m): every
+    assigned plane gets an offset unknown o_p with the prior o_p ~ N(0, sigma^2), and f_dTP
+    becomes (n.X + d + o_p) / sigma_dTP, so that the systematic generalisation error of a plane
+    does not average out with its number of points (Unger 6.3, Table 12: sigma of check points
+    3-19x too small). Recommended: `GENERALISATION_SIGMA` = 0.20 m, Unger's "expected typical
+    size of generalisation effects" (5.3; 0.05 for a detailed model)."""
+
+
+#: Options that take one of a few words.
+CHOICES = {"adjustment.image_loss": ("huber", "cauchy")}
 
 
 @dataclass
@@ -93,6 +121,18 @@ class PrecisionOptions:
     at 300 images / 29k points it cost ~2.5 hybrid solves)."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
+    variance_components: bool = False
+    """Iterated variance component estimation (Foerstner) of `variance_component_groups` after
+    the last iteration, re-solving with the estimated sigmas; the covariances are those of that
+    re-weighted final solve. Off by default: each VCE iteration is one more hybrid solve."""
+    variance_component_groups: tuple[str, ...] = ("image", "dTP", "gen")
+    """Groups whose sigma VCE estimates ("gen": sigma_generalisation, when set). GNSS is left
+    out by default: its errors are time-correlated (a bias along the flight), which white-noise
+    VCE would read as precision and then let the bias pull the datum."""
+    variance_component_iterations: int = 10
+    """At most this many re-weighted solves."""
+    variance_component_tolerance: float = 0.02
+    """Stop when no group factor changes by more than this (relative)."""
 
 
 @dataclass
@@ -131,7 +171,10 @@ class RefineOptions:
                 if key not in known:
                     raise InputError(f"unknown option {section}.{key}", source)
                 current = getattr(target, key)
-                if isinstance(current, tuple):
+                if current is None and isinstance(value, (int, float)) \
+                        and not isinstance(value, bool):
+                    value = float(value)  # optional floats (e.g. sigma_generalisation)
+                elif isinstance(current, tuple):
                     value = tuple(type(current[0])(v) if current else v for v in value)
                 elif isinstance(current, float) and isinstance(value, int):
                     value = float(value)
@@ -140,6 +183,10 @@ class RefineOptions:
                         f"option {section}.{key} must be {type(current).__name__}, got {value!r}",
                         source,
                     )
+                choices = CHOICES.get(f"{section}.{key}")
+                if choices is not None and value not in choices:
+                    raise InputError(f"option {section}.{key} must be one of "
+                                     f"{', '.join(choices)}, got {value!r}", source)
                 setattr(target, key, value)
         return self
 

@@ -60,6 +60,8 @@ CHUNK_ROWS = 6000
 RANK_TOLERANCE = 1e-12
 #: Step of the numerical derivative of X0 and omega/phi/kappa w.r.t. the pose tangent.
 POSE_STEP = 1e-6
+#: Observation groups reported only when the problem has them (the generalisation priors).
+OPTIONAL_GROUPS = ("gen",)
 #: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
 PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
 
@@ -133,7 +135,9 @@ def variance_factors(residuals: dict[str, np.ndarray], num_unknowns: int,
     """s0^2 = v^T P v / (n - u) overall and per group from whitened residuals.
 
     Without `redundancy_by_group` (redundancy numbers summed per group) the group redundancy is
-    the proportional share n_g / n * r, an approximation."""
+    the proportional share n_g / n * r, an approximation. Optional groups (`OPTIONAL_GROUPS`)
+    without observations are left out."""
+    residuals = {g: v for g, v in residuals.items() if len(v) or g not in OPTIONAL_GROUPS}
     count = {g: int(len(v)) for g, v in residuals.items()}
     vtpv_g = {g: float(np.sum(np.square(v))) for g, v in residuals.items()}
     n = sum(count.values())
@@ -199,6 +203,8 @@ def _layout(problem: HybridProblem) -> _Layout:
     for k in range(len(b.faces)):
         add("plane_normal", k, b.normals[k])
         add("plane_offset", k, b.offsets[k])
+    for k in range(len(b.generalisation)):
+        add("plane_generalisation", k, b.generalisation[k])
     for k in range(len(b.vertex_ids)):
         add("vertex", k, b.vertices[k])
     num_c = int(sum(sizes))
@@ -375,6 +381,153 @@ def image_jacobian(rec: pycolmap.Reconstruction, image_id: int) -> np.ndarray:
     return out
 
 
+# -- check points --------------------------------------------------------------------------------
+
+#: Step (m) of the numerical derivative of a check point's projection w.r.t. its coordinates.
+POINT_STEP = 1e-5
+
+
+@dataclass
+class CheckpointCofactors:
+    """Unscaled joint cofactor matrix of the check points (Q = N^-1 block, 3N x 3N)."""
+
+    ids: list[str]
+    points: np.ndarray  # (N, 3) in the problem's frame (triangulated with the adjusted poses)
+    q: np.ndarray  # (3N, 3N) marginal, with cross terms between check points
+    q_conditional: np.ndarray  # (N, 3, 3) W_c^-1: poses and everything else held fixed
+    num_observations: dict[str, int]
+    joint: bool  # True: the check points' observations are in the normal system (Woodbury)
+
+
+def _camera_columns(problem: HybridProblem, layout: _Layout, camera) -> tuple[slice, np.ndarray]:
+    """Columns of a variable camera block and the parameter indices they refine. COLMAP's BA
+    keeps the principal point constant (SubsetManifold) unless asked; the rest is its tangent."""
+    columns = layout.columns("camera", camera.camera_id)
+    if columns is None:
+        return None, np.zeros(0, np.int64)
+    fixed = set()
+    if not problem.adjuster.options.refine_principal_point:
+        fixed |= set(int(i) for i in camera.principal_point_idxs())
+    if not problem.adjuster.options.refine_focal_length:
+        fixed |= set(int(i) for i in camera.focal_length_idxs())
+    if not problem.adjuster.options.refine_extra_params:
+        fixed |= set(int(i) for i in camera.extra_params_idxs())
+    free = np.array([i for i in range(len(camera.params)) if i not in fixed], np.int64)
+    if len(free) != columns.stop - columns.start:
+        raise RuntimeError(f"camera {camera.camera_id}: tangent size {columns.stop - columns.start}"
+                           f" does not match the {len(free)} refined parameters")
+    return columns, free
+
+
+def _projection_jacobians(rec: pycolmap.Reconstruction, image: pycolmap.Image, xyz: np.ndarray,
+                          free_camera: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """d(pixel)/d(point) (2, 3), d(pixel)/d(frame tangent) (2, 6) and d(pixel)/d(refined
+    camera parameters) (2, k) by central differences, the frame tangent as Ceres' manifold."""
+    frame = rec.frame(image.frame_id)
+    camera = image.camera
+    sensor_from_rig = (None if image.is_ref_in_frame() else
+                       rec.rig(frame.rig_id).sensor_from_rig(camera.sensor_id))
+
+    def project(rig_from_world, point, cam=camera):
+        cam_from_world = (rig_from_world if sensor_from_rig is None
+                          else sensor_from_rig * rig_from_world)
+        return np.asarray(cam.img_from_cam((cam_from_world * point)[None])).reshape(2)
+
+    pose = frame.rig_from_world
+    j_point = np.empty((2, 3))
+    for k in range(3):
+        d = np.zeros(3)
+        d[k] = POINT_STEP
+        j_point[:, k] = (project(pose, xyz + d) - project(pose, xyz - d)) / (2 * POINT_STEP)
+    j_frame = np.empty((2, 6))
+    for k in range(6):
+        d = np.zeros(6)
+        d[k] = POSE_STEP
+        j_frame[:, k] = (project(_perturbed(pose, d), xyz)
+                         - project(_perturbed(pose, -d), xyz)) / (2 * POSE_STEP)
+    j_camera = np.empty((2, len(free_camera)))
+    for col, i in enumerate(free_camera):
+        step = 1e-6 * max(1.0, abs(camera.params[i]))
+        values = []
+        for sign in (1.0, -1.0):
+            moved = pycolmap.Camera(camera)
+            params = np.array(camera.params, float)
+            params[i] += sign * step
+            moved.params = params
+            values.append(project(pose, xyz, moved))
+        j_camera[:, col] = (values[0] - values[1]) / (2 * step)
+    return j_point, j_frame, j_camera
+
+
+def checkpoint_cofactors(problem: HybridProblem, cof: Cofactors, points: dict[str, np.ndarray],
+                         observations) -> CheckpointCofactors:
+    """Marginal cofactors of check points estimated as free 3D points from their image
+    observations (f_CP, sigma_image like f_TP), in the normal system of the adjustment.
+
+    Each check point c adds rows J_c = [J_p (point), J_f (its images' frames, cameras)] to the
+    normal system. Eliminating c (as the tie points): the camera-side normal matrix gains
+    D = sum_c J_f^T (I - J_p W_c^-1 J_p^T) J_f, W_c = J_p^T J_p, so
+    Q_cc' = (S + D)^-1 = Q_cc - Q_cc G^T (I + G Q_cc G^T)^-1 G Q_cc (Woodbury, G stacked
+    (I - J_p W_c^-1 J_p^T) J_f), and the joint check point block is
+    Q_ij = delta_ij W_i^-1 + B_i Q_cc' B_j^T with B_c = W_c^-1 J_p^T J_f: the pose, plane and
+    datum uncertainty enters through Q_cc'. Check points are never assigned to planes and
+    never used as control. With a datum defect the check points' own small influence on the
+    poses is left out (Q_cc' = Q_cc, the triangulation with the adjusted poses).
+
+    `points`: id -> (3,) in the problem's frame (evaluate.triangulate_checkpoints on the
+    problem's reconstruction); `observations`: [(image_name, id, x, y)] in pixels."""
+    rec = problem.reconstruction
+    layout = cof.layout
+    sigma = problem.options.sigma_image
+    by_name = {image.name: image for image in rec.images.values() if image.has_pose}
+    grouped: dict[str, list] = {}
+    for name, point_id, x, y in observations:
+        if point_id in points and name in by_name:
+            grouped.setdefault(point_id, []).append((by_name[name], float(x), float(y)))
+    ids = [i for i in sorted(points) if len(grouped.get(i, ())) >= 2]
+    cameras = {c: _camera_columns(problem, layout, rec.camera(c)) for c in rec.cameras}
+    nc = layout.num_c
+    w_inv, b_rows, g_rows, counts = [], [], [], {}
+    for point_id in ids:
+        xyz = np.asarray(points[point_id], float)
+        j_p, j_f = [], []
+        for image, _, _ in grouped[point_id]:
+            columns, free = cameras[image.camera_id]
+            jp, jf, jc = _projection_jacobians(rec, image, xyz, free)
+            row = np.zeros((2, nc))
+            frame_columns = layout.columns("frame", image.frame_id)
+            if frame_columns is not None:
+                if frame_columns.stop - frame_columns.start != 6:
+                    raise RuntimeError("check points on a gauge-reduced frame are not supported")
+                row[:, frame_columns] = jf
+            if columns is not None:
+                row[:, columns] = jc
+            j_p.append(jp / sigma)
+            j_f.append(row / sigma)
+        j_p, j_f = np.vstack(j_p), np.vstack(j_f)
+        w_c_inv = np.linalg.inv(j_p.T @ j_p)
+        w_inv.append(w_c_inv)
+        b_rows.append(w_c_inv @ (j_p.T @ j_f))
+        g_rows.append(j_f - j_p @ (w_c_inv @ (j_p.T @ j_f)))
+        counts[point_id] = len(grouped[point_id])
+    if not ids:
+        return CheckpointCofactors([], np.zeros((0, 3)), np.zeros((0, 0)), np.zeros((0, 3, 3)),
+                                   {}, False)
+    b = np.vstack(b_rows)  # (3N, nc)
+    q_cc = cof.q_cc
+    joint = cof.datum_defect == 0
+    if joint:
+        g = np.vstack(g_rows)
+        gq = g @ q_cc
+        inner = np.eye(len(g)) + gq @ g.T
+        q_cc = q_cc - gq.T @ np.linalg.solve(0.5 * (inner + inner.T), gq)
+    q = b @ q_cc @ b.T
+    for k, w in enumerate(w_inv):
+        q[3 * k:3 * k + 3, 3 * k:3 * k + 3] += w
+    return CheckpointCofactors(ids, np.array([points[i] for i in ids], float), 0.5 * (q + q.T),
+                               np.array(w_inv), counts, joint)
+
+
 # -- the result ----------------------------------------------------------------------------------
 
 @dataclass
@@ -401,6 +554,15 @@ class PrecisionResult:
     plane_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     plane_offset_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
     seconds: dict[str, float] = field(default_factory=dict)
+    plane_generalisation: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    """(F,) estimated generalisation offsets o_p (m) per plane; empty in the classical model."""
+    plane_generalisation_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    checkpoint_ids: list[str] = field(default_factory=list)
+    checkpoint_points: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    """(N, 3) check points triangulated with the adjusted poses (problem frame)."""
+    checkpoint_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    """(3N, 3N) joint marginal covariance of the check points, scaled by s0^2."""
+    checkpoint_cov_conditional: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
     @property
     def has_covariances(self) -> bool:
@@ -422,6 +584,17 @@ class PrecisionResult:
     def point_sigmas_conditional(self) -> np.ndarray:
         return np.sqrt(np.maximum(np.diagonal(self.point_cov_conditional, axis1=1, axis2=2),
                                   0.0))
+
+    @property
+    def checkpoint_sigmas(self) -> np.ndarray:
+        """(N, 3) marginal sigma X, Y, Z (m) of the check points, scaled by s0^2."""
+        diagonal = np.diagonal(self.checkpoint_cov).reshape(-1, 3)
+        return np.sqrt(np.maximum(diagonal, 0.0))
+
+    @property
+    def checkpoint_sigmas_conditional(self) -> np.ndarray:
+        return np.sqrt(np.maximum(np.diagonal(self.checkpoint_cov_conditional, axis1=1,
+                                              axis2=2), 0.0))
 
     def point_covariance(self, point_id: int) -> np.ndarray:
         index = np.flatnonzero(self.point_ids == point_id)
@@ -445,13 +618,30 @@ class PrecisionResult:
             out["point_covariance_note"] = (
                 "point sigmas are marginal (all other unknowns uncertain too); the conditional "
                 "ones hold poses, planes and vertices fixed, as pycolmap's get_point_cov")
+        if len(self.checkpoint_ids):
+            out["num_checkpoints_with_covariance"] = len(self.checkpoint_ids)
+            out["median_checkpoint_sigma_m"] = dict(zip("XYZ", np.median(
+                self.checkpoint_sigmas, 0).tolist()))
+            out["median_checkpoint_sigma_conditional_m"] = dict(zip("XYZ", np.median(
+                self.checkpoint_sigmas_conditional, 0).tolist()))
+        if len(self.plane_generalisation):
+            out["generalisation_offsets"] = {
+                "num_planes": int(len(self.plane_generalisation)),
+                "rms_m": float(np.sqrt(np.mean(self.plane_generalisation ** 2))),
+                "max_abs_m": float(np.max(np.abs(self.plane_generalisation))),
+                "median_sigma_m": float(np.nanmedian(self.plane_generalisation_sigma))
+                if len(self.plane_generalisation_sigma) else None}
         return out
 
 
 def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
-                       alpha: float = 0.05) -> PrecisionResult:
+                       alpha: float = 0.05, checkpoint_observations=None) -> PrecisionResult:
     """Variance factors, global test and (optionally) covariances at the current state of a
-    solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem)."""
+    solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
+
+    `checkpoint_observations` ([(image_name, id, x, y)], evaluate.read_checkpoint_observations):
+    check points are triangulated with the adjusted poses and get their marginal covariance
+    (`checkpoint_cofactors`); needs `covariances`."""
     start = time.perf_counter()
     residuals = problem.group_residuals()
     if not covariances:
@@ -484,6 +674,21 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         columns = layout.columns("plane_offset", k)
         plane_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
                            if columns is not None else np.nan)
+    generalisation_sigma = []
+    for k in range(len(problem.blocks.generalisation)):
+        columns = layout.columns("plane_generalisation", k)
+        generalisation_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
+                                    if columns is not None else np.nan)
+    checkpoints = None
+    if checkpoint_observations is not None:
+        from .evaluate import triangulate_checkpoints
+
+        t2 = time.perf_counter()
+        checkpoints = checkpoint_cofactors(
+            problem, cof, triangulate_checkpoints(rec, checkpoint_observations),
+            checkpoint_observations)
+        logger.info("precision: %d check points with covariances (%.1f s)",
+                    len(checkpoints.ids), time.perf_counter() - t2)
     points = np.array([rec.point3D(int(i)).xyz for i in layout.point_ids]).reshape(-1, 3)
     seconds = {"cofactors": cof.seconds, "images": time.perf_counter() - t1,
                "total": time.perf_counter() - start}
@@ -502,7 +707,13 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         point_ids=layout.point_ids, points=points, point_cov=s0sq * cof.q_points,
         point_cov_conditional=s0sq * cof.q_points_conditional,
         plane_faces=np.asarray(problem.blocks.faces), plane_offset_sigma=np.array(plane_sigma),
-        seconds=seconds)
+        seconds=seconds,
+        plane_generalisation=problem.blocks.generalisation_array,
+        plane_generalisation_sigma=np.array(generalisation_sigma),
+        **({} if checkpoints is None else {
+            "checkpoint_ids": checkpoints.ids, "checkpoint_points": checkpoints.points,
+            "checkpoint_cov": s0sq * checkpoints.q,
+            "checkpoint_cov_conditional": s0sq * checkpoints.q_conditional}))
 
 
 def wants_covariances(options, num_images: int) -> bool:
@@ -515,17 +726,21 @@ def wants_covariances(options, num_images: int) -> bool:
     return mode == "on" or (mode == "auto" and num_images < options.max_images_auto)
 
 
-def precision_after_refine(problem: HybridProblem | None, options) -> PrecisionResult | None:
-    """What refine() keeps: the precision of its last hybrid solve. A failure of the covariance
-    step (e.g. an unexpected parameter block) costs the covariances, not the refine result."""
+def precision_after_refine(problem: HybridProblem | None, options,
+                           checkpoint_observations=None) -> PrecisionResult | None:
+    """What refine() keeps: the precision of its last hybrid solve (with check point
+    covariances when their observations are given). A failure of the covariance step (e.g. an
+    unexpected parameter block) costs the covariances, not the refine result."""
     if problem is None:
         return None
     covariances = wants_covariances(options, problem.reconstruction.num_reg_images())
     if not covariances:
-        logger.info("precision: covariances skipped (%d images; precision.covariances=%s)",
-                    problem.reconstruction.num_reg_images(), options.covariances)
+        logger.info("precision: covariances skipped (%d images; precision.covariances=%s)%s",
+                    problem.reconstruction.num_reg_images(), options.covariances,
+                    "; check points get no sigma" if checkpoint_observations else "")
     try:
-        return estimate_precision(problem, covariances=covariances, alpha=options.alpha)
+        return estimate_precision(problem, covariances=covariances, alpha=options.alpha,
+                                  checkpoint_observations=checkpoint_observations)
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("precision: covariances failed (%s); reporting s0 only", error)
         return estimate_precision(problem, covariances=False, alpha=options.alpha)
@@ -552,6 +767,7 @@ class VarianceComponents:
     converged: bool
     precision: PrecisionResult  # of the last solve, with the estimated sigmas
     seconds: float
+    problem: HybridProblem | None = None  # the last (re-weighted) solve
 
     def todict(self) -> dict:
         return {"factors": self.factors, "sigmas": self.sigmas, "history": self.history,
@@ -562,7 +778,8 @@ class VarianceComponents:
 def estimate_variance_components(build, initial_sigmas: dict[str, float],
                                  groups: tuple[str, ...] = VCE_GROUPS, *,
                                  max_iterations: int = 15, tolerance: float = 0.01,
-                                 alpha: float = 0.05) -> VarianceComponents:
+                                 alpha: float = 0.05, covariances: bool = True
+                                 ) -> VarianceComponents:
     """Iterate: solve with the current sigmas, s_g^2 = v_g^T P v_g / r_g (redundancy numbers
     from the hat matrix), sigma_g <- sigma_g * s_g, until no factor changes by more than
     `tolerance` (relative). The iteration converges linearly (on the synthetic street the
@@ -571,7 +788,9 @@ def estimate_variance_components(build, initial_sigmas: dict[str, float],
     `build(factors) -> HybridProblem` returns a fresh, unsolved problem whose group sigmas are
     the a priori ones times `factors[g]`. COLMAP's reprojection residuals are always weighted
     with 1 px, so the solve uses factors relative to the image group (only ratios change the
-    estimate) and the image component is carried along outside the problem."""
+    estimate) and the image component is carried along outside the problem. The redundancy
+    numbers need the cofactor matrix in every iteration; `covariances=False` skips the image
+    and point covariances of the returned precision (they are computed again by the caller)."""
     start = time.perf_counter()
     factors = {g: 1.0 for g in GROUPS}
     history: list[dict[str, float]] = []
@@ -583,7 +802,8 @@ def estimate_variance_components(build, initial_sigmas: dict[str, float],
         relative["image"] = 1.0
         problem = build(relative)
         problem.solve()
-        precision = estimate_precision(problem, alpha=alpha)
+        precision = _variance_with_hat_matrix(problem, alpha) if not covariances \
+            else estimate_precision(problem, alpha=alpha)
         s0 = precision.variance.sigma0_by_group
         step = {g: s0[g] for g in groups if s0.get(g)}
         history.append({g: float(relative[g] * s) for g, s in step.items()})
@@ -599,7 +819,72 @@ def estimate_variance_components(build, initial_sigmas: dict[str, float],
         f"{g} x{factors[g]:.3f}" for g in groups), len(history),
         "" if converged else " (not converged)")
     return VarianceComponents(dict(factors), sigmas, history, converged, precision,
-                              time.perf_counter() - start)
+                              time.perf_counter() - start, problem)
+
+
+def _variance_with_hat_matrix(problem: HybridProblem, alpha: float) -> PrecisionResult:
+    """s0 per group with the exact (hat matrix) redundancies, no image/point covariances."""
+    cof = cofactors(problem)
+    variance = variance_factors(problem.group_residuals(), problem.num_unknowns(),
+                                cof.redundancy_by_group, alpha=alpha)
+    return PrecisionResult(variance, datum_defect=cof.datum_defect,
+                           seconds={"cofactors": cof.seconds})
+
+
+def _scaled_options(options, factors: dict[str, float]):
+    """AdjustmentOptions with the model groups' sigmas multiplied by `factors`."""
+    import dataclasses
+
+    generalisation = options.sigma_generalisation
+    if generalisation is not None:
+        generalisation = generalisation * factors.get("gen", 1.0)
+    return dataclasses.replace(options, sigma_dtp=options.sigma_dtp * factors.get("dTP", 1.0),
+                               sigma_dvt=options.sigma_dvt * factors.get("dVT", 1.0),
+                               sigma_vt=options.sigma_vt * factors.get("VT", 1.0),
+                               sigma_generalisation=generalisation)
+
+
+def _initial_sigmas(options, priors) -> dict[str, float]:
+    initial = {"image": options.sigma_image, "dTP": options.sigma_dtp,
+               "dVT": options.sigma_dvt, "VT": options.sigma_vt}
+    if options.sigma_generalisation is not None:
+        initial["gen"] = options.sigma_generalisation
+    if priors is not None and len(priors):
+        initial["gnss"] = float(np.median(priors.sigmas))
+    return initial
+
+
+def _usable_groups(groups, initial: dict[str, float]) -> tuple[str, ...]:
+    """Drop groups without observations in this problem (no GNSS, classical model)."""
+    return tuple(g for g in groups if g in initial)
+
+
+def variance_components_in_refine(reconstruction: pycolmap.Reconstruction, store, assignment,
+                                  priors, options, current) -> tuple[HybridProblem,
+                                                                     VarianceComponents]:
+    """refine()'s optional last step (PrecisionOptions.variance_components): iterated VCE on
+    the final assignment, solving in place on `reconstruction` (each iteration continues from
+    the previous solution), so that the result and its covariances are those of the
+    re-weighted final solve. Returns that last problem and the components."""
+    import dataclasses
+
+    adjustment, p = options.adjustment, options.precision
+    initial = _initial_sigmas(adjustment, priors)
+    groups = _usable_groups(p.variance_component_groups, initial)
+
+    def build(factors: dict[str, float]) -> HybridProblem:
+        scaled = None
+        if priors is not None:
+            scaled = dataclasses.replace(priors, sigmas=priors.sigmas * factors["gnss"])
+        return HybridProblem(reconstruction, store, assignment, scaled,
+                             _scaled_options(adjustment, factors), robust_images=False,
+                             robust_planes=False, current=current)
+
+    vce = estimate_variance_components(build, initial, groups,
+                                       max_iterations=p.variance_component_iterations,
+                                       tolerance=p.variance_component_tolerance,
+                                       alpha=p.alpha, covariances=False)
+    return vce.problem, vce
 
 
 def variance_components_after_refine(result, groups: tuple[str, ...] = VCE_GROUPS,
@@ -610,17 +895,11 @@ def variance_components_after_refine(result, groups: tuple[str, ...] = VCE_GROUP
 
     options = result.options.adjustment
     priors = result.gnss_priors
-    initial = {"image": options.sigma_image, "dTP": options.sigma_dtp,
-               "dVT": options.sigma_dvt, "VT": options.sigma_vt}
-    if priors is not None and len(priors):
-        initial["gnss"] = float(np.median(priors.sigmas))
-    elif "gnss" in groups:
-        groups = tuple(g for g in groups if g != "gnss")
+    initial = _initial_sigmas(options, priors)
+    groups = _usable_groups(groups, initial)
 
     def build(factors: dict[str, float]) -> HybridProblem:
-        adjusted = dataclasses.replace(options, sigma_dtp=options.sigma_dtp * factors["dTP"],
-                                       sigma_dvt=options.sigma_dvt * factors["dVT"],
-                                       sigma_vt=options.sigma_vt * factors["VT"])
+        adjusted = _scaled_options(options, factors)
         scaled = None
         if priors is not None:
             scaled = dataclasses.replace(priors, sigmas=priors.sigmas * factors["gnss"])

@@ -35,7 +35,8 @@ from .options import RefineOptions
 from .plane_store import PlaneStore
 
 if TYPE_CHECKING:
-    from .precision import PrecisionResult
+    from .evaluate import CheckpointEvaluation
+    from .precision import PrecisionResult, VarianceComponents
 
 logger = logging.getLogger("colmap_citymodel.workflow")
 
@@ -92,6 +93,8 @@ class RefineResult:
     seconds: dict[str, float] = field(default_factory=dict)
     gnss_priors: GNSSPriors | None = None  # the GNSS priors of the last solve (local frame)
     precision: "PrecisionResult | None" = None  # precision.py: s0, global test, covariances
+    variance_components: "VarianceComponents | None" = None  # PrecisionOptions.variance_components
+    checkpoints: "CheckpointEvaluation | None" = None  # Delta (and sigma) of given check points
 
     @property
     def origin(self) -> np.ndarray:
@@ -294,13 +297,17 @@ def roll_about_flight_line(rec: pycolmap.Reconstruction, store: PlaneStore,
 
 def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
            options: RefineOptions | None = None, *, initial_transform: pycolmap.Sim3d | None = None,
-           exclude_point_ids: set[int] | None = None, progress: bool = True) -> RefineResult:
+           exclude_point_ids: set[int] | None = None, progress: bool = True,
+           checkpoints: dict | None = None, checkpoint_observations: list | None = None
+           ) -> RefineResult:
     """Georeference `reconstruction` and adjust it together with `city_model`.
 
     `gnss` is a `read_gnss.GNSSObservations` (model CRS) or None; `initial_transform` maps the
     input frame to model CRS coordinates (used instead of a GNSS similarity when given).
     `exclude_point_ids` are never assigned to planes (e.g. check points in the model).
     The input reconstruction is not modified; the result holds a refined copy.
+    `checkpoints` ({id: XYZ} model CRS) and `checkpoint_observations` ([(image, id, x, y)],
+    evaluate.read_*) are only evaluated at the end (Delta, and sigma when covariances are on).
     """
     options = options or RefineOptions()
     timer = {"start": time.perf_counter()}
@@ -337,6 +344,14 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             # The tie point set does not change inside the loop: same ids in the same order.
             threshold = next_threshold(assignment, points, current, o_a, o_adj.sigma_dtp)
         assignment = assign(points, point_ids, current, threshold, o_a)
+        if iteration == 0 and assignment.num_assigned:
+            # Initial values: move the block as a whole onto its planes first, then assign
+            # again from there; the adjustment is left with the block's deformation.
+            move = align_to_planes(rec, points, assignment, current, priors, o_adj)
+            rec.transform(move)
+            sim3 = move * sim3
+            point_ids, points = tie_points(rec, exclude_point_ids)
+            assignment = assign(points, point_ids, current, threshold, o_a)
         assign_seconds += time.perf_counter() - t0
         if iteration == 0:
             warnings += check_datum(store, assignment, priors is not None)
@@ -392,9 +407,20 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             break
     bar.close()
 
-    from .precision import precision_after_refine
+    from .precision import precision_after_refine, variance_components_in_refine
 
-    precision = precision_after_refine(last, options.precision)
+    vce = None
+    if options.precision.variance_components and last.blocks.faces.size:
+        last, vce = variance_components_in_refine(rec, store, assignment, priors, options,
+                                                  current)
+        current = _current_from(current, last)
+    precision = precision_after_refine(last, options.precision, checkpoint_observations)
+    evaluation = None
+    if checkpoints is not None and checkpoint_observations is not None:
+        from .evaluate import evaluate_with_precision
+
+        evaluation = evaluate_with_precision(rec, checkpoints, checkpoint_observations,
+                                             store.origin, precision)
     blocks = last.blocks
     timer.update(assignment=assign_seconds, hybrid_solves=solve_seconds,
                  total=time.perf_counter() - timer["start"])
@@ -404,7 +430,32 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         plane_faces=blocks.faces, plane_normals=blocks.normal_array,
         plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
         step2=report2, step2_eliminated=eliminated2, iterations=iterations, options=options,
-        warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision)
+        warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
+        variance_components=vce, checkpoints=evaluation)
+
+
+def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
+                    store: PlaneStore, priors: GNSSPriors | None, options) -> pycolmap.Sim3d:
+    """The similarity that best puts the assigned tie points on their planes (and the block on
+    GNSS, with the adjustment's weights); see initial_alignment."""
+    from .initial_alignment import similarity_to_planes
+
+    assigned = assignment.assigned
+    faces = assignment.face_index[assigned]
+    gnss = {}
+    if priors is not None:
+        gnss = dict(antennas=priors.observed_points(rec), gnss=priors.positions,
+                    gnss_sigmas=priors.sigmas)
+    result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
+                                  options.sigma_dtp, options.plane_loss_scale, **gnss)
+    matrix = np.asarray(result.sim3.matrix())
+    moved = points @ matrix[:, :3].T + matrix[:, 3]
+    logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
+                "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
+                "%.3f m", int(assigned.sum()), result.iterations,
+                float(np.linalg.norm(moved - points, axis=1).mean()), result.sim3.scale,
+                result.rms_before, result.rms_after)
+    return result.sim3
 
 
 def _current_from(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
