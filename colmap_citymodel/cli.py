@@ -37,12 +37,23 @@ def _add_evaluate(subparsers) -> None:
                    help="frame of the model's coordinates (auto: decide from the data)")
     p.add_argument("--truth_path", default=None, help="truth COLMAP model (default: ../truth)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--output_path", default=None,
+                   help="new directory for report.html, the plots and evaluation.json")
 
     def run(args):
         from .evaluate import main
 
-        main(args.input_path, args.checkpoints, args.observations, origin_file=args.origin_file,
-             frame=args.frame, as_json=args.json, truth_path=args.truth_path)
+        if args.output_path:  # a taken output directory fails before the evaluation
+            from .checkpoint_plots import check_new_directory
+
+            check_new_directory(args.output_path)
+        out = main(args.input_path, args.checkpoints, args.observations,
+                   origin_file=args.origin_file, frame=args.frame, as_json=args.json,
+                   truth_path=args.truth_path)
+        if args.output_path:
+            from .checkpoint_plots import write_evaluate_outputs
+
+            write_evaluate_outputs(args.output_path, out, args.checkpoints)
 
     p.set_defaults(func=run)
 

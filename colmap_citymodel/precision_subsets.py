@@ -474,7 +474,8 @@ def markdown_report(results: list[SubsetResult], *, gauge_note: str, metric: boo
         lines += ["", "## Inner precision (S-transformed to the inner constraints of each "
                   "subset's tie points; gauge-free)", ""] + table("inner")
     lines += ["", "## Conditional tie point sigmas (poses held fixed: forward intersection)", "",
-              "| subset | sigma X | sigma Y | sigma Z | mean rays per point |", "|---|---|---|---|---|"]
+              "| subset | sigma X | sigma Y | sigma Z | mean rays per point |",
+              "|---|---|---|---|---|"]
     for r in results:
         cond = np.median(r.precision.point_sigmas_conditional, 0) * factor
         rays = r.solve.count["image"] / 2 / max(r.num_points, 1)
