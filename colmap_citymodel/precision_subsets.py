@@ -20,7 +20,9 @@ Gauge (datum) of the solve:
   minus a rounded origin) by a similarity to the GNSS positions of all its images; each subset
   then has the GNSS priors of its images (stated sigmas, e.g. 3, 3, 5 m) as a weak datum. The
   sigmas then include the datum's uncertainty: with metre-level GNSS they are dominated by it
-  (the whole block can shift and, for a straight strip, roll about the flight line).
+  (the whole block can shift and, for a straight strip, roll about the flight line). GNSS in a
+  geographic CRS goes to `target_crs` or the UTM zone of its mean position; a COLMAP database
+  is read from a temporary copy (opening it with pycolmap rewrites the file).
 - "fixed" (no GNSS): COLMAP's TWO_CAMS_FROM_WORLD gauge, as COLMAP's own BA fixes it: the pose
   of the subset's first image (lowest image id) and the largest baseline component of a second
   image are held. Sigmas are relative to those two images and grow away from them; the two
@@ -578,6 +580,35 @@ def _utm_crs(lon: float, lat: float):
     return user_crs(f"EPSG:{(32600 if lat >= 0 else 32700) + zone}")
 
 
+def _read_database_priors(database, target):
+    """GNSS from a COLMAP database, read from a temporary copy: opening a database with
+    pycolmap rewrites the file (its checksum changes even when only pose priors are read), and
+    inputs are never modified. Errors name the user's file."""
+    import shutil
+    import tempfile
+
+    from . import read_gnss as rg
+    from .crs import user_crs
+    from .errors import CityModelError
+
+    source = Path(database)
+    if not source.is_file():
+        raise InputError("COLMAP database does not exist", source)
+    with tempfile.TemporaryDirectory(prefix="colmap_citymodel_db_") as tmp:
+        copy = Path(tmp) / source.name
+        shutil.copyfile(source, copy)
+        try:
+            if target is not None:
+                return rg.read_gnss_database(copy, target)
+            first = rg.read_gnss_database(copy, user_crs("EPSG:4979"))
+            if first.vertical_applied is None:  # CARTESIAN priors only: already metric
+                return first
+            lon, lat = first.positions[:, 0].mean(), first.positions[:, 1].mean()
+            return rg.read_gnss_database(copy, _utm_crs(lon, lat))
+        except CityModelError as error:
+            raise type(error)(error.message, source) from None
+
+
 def read_priors(rec: pycolmap.Reconstruction, *, database=None, gnss=None, gnss_crs=None,
                 target_crs=None) -> tuple[GNSSPriors, np.ndarray, str] | None:
     """GNSS from one source, matched to the images and in a local metric frame; moves `rec`
@@ -604,24 +635,16 @@ def read_priors(rec: pycolmap.Reconstruction, *, database=None, gnss=None, gnss_
             target = _utm_crs(lon, lat)
         observations = rg.read_gnss_text(gnss, gnss_crs, target)
     else:
-        if target is None:
-            first = rg.read_gnss_database(database, user_crs("EPSG:4979"))
-            if first.vertical_applied is None:  # CARTESIAN priors only: already metric
-                observations = first
-            else:
-                lon, lat = first.positions[:, 0].mean(), first.positions[:, 1].mean()
-                observations = rg.read_gnss_database(database, _utm_crs(lon, lat))
-        else:
-            observations = rg.read_gnss_database(database, target)
+        observations = _read_database_priors(database, target)
     origin = np.round(observations.positions.mean(0) / ORIGIN_ROUNDING) * ORIGIN_ROUNDING
     image_ids, positions, sigmas = rg.match_to_reconstruction(observations, rec, origin)
     registration = estimate_georegistration(rec, positions, image_ids, sigmas=sigmas)
     rec.transform(registration.sim3)
-    logger.info("moved the block to %d GNSS positions (%s minus origin %s): scale %.4f, RMS "
-                "%.2f m", len(image_ids), observations.crs.label, origin.tolist(),
-                registration.sim3.scale, registration.rms)
     label = (observations.crs.label if observations.vertical_applied is not None or gnss
              else "the database's CARTESIAN frame")
+    logger.info("moved the block to %d GNSS positions (%s minus origin %s): scale %.4f, RMS "
+                "%.2f m", len(image_ids), label, origin.tolist(), registration.sim3.scale,
+                registration.rms)
     return GNSSPriors(image_ids, positions, sigmas), origin, label
 
 

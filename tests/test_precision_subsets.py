@@ -231,3 +231,30 @@ def test_missing_model_and_taken_output(tmp_path, scene, capsys):
         keep = np.isin(priors.image_ids, [1, 2])
         few = GNSSPriors(priors.image_ids[keep], priors.positions[keep], priors.sigmas[keep])
         precision_subsets(rec, ["all=*"], few, progress=False)
+
+
+def test_geographic_gnss_goes_to_its_utm_zone(tmp_path, scene, capsys):
+    from pyproj import Transformer
+
+    from colmap_citymodel.precision_subsets import main
+
+    model = _workspace(tmp_path, scene)
+    projected = main(model, [f"even={EVEN}"], gnss=tmp_path / "gnss.txt", gnss_crs="EPSG:25832",
+                     progress=False)
+    # The same positions as latitude, longitude, ellipsoidal height (EPSG order).
+    to_geographic = Transformer.from_crs("EPSG:25832", "EPSG:4326", always_xy=True)
+    lines = []
+    for line in (tmp_path / "gnss.txt").read_text().splitlines()[1:]:
+        name, x, y, z, *sigma = line.split()
+        lon, lat = to_geographic.transform(float(x), float(y))
+        lines.append(f"{name} {lat:.10f} {lon:.10f} {z} {' '.join(sigma)}")
+    (tmp_path / "gnss_wgs84.txt").write_text("\n".join(lines) + "\n")
+    geographic = main(model, [f"even={EVEN}"], gnss=tmp_path / "gnss_wgs84.txt",
+                      gnss_crs="EPSG:4979", progress=False)
+    capsys.readouterr()
+    assert "EPSG:32632" in geographic["gauge_note"]  # UTM zone 32N, as ETRS89 / UTM 32N
+    a, b = projected["subsets"][0], geographic["subsets"][0]
+    assert a["num_points3D"] == b["num_points3D"]
+    for key in ("median_point_sigma", "median_centre_sigma", "median_point_sigma_inner"):
+        for axis, value in a[key].items():
+            assert b[key][axis] == pytest.approx(value, rel=2e-3), (key, axis)
