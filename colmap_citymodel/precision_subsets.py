@@ -176,16 +176,14 @@ def restrict(rec: pycolmap.Reconstruction, image_ids, options: SubsetOptions
                 if i in keep and sub.image(i).num_points3D < options.min_image_points]
         if not weak:
             break
-        for image_id in weak:
-            dropped.append(sub.image(image_id).name)
-            frame = sub.frame(sub.image(image_id).frame_id)
-            for d in frame.image_ids:  # drop the image's observations, and its frame if empty
-                if int(d.id) == image_id:
-                    image = sub.image(image_id)
-                    for idx, point2D in enumerate(image.points2D):
-                        if point2D.has_point3D():
-                            sub.delete_observation(image_id, idx)
+        for image_id in weak:  # drop the image's observations, and its frame if now empty
+            image = sub.image(image_id)
+            dropped.append(image.name)
+            for idx, point2D in enumerate(image.points2D):
+                if point2D.has_point3D():
+                    sub.delete_observation(image_id, idx)
             keep.discard(image_id)
+            frame = sub.frame(image.frame_id)
             if not any(int(d.id) in keep for d in frame.image_ids):
                 sub.deregister_frame(frame.frame_id)
     used = [i for i in sorted(sub.reg_image_ids()) if i in keep]

@@ -80,6 +80,16 @@ def test_restricted_block_keeps_only_the_subset(scene):
         kept = sorted(e.image_id for e in sub.point3D(point_id).track.elements)
         assert kept == sorted(e.image_id for e in rec.point3D(point_id).track.elements
                               if e.image_id in centres)
+    # Images left with too few tie points are de-registered (and their observations go).
+    counts = {i: sub.image(i).num_points3D for i in ids}
+    threshold = int(np.percentile(list(counts.values()), 30))
+    weak = {rec.image(i).name for i, n in counts.items() if n < threshold}
+    strict, info = restrict(rec, ids, SubsetOptions(min_image_points=threshold))
+    assert weak and weak <= set(info.dropped_images)
+    assert len(info.image_ids) == 12 - len(info.dropped_images)
+    assert all(strict.image(i).num_points3D >= threshold for i in strict.reg_image_ids())
+    assert all(e.image_id in info.image_ids for p in strict.points3D.values()
+               for e in p.track.elements)
 
 
 def test_more_images_give_smaller_sigmas(results):
