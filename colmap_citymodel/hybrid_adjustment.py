@@ -336,6 +336,7 @@ class HybridProblem:
         if ceres_summary is not None:
             logger.debug("ceres: %s", ceres_summary.FullReport())
         residuals = self.group_residuals()
+        self.residuals = residuals  # at the solution, until the next solve
         return SolveReport(
             rms={g: float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
                  for g, r in residuals.items()},

@@ -347,10 +347,13 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         if iteration == 0 and assignment.num_assigned:
             # Initial values: move the block as a whole onto its planes first, then assign
             # again from there; the adjustment is left with the block's deformation.
+            t_align = time.perf_counter()
             move = align_to_planes(rec, points, assignment, current, priors, o_adj)
             rec.transform(move)
             sim3 = move * sim3
             point_ids, points = tie_points(rec, exclude_point_ids)
+            timer["initial_alignment"] = time.perf_counter() - t_align
+            t0 += timer["initial_alignment"]
             assignment = assign(points, point_ids, current, threshold, o_a)
         assign_seconds += time.perf_counter() - t0
         if iteration == 0:
@@ -369,7 +372,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                                   robust_planes=False, current=current)
             final_report = final.solve()
-            normalised = final.group_residuals()["dTP"]
+            normalised = final.residuals["dTP"]
             needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
         else:
             needs_robust = True
@@ -377,7 +380,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                                    robust_planes=True, current=current)
             robust_report = robust.solve()
-            normalised = robust.group_residuals()["dTP"]
+            normalised = robust.residuals["dTP"]
             outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
             assignment = assignment.without(np.isin(assignment.point_ids, outliers))
             assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
@@ -398,8 +401,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
         logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
-                    "eliminated, RMS %.4f, dTP RMS %.3f m, s0 %.3f", iteration, threshold,
-                    assignment.num_assigned, assignment.num_faces, len(outliers), rms,
+                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f",
+                    iteration, threshold, assignment.num_assigned, assignment.num_faces,
+                    len(outliers), rms, change,
                     final_report.rms["dTP"] * o_adj.sigma_dtp,
                     np.sqrt(final_report.sigma0_squared))
         previous_rms = rms
