@@ -61,7 +61,9 @@ class AdjustmentOptions:
     image_loss: str = "huber"
     """Robust loss on image observations in step 2: "huber" or "cauchy" (method.md allows
     either). Huber is convex: from COLMAP's output it converged in 15 Ceres iterations where
-    Cauchy needed 103 (short Scn3, benchmarks/bench_refine.py), to the same eliminations."""
+    Cauchy needed 103 (short Scn3, benchmarks/bench_refine.py); it eliminated 1809 instead of
+    3324 image observations and the refined camera centres stayed as close to the truth
+    (0.346 vs 0.345 m RMS)."""
     image_loss_scale: float = 1.0
     """Scale (px) of the robust reprojection loss in step 2."""
     plane_loss_scale: float = 2.0
