@@ -20,6 +20,8 @@ from __future__ import annotations
 
 import logging
 import math
+import shutil
+import tempfile
 import warnings
 from dataclasses import dataclass, field, replace
 from pathlib import Path
@@ -576,9 +578,15 @@ def read_gnss_database(
     if not database_path.is_file():
         raise GNSSError("COLMAP database does not exist", database_path)
     sigma_default = _parse_sigma(default_sigma)
+    # pycolmap opens a database read-write and rewrites it (schema upgrade, pragmas): read a
+    # private copy so that the user's database stays byte-identical.
+    scratch = tempfile.TemporaryDirectory(prefix="colmap_citymodel_db_")
+    copy = Path(scratch.name) / "database.db"
     try:
-        database = pycolmap.Database.open(str(database_path))
+        shutil.copyfile(database_path, copy)
+        database = pycolmap.Database.open(str(copy))
     except Exception as error:  # pycolmap raises plain RuntimeError/ValueError
+        scratch.cleanup()
         raise GNSSError(f"cannot open COLMAP database: {error}", database_path) from None
     try:
         try:
@@ -596,6 +604,7 @@ def read_gnss_database(
                 frame_images[_data_key(data_id)] = frame_names
     finally:
         database.close()
+        scratch.cleanup()
 
     CS = pycolmap.PosePriorCoordinateSystem
     rows: dict[str, tuple[np.ndarray, np.ndarray, str]] = {}

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sqlite3
 import struct
 import warnings
 from pathlib import Path
@@ -199,7 +200,11 @@ def _database_with_priors(tmp_path):
 
 def test_database_pose_priors_round_trip(tmp_path):
     db_path, _, truth = _database_with_priors(tmp_path)
+    with sqlite3.connect(db_path) as connection:  # as the simulator's and COLMAP's databases
+        connection.execute("PRAGMA journal_mode=WAL")
+    before = db_path.read_bytes()
     gnss = read_gnss_database(db_path, UTM32_DHHN)
+    assert db_path.read_bytes() == before  # the user's database is never rewritten
     assert gnss.source == "database" and sorted(gnss.image_names) == sorted(truth)
     for i, name in enumerate(gnss.image_names):
         kind, value = truth[name]
