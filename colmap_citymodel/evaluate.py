@@ -408,19 +408,38 @@ class CheckpointEvaluation:
     missing: list[str]  # check points with observations that could not be triangulated
     frame: str  # "crs" or "local": the frame the evaluated model was in
     rms_px: dict[str, float] = field(default_factory=dict)
-    covariance: np.ndarray | None = None
-    """(3N, 3N) joint a posteriori covariance of the estimated check points in `ids` order
-    (NaN rows for check points without one), from the adjustment (refine)."""
-    sigma_note: str = ""
+    covariances: dict[str, np.ndarray] = field(default_factory=dict)
+    """Per stochastic model ("classical", "generalisation_aware"): the (3N, 3N) joint a
+    posteriori covariance of the estimated check points in `ids` order (NaN for check points
+    without one), from the adjustment (refine)."""
+    sigma_notes: dict[str, str] = field(default_factory=dict)
+
+    @property
+    def covariance(self) -> np.ndarray | None:
+        """The first attached covariance (the classical one when refine attached both)."""
+        return next(iter(self.covariances.values()), None)
+
+    def sigmas_of(self, model: str | None = None) -> np.ndarray | None:
+        """(N, 3) a posteriori sigma X, Y, Z (m) of the check points under `model`."""
+        covariance = self.covariance if model is None else self.covariances.get(model)
+        if covariance is None:
+            return None
+        return np.sqrt(np.maximum(np.diagonal(covariance), 0.0)).reshape(-1, 3)
 
     @property
     def sigmas(self) -> np.ndarray | None:
-        """(N, 3) a posteriori sigma X, Y, Z (m) of the check points, if known."""
-        if self.covariance is None:
-            return None
-        return np.sqrt(np.maximum(np.diagonal(self.covariance), 0.0)).reshape(-1, 3)
+        return self.sigmas_of()
 
-    def attach_covariance(self, ids, covariance, note: str = "") -> int:
+    @property
+    def primary_model(self) -> str | None:
+        """The stochastic model whose sigma is `points[id]["sigma"]` and `delta_sigma` in
+        `todict`: the generalisation-aware one when attached (the honest one), else the first."""
+        if "generalisation_aware" in self.covariances:
+            return "generalisation_aware"
+        return next(iter(self.covariances), None)
+
+    def attach_covariance(self, ids, covariance, note: str = "", model: str = "classical"
+                          ) -> int:
         """Take the joint covariance of check points `ids` (3N, 3N) for the ones evaluated here;
         returns how many evaluated check points got one (the rest get NaN)."""
         ids = [str(i) for i in ids]
@@ -433,24 +452,28 @@ class CheckpointEvaluation:
         out = np.full((len(index), len(index)), np.nan)
         known = index >= 0
         out[np.ix_(known, known)] = covariance[np.ix_(index[known], index[known])]
-        self.covariance = out
-        self.sigma_note = note
+        self.covariances[model] = out
+        self.sigma_notes[model] = note
         return int(np.count_nonzero(known) // 3)
 
-    def delta_sigma(self) -> dict | None:
-        """Unger Tables 12/13 for the check points that have a covariance (`delta_sigma_table`)."""
-        if self.covariance is None:
+    def delta_sigma(self, model: str | None = None) -> dict | None:
+        """Unger Tables 12/13 for the check points that have a covariance under `model`
+        (default: the first attached), see `delta_sigma_table`."""
+        model = model or next(iter(self.covariances), None)
+        covariance = self.covariances.get(model) if model else None
+        if covariance is None:
             return None
-        have = np.isfinite(np.diagonal(self.covariance).reshape(-1, 3)).all(axis=1)
+        have = np.isfinite(np.diagonal(covariance).reshape(-1, 3)).all(axis=1)
         if not have.any():
             return None
         rows = np.repeat(have, 3)
         after = None
         if self.helmert is not None:
             after = self.helmert.residuals[have]
-        table = delta_sigma_table(self.errors[have], self.sigmas[have], after,
-                                  self.covariance[np.ix_(rows, rows)], self.estimated[have])
-        table["sigma_note"] = self.sigma_note
+        table = delta_sigma_table(self.errors[have], self.sigmas_of(model)[have], after,
+                                  covariance[np.ix_(rows, rows)], self.estimated[have])
+        table["model"] = model
+        table["sigma_note"] = self.sigma_notes.get(model, "")
         return table
 
     @property
@@ -482,12 +505,17 @@ class CheckpointEvaluation:
                     "error": [float(v) for v in err],
                     "views": int(self.num_views.get(pid, 0)),
                     "rms_px": float(self.rms_px.get(pid, float("nan"))),
-                    **({} if self.covariance is None else
-                       {"sigma": [float(v) for v in self.sigmas[k]]}),
+                    **({} if not self.covariances else
+                       {"sigma": [float(v) for v in self.sigmas_of(self.primary_model)[k]]}),
+                    **({f"sigma_{m}": [float(v) for v in self.sigmas_of(m)[k]]
+                        for m in self.covariances}),
                 }
                 for k, (pid, err) in enumerate(zip(self.ids, self.errors))
             },
-            **({} if self.delta_sigma() is None else {"delta_sigma": self.delta_sigma()}),
+            **({} if not self.covariances else {
+                "sigma_model": self.primary_model,
+                "delta_sigma": self.delta_sigma(self.primary_model),
+                "delta_sigma_by_model": {m: self.delta_sigma(m) for m in self.covariances}}),
         }
 
     def summary(self) -> str:
@@ -505,12 +533,13 @@ class CheckpointEvaluation:
                     **h)
             )
             lines.append(f"RMS 3D after Helmert {self.rms_3d_after_helmert:.3f} m")
-        table = self.delta_sigma()
-        if table is not None:
-            lines.append(format_delta_sigma(
-                table, f"Delta/sigma of {table['num_checkpoints']} check points "
-                       f"(Unger Tables 12/13; {self.sigma_note or 'sigma from the adjustment'}):")
-                .rstrip())
+        for model in self.covariances:
+            table = self.delta_sigma(model)
+            if table is not None:
+                lines.append(format_delta_sigma(
+                    table, f"Delta/sigma of {table['num_checkpoints']} check points, {model} "
+                           f"stochastic model (Unger Tables 12/13; "
+                           f"{table['sigma_note'] or 'sigma from the adjustment'}):").rstrip())
         return "\n".join(lines)
 
 
@@ -583,8 +612,14 @@ def evaluate_with_precision(reconstruction, checkpoints: dict[str, np.ndarray], 
     evaluation = evaluate_checkpoints(reconstruction, checkpoints, observations, origin,
                                       frame="local")
     if precision is not None and len(precision.checkpoint_ids):
-        evaluation.attach_covariance(precision.checkpoint_ids, precision.checkpoint_cov,
-                                     CHECKPOINT_SIGMA_NOTE)
+        if precision.generalisation != "estimated":
+            evaluation.attach_covariance(precision.checkpoint_ids, precision.checkpoint_cov,
+                                         CHECKPOINT_SIGMA_NOTE, "classical")
+        if precision.generalisation != "none":
+            evaluation.attach_covariance(
+                precision.checkpoint_ids, precision.aware("checkpoint_cov"),
+                GENERALISATION_NOTE[precision.generalisation].format(
+                    sigma=precision.generalisation_sigma), "generalisation_aware")
     return evaluation
 
 
@@ -593,34 +628,50 @@ CHECKPOINT_SIGMA_NOTE = (
     "marginal a posteriori sigma (all poses, planes, vertices and the datum uncertain; the "
     "check points' image observations in the normal system, never on planes, never control), "
     "scaled by s0^2 of the adjustment")
+GENERALISATION_NOTE = {
+    "consider": "the classical sigma plus per-plane generalisation offsets "
+                "o_p ~ N(0, {sigma:.3f}^2 m^2) shared by each plane's f_dTP, propagated into "
+                "the estimate (consider parameters)",
+    "estimated": "per-plane generalisation offsets estimated with the prior "
+                 "N(0, {sigma:.3f}^2 m^2); marginal sigma scaled by s0^2",
+}
 
 
 def write_checkpoint_precision(path, evaluation: CheckpointEvaluation) -> None:
     """`checkpoint_precision.json`: ids, estimated points (model CRS), the joint covariance
     (3N x 3N, m^2; null where unknown) and what it is."""
-    if evaluation.covariance is None:
+    if not evaluation.covariances:
         raise ValueError("the evaluation has no check point covariance")
     Path(path).write_text(json.dumps({
         "ids": list(evaluation.ids),
         "points": evaluation.estimated.tolist(),
-        "covariance": np.where(np.isfinite(evaluation.covariance), evaluation.covariance,
-                               None).tolist(),
-        "note": evaluation.sigma_note, "units": "m, m^2"}, indent=1))
+        "covariance": {m: np.where(np.isfinite(c), c, None).tolist()
+                       for m, c in evaluation.covariances.items()},
+        "note": dict(evaluation.sigma_notes), "units": "m (model CRS), m^2"}))
 
 
-def read_checkpoint_precision(path) -> tuple[list[str], np.ndarray, str]:
-    """ids, joint covariance (3N, 3N) and note from `checkpoint_precision.json`."""
+def read_checkpoint_precision(path) -> tuple[list[str], dict[str, np.ndarray], dict[str, str]]:
+    """ids, joint covariances per stochastic model ((3N, 3N) each) and notes from
+    `checkpoint_precision.json`."""
     path = Path(path)
     try:
         data = json.loads(path.read_text(encoding="utf-8"))
         ids = [str(i) for i in data["ids"]]
-        covariance = np.array([[np.nan if v is None else v for v in row]
-                               for row in data["covariance"]], dtype=np.float64
-                              ).reshape(3 * len(ids), 3 * len(ids))
+        given = data["covariance"]
+        if not isinstance(given, dict):  # one matrix: a single (classical) model
+            given = {"classical": given}
+        covariances = {
+            str(m): np.array([[np.nan if v is None else v for v in row] for row in rows],
+                             dtype=np.float64).reshape(3 * len(ids), 3 * len(ids))
+            for m, rows in given.items()}
+        notes = data.get("note") or {}
+        if not isinstance(notes, dict):
+            notes = {m: notes for m in covariances}
+        notes = {str(m): str(n) for m, n in notes.items()}
     except (OSError, UnicodeDecodeError, json.JSONDecodeError, KeyError, TypeError,
-            ValueError) as error:
+            ValueError, AttributeError) as error:
         raise InputError(f"not a usable check point precision file: {error}", path) from None
-    return ids, covariance, str(data.get("note", ""))
+    return ids, covariances, notes
 
 
 # --------------------------------------------------------------------------------------------
@@ -712,7 +763,9 @@ def main(
     if precision_file is not None:
         # Sigmas of the adjustment that produced the model (refine --checkpoints ...); they
         # belong to the same triangulation with the same poses as the Delta computed here.
-        evaluation.attach_covariance(*read_checkpoint_precision(precision_file))
+        ids, covariances, notes = read_checkpoint_precision(precision_file)
+        for model, covariance in covariances.items():
+            evaluation.attach_covariance(ids, covariance, notes.get(model, ""), model)
     out = {"evaluated": evaluation.todict(), "truth": None}
     truth_dir = Path(truth_path) if truth_path is not None else _find_truth(input_path)
     truth_eval = None

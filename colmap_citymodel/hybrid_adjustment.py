@@ -8,8 +8,9 @@ registered images), to which this module adds, through the C++ extension's cost 
 - f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
 - f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
 - f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed");
-- optionally (sigma_generalisation) a generalisation offset o_p per plane in f_dTP,
-  (n.X + d + o_p) / sigma_dTP, with the prior o_p ~ N(0, sigma_generalisation^2) (group "gen").
+- optionally (generalisation_offsets=True and sigma_generalisation set) a generalisation
+  offset o_p per plane in f_dTP, (n.X + d + o_p) / sigma_dTP, with the prior
+  o_p ~ N(0, sigma_generalisation^2) (group "gen"). Experimental: see AdjustmentOptions.
 
 Planes are unknowns with 3 degrees of freedom: a unit normal on a sphere manifold plus an
 offset, so the signed distance of X is n . X + d. The gauge is left free: GNSS and the model
@@ -178,9 +179,11 @@ class HybridProblem:
     def __init__(self, reconstruction: pycolmap.Reconstruction, store: PlaneStore | None,
                  assignment: Assignment | None, gnss: GNSSPriors | None,
                  options: AdjustmentOptions, *, robust_images: bool, robust_planes: bool,
-                 current: PlaneStore | None = None):
+                 current: PlaneStore | None = None, generalisation_offsets: bool = False):
         """`store` is the model as observed (f_VT observes its vertices); `current` (same
-        topology, default `store`) holds the current estimate used as initial values."""
+        topology, default `store`) holds the current estimate used as initial values.
+        `generalisation_offsets`: estimate a per-plane offset with the prior
+        N(0, options.sigma_generalisation^2) (only if that is set; see AdjustmentOptions)."""
         core = load_core()
         self.reconstruction = reconstruction
         self.options = options
@@ -198,7 +201,9 @@ class HybridProblem:
         self.problem: pyceres.Problem = self.adjuster.problem
         self.counts = {"image": self.problem.num_residuals()}
         self.point_ids = np.zeros(0, np.int64)
+        self.point_faces = np.zeros(0, np.int64)  # the face of each f_dTP row
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
+        self._generalisation_offsets = generalisation_offsets
         self._add_gnss(core, gnss)
         if with_model:
             self._add_model(core, store, current if current is not None else store, assignment,
@@ -242,7 +247,7 @@ class HybridProblem:
             problem.add_parameter_block(blocks.offsets[-1], 1)
 
         # Generalisation-aware model: an offset unknown per plane, shared by its tie points.
-        with_offsets = o.sigma_generalisation is not None
+        with_offsets = self._generalisation_offsets and o.sigma_generalisation is not None
         if with_offsets and not o.sigma_generalisation > 0:
             from .errors import InputError
 
@@ -260,6 +265,7 @@ class HybridProblem:
         assigned = assignment.assigned
         self.point_ids = assignment.point_ids[assigned]
         point_faces = assignment.face_index[assigned]
+        self.point_faces = np.asarray(point_faces, np.int64)
         rec = self.reconstruction
         for point_id, face in zip(self.point_ids, point_faces):
             k = slot_of_face[int(face)]

@@ -86,12 +86,22 @@ class AdjustmentOptions:
     nearly linear around SfM's block; a large first radius halved its iterations (22 -> 9)."""
     num_threads: int = -1
     sigma_generalisation: float | None = None
-    """None: the classical stochastic model (independent f_dTP, as Unger). A value (m): every
-    assigned plane gets an offset unknown o_p with the prior o_p ~ N(0, sigma^2), and f_dTP
-    becomes (n.X + d + o_p) / sigma_dTP, so that the systematic generalisation error of a plane
-    does not average out with its number of points (Unger 6.3, Table 12: sigma of check points
-    3-19x too small). Recommended: `GENERALISATION_SIGMA` = 0.20 m, Unger's "expected typical
-    size of generalisation effects" (5.3; 0.05 for a detailed model)."""
+    """None: the classical stochastic model only (independent f_dTP, as Unger). A value (m):
+    the generalisation-aware one as well: the f_dTP errors of one plane share an offset
+    o_p ~ N(0, sigma^2) (n.X + d + o_p = 0 on the true surface), so that a plane's systematic
+    deviation does not average out with its number of points (Unger 6.3, Table 12: sigma of
+    check points 3-19x too small). By default o_p is a consider parameter (precision.py): the
+    estimate stays the classical one and its covariance gains sum_p K_p K_p^T sigma^2, K_p the
+    estimate's sensitivity to plane p's offset. Recommended: `GENERALISATION_SIGMA` = 0.20 m,
+    Unger's "expected typical size of generalisation effects" (5.3; 0.05 for a detailed
+    model)."""
+    estimate_generalisation: bool = False
+    """Experimental: also estimate the o_p (unknowns with that prior, f_dTP becomes
+    (n.X + d + o_p) / sigma_dTP) in a re-solve after refine's assignment loop. Off: with the
+    plane offsets free, shrinking the block about any point reduces the scatter of the tie
+    points about their planes (their relief is real), and only the priors and GNSS resist; on
+    the simulated short Scn3 the block shrank by 2.2 % and the check point RMS went from 0.25 to
+    0.76 m (benchmarks/results/precision.md); in the assignment loop it collapsed the block."""
 
 
 #: Options that take one of a few words.
@@ -127,10 +137,11 @@ class PrecisionOptions:
     """Iterated variance component estimation (Foerstner) of `variance_component_groups` after
     the last iteration, re-solving with the estimated sigmas; the covariances are those of that
     re-weighted final solve. Off by default: each VCE iteration is one more hybrid solve."""
-    variance_component_groups: tuple[str, ...] = ("image", "dTP", "gen")
-    """Groups whose sigma VCE estimates ("gen": sigma_generalisation, when set). GNSS is left
-    out by default: its errors are time-correlated (a bias along the flight), which white-noise
-    VCE would read as precision and then let the bias pull the datum."""
+    variance_component_groups: tuple[str, ...] = ("image", "dTP")
+    """Groups whose sigma VCE estimates ("gen" too is possible with estimate_generalisation,
+    but diverged on simulated data). GNSS is left out by default: its errors are
+    time-correlated (a bias along the flight), which white-noise VCE would read as precision
+    and then let the bias pull the datum."""
     variance_component_iterations: int = 10
     """At most this many re-weighted solves."""
     variance_component_tolerance: float = 0.02

@@ -249,6 +249,7 @@ class Cofactors:
     redundancy_by_group: dict[str, float]
     datum_defect: int
     seconds: float
+    system: tuple | None = None  # (j_c, j_p, b = W^-1 E, w_inv) when asked to keep them
 
 
 def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
@@ -283,9 +284,11 @@ def _inverse(s: np.ndarray) -> tuple[np.ndarray, int]:
         return q, defect
 
 
-def cofactors(problem: HybridProblem, *, redundancy: bool = True) -> Cofactors:
+def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: bool = False
+              ) -> Cofactors:
     """Q_cc, marginal and conditional point cofactors and (optionally) the redundancy numbers
-    summed per observation group, all by Schur elimination of the tie points."""
+    summed per observation group, all by Schur elimination of the tie points. `keep_system`
+    keeps the Jacobian's camera and point columns and W^-1 E for `generalisation_effects`."""
     start = time.perf_counter()
     jacobian, layout = whitened_jacobian(problem)
     nc = layout.num_c
@@ -334,7 +337,62 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True) -> Cofactors:
     redundancy_by_group = ({g: (hi - lo) - trace.get(g, 0.0) for g, (lo, hi) in bounds.items()}
                            if redundancy else {})
     return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
-                     time.perf_counter() - start)
+                     time.perf_counter() - start,
+                     (j_c, j_p, b, w_inv) if keep_system else None)
+
+
+# -- generalisation as consider parameters -------------------------------------------------------
+
+@dataclass
+class GeneralisationEffects:
+    """Effect of a 1 m offset o_p of each assigned plane's true surface (all its f_dTP
+    observations off by the same o_p) on the estimate; `points_cov` already times sigma^2."""
+
+    faces: np.ndarray  # (F,)
+    camera: np.ndarray  # (nc, F) change of the camera-side unknowns per metre of o_p
+    points_cov: np.ndarray  # (P, 3, 3) sigma^2 sum_p d_i,p d_i,p^T of the tie points
+    sigma: float
+
+
+def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float
+                           ) -> GeneralisationEffects:
+    """The generalisation-aware stochastic model for the classical estimate: the f_dTP errors
+    of plane p share an offset o_p ~ N(0, sigma^2) that the adjustment does not estimate
+    (a consider parameter). The estimate responds linearly, dx = -N^-1 J^T (o_p / sigma_dTP)
+    1_p (1_p: plane p's f_dTP rows, whitened), so its covariance gains
+    sigma^2 sum_p dx_p dx_p^T. By Schur elimination: with g = J^T 1_p / sigma_dTP,
+    dx_c = Q_cc (g_c - E^T W^-1 g_p) and dx_points = W^-1 g_p - W^-1 E dx_c.
+
+    Independent f_dTP errors average out with the number of points of a plane, a shared
+    offset does not: this is what keeps check point sigmas from being 3-19x too small
+    (Unger Table 12) while the estimate stays the classical one."""
+    if cof.system is None:
+        raise ValueError("cofactors(problem, keep_system=True) is needed")
+    j_c, j_p, b, w_inv = cof.system
+    faces = np.asarray(problem.blocks.faces, np.int64)
+    num_points = len(cof.layout.point_ids)
+    if not len(faces) or not problem.counts["dTP"]:
+        return GeneralisationEffects(faces, np.zeros((cof.layout.num_c, 0)),
+                                     np.zeros((num_points, 3, 3)), sigma)
+    first = problem.counts["image"] + problem.counts["gnss"]
+    slot = {int(f): k for k, f in enumerate(faces)}
+    rows = first + np.arange(len(problem.point_faces))
+    columns = np.array([slot[int(f)] for f in problem.point_faces], np.int64)
+    sigma_dtp = problem.options.sigma_dtp  # the weight the rows were whitened with
+    unit = sp.csr_matrix((np.full(len(rows), 1.0 / sigma_dtp), (rows, columns)),
+                         shape=(j_c.shape[0], len(faces)))
+    g_c = np.asarray((j_c.T @ unit).todense())  # (nc, F)
+    g_p = (j_p.T @ unit).tocsr()  # (3P, F)
+    d_c = cof.q_cc @ (g_c - np.asarray((b.T @ g_p).todense()))
+    w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
+    points_cov = np.empty((num_points, 3, 3))
+    chunk = max(1, CHUNK_ROWS // 3)
+    for lo in range(0, num_points, chunk):
+        hi = min(num_points, lo + chunk)
+        d_p = (np.asarray(w_g[3 * lo:3 * hi].todense()) - b[3 * lo:3 * hi] @ d_c
+               ).reshape(hi - lo, 3, -1)
+        points_cov[lo:hi] = sigma ** 2 * np.einsum("kif,kjf->kij", d_p, d_p)
+    return GeneralisationEffects(faces, d_c, points_cov, sigma)
 
 
 # -- image quantities ----------------------------------------------------------------------------
@@ -397,6 +455,7 @@ class CheckpointCofactors:
     q_conditional: np.ndarray  # (N, 3, 3) W_c^-1: poses and everything else held fixed
     num_observations: dict[str, int]
     joint: bool  # True: the check points' observations are in the normal system (Woodbury)
+    b: np.ndarray | None = None  # (3N, nc) W_c^-1 J_p^T J_f: check points from the poses
 
 
 def _camera_columns(problem: HybridProblem, layout: _Layout, camera) -> tuple[slice, np.ndarray]:
@@ -525,10 +584,17 @@ def checkpoint_cofactors(problem: HybridProblem, cof: Cofactors, points: dict[st
     for k, w in enumerate(w_inv):
         q[3 * k:3 * k + 3, 3 * k:3 * k + 3] += w
     return CheckpointCofactors(ids, np.array([points[i] for i in ids], float), 0.5 * (q + q.T),
-                               np.array(w_inv), counts, joint)
+                               np.array(w_inv), counts, joint, b)
 
 
 # -- the result ----------------------------------------------------------------------------------
+
+def _sigmas(covariance: np.ndarray) -> np.ndarray:
+    """(N, k) square roots of the diagonals of (N, k, k) blocks or of a joint (3N, 3N)."""
+    if covariance.ndim == 2:
+        return np.sqrt(np.maximum(np.diagonal(covariance), 0.0)).reshape(-1, 3)
+    return np.sqrt(np.maximum(np.diagonal(covariance, axis1=1, axis2=2), 0.0))
+
 
 @dataclass
 class PrecisionResult:
@@ -563,6 +629,23 @@ class PrecisionResult:
     checkpoint_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     """(3N, 3N) joint marginal covariance of the check points, scaled by s0^2."""
     checkpoint_cov_conditional: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    generalisation: str = "none"
+    """"none" (classical stochastic model only), "consider" (per-plane offsets of
+    `generalisation_sigma` propagated, `*_cov_generalisation` hold the added covariance, not
+    scaled by s0^2: sigma_generalisation is absolute) or "estimated" (the offsets were unknowns
+    of the solve: the covariances above already include them)."""
+    generalisation_sigma: float | None = None
+    image_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
+    point_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    checkpoint_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+
+    def aware(self, covariance: str) -> np.ndarray:
+        """`covariance` ("image_cov", "point_cov", "checkpoint_cov") under the
+        generalisation-aware stochastic model (the classical one plus the consider part)."""
+        base = getattr(self, covariance)
+        if self.generalisation != "consider":
+            return base
+        return base + getattr(self, f"{covariance}_generalisation")
 
     @property
     def has_covariances(self) -> bool:
@@ -624,6 +707,24 @@ class PrecisionResult:
                 self.checkpoint_sigmas, 0).tolist()))
             out["median_checkpoint_sigma_conditional_m"] = dict(zip("XYZ", np.median(
                 self.checkpoint_sigmas_conditional, 0).tolist()))
+        out["generalisation"] = {"mode": self.generalisation,
+                                 "sigma_m": self.generalisation_sigma}
+        if self.generalisation == "consider" and self.has_covariances:
+            aware = {"image": _sigmas(self.aware("image_cov")),
+                     "point": _sigmas(self.aware("point_cov"))}
+            g = out["generalisation"]
+            g["note"] = ("per-plane offsets o_p ~ N(0, sigma^2) shared by the plane's f_dTP, "
+                         "propagated into the classical estimate's covariance (not scaled "
+                         "by s0^2)")
+            if len(aware["image"]):
+                g["median_image_sigma_m"] = dict(zip(("X0", "Y0", "Z0"), np.median(
+                    aware["image"][:, :3], 0).tolist()))
+            if len(aware["point"]):
+                g["median_point_sigma_m"] = dict(zip("XYZ", np.median(aware["point"], 0)
+                                                     .tolist()))
+            if len(self.checkpoint_ids):
+                g["median_checkpoint_sigma_m"] = dict(zip("XYZ", np.median(
+                    _sigmas(self.aware("checkpoint_cov")), 0).tolist()))
         if len(self.plane_generalisation):
             out["generalisation_offsets"] = {
                 "num_planes": int(len(self.plane_generalisation)),
@@ -635,27 +736,46 @@ class PrecisionResult:
 
 
 def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
-                       alpha: float = 0.05, checkpoint_observations=None) -> PrecisionResult:
+                       alpha: float = 0.05, checkpoint_observations=None,
+                       sigma_generalisation: float | None = None) -> PrecisionResult:
     """Variance factors, global test and (optionally) covariances at the current state of a
     solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
 
     `checkpoint_observations` ([(image_name, id, x, y)], evaluate.read_checkpoint_observations):
     check points are triangulated with the adjusted poses and get their marginal covariance
-    (`checkpoint_cofactors`); needs `covariances`."""
+    (`checkpoint_cofactors`); needs `covariances`. `sigma_generalisation` (m; default the
+    problem's AdjustmentOptions.sigma_generalisation): also the generalisation-aware
+    covariances (`generalisation_effects`), unless the offsets were estimated in the solve."""
     start = time.perf_counter()
     residuals = problem.group_residuals()
     if not covariances:
         variance = variance_factors(residuals, problem.num_unknowns(), alpha=alpha)
         return PrecisionResult(variance, seconds={"variance": time.perf_counter() - start})
 
-    cof = cofactors(problem)
+    if sigma_generalisation is None:
+        sigma_generalisation = problem.options.sigma_generalisation
+    mode = "none"
+    if len(problem.blocks.generalisation):
+        mode = "estimated"
+        sigma_generalisation = problem.options.sigma_generalisation
+    elif sigma_generalisation is not None and problem.counts["dTP"]:
+        mode = "consider"
+    cof = cofactors(problem, keep_system=mode == "consider")
     variance = variance_factors(residuals, problem.num_unknowns(), cof.redundancy_by_group,
                                 alpha=alpha)
+    effects = None
+    if mode == "consider":
+        t0 = time.perf_counter()
+        effects = generalisation_effects(problem, cof, float(sigma_generalisation))
+        cof.system = None
+        logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m, "
+                    "%.1f s)", len(effects.faces), effects.sigma, time.perf_counter() - t0)
     s0sq = variance.sigma0_squared
     rec = problem.reconstruction
     layout = cof.layout
     t1 = time.perf_counter()
     image_ids, names, centres, angles, image_cov, num_obs = [], [], [], [], [], []
+    image_cov_generalisation = []
     for image_id in rec.reg_image_ids():
         image = rec.image(image_id)
         columns = layout.columns("frame", image.frame_id)
@@ -668,6 +788,9 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         centres.append(values[:3])
         angles.append(np.degrees(values[3:]))
         image_cov.append(s0sq * g @ cof.q_cc[columns, columns] @ g.T)
+        if effects is not None:
+            d = g @ effects.camera[columns]
+            image_cov_generalisation.append(effects.sigma ** 2 * d @ d.T)
         num_obs.append(image.num_points3D)
     plane_sigma = []
     for k in range(len(problem.blocks.faces)):
@@ -689,6 +812,13 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
             checkpoint_observations)
         logger.info("precision: %d check points with covariances (%.1f s)",
                     len(checkpoints.ids), time.perf_counter() - t2)
+    extra = {"generalisation": mode, "generalisation_sigma": sigma_generalisation}
+    if effects is not None:
+        extra["image_cov_generalisation"] = np.array(image_cov_generalisation).reshape(-1, 6, 6)
+        extra["point_cov_generalisation"] = effects.points_cov
+        if checkpoints is not None and checkpoints.b is not None:
+            d = checkpoints.b @ effects.camera  # (3N, F): check points follow the poses
+            extra["checkpoint_cov_generalisation"] = effects.sigma ** 2 * d @ d.T
     points = np.array([rec.point3D(int(i)).xyz for i in layout.point_ids]).reshape(-1, 3)
     seconds = {"cofactors": cof.seconds, "images": time.perf_counter() - t1,
                "total": time.perf_counter() - start}
@@ -713,7 +843,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         **({} if checkpoints is None else {
             "checkpoint_ids": checkpoints.ids, "checkpoint_points": checkpoints.points,
             "checkpoint_cov": s0sq * checkpoints.q,
-            "checkpoint_cov_conditional": s0sq * checkpoints.q_conditional}))
+            "checkpoint_cov_conditional": s0sq * checkpoints.q_conditional}), **extra)
 
 
 def wants_covariances(options, num_images: int) -> bool:
@@ -859,17 +989,33 @@ def _usable_groups(groups, initial: dict[str, float]) -> tuple[str, ...]:
     return tuple(g for g in groups if g in initial)
 
 
-def variance_components_in_refine(reconstruction: pycolmap.Reconstruction, store, assignment,
-                                  priors, options, current) -> tuple[HybridProblem,
-                                                                     VarianceComponents]:
-    """refine()'s optional last step (PrecisionOptions.variance_components): iterated VCE on
-    the final assignment, solving in place on `reconstruction` (each iteration continues from
-    the previous solution), so that the result and its covariances are those of the
-    re-weighted final solve. Returns that last problem and the components."""
+def final_solve_in_refine(reconstruction: pycolmap.Reconstruction, store, assignment, priors,
+                          options, current, last: HybridProblem
+                          ) -> tuple[HybridProblem, VarianceComponents | None]:
+    """refine()'s optional last step on the final assignment, solving in place on
+    `reconstruction` (the result and its covariances are those of this solve):
+
+    - PrecisionOptions.variance_components: iterated VCE of `variance_component_groups`
+      (each iteration continues from the previous solution);
+    - else AdjustmentOptions.estimate_generalisation (with sigma_generalisation): one re-solve
+      with the per-plane offsets as unknowns;
+    - else nothing: `last` is returned."""
     import dataclasses
 
     adjustment, p = options.adjustment, options.precision
+    offsets = bool(adjustment.estimate_generalisation
+                   and adjustment.sigma_generalisation is not None)
+    if not p.variance_components:
+        if not offsets:
+            return last, None
+        problem = HybridProblem(reconstruction, store, assignment, priors, adjustment,
+                                robust_images=False, robust_planes=False, current=current,
+                                generalisation_offsets=True)
+        problem.solve()
+        return problem, None
     initial = _initial_sigmas(adjustment, priors)
+    if not offsets:
+        initial.pop("gen", None)
     groups = _usable_groups(p.variance_component_groups, initial)
 
     def build(factors: dict[str, float]) -> HybridProblem:
@@ -878,7 +1024,8 @@ def variance_components_in_refine(reconstruction: pycolmap.Reconstruction, store
             scaled = dataclasses.replace(priors, sigmas=priors.sigmas * factors["gnss"])
         return HybridProblem(reconstruction, store, assignment, scaled,
                              _scaled_options(adjustment, factors), robust_images=False,
-                             robust_planes=False, current=current)
+                             robust_planes=False, current=current,
+                             generalisation_offsets=offsets)
 
     vce = estimate_variance_components(build, initial, groups,
                                        max_iterations=p.variance_component_iterations,

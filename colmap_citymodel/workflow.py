@@ -411,12 +411,12 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             break
     bar.close()
 
-    from .precision import precision_after_refine, variance_components_in_refine
+    from .precision import final_solve_in_refine, precision_after_refine
 
     vce = None
-    if options.precision.variance_components and last.blocks.faces.size:
-        last, vce = variance_components_in_refine(rec, store, assignment, priors, options,
-                                                  current)
+    if last.blocks.faces.size:  # VCE and/or estimated generalisation offsets, if asked
+        last, vce = final_solve_in_refine(rec, store, assignment, priors, options, current,
+                                          last)
         current = _current_from(current, last)
     precision = precision_after_refine(last, options.precision, checkpoint_observations)
     evaluation = None
