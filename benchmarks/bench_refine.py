@@ -92,11 +92,15 @@ def main() -> None:
                         refine_options.assignment)
     first_assignment_s = time.perf_counter() - t
     t = time.perf_counter()
-    hybrid_rec.transform(align_to_planes(hybrid_rec, xyz, assignment, store_near, priors,
-                                         refine_options.adjustment))
-    ids, xyz = tie_points(hybrid_rec)
-    assignment = assign(xyz, ids, store_near, refine_options.assignment.max_threshold,
-                        refine_options.assignment)
+    for _ in range(refine_options.workflow.alignment_rounds):  # as refine's iteration 0
+        move, mean_shift = align_to_planes(hybrid_rec, xyz, assignment, store_near, priors,
+                                           refine_options.adjustment)
+        hybrid_rec.transform(move)
+        ids, xyz = tie_points(hybrid_rec)
+        assignment = assign(xyz, ids, store_near, refine_options.assignment.max_threshold,
+                            refine_options.assignment)
+        if mean_shift < refine_options.workflow.alignment_tolerance:
+            break
     hybrid = HybridProblem(hybrid_rec, store_near, assignment, priors,
                            refine_options.adjustment, robust_images=False, robust_planes=False)
     hybrid_report = hybrid.solve()

@@ -116,6 +116,11 @@ class WorkflowOptions:
     """At most this many assign + hybrid BA iterations."""
     convergence_rms_change: float = 1e-5
     """Stop when the relative change of the RMS of normalised residuals is below this."""
+    alignment_rounds: int = 20
+    """At most this many rounds of similarity fit + assignment before the first hybrid
+    adjustment (initial_alignment; ICP-like)."""
+    alignment_tolerance: float = 0.01
+    """The rounds stop when a fit moves the tie points by less than this on average (m)."""
     overlap_margin: float = 30.0
     """Metres around the reconstruction's footprint in which model buildings are kept."""
 

@@ -345,16 +345,23 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             threshold = next_threshold(assignment, points, current, o_a, o_adj.sigma_dtp)
         assignment = assign(points, point_ids, current, threshold, o_a)
         if iteration == 0 and assignment.num_assigned:
-            # Initial values: move the block as a whole onto its planes first, then assign
-            # again from there; the adjustment is left with the block's deformation.
+            # Initial values: move the block as a whole onto its planes first, so that the
+            # adjustment is left with the block's deformation. As in ICP: fit, assign again,
+            # fit again. Where GNSS is missing or drifts (Scn4), the block's far end starts
+            # metres off and its first assignments are partly wrong; each round gets more
+            # right (long Scn4: camera centres 5.5 m -> 4.7, 2.6, 1.1, 0.7 ... 0.58 m).
             t_align = time.perf_counter()
-            move = align_to_planes(rec, points, assignment, current, priors, o_adj)
-            rec.transform(move)
-            sim3 = move * sim3
-            point_ids, points = tie_points(rec, exclude_point_ids)
+            for _ in range(o_w.alignment_rounds):
+                move, mean_shift = align_to_planes(rec, points, assignment, current, priors,
+                                                   o_adj)
+                rec.transform(move)
+                sim3 = move * sim3
+                point_ids, points = tie_points(rec, exclude_point_ids)
+                assignment = assign(points, point_ids, current, threshold, o_a)
+                if mean_shift < o_w.alignment_tolerance or not assignment.num_assigned:
+                    break
             timer["initial_alignment"] = time.perf_counter() - t_align
             t0 += timer["initial_alignment"]
-            assignment = assign(points, point_ids, current, threshold, o_a)
         assign_seconds += time.perf_counter() - t0
         if iteration == 0:
             warnings += check_datum(store, assignment, priors is not None)
@@ -439,9 +446,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
 
 def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
-                    store: PlaneStore, priors: GNSSPriors | None, options) -> pycolmap.Sim3d:
+                    store: PlaneStore, priors: GNSSPriors | None, options
+                    ) -> tuple[pycolmap.Sim3d, float]:
     """The similarity that best puts the assigned tie points on their planes (and the block on
-    GNSS, with the adjustment's weights); see initial_alignment."""
+    GNSS, with the adjustment's weights; see initial_alignment), and the mean distance (m) it
+    moves the tie points."""
     from .initial_alignment import similarity_to_planes
 
     assigned = assignment.assigned
@@ -454,12 +463,12 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
                                   options.sigma_dtp, options.plane_loss_scale, **gnss)
     matrix = np.asarray(result.sim3.matrix())
     moved = points @ matrix[:, :3].T + matrix[:, 3]
+    mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
     logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
                 "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
-                "%.3f m", int(assigned.sum()), result.iterations,
-                float(np.linalg.norm(moved - points, axis=1).mean()), result.sim3.scale,
+                "%.3f m", int(assigned.sum()), result.iterations, mean_shift, result.sim3.scale,
                 result.rms_before, result.rms_after)
-    return result.sim3
+    return result.sim3, mean_shift
 
 
 def _current_from(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
