@@ -111,6 +111,17 @@ def _add_refine(subparsers) -> None:
     p.add_argument("--precision", choices=["auto", "on", "off"], default=None,
                    help="a posteriori covariances of images and tie points (default auto: on "
                         "below 500 images; s0 and the global test are always reported)")
+    quality = p.add_argument_group("check points and honest precision (issue 5)")
+    quality.add_argument("--checkpoints", help="check points 'id X Y Z' (model CRS), evaluated "
+                         "at the end: never assigned to planes, never control")
+    quality.add_argument("--checkpoint_observations",
+                         help="their image observations 'image_name id x y' (pixels)")
+    quality.add_argument("--sigma_generalisation", type=float, default=None, metavar="M",
+                         help="per-plane generalisation error (m; Unger's typical size 0.2): "
+                              "report generalisation-aware sigmas beside the classical ones")
+    quality.add_argument("--variance_components", action="store_true", default=None,
+                         help="iterated variance components of image and f_dTP, then a "
+                              "re-weighted final solve")
 
     def run(args):
         from .workflow import main
@@ -122,7 +133,10 @@ def _add_refine(subparsers) -> None:
              target_crs=args.target_crs, output_type=args.output_type,
              output_frame=args.output_frame, progress=not args.no_progress,
              precision=args.precision, gnss_height_offset=args.gnss_height_offset,
-             lever_arm=args.lever_arm)
+             lever_arm=args.lever_arm, checkpoints=args.checkpoints,
+             checkpoint_observations=args.checkpoint_observations,
+             sigma_generalisation=args.sigma_generalisation,
+             variance_components=args.variance_components)
 
     p.set_defaults(func=run)
 

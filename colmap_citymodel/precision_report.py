@@ -7,7 +7,14 @@ and a self-contained HTML report next to `report.json`.
   (marginal) and sigma_x/y/z_conditional (poses, planes, vertices held fixed), num_images;
 - `report.html` with embedded PNGs (also written to `plots/`): residual histograms per plane
   (Unger Fig. 17), a plan-view tie point sigma map (Mulder Fig. 5.5), image sigmas along the
-  flight, and the check point Delta/sigma table when check points were evaluated.
+  flight, and with check points (refine --checkpoints) their error arrows (Unger Fig. 22),
+  |Delta| vs sigma and the Delta/sigma tables (Unger Tables 12/13);
+- with check points: report.json `checkpoints` (evaluate.CheckpointEvaluation.todict: RMS,
+  Helmert, per point Delta and sigma, `delta_sigma_by_model` with per-axis RMS of Delta, RMS of
+  sigma and their ratio before and after Helmert), `checkpoint_precision.csv` and
+  `checkpoint_precision.json` (the joint covariances, read by `colmap-citymodel evaluate`);
+- with sigma_generalisation: the generalisation-aware sigmas beside the classical ones
+  (`*_aware` columns / scalar fields).
 
 Plots use matplotlib's object API with the Agg canvas (no display, no pyplot state).
 """
@@ -33,15 +40,22 @@ MAX_PLANE_HISTOGRAMS = 11
 CSV_COLUMNS = ("image_id", "name", "X0", "Y0", "Z0", "omega_deg", "phi_deg", "kappa_deg",
                "sigma_X0_m", "sigma_Y0_m", "sigma_Z0_m", "sigma_omega_deg", "sigma_phi_deg",
                "sigma_kappa_deg", "num_points3D")
+#: Appended with sigma_generalisation: the generalisation-aware sigmas of the centres.
+AWARE_CSV_COLUMNS = ("sigma_X0_aware_m", "sigma_Y0_aware_m", "sigma_Z0_aware_m")
+CHECKPOINT_CSV_COLUMNS = ("id", "X", "Y", "Z", "dX", "dY", "dZ", "views")
 
 
 # -- files ---------------------------------------------------------------------------------------
 
 def write_image_csv(path: Path, precision: PrecisionResult, offset: np.ndarray) -> None:
     sigma = precision.image_sigmas
+    aware = None
+    if precision.generalisation == "consider":
+        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("image_cov"), axis1=1,
+                                               axis2=2)[:, :3], 0.0))
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
-        writer.writerow(CSV_COLUMNS)
+        writer.writerow(CSV_COLUMNS + (AWARE_CSV_COLUMNS if aware is not None else ()))
         for k, image_id in enumerate(precision.image_ids):
             centre = precision.centres[k] + offset
             writer.writerow([int(image_id), precision.image_names[k]]
@@ -49,7 +63,8 @@ def write_image_csv(path: Path, precision: PrecisionResult, offset: np.ndarray) 
                             + [f"{v:.6f}" for v in precision.angles_deg[k]]
                             + [f"{v:.5f}" for v in sigma[k, :3]]
                             + [f"{v:.6f}" for v in sigma[k, 3:]]
-                            + [int(precision.image_num_observations[k])])
+                            + [int(precision.image_num_observations[k])]
+                            + ([f"{v:.5f}" for v in aware[k]] if aware is not None else []))
 
 
 def sigma_colours(values: np.ndarray) -> np.ndarray:
@@ -73,6 +88,11 @@ def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
     scalars.update({f"sigma_{a}_conditional": conditional[:, i].astype(np.float32)
                     for i, a in enumerate("xyz")})
     scalars["sigma_3d"] = np.linalg.norm(sigma, axis=1).astype(np.float32)
+    if precision.generalisation == "consider":
+        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("point_cov"), axis1=1, axis2=2),
+                                   0.0))
+        scalars.update({f"sigma_{a}_aware": aware[:, i].astype(np.float32)
+                        for i, a in enumerate("xyz")})
     if num_images is not None:
         scalars["num_images"] = num_images.astype(np.float32)
     write_ply(path, precision.points + offset, sigma_colours(scalars["sigma_3d"]), scalars)
@@ -218,6 +238,18 @@ def precision_markdown(report: dict) -> str:
                   f"{mc['X'] * 100:.2f} / {mc['Y'] * 100:.2f} / {mc['Z'] * 100:.2f} cm",
                   "", "Per image: `image_precision.csv`; per tie point: `point_precision.ply`; "
                   "plots: `report.html`."]
+        g = p.get("generalisation") or {}
+        if g.get("mode") == "consider":
+            gi, gp = g.get("median_image_sigma_m"), g.get("median_point_sigma_m")
+            lines += ["", f"Generalisation-aware (per-plane offsets of {g['sigma_m']:.3f} m "
+                      "shared by each plane's f_dTP, propagated into the estimate; the "
+                      "`*_aware` columns and fields):"]
+            if gi:
+                lines.append(f"- projection centres X0/Y0/Z0: {gi['X0'] * 100:.2f} / "
+                             f"{gi['Y0'] * 100:.2f} / {gi['Z0'] * 100:.2f} cm")
+            if gp:
+                lines.append(f"- tie points X/Y/Z: {gp['X'] * 100:.2f} / {gp['Y'] * 100:.2f} / "
+                             f"{gp['Z'] * 100:.2f} cm")
     else:
         lines += ["", "Covariances were not computed (precision.covariances / --precision)."]
     return "\n".join(lines) + "\n"
@@ -229,7 +261,7 @@ def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-city
     from .write_output import report_markdown
 
     try:
-        text = report_markdown(report) + precision_markdown(report)
+        text = report_markdown(report) + precision_markdown(report) + checkpoint_markdown(report)
     except (KeyError, TypeError):  # a report from another stage (e.g. evaluate)
         text = precision_markdown(report)
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
@@ -245,6 +277,74 @@ def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-city
     return "\n".join(parts)
 
 
+# -- check points ---------------------------------------------------------------------------------
+
+def write_checkpoint_csv(path: Path, evaluation) -> None:
+    """Per check point: estimated coordinates (model CRS), Delta = known - estimated, views and
+    the sigmas of each stochastic model."""
+    models = list(evaluation.covariances)
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(CHECKPOINT_CSV_COLUMNS + tuple(
+            f"sigma_{a}_{m}_m" for m in models for a in "XYZ"))
+        sigmas = {m: evaluation.sigmas_of(m) for m in models}
+        for k, pid in enumerate(evaluation.ids):
+            writer.writerow([pid] + [f"{v:.4f}" for v in evaluation.estimated[k]]
+                            + [f"{v:.4f}" for v in evaluation.errors[k]]
+                            + [int(evaluation.num_views.get(pid, 0))]
+                            + [f"{v:.5f}" for m in models for v in sigmas[m][k]])
+
+
+def checkpoint_markdown(report: dict) -> str:
+    """The report.md section of the check points: RMS, Helmert, Delta/sigma per model."""
+    from .evaluate import format_delta_sigma
+
+    c = report.get("checkpoints")
+    if not c:
+        return ""
+    lines = ["", "## Check points", "",
+             f"{c['num_checkpoints']} check points (never assigned to planes, never control), "
+             f"{len(c.get('missing', []))} not triangulated. RMS of Delta = known - estimated: "
+             f"X {c['rms_x']:.3f}, Y {c['rms_y']:.3f}, Z {c['rms_z']:.3f}, 3D {c['rms_3d']:.3f} m; "
+             f"after the Helmert transform {c['rms_3d_after_helmert']:.3f} m."]
+    for model, table in (c.get("delta_sigma_by_model") or {}).items():
+        if table:
+            lines += ["", format_delta_sigma(
+                table, f"Delta/sigma, {model.replace('_', ' ')} stochastic model (Unger Tables "
+                       f"12/13; {table.get('sigma_note', '')}):").rstrip()]
+    if not c.get("delta_sigma_by_model"):
+        lines += ["", "No check point sigma (covariances were not computed)."]
+    lines += ["", "Per check point: `checkpoint_precision.csv`."]
+    vc = report.get("variance_components")
+    if vc:
+        lines += ["", "Variance components (iterated, re-weighted final solve): " + ", ".join(
+            f"{g} {v:.4g}" for g, v in vc["sigmas"].items()) + (
+            "" if vc["converged"] else " (not converged)") + "."]
+    return "\n".join(lines) + "\n"
+
+
+def checkpoint_plots(evaluation) -> dict[str, bytes]:
+    """Error arrows (Unger Fig. 22) and |Delta| vs sigma of refine's check points, drawn by
+    checkpoint_plots when it is available."""
+    try:
+        from .checkpoint_plots import plot_checkpoint_errors, plot_delta_vs_sigma
+    except ImportError:  # pragma: no cover - plots are optional for the report
+        return {}
+    plots = {}
+    if len(evaluation.ids) >= 1:
+        plots["check point errors (Unger Fig. 22)"] = plot_checkpoint_errors(
+            evaluation.known[:, :2], evaluation.errors, ids=list(evaluation.ids),
+            title="check point errors")
+    model = evaluation.primary_model
+    sigmas = evaluation.sigmas_of(model) if model else None
+    if sigmas is not None and np.isfinite(sigmas).all(1).any():
+        have = np.isfinite(sigmas).all(1)
+        plots[f"|Delta| vs sigma, {model.replace('_', ' ')} (Unger Table 12)"] = \
+            plot_delta_vs_sigma(evaluation.errors[have], sigmas[have],
+                                title=f"|Delta| vs sigma, {model.replace('_', ' ')}")
+    return plots
+
+
 # -- refine's outputs ----------------------------------------------------------------------------
 
 def refine_plots(result, offset: np.ndarray) -> dict[str, bytes]:
@@ -257,6 +357,9 @@ def refine_plots(result, offset: np.ndarray) -> dict[str, bytes]:
     if precision is not None and precision.has_covariances:
         plots["tie point sigma map (Mulder Fig. 5.5)"] = plot_point_sigma_map(precision, offset)
         plots["image sigmas"] = plot_image_sigmas(precision)
+    evaluation = getattr(result, "checkpoints", None)
+    if evaluation is not None and len(evaluation.ids):
+        plots.update(checkpoint_plots(evaluation))
     return {k: v for k, v in plots.items() if v is not None}
 
 
@@ -272,6 +375,16 @@ def write_precision_outputs(result, directory: Path, report: dict, offset: np.nd
             num_images = np.array([rec.point3D(int(i)).track.length()
                                    for i in precision.point_ids])
             write_point_ply(directory / "point_precision.ply", precision, offset, num_images)
+    if getattr(result, "variance_components", None) is not None:
+        report["variance_components"] = result.variance_components.todict()
+    evaluation = getattr(result, "checkpoints", None)
+    if evaluation is not None:
+        from .evaluate import CHECKPOINT_PRECISION_FILE, write_checkpoint_precision
+
+        report["checkpoints"] = evaluation.todict()
+        write_checkpoint_csv(directory / "checkpoint_precision.csv", evaluation)
+        if evaluation.covariances:
+            write_checkpoint_precision(directory / CHECKPOINT_PRECISION_FILE, evaluation)
     plots = refine_plots(result, offset)
     if plots:
         (directory / "plots").mkdir(exist_ok=True)
@@ -280,4 +393,4 @@ def write_precision_outputs(result, directory: Path, report: dict, offset: np.nd
             (directory / "plots" / f"{k}_{slug}.png").write_bytes(png)
     (directory / "report.html").write_text(html_report(report, plots,
                                                        "colmap-citymodel refine report"))
-    return precision_markdown(report)
+    return precision_markdown(report) + checkpoint_markdown(report)

@@ -548,9 +548,12 @@ def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
 def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
          exif=None, initial_transform=None, preset="generalised", options_file=None,
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True, precision=None, gnss_height_offset=None, lever_arm=None
-         ) -> RefineResult:
-    """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically."""
+         progress=True, precision=None, gnss_height_offset=None, lever_arm=None,
+         checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
+         variance_components=None) -> RefineResult:
+    """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
+    `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
+    are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
     from .crs import user_crs
     from .georegister import read_initial_transform
     from .read_city_model import read_city_model
@@ -560,6 +563,20 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
                else RefineOptions.preset(preset))
     if precision is not None:  # --precision on/off/auto overrides the options file
         options.precision.covariances = precision
+    if sigma_generalisation is not None:
+        options.adjustment.sigma_generalisation = float(sigma_generalisation)
+    if variance_components is not None:
+        options.precision.variance_components = bool(variance_components)
+    cp_known = cp_observations = None
+    if (checkpoints is None) != (checkpoint_observations is None):
+        from .errors import InputError
+
+        raise InputError("give --checkpoints and --checkpoint_observations together")
+    if checkpoints is not None:
+        from .evaluate import read_checkpoint_observations, read_checkpoints
+
+        cp_known = read_checkpoints(checkpoints)
+        cp_observations = read_checkpoint_observations(checkpoint_observations)
     # Fail on a taken output directory before the expensive work.
     with atomic_directory(output_path):
         pass
@@ -594,7 +611,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
                                   "(--gnss_height_offset)")
     transform = read_initial_transform(initial_transform) if initial_transform else None
     result = refine(reconstruction, store, observations, options,
-                    initial_transform=transform, progress=progress)
+                    initial_transform=transform, progress=progress, checkpoints=cp_known,
+                    checkpoint_observations=cp_observations)
     inputs = {"input_path": str(input_path), "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,

@@ -140,3 +140,102 @@ def test_covariance_switch(tmp_path):
     toml.write_text('[precision]\ncovariances = "off"\nmax_images_auto = 100\n')
     options = RefineOptions.from_toml(toml)
     assert options.precision.covariances == "off" and options.precision.max_images_auto == 100
+
+
+# -- check points through refine (issue 5: Delta/sigma in report.json) ----------------------------
+
+def _street_checkpoints(scene, num: int = 12, seed: int = 0):
+    """Check points at true tie point positions (model CRS), observed anew with 1 px noise."""
+    rng = np.random.default_rng(seed)
+    truth = scene.truth
+    ids = rng.choice([i for i in truth.point3D_ids() if truth.point3D(i).track.length() >= 5],
+                     num, replace=False)
+    known, observations = {}, []
+    for k, point_id in enumerate(ids):
+        xyz = truth.point3D(int(point_id)).xyz
+        known[f"CP{k}"] = xyz + scene.store.origin
+        for element in truth.point3D(int(point_id)).track.elements:
+            image = truth.image(element.image_id)
+            uv = np.asarray(image.camera.img_from_cam((image.cam_from_world() * xyz)[None]))
+            uv = uv.reshape(2) + rng.normal(0.0, 1.0, 2)
+            observations.append((image.name, f"CP{k}", float(uv[0]), float(uv[1])))
+    return known, observations
+
+
+@pytest.fixture(scope="module")
+def refined_with_checkpoints(scene):
+    known, observations = _street_checkpoints(scene)
+    options = RefineOptions()
+    options.adjustment.sigma_generalisation = 0.2
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False,
+                    checkpoints=known, checkpoint_observations=observations)
+    return result, known, observations
+
+
+def test_refine_reports_delta_and_sigma_of_checkpoints(refined_with_checkpoints, tmp_path):
+    from colmap_citymodel.evaluate import main as evaluate_main
+
+    result, known, observations = refined_with_checkpoints
+    evaluation = result.checkpoints
+    assert sorted(evaluation.ids) == sorted(known)
+    # Check points are not added to the reconstruction (never tie points, never assigned).
+    assert result.reconstruction.num_points3D() == len(result.assignment.point_ids)
+    assert set(evaluation.covariances) == {"classical", "generalisation_aware"}
+    classical, aware = (evaluation.sigmas_of(m) for m in ("classical", "generalisation_aware"))
+    assert np.all(aware >= classical) and np.all(classical > 0)
+    assert evaluation.rms_3d < 0.2
+
+    out = write_refined(result, tmp_path / "refined")
+    report = json.loads((out / "report.json").read_text())
+    c = report["checkpoints"]
+    assert c["num_checkpoints"] == len(known)
+    for model in ("classical", "generalisation_aware"):
+        table = c["delta_sigma_by_model"][model]
+        for axis in "XYZ":
+            for stage in ("before_helmert", "after_helmert"):
+                row = table[stage][axis]
+                assert row["ratio"] == pytest.approx(row["rms_delta"] / row["rms_sigma"])
+    assert c["sigma_model"] == "generalisation_aware"
+    assert report["precision"]["generalisation"]["mode"] == "consider"
+    text = (out / "report.md").read_text()
+    assert "## Check points" in text and text.count("Delta/sigma,") == 2
+    with open(out / "checkpoint_precision.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert len(rows) == len(known) and "sigma_Z_generalisation_aware_m" in rows[0]
+    page = (out / "report.html").read_text()
+    assert "check point errors" in page and "Delta| vs sigma" in page
+    points = _read_ply(out / "point_precision.ply")
+    assert np.all(points["sigma_z_aware"] >= points["sigma_z"] - 1e-7)
+
+    # evaluate on the written model picks up the covariances (checkpoint_precision.json).
+    cp_file, obs_file = tmp_path / "cp.txt", tmp_path / "obs.txt"
+    cp_file.write_text("".join(f"{k} {x:.6f} {y:.6f} {z:.6f}\n"
+                               for k, (x, y, z) in known.items()))
+    obs_file.write_text("".join(f"{n} {k} {x:.6f} {y:.6f}\n" for n, k, x, y in observations))
+    again = evaluate_main(out, cp_file, obs_file)["evaluated"]
+    for model in ("classical", "generalisation_aware"):
+        ours = c["delta_sigma_by_model"][model]["before_helmert"]
+        theirs = again["delta_sigma_by_model"][model]["before_helmert"]
+        for axis in "XYZ":
+            assert theirs[axis]["rms_delta"] == pytest.approx(ours[axis]["rms_delta"], abs=1e-6)
+            assert theirs[axis]["rms_sigma"] == pytest.approx(ours[axis]["rms_sigma"], rel=1e-9)
+
+
+
+def test_refine_cli_checkpoint_options(tmp_path, capsys):
+    from colmap_citymodel.cli import build_parser, main as cli_main
+
+    args = build_parser().parse_args([
+        "refine", "--input_path", "in", "--citymodel", "m.gml", "--output_path", "out",
+        "--checkpoints", "cp.txt", "--checkpoint_observations", "obs.txt",
+        "--sigma_generalisation", "0.2", "--variance_components"])
+    assert (args.checkpoints, args.checkpoint_observations) == ("cp.txt", "obs.txt")
+    assert args.sigma_generalisation == 0.2 and args.variance_components is True
+    defaults = build_parser().parse_args(["refine", "--input_path", "in", "--citymodel", "m.gml",
+                                          "--output_path", "out"])
+    assert defaults.sigma_generalisation is None and defaults.variance_components is None
+    # One of the two check point files alone is an input error, before any work.
+    code = cli_main(["refine", "--input_path", str(tmp_path), "--citymodel", "m.gml",
+                     "--output_path", str(tmp_path / "out"), "--checkpoints", "cp.txt"])
+    assert code == 2
+    assert "--checkpoints and --checkpoint_observations together" in capsys.readouterr().err
