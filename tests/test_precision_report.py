@@ -239,3 +239,23 @@ def test_refine_cli_checkpoint_options(tmp_path, capsys):
                      "--output_path", str(tmp_path / "out"), "--checkpoints", "cp.txt"])
     assert code == 2
     assert "--checkpoints and --checkpoint_observations together" in capsys.readouterr().err
+
+
+def test_refine_with_variance_components(scene):
+    # Image noise 0.5 px against the stated 1 px; tie points ~3 cm (relief) plus 5 % clutter
+    # off their planes against the stated 0.2 m: VCE must scale both down and re-solve.
+    options = RefineOptions()
+    options.precision.variance_components = True
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    vce = result.variance_components
+    assert vce is not None and vce.converged
+    assert set(vce.history[0]) == {"image", "dTP"}
+    assert vce.factors["image"] == pytest.approx(0.5, rel=0.1)
+    assert 0.01 < vce.sigmas["dTP"] < 0.12
+    assert vce.sigmas["gnss"] == pytest.approx(3.0)  # not estimated (time-correlated errors)
+    # The result is the re-weighted solve: its s0 per estimated group is ~1 in units of the
+    # estimated sigmas, and the covariances are scaled by that solve's s0^2.
+    p = result.precision
+    assert p.variance.sigma0_by_group["image"] == pytest.approx(vce.factors["image"], rel=0.05)
+    assert p.variance.sigma0_by_group["dTP"] == pytest.approx(vce.factors["image"], rel=0.1)
+    assert p.has_covariances
