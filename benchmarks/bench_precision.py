@@ -73,8 +73,10 @@ def run(workspace: Path, variant: str) -> dict:
     seconds = time.perf_counter() - start
     evaluation = result.checkpoints
     p = result.precision
+    evaluated = evaluation.todict()
+    evaluated.pop("points")  # per check point: in refine's checkpoint_precision.csv
     out = {"variant": variant, "description": DESCRIPTION[variant], "seconds": seconds,
-           "evaluation": evaluation.todict(), "sigma0": p.variance.sigma0,
+           "evaluation": evaluated, "sigma0": p.variance.sigma0,
            "sigma0_by_group": p.variance.sigma0_by_group,
            "global_test": p.variance.test.todict() if p.variance.test else None,
            "median_point_sigma_m": p.summary().get("median_point_sigma_m"),
@@ -122,7 +124,7 @@ def markdown(workspace: Path, runs: list[dict], command: str) -> str:
             lines += [f"Generalisation offsets of {g['num_planes']} planes: RMS "
                       f"{g['rms_m']:.3f} m, max |o| {g['max_abs_m']:.3f} m, median sigma "
                       f"{g['median_sigma_m']:.3f} m.", ""]
-        tables = ev.get("delta_sigma") or {}
+        tables = ev.get("delta_sigma_by_model") or {}
         for model, table in tables.items():
             lines += [f"**{model}** stochastic model ({table['sigma_note']}):", "",
                       format_delta_sigma(table).rstrip(), ""]
@@ -137,6 +139,8 @@ def main() -> None:
     parser.add_argument("--workspace", type=Path, help="a simulated workspace with check points")
     parser.add_argument("--variants", nargs="+", choices=VARIANTS, default=list(VARIANTS))
     parser.add_argument("--no_write", action="store_true", help="do not write results/precision.md")
+    parser.add_argument("--output", type=Path, default=RESULTS / "precision.md",
+                        help="markdown file to write (a .json beside it)")
     args = parser.parse_args()
     from colmap_citymodel import logger
     from colmap_citymodel.evaluate import format_delta_sigma
@@ -158,16 +162,16 @@ def main() -> None:
               f" m), s0 {r['sigma0']:.3f}, {r['seconds']:.0f} s")
         if r.get("variance_components"):
             print("variance components:", json.dumps(r["variance_components"]["sigmas"]))
-        for model, table in (ev.get("delta_sigma") or {}).items():
+        for model, table in (ev.get("delta_sigma_by_model") or {}).items():
             print(f"-- {model}")
             print(format_delta_sigma(table))
         sys.stdout.flush()
     command = ".venv/bin/python benchmarks/bench_precision.py " + " ".join(sys.argv[1:])
     if not args.no_write:
-        RESULTS.mkdir(parents=True, exist_ok=True)
-        (RESULTS / "precision.md").write_text(markdown(workspace, runs, command.strip()))
-        (RESULTS / "precision.json").write_text(json.dumps(runs, indent=1, default=float))
-        print(f"wrote {RESULTS / 'precision.md'}")
+        args.output.parent.mkdir(parents=True, exist_ok=True)
+        args.output.write_text(markdown(workspace, runs, command.strip()))
+        args.output.with_suffix(".json").write_text(json.dumps(runs, indent=1, default=float))
+        print(f"wrote {args.output}")
 
 
 if __name__ == "__main__":

@@ -27,8 +27,24 @@ Schur structure: every residual touches at most one point), but its `get_point_c
 covariance needs; so the numbers reported here come from our own sparse normal matrix built from
 `problem.evaluate_jacobian`, and both point covariances are kept (`point_cov` marginal,
 `point_cov_conditional`). Poses: frame tangent [rotation (left perturbation, camera frame, half
-angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres X0, Y0, Z0 and omega, phi, kappa in the model
-frame (local = CRS minus origin, same axes).
+angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres
+X0, Y0, Z0 and omega, phi, kappa in the model frame (local = CRS minus origin, same axes).
+
+Check points (`checkpoint_cofactors`): triangulated with the adjusted poses and, for their
+covariance, eliminated like tie points with their own image observations in the normal system
+(never on planes, never control): marginal, i.e. with the pose, plane and datum uncertainty.
+
+Generalisation (`generalisation_effects`, Unger 6.3): the classical model treats f_dTP errors as
+independent, so a plane's systematic deviation averages out with its number of points and
+check point sigmas come out 3-19x too small (Table 12). With sigma_generalisation, the errors of
+a plane's f_dTP share an offset o_p ~ N(0, sigma^2) which is not estimated but propagated
+(a consider parameter): Sigma_aware = s0^2 Q + sigma^2 sum_p dx_p dx_p^T, dx_p the estimate's
+response to o_p = 1 m. Estimating the o_p instead (HybridProblem(generalisation_offsets=True))
+lets the block shrink against the model (errors-in-variables: the tie points' real relief
+about their planes shrinks with it), hence experimental.
+
+Variance components (`estimate_variance_components`, Foerstner): iterated
+s_g^2 = v_g^T P v_g / r_g with the hat-matrix redundancies, refine's optional last step.
 
 COLMAP's reprojection residuals are in pixels and unweighted; HybridProblem gives our cost
 functions their sigmas divided by sigma_image, so every group is evaluated in units of
