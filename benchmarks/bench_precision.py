@@ -1,4 +1,4 @@
-"""Honest precision of check points (issue 5): Delta/sigma per axis, classical vs generalisation-aware.
+"""Honest precision of check points (issue 5): Delta/sigma per axis, classical vs aware.
 
 On a simulated workspace with check points (default: the short sequence's Scn3, the original
 generalised LOD2 model with systematic plane errors, GNSS everywhere; built by the simulator as
@@ -20,7 +20,7 @@ Prints Unger's Tables 12/13 per variant and model (RMS of Delta = known - estima
 RMS of sigma_CP, ratio, before and after the 7-parameter Helmert transform; after Helmert also
 against the sigma of the Helmert residuals) and writes benchmarks/results/precision.md (+ .json).
 
-    .venv/bin/python benchmarks/bench_precision.py [--workspace DIR] [--variants plain vce estimated]
+    .venv/bin/python benchmarks/bench_precision.py [--workspace DIR] [--variants plain vce ...]
 """
 
 from __future__ import annotations
@@ -32,15 +32,13 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 VARIANTS = ("plain", "vce", "estimated")
 DESCRIPTION = {
     "plain": "Unger's weights (sigma_image 1 px, sigma_dTP 0.2 m), sigma_generalisation 0.2 m",
     "vce": "iterated variance components of image and f_dTP after the loop (re-weighted "
-           "solve), sigma_generalisation 0.2 m",
+           "solve); sigma_generalisation estimated from the planes' mean residuals",
     "estimated": "experimental: per-plane offsets estimated (prior 0.2 m) in a re-solve after "
                  "the loop",
 }
@@ -90,9 +88,10 @@ def run(workspace: Path, variant: str) -> dict:
 def markdown(workspace: Path, runs: list[dict], command: str) -> str:
     from colmap_citymodel.evaluate import format_delta_sigma
 
+    shown = workspace.relative_to(ROOT) if workspace.is_relative_to(ROOT) else workspace
     lines = ["# Check point Delta/sigma: classical vs generalisation-aware stochastic model", "",
              "Produced by", "", f"    {command}", "",
-             f"Workspace `{workspace.relative_to(ROOT) if workspace.is_relative_to(ROOT) else workspace}`"
+             f"Workspace `{shown}`"
              " (simulated; check points observed in the images with 1 px noise, never assigned "
              "to planes, never control). Delta = known - estimated; sigma_CP = marginal a "
              "posteriori sigma of the check points (poses, planes, vertices and datum uncertain; "
@@ -119,6 +118,12 @@ def markdown(workspace: Path, runs: list[dict], command: str) -> str:
                             if abs(f - 1.0) > 1e-12)
                 + f"; {len(vc['history'])} re-weighted solves, "
                 f"{'converged' if vc['converged'] else 'not converged'}).", ""]
+        g = r.get("generalisation") or {}
+        if g.get("mode") == "consider":
+            lines += [f"Generalisation offsets per plane: a priori {g['sigma_prior_m']:.3f} m, "
+                      f"from the planes' mean residuals {g['sigma_estimated_m']:.3f} m; used "
+                      f"{g['sigma_m']:.3f} m ({'estimated' if g['sigma_from_data'] else 'a priori'}"
+                      ").", ""]
         if r.get("generalisation_offsets"):
             g = r["generalisation_offsets"]
             lines += [f"Generalisation offsets of {g['num_planes']} planes: RMS "

@@ -367,10 +367,15 @@ class GeneralisationEffects:
     faces: np.ndarray  # (F,)
     camera: np.ndarray  # (nc, F) change of the camera-side unknowns per metre of o_p
     points_cov: np.ndarray  # (P, 3, 3) sigma^2 sum_p d_i,p d_i,p^T of the tie points
-    sigma: float
+    sigma: float  # the sigma used: the given one, or the estimate when asked for
+    sigma_prior: float | None = None
+    sigma_estimated: float | None = None
+    num_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per plane
+    mean_residuals: np.ndarray = field(default_factory=lambda: np.zeros(0))  # per plane (m)
 
 
-def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float
+def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float | None,
+                           *, estimate: bool = False, s0_squared: float = 1.0
                            ) -> GeneralisationEffects:
     """The generalisation-aware stochastic model for the classical estimate: the f_dTP errors
     of plane p share an offset o_p ~ N(0, sigma^2) that the adjustment does not estimate
@@ -381,15 +386,22 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float
 
     Independent f_dTP errors average out with the number of points of a plane, a shared
     offset does not: this is what keeps check point sigmas from being 3-19x too small
-    (Unger Table 12) while the estimate stays the classical one."""
+    (Unger Table 12) while the estimate stays the classical one.
+
+    `estimate`: sigma from the data (a variance component of the offsets, by moments): with
+    t_p = 1_p^T v (v the whitened residuals) and M = [1_p^T R 1_q], R = I - J N^-1 J^T,
+    E[sum_p t_p^2] = sigma^2 ||M||_F^2 + s0^2 tr M, so
+    sigma^2 = max(0, (sum t_p^2 - s0^2 tr M) / ||M||_F^2); `sigma` is then only the fallback
+    when there are no planes."""
     if cof.system is None:
         raise ValueError("cofactors(problem, keep_system=True) is needed")
     j_c, j_p, b, w_inv = cof.system
     faces = np.asarray(problem.blocks.faces, np.int64)
     num_points = len(cof.layout.point_ids)
+    prior = sigma
     if not len(faces) or not problem.counts["dTP"]:
         return GeneralisationEffects(faces, np.zeros((cof.layout.num_c, 0)),
-                                     np.zeros((num_points, 3, 3)), sigma)
+                                     np.zeros((num_points, 3, 3)), float(sigma or 0.0), prior)
     first = problem.counts["image"] + problem.counts["gnss"]
     slot = {int(f): k for k, f in enumerate(faces)}
     rows = first + np.arange(len(problem.point_faces))
@@ -402,13 +414,23 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float
     d_c = cof.q_cc @ (g_c - np.asarray((b.T @ g_p).todense()))
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
     points_cov = np.empty((num_points, 3, 3))
+    cross = g_c.T @ d_c  # accumulates g_p^T N^-1 g_q
     chunk = max(1, CHUNK_ROWS // 3)
     for lo in range(0, num_points, chunk):
         hi = min(num_points, lo + chunk)
-        d_p = (np.asarray(w_g[3 * lo:3 * hi].todense()) - b[3 * lo:3 * hi] @ d_c
-               ).reshape(hi - lo, 3, -1)
-        points_cov[lo:hi] = sigma ** 2 * np.einsum("kif,kjf->kij", d_p, d_p)
-    return GeneralisationEffects(faces, d_c, points_cov, sigma)
+        d_p = np.asarray(w_g[3 * lo:3 * hi].todense()) - b[3 * lo:3 * hi] @ d_c
+        cross += np.asarray((g_p[3 * lo:3 * hi].T @ d_p))
+        d_p = d_p.reshape(hi - lo, 3, -1)
+        points_cov[lo:hi] = np.einsum("kif,kjf->kij", d_p, d_p)
+    counts = np.bincount(columns, minlength=len(faces))
+    v = problem.group_residuals()["dTP"]
+    t = np.bincount(columns, weights=v / sigma_dtp, minlength=len(faces))
+    m = np.diag(counts / sigma_dtp ** 2) - 0.5 * (cross + cross.T)
+    estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
+    if estimate or sigma is None:
+        sigma = estimated
+    return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
+                                 estimated, counts, t * sigma_dtp ** 2 / np.maximum(counts, 1))
 
 
 # -- image quantities ----------------------------------------------------------------------------
@@ -651,6 +673,9 @@ class PrecisionResult:
     scaled by s0^2: sigma_generalisation is absolute) or "estimated" (the offsets were unknowns
     of the solve: the covariances above already include them)."""
     generalisation_sigma: float | None = None
+    generalisation_estimate: dict = field(default_factory=dict)
+    """Consider mode: the a priori and the data's sigma of the offsets (moments of the planes'
+    mean f_dTP residuals, `generalisation_effects`) and which one was used."""
     image_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
     point_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     checkpoint_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
@@ -725,6 +750,11 @@ class PrecisionResult:
                 self.checkpoint_sigmas_conditional, 0).tolist()))
         out["generalisation"] = {"mode": self.generalisation,
                                  "sigma_m": self.generalisation_sigma}
+        if self.generalisation_estimate:
+            e = self.generalisation_estimate
+            out["generalisation"].update(
+                sigma_prior_m=e["sigma_prior_m"], sigma_estimated_m=e["sigma_estimated_m"],
+                sigma_from_data=e["estimated"])
         if self.generalisation == "consider" and self.has_covariances:
             aware = {"image": _sigmas(self.aware("image_cov")),
                      "point": _sigmas(self.aware("point_cov"))}
@@ -753,7 +783,8 @@ class PrecisionResult:
 
 def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                        alpha: float = 0.05, checkpoint_observations=None,
-                       sigma_generalisation: float | None = None) -> PrecisionResult:
+                       sigma_generalisation: float | None = None,
+                       estimate_generalisation: bool = False) -> PrecisionResult:
     """Variance factors, global test and (optionally) covariances at the current state of a
     solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
 
@@ -761,7 +792,9 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     check points are triangulated with the adjusted poses and get their marginal covariance
     (`checkpoint_cofactors`); needs `covariances`. `sigma_generalisation` (m; default the
     problem's AdjustmentOptions.sigma_generalisation): also the generalisation-aware
-    covariances (`generalisation_effects`), unless the offsets were estimated in the solve."""
+    covariances (`generalisation_effects`), unless the offsets were estimated in the solve.
+    `estimate_generalisation`: that sigma estimated from the planes' mean residuals (a
+    variance component; also without an a priori sigma_generalisation)."""
     start = time.perf_counter()
     residuals = problem.group_residuals()
     if not covariances:
@@ -774,7 +807,8 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     if len(problem.blocks.generalisation):
         mode = "estimated"
         sigma_generalisation = problem.options.sigma_generalisation
-    elif sigma_generalisation is not None and problem.counts["dTP"]:
+    elif (sigma_generalisation is not None or estimate_generalisation) \
+            and problem.counts["dTP"]:
         mode = "consider"
     cof = cofactors(problem, keep_system=mode == "consider")
     variance = variance_factors(residuals, problem.num_unknowns(), cof.redundancy_by_group,
@@ -782,10 +816,16 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     effects = None
     if mode == "consider":
         t0 = time.perf_counter()
-        effects = generalisation_effects(problem, cof, float(sigma_generalisation))
+        effects = generalisation_effects(problem, cof, sigma_generalisation,
+                                         estimate=estimate_generalisation,
+                                         s0_squared=variance.sigma0_squared)
         cof.system = None
-        logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m, "
-                    "%.1f s)", len(effects.faces), effects.sigma, time.perf_counter() - t0)
+        sigma_generalisation = effects.sigma
+        logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
+                    " %.1f s)", len(effects.faces), effects.sigma,
+                    " estimated" if estimate_generalisation else
+                    f"; the data say {effects.sigma_estimated:.3f} m",
+                    time.perf_counter() - t0)
     s0sq = variance.sigma0_squared
     rec = problem.reconstruction
     layout = cof.layout
@@ -830,6 +870,11 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                     len(checkpoints.ids), time.perf_counter() - t2)
     extra = {"generalisation": mode, "generalisation_sigma": sigma_generalisation}
     if effects is not None:
+        extra["generalisation_estimate"] = {
+            "sigma_prior_m": effects.sigma_prior, "sigma_estimated_m": effects.sigma_estimated,
+            "sigma_used_m": effects.sigma, "estimated": bool(estimate_generalisation),
+            "plane_faces": effects.faces.tolist(), "plane_num_points": effects.num_points.tolist(),
+            "plane_mean_residual_m": effects.mean_residuals.tolist()}
         extra["image_cov_generalisation"] = np.array(image_cov_generalisation).reshape(-1, 6, 6)
         extra["point_cov_generalisation"] = effects.points_cov
         if checkpoints is not None and checkpoints.b is not None:
@@ -885,8 +930,11 @@ def precision_after_refine(problem: HybridProblem | None, options,
                     problem.reconstruction.num_reg_images(), options.covariances,
                     "; check points get no sigma" if checkpoint_observations else "")
     try:
-        return estimate_precision(problem, covariances=covariances, alpha=options.alpha,
-                                  checkpoint_observations=checkpoint_observations)
+        return estimate_precision(
+            problem, covariances=covariances, alpha=options.alpha,
+            checkpoint_observations=checkpoint_observations,
+            estimate_generalisation=bool(options.variance_components
+                                         and "gen" in options.variance_component_groups))
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("precision: covariances failed (%s); reporting s0 only", error)
         return estimate_precision(problem, covariances=False, alpha=options.alpha)
@@ -1030,16 +1078,21 @@ def final_solve_in_refine(reconstruction: pycolmap.Reconstruction, store, assign
         problem.solve()
         return problem, None
     initial = _initial_sigmas(adjustment, priors)
-    if not offsets:
-        initial.pop("gen", None)
+    # "gen" is not iterated here: as the prior of estimated offsets it diverged (the block's
+    # shrinking feeds it); its component comes from the planes' mean residuals in
+    # estimate_precision (generalisation_effects).
+    initial.pop("gen", None)
     groups = _usable_groups(p.variance_component_groups, initial)
 
     def build(factors: dict[str, float]) -> HybridProblem:
         scaled = None
         if priors is not None:
             scaled = dataclasses.replace(priors, sigmas=priors.sigmas * factors["gnss"])
+        scaled_options = _scaled_options(adjustment, factors)
+        if not offsets:  # a consider parameter: absolute, not a weight relative to the images
+            scaled_options.sigma_generalisation = adjustment.sigma_generalisation
         return HybridProblem(reconstruction, store, assignment, scaled,
-                             _scaled_options(adjustment, factors), robust_images=False,
+                             scaled_options, robust_images=False,
                              robust_planes=False, current=current,
                              generalisation_offsets=offsets)
 

@@ -241,9 +241,12 @@ def precision_markdown(report: dict) -> str:
         g = p.get("generalisation") or {}
         if g.get("mode") == "consider":
             gi, gp = g.get("median_image_sigma_m"), g.get("median_point_sigma_m")
-            lines += ["", f"Generalisation-aware (per-plane offsets of {g['sigma_m']:.3f} m "
-                      "shared by each plane's f_dTP, propagated into the estimate; the "
-                      "`*_aware` columns and fields):"]
+            source = ("estimated from the planes' mean f_dTP residuals" if g.get("sigma_from_data")
+                      else f"a priori; the planes' mean f_dTP residuals say "
+                           f"{g.get('sigma_estimated_m') or 0.0:.3f} m")
+            lines += ["", f"Generalisation-aware (per-plane offsets of {g['sigma_m']:.3f} m, "
+                      f"{source}, shared by each plane's f_dTP and propagated into the "
+                      "estimate; the `*_aware` columns and fields):"]
             if gi:
                 lines.append(f"- projection centres X0/Y0/Z0: {gi['X0'] * 100:.2f} / "
                              f"{gi['Y0'] * 100:.2f} / {gi['Z0'] * 100:.2f} cm")

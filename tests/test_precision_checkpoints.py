@@ -193,6 +193,23 @@ def test_classical_model_is_over_optimistic_and_per_plane_offsets_are_honest(str
         assert precision.summary()["generalisation"]["mode"] == "consider"
 
 
+def test_generalisation_sigma_from_the_planes_mean_residuals(streets):
+    # The variance component of the plane offsets (moments of the planes' mean f_dTP residuals,
+    # generalisation_effects): the model's planes were shifted by N(0, 0.2 m) (measured
+    # 0.24 / 0.24 / 0.26; vertices shared by neighbouring faces move them a bit more) ...
+    for _, precision, _ in streets:
+        estimate = precision.generalisation_estimate
+        assert 0.15 < estimate["sigma_estimated_m"] < 0.35
+        assert estimate["sigma_used_m"] == 0.2 and not estimate["estimated"]
+    # ... and an unshifted model gives (almost) none, with or without an a priori value.
+    _, precision, (_, _, problem) = _street(11, shift_sigma=1e-6)
+    assert precision.generalisation_estimate["sigma_estimated_m"] < 0.02
+    again = estimate_precision(problem, estimate_generalisation=True)
+    assert again.generalisation == "consider"
+    assert again.generalisation_sigma == pytest.approx(
+        precision.generalisation_estimate["sigma_estimated_m"])
+
+
 def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
     # The linear propagation of per-plane offsets must match what re-solving does: offset one
     # plane's f_dTP observations by 0.3 m (shift its tie points' plane by moving the plane in
