@@ -39,6 +39,9 @@ def _add_evaluate(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--output_path", default=None,
                    help="new directory for report.html, the plots and evaluation.json")
+    p.add_argument("--checkpoint_precision", default=None,
+                   help="check point covariances (refine's checkpoint_precision.json; default: "
+                        "the one in --input_path) for the Delta/sigma table")
 
     def run(args):
         from .evaluate import main
@@ -49,7 +52,7 @@ def _add_evaluate(subparsers) -> None:
             check_new_directory(args.output_path)
         out = main(args.input_path, args.checkpoints, args.observations,
                    origin_file=args.origin_file, frame=args.frame, as_json=args.json,
-                   truth_path=args.truth_path)
+                   truth_path=args.truth_path, precision_file=args.checkpoint_precision)
         if args.output_path:
             from .checkpoint_plots import write_evaluate_outputs
 

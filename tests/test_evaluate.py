@@ -211,3 +211,42 @@ def test_malformed_files(tmp_path, reader, content, match):
     with pytest.raises(InputError, match=match) as info:
         reader(path)
     assert "bad.txt" in str(info.value)
+
+
+def test_delta_sigma_from_a_checkpoint_precision_file(tmp_path, capsys):
+    # Two stochastic models for the same check points: sigma 0.01 m (over-optimistic for the
+    # 0.3 m datum shift + 5 cm errors) and 0.25 m; evaluate divides its own Delta by them.
+    model = _write_workspace(tmp_path)
+    ids = [line.split()[0] for line in (tmp_path / "checkpoints.txt").read_text().splitlines()
+           if line and not line.startswith("#")]
+    n = 3 * len(ids)
+    precision = tmp_path / "cp_precision.json"
+    precision.write_text(json.dumps({
+        "ids": ids, "covariance": {"classical": (np.eye(n) * 0.01 ** 2).tolist(),
+                                   "generalisation_aware": (np.eye(n) * 0.25 ** 2).tolist()},
+        "note": {"classical": "tiny", "generalisation_aware": "honest"}}))
+    code = cli_main(["evaluate", "--input_path", str(model), "--checkpoints",
+                     str(tmp_path / "checkpoints.txt"), "--observations",
+                     str(tmp_path / "obs.txt"), "--checkpoint_precision", str(precision),
+                     "--json"])
+    assert code == 0
+    out = json.loads(capsys.readouterr().out)["evaluated"]
+    tables = out["delta_sigma_by_model"]
+    x = tables["classical"]["before_helmert"]["X"]
+    assert x["rms_sigma"] == pytest.approx(0.01)
+    assert x["ratio"] == pytest.approx(out["rms_x"] / 0.01)
+    assert x["ratio"] > 20  # the 0.3 m shift against 1 cm
+    assert 0.5 < tables["generalisation_aware"]["before_helmert"]["X"]["ratio"] < 2
+    # After the Helmert fit the shift is gone; the residual sigma is below sigma (7 of 30
+    # degrees of freedom fitted).
+    after = tables["classical"]["after_helmert"]["X"]
+    assert after["rms_delta"] < 0.1 < x["rms_delta"]
+    assert after["rms_sigma_residual"] < after["rms_sigma"]
+    assert out["sigma_model"] == "generalisation_aware"
+    assert out["points"][ids[0]]["sigma"] == pytest.approx([0.25] * 3)
+    # A broken file is one clear input error.
+    precision.write_text("{}")
+    code = cli_main(["evaluate", "--input_path", str(model), "--checkpoints",
+                     str(tmp_path / "checkpoints.txt"), "--observations",
+                     str(tmp_path / "obs.txt"), "--checkpoint_precision", str(precision)])
+    assert code == 2 and "check point precision file" in capsys.readouterr().err
