@@ -124,6 +124,9 @@ class PlaneBlocks:
     vertices: list[np.ndarray] = field(default_factory=list)
     # Per face (1): its generalisation offset o_p; empty in the classical model.
     generalisation: list[np.ndarray] = field(default_factory=list)
+    # Per face (3): the constant point on the plane (the face's vertex centroid) that its
+    # offset refers to: the plane is n.(X - reference) + offset = 0 (see offset_array).
+    references: list[np.ndarray] = field(default_factory=list)
 
     @property
     def normal_array(self) -> np.ndarray:
@@ -131,7 +134,13 @@ class PlaneBlocks:
 
     @property
     def offset_array(self) -> np.ndarray:
-        return np.array(self.offsets).reshape(-1)
+        """The planes' offsets d in the frame, n.X + d = 0 (the blocks hold them at their
+        reference points)."""
+        offsets = np.array(self.offsets).reshape(-1)
+        if not len(offsets):
+            return offsets
+        return offsets - np.einsum("ij,ij->i", self.normal_array,
+                                   np.array(self.references).reshape(-1, 3))
 
     @property
     def vertex_array(self) -> np.ndarray:
@@ -240,8 +249,13 @@ class HybridProblem:
         slot_of_face = {int(f): k for k, f in enumerate(faces)}
         sphere = pyceres.SphereManifold(3)
         for f in faces:
+            # Offsets refer to a point on the plane, so that normal and offset are
+            # uncorrelated unknowns (see cpp_ext point_plane_distance.h).
+            reference = current.vertices[current.face_vertex_ids(f)].mean(axis=0)
+            blocks.references.append(reference)
             blocks.normals.append(np.array(current.normals[f], dtype=np.float64))
-            blocks.offsets.append(np.array([current.offsets[f]], dtype=np.float64))
+            blocks.offsets.append(np.array([current.offsets[f] + current.normals[f] @ reference],
+                                           dtype=np.float64))
             problem.add_parameter_block(blocks.normals[-1], 3)
             problem.set_manifold(blocks.normals[-1], sphere)
             problem.add_parameter_block(blocks.offsets[-1], 1)
@@ -259,8 +273,9 @@ class HybridProblem:
                 problem.add_parameter_block(blocks.generalisation[-1], 1)
 
         # f_dTP: one residual per assigned tie point, in the order of `point_ids`.
-        tie_cost = (core.PointPlaneOffsetDistanceCost(o.sigma_dtp / o.sigma_image) if with_offsets
-                    else core.PointPlaneDistanceCost(o.sigma_dtp / o.sigma_image))
+        tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
+                       else core.PointPlaneDistanceCost)
+        tie_costs = [tie_factory(o.sigma_dtp / o.sigma_image, r) for r in blocks.references]
         tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
         assigned = assignment.assigned
         self.point_ids = assignment.point_ids[assigned]
@@ -269,7 +284,7 @@ class HybridProblem:
         rec = self.reconstruction
         for point_id, face in zip(self.point_ids, point_faces):
             k = slot_of_face[int(face)]
-            problem.add_residual_block(tie_cost, tie_loss,
+            problem.add_residual_block(tie_costs[k], tie_loss,
                                        [rec.point3D(int(point_id)).xyz, blocks.normals[k],
                                         blocks.offsets[k]]
                                        + ([blocks.generalisation[k]] if with_offsets else []))
@@ -279,7 +294,8 @@ class HybridProblem:
         vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
         blocks.vertex_ids = vertex_ids
         indptr, indices = store.vertex_faces
-        vertex_cost = core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image)
+        vertex_costs = [core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image, r)
+                        for r in blocks.references]
         sigma_vt = np.full(3, o.sigma_vt / o.sigma_image)
         n_dvt = 0
         for v in vertex_ids:
@@ -287,7 +303,7 @@ class HybridProblem:
             for f in indices[indptr[v]:indptr[v + 1]]:
                 k = slot_of_face.get(int(f))
                 if k is not None:
-                    problem.add_residual_block(vertex_cost, None,
+                    problem.add_residual_block(vertex_costs[k], None,
                                                [blocks.vertices[-1], blocks.normals[k],
                                                 blocks.offsets[k]])
                     n_dvt += 1

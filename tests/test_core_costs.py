@@ -92,6 +92,31 @@ def test_point_plane_distance_is_zero_on_the_plane(core):
     assert residuals[0] == pytest.approx(0.3 / 0.2, rel=1e-12)
 
 
+def test_point_plane_distance_at_a_reference_point(core):
+    """The offset may refer to a point P0 on the plane: (n.(X - P0)/|n| + d) / sigma; the
+    same plane as n.X + d - n.P0 = 0, with its own closed form and Jacobians."""
+    rng = np.random.default_rng(1)
+    for _ in range(5):
+        point = rng.normal(scale=20.0, size=3) + 300.0
+        reference = rng.normal(scale=5.0, size=3) + 300.0
+        normal = rng.normal(size=3)
+        offset = rng.normal(size=1)
+        sigma = rng.uniform(0.01, 0.5)
+        for factory, extra in ((core.PointPlaneDistanceCost, []),
+                               (core.PointPlaneOffsetDistanceCost, [np.array([0.3])])):
+            cost = factory(sigma, reference)
+            residuals, jacobians = evaluate(cost, point, normal, offset, *extra)
+            unit = normal / np.linalg.norm(normal)
+            expected = (unit @ (point - reference) + offset[0] + sum(e[0] for e in extra)) / sigma
+            np.testing.assert_allclose(residuals, [expected], rtol=1e-10)
+            for analytic, numeric in zip(
+                jacobians, numeric_jacobians(cost, [point, normal, offset, *extra]), strict=True
+            ):
+                np.testing.assert_allclose(analytic, numeric, rtol=1e-6, atol=1e-6)
+    with pytest.raises(ValueError, match="reference"):
+        core.PointPlaneDistanceCost(0.1, np.array([0.0, np.nan, 0.0]))
+
+
 @pytest.mark.parametrize("sigma", [0.0, -1.0, float("nan"), float("inf")])
 def test_point_plane_distance_rejects_bad_sigma(core, sigma):
     with pytest.raises(ValueError, match="sigma"):

@@ -33,6 +33,12 @@ void CheckSigma(double sigma, const char* what) {
   }
 }
 
+void CheckFinite(const Eigen::Vector3d& value, const char* what) {
+  if (!value.allFinite()) {
+    throw std::invalid_argument(std::string(what) + " must be finite");
+  }
+}
+
 Eigen::Matrix3d SqrtInformationFromSigma(const Eigen::Vector3d& sigma) {
   for (int i = 0; i < 3; ++i) CheckSigma(sigma(i), "sigma_xyz");
   return sigma.cwiseInverse().asDiagonal();
@@ -61,26 +67,30 @@ PYBIND11_MODULE(_core, m) {
 
   m.def(
       "PointPlaneDistanceCost",
-      [](double sigma) -> ceres::CostFunction* {
+      [](double sigma, const Eigen::Vector3d& reference) -> ceres::CostFunction* {
         CheckSigma(sigma, "sigma");
-        return PointPlaneDistanceCostFunctor::Create(sigma);
+        CheckFinite(reference, "reference");
+        return PointPlaneDistanceCostFunctor::Create(sigma, reference.data());
       },
       "sigma"_a,
+      "reference"_a = Eigen::Vector3d::Zero(),
       kTake,
-      "Point-to-plane distance, residual = (n.X/|n| + d) / sigma.\n"
+      "Point-to-plane distance, residual = (n.(X - reference)/|n| + d) / sigma.\n"
       "Parameter blocks: point (3), normal (3, use pyceres.SphereManifold(3)),"
-      " offset (1).");
+      " offset (1) at the plane's reference point (a constant on the plane).");
 
   m.def(
       "PointPlaneOffsetDistanceCost",
-      [](double sigma) -> ceres::CostFunction* {
+      [](double sigma, const Eigen::Vector3d& reference) -> ceres::CostFunction* {
         CheckSigma(sigma, "sigma");
-        return PointPlaneOffsetDistanceCostFunctor::Create(sigma);
+        CheckFinite(reference, "reference");
+        return PointPlaneOffsetDistanceCostFunctor::Create(sigma, reference.data());
       },
       "sigma"_a,
+      "reference"_a = Eigen::Vector3d::Zero(),
       kTake,
       "Point-to-plane distance with the plane's generalisation offset o,\n"
-      "residual = (n.X/|n| + d + o) / sigma.\nParameter blocks: point (3), "
+      "residual = (n.(X - reference)/|n| + d + o) / sigma.\nParameter blocks: point (3), "
       "normal (3, use pyceres.SphereManifold(3)), offset (1), generalisation "
       "offset (1).");
 

@@ -1,12 +1,17 @@
 // Fictitious observation "distance of a point to a plane = 0" (Unger 2020,
 // eq. 5; observation groups f_dTP for tie points and f_dVT for model vertices).
 //
-//   residual = (n^T X / |n| + d) / sigma
+//   residual = (n^T (X - P0) / |n| + d) / sigma
 //
 // Parameter blocks:
 //   X (3): the point (a COLMAP point3D xyz block, or a model vertex block),
 //   n (3): plane normal, kept unit length by ceres::SphereManifold<3>,
-//   d (1): plane offset, so that n^T X + d = 0 on the plane.
+//   d (1): plane offset at the plane's reference point P0 (a constant, e.g. the
+//          face centroid), so that n^T (X - P0) + d = 0 on the plane.
+// P0 on the plane keeps n and d uncorrelated (Unger eq. 5 rotates about P0 as
+// well): with P0 at the origin of a frame hundreds of metres away, a tilt of n
+// moves the plane by the lever arm and the two unknowns are nearly dependent,
+// which made Levenberg-Marquardt crawl (190 iterations) on small detailed faces.
 // The plane thus has 3 degrees of freedom (2 on the sphere + 1 offset),
 // equivalent to Unger's minimal (alpha, beta, delta) update. Dividing by |n|
 // keeps the residual a metric distance even if the normal drifts off the unit
@@ -19,8 +24,9 @@
 namespace colmap_citymodel {
 
 struct PointPlaneDistanceCostFunctor {
-  explicit PointPlaneDistanceCostFunctor(double sigma)
-      : inv_sigma_(1.0 / sigma) {}
+  PointPlaneDistanceCostFunctor(double sigma, const double* reference)
+      : inv_sigma_(1.0 / sigma),
+        reference_{reference[0], reference[1], reference[2]} {}
 
   template <typename T>
   bool operator()(const T* const point,
@@ -29,19 +35,22 @@ struct PointPlaneDistanceCostFunctor {
                   T* residuals) const {
     const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
                                normal[2] * normal[2]);
-    const T dot = normal[0] * point[0] + normal[1] * point[1] +
-                  normal[2] * point[2];
+    const T dot = normal[0] * (point[0] - T(reference_[0])) +
+                  normal[1] * (point[1] - T(reference_[1])) +
+                  normal[2] * (point[2] - T(reference_[2]));
     residuals[0] = (dot / norm + offset[0]) * T(inv_sigma_);
     return true;
   }
 
-  static ceres::CostFunction* Create(double sigma) {
+  static ceres::CostFunction* Create(double sigma,
+                                     const double* reference) {
     return new ceres::
         AutoDiffCostFunction<PointPlaneDistanceCostFunctor, 1, 3, 3, 1>(
-            new PointPlaneDistanceCostFunctor(sigma));
+            new PointPlaneDistanceCostFunctor(sigma, reference));
   }
 
   const double inv_sigma_;
+  const double reference_[3];
 };
 
 }  // namespace colmap_citymodel

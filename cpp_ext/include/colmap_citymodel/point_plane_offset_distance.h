@@ -3,12 +3,13 @@
 // errors are systematic per plane, so independent f_dTP sigmas make the a
 // posteriori precision over-optimistic).
 //
-//   residual = (n^T X / |n| + d + o) / sigma
+//   residual = (n^T (X - P0) / |n| + d + o) / sigma
 //
 // Parameter blocks:
 //   X (3): the tie point (a COLMAP point3D xyz block),
-//   n (3): plane normal (ceres::SphereManifold<3>), d (1): plane offset, as in
-//          PointPlaneDistanceCost; the model plane is n^T X + d = 0,
+//   n (3): plane normal (ceres::SphereManifold<3>), d (1): plane offset at the
+//          reference point P0, as in PointPlaneDistanceCost; the model plane
+//          is n^T (X - P0) + d = 0,
 //   o (1): the plane's generalisation offset: the surface the tie points lie
 //          on is n^T X + d + o = 0. One o per plane, shared by all its tie
 //          points, with a prior o ~ N(0, sigma_generalisation^2)
@@ -22,8 +23,9 @@
 namespace colmap_citymodel {
 
 struct PointPlaneOffsetDistanceCostFunctor {
-  explicit PointPlaneOffsetDistanceCostFunctor(double sigma)
-      : inv_sigma_(1.0 / sigma) {}
+  PointPlaneOffsetDistanceCostFunctor(double sigma, const double* reference)
+      : inv_sigma_(1.0 / sigma),
+        reference_{reference[0], reference[1], reference[2]} {}
 
   template <typename T>
   bool operator()(const T* const point,
@@ -33,19 +35,22 @@ struct PointPlaneOffsetDistanceCostFunctor {
                   T* residuals) const {
     const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
                                normal[2] * normal[2]);
-    const T dot = normal[0] * point[0] + normal[1] * point[1] +
-                  normal[2] * point[2];
+    const T dot = normal[0] * (point[0] - T(reference_[0])) +
+                  normal[1] * (point[1] - T(reference_[1])) +
+                  normal[2] * (point[2] - T(reference_[2]));
     residuals[0] = (dot / norm + offset[0] + generalisation[0]) * T(inv_sigma_);
     return true;
   }
 
-  static ceres::CostFunction* Create(double sigma) {
+  static ceres::CostFunction* Create(double sigma,
+                                     const double* reference) {
     return new ceres::AutoDiffCostFunction<PointPlaneOffsetDistanceCostFunctor,
                                            1, 3, 3, 1, 1>(
-        new PointPlaneOffsetDistanceCostFunctor(sigma));
+        new PointPlaneOffsetDistanceCostFunctor(sigma, reference));
   }
 
   const double inv_sigma_;
+  const double reference_[3];
 };
 
 }  // namespace colmap_citymodel
