@@ -96,12 +96,25 @@ def markdown(workspace: Path, runs: list[dict], command: str) -> str:
              "to planes, never control). Delta = known - estimated; sigma_CP = marginal a "
              "posteriori sigma of the check points (poses, planes, vertices and datum uncertain; "
              "check point image observations in the normal system), scaled by s0^2; the "
-             "generalisation-aware sigma adds per-plane offsets of 0.2 m propagated into the "
-             "same estimate. RMS over the check points per axis. \"after Helmert\" uses the "
+             "generalisation-aware sigma adds per-plane offsets (0.2 m a priori; with VCE the "
+             "data's own value) propagated into the same estimate. RMS over the check points per axis. \"after Helmert\" uses the "
              "same sigma_CP (Unger Table 13); the extra row divides by the sigma of the Helmert "
              "residuals. Unger's ratios for Scn3a (short sequence): 6.8 / 18.9 / 8.9 before, "
              "3.7 / 4.3 / 1.1 after Helmert. Target for the generalisation-aware model: "
              "Delta/sigma in [0.5, 2] per axis.", ""]
+    lines += ["## Summary", "",
+              "| variant | stochastic model | RMS Delta 3D (m) | Delta/sigma X, Y, Z before "
+              "Helmert | after Helmert vs sigma of the residuals |", "|---|---|---|---|---|"]
+    for r in runs:
+        for model, table in (r["evaluation"].get("delta_sigma_by_model") or {}).items():
+            before = table["before_helmert"]
+            after = table.get("after_helmert") or {}
+            lines.append(
+                f"| {r['variant']} | {model} | {r['evaluation']['rms_3d']:.3f} | "
+                + " / ".join(f"{before[a]['ratio']:.2f}" for a in "XYZ") + " | "
+                + (" / ".join(f"{after[a]['ratio_residual']:.2f}" for a in "XYZ")
+                   if after and "ratio_residual" in after["X"] else "-") + " |")
+    lines.append("")
     for r in runs:
         ev = r["evaluation"]
         lines += [f"## {r['variant']}: {r['description']}", "",
