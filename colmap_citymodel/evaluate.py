@@ -705,7 +705,8 @@ def _read_origin(path: Path) -> tuple[np.ndarray, str | None]:
             raise InputError(f"no usable 'origin' in JSON: {error}", path) from None
         return origin, data.get("output_frame")
     try:
-        values = [float(v) for v in text.split("#", 1)[0].split()]
+        # '#' starts a comment on any line (simulate writes truth/origin.txt with a header).
+        values = [float(v) for line in text.splitlines() for v in line.split("#", 1)[0].split()]
     except ValueError:
         raise InputError("origin file must hold three numbers", path) from None
     if len(values) != 3:

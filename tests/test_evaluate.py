@@ -250,3 +250,19 @@ def test_delta_sigma_from_a_checkpoint_precision_file(tmp_path, capsys):
                      str(tmp_path / "checkpoints.txt"), "--observations",
                      str(tmp_path / "obs.txt"), "--checkpoint_precision", str(precision)])
     assert code == 2 and "check point precision file" in capsys.readouterr().err
+
+
+def test_origin_text_file_with_comment_lines(tmp_path):
+    """truth/origin.txt as simulate writes it: a comment header, the numbers, a CRS comment."""
+    from colmap_citymodel.errors import InputError
+    from colmap_citymodel.evaluate import _read_origin
+
+    path = tmp_path / "origin.txt"
+    path.write_text("# origin X Y Z: local = model CRS - origin\n691000.0 5336000.0 515.0\n"
+                    "# crs: EPSG:25832\n")
+    origin, frame = _read_origin(path)
+    np.testing.assert_array_equal(origin, [691000.0, 5336000.0, 515.0])
+    assert frame is None
+    path.write_text("# nothing here\n1 2\n")
+    with pytest.raises(InputError, match="three numbers"):
+        _read_origin(path)
