@@ -15,15 +15,13 @@ the Agg canvas, through precision_report's `_figure` / `_png`.
 
 from __future__ import annotations
 
-import base64
-import html
 import json
 import logging
 from pathlib import Path
 
 import numpy as np
 
-from .precision_report import _figure, _png
+from .precision_report import _figure, _png, html_page
 
 logger = logging.getLogger("colmap_citymodel.checkpoint_plots")
 
@@ -224,18 +222,7 @@ def evaluation_markdown(evaluation: dict) -> str:
 def evaluation_html(evaluation: dict, plots: dict[str, bytes],
                     title: str = "colmap-citymodel check point evaluation") -> str:
     """A self-contained page: the PNGs inline (base64) and the Markdown summary."""
-    parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
-             f"<title>{html.escape(title)}</title>",
-             "<style>body{font-family:sans-serif;max-width:1300px;margin:auto;padding:1em}"
-             "pre{background:#f6f6f6;padding:1em;overflow-x:auto}img{max-width:100%}</style>",
-             "</head><body>", f"<h1>{html.escape(title)}</h1>"]
-    for name, png in plots.items():
-        encoded = base64.b64encode(png).decode("ascii")
-        parts += [f"<h2>{html.escape(name)}</h2>",
-                  f"<img alt='{html.escape(name)}' src='data:image/png;base64,{encoded}'>"]
-    parts += ["<h2>Summary</h2>", f"<pre>{html.escape(evaluation_markdown(evaluation))}</pre>",
-              "</body></html>"]
-    return "\n".join(parts)
+    return html_page(title, plots, evaluation_markdown(evaluation))
 
 
 def plot_file_name(index: int, name: str) -> str:

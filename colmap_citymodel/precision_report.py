@@ -267,6 +267,11 @@ def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-city
         text = report_markdown(report) + precision_markdown(report) + checkpoint_markdown(report)
     except (KeyError, TypeError):  # a report from another stage (e.g. evaluate)
         text = precision_markdown(report)
+    return html_page(title, plots, text)
+
+
+def html_page(title: str, plots: dict[str, bytes], summary: str) -> str:
+    """A self-contained HTML page: the PNGs inline (base64), then `summary` preformatted."""
     parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
              f"<title>{html.escape(title)}</title>",
              "<style>body{font-family:sans-serif;max-width:1300px;margin:auto;padding:1em}"
@@ -276,7 +281,7 @@ def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-city
         encoded = base64.b64encode(png).decode("ascii")
         parts += [f"<h2>{html.escape(name)}</h2>",
                   f"<img alt='{html.escape(name)}' src='data:image/png;base64,{encoded}'>"]
-    parts += ["<h2>Summary</h2>", f"<pre>{html.escape(text)}</pre>", "</body></html>"]
+    parts += ["<h2>Summary</h2>", f"<pre>{html.escape(summary)}</pre>", "</body></html>"]
     return "\n".join(parts)
 
 
