@@ -620,9 +620,12 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     write_refined(result, output_path, output_type=output_type, output_frame=output_frame,
                   inputs=inputs)
     last = result.iterations[-1]
+    # s0 of the final solve: the variance-component re-solve when there was one.
+    s0 = (result.precision.variance.sigma0 if result.precision is not None
+          else np.sqrt(last.final.sigma0_squared))
     print(f"refined {result.reconstruction.num_reg_images()} images, "
           f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points on "
-          f"{last.num_faces} planes; s0 {np.sqrt(last.final.sigma0_squared):.3f}")
+          f"{last.num_faces} planes; s0 {s0:.3f}")
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
     return result
