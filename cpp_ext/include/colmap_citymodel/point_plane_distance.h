@@ -23,6 +23,19 @@
 
 namespace colmap_citymodel {
 
+// n^T (X - P0) / |n|: the signed distance of X from the plane through P0 with
+// normal n, shared by the point-plane costs.
+template <typename T>
+T SignedDistanceFromReference(const T* const point, const T* const normal,
+                              const double* const reference) {
+  const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
+                             normal[2] * normal[2]);
+  const T dot = normal[0] * (point[0] - T(reference[0])) +
+                normal[1] * (point[1] - T(reference[1])) +
+                normal[2] * (point[2] - T(reference[2]));
+  return dot / norm;
+}
+
 struct PointPlaneDistanceCostFunctor {
   PointPlaneDistanceCostFunctor(double sigma, const double* reference)
       : inv_sigma_(1.0 / sigma),
@@ -33,12 +46,9 @@ struct PointPlaneDistanceCostFunctor {
                   const T* const normal,
                   const T* const offset,
                   T* residuals) const {
-    const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
-                               normal[2] * normal[2]);
-    const T dot = normal[0] * (point[0] - T(reference_[0])) +
-                  normal[1] * (point[1] - T(reference_[1])) +
-                  normal[2] * (point[2] - T(reference_[2]));
-    residuals[0] = (dot / norm + offset[0]) * T(inv_sigma_);
+    residuals[0] =
+        (SignedDistanceFromReference(point, normal, reference_) + offset[0]) *
+        T(inv_sigma_);
     return true;
   }
 

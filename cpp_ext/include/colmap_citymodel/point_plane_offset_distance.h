@@ -20,6 +20,8 @@
 #include <ceres/autodiff_cost_function.h>
 #include <ceres/ceres.h>
 
+#include "colmap_citymodel/point_plane_distance.h"
+
 namespace colmap_citymodel {
 
 struct PointPlaneOffsetDistanceCostFunctor {
@@ -33,12 +35,9 @@ struct PointPlaneOffsetDistanceCostFunctor {
                   const T* const offset,
                   const T* const generalisation,
                   T* residuals) const {
-    const T norm = ceres::sqrt(normal[0] * normal[0] + normal[1] * normal[1] +
-                               normal[2] * normal[2]);
-    const T dot = normal[0] * (point[0] - T(reference_[0])) +
-                  normal[1] * (point[1] - T(reference_[1])) +
-                  normal[2] * (point[2] - T(reference_[2]));
-    residuals[0] = (dot / norm + offset[0] + generalisation[0]) * T(inv_sigma_);
+    residuals[0] = (SignedDistanceFromReference(point, normal, reference_) +
+                    offset[0] + generalisation[0]) *
+                   T(inv_sigma_);
     return true;
   }
 
