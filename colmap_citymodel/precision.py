@@ -784,7 +784,8 @@ class PrecisionResult:
 def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                        alpha: float = 0.05, checkpoint_observations=None,
                        sigma_generalisation: float | None = None,
-                       estimate_generalisation: bool = False) -> PrecisionResult:
+                       estimate_generalisation: bool = False,
+                       cof: Cofactors | None = None) -> PrecisionResult:
     """Variance factors, global test and (optionally) covariances at the current state of a
     solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
 
@@ -794,7 +795,9 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     problem's AdjustmentOptions.sigma_generalisation): also the generalisation-aware
     covariances (`generalisation_effects`), unless the offsets were estimated in the solve.
     `estimate_generalisation`: that sigma estimated from the planes' mean residuals (a
-    variance component; also without an a priori sigma_generalisation)."""
+    variance component; also without an a priori sigma_generalisation). `cof`: the
+    `cofactors(problem)` of this state when the caller has them already (e.g. kept with their
+    Schur system for a datum transformation)."""
     start = time.perf_counter()
     residuals = problem.group_residuals()
     if not covariances:
@@ -810,7 +813,9 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     elif (sigma_generalisation is not None or estimate_generalisation) \
             and problem.counts["dTP"]:
         mode = "consider"
-    cof = cofactors(problem, keep_system=mode == "consider")
+    own_cofactors = cof is None or (mode == "consider" and cof.system is None)
+    if own_cofactors:
+        cof = cofactors(problem, keep_system=mode == "consider")
     variance = variance_factors(residuals, problem.num_unknowns(), cof.redundancy_by_group,
                                 alpha=alpha)
     effects = None
@@ -819,7 +824,8 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         effects = generalisation_effects(problem, cof, sigma_generalisation,
                                          estimate=estimate_generalisation,
                                          s0_squared=variance.sigma0_squared)
-        cof.system = None
+        if own_cofactors:
+            cof.system = None  # free the Jacobian and W^-1 E
         sigma_generalisation = effects.sigma
         logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
                     " %.1f s)", len(effects.faces), effects.sigma,

@@ -59,7 +59,8 @@ from tqdm import tqdm
 from .errors import InputError
 from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
 from .options import AdjustmentOptions
-from .precision import PrecisionResult, estimate_precision, image_jacobian, whitened_jacobian
+from .precision import (Cofactors, PrecisionResult, cofactors, estimate_precision,
+                        image_jacobian)
 
 logger = logging.getLogger("colmap_citymodel.precision_subsets")
 
@@ -224,7 +225,8 @@ class InnerPrecision:
         return np.sqrt(np.maximum(np.diagonal(self.centre_cov, axis1=1, axis2=2), 0.0))
 
 
-def inner_precision(problem: HybridProblem, precision: PrecisionResult) -> InnerPrecision:
+def inner_precision(problem: HybridProblem, precision: PrecisionResult,
+                    cof: Cofactors | None = None) -> InnerPrecision:
     """S-transform the solve's covariances to the inner constraints of all tie points.
 
     With the orthogonal projector P = I - G (G^T G)^-1 G^T over the point coordinates (G the
@@ -233,22 +235,16 @@ def inner_precision(problem: HybridProblem, precision: PrecisionResult) -> Inner
     G_k M G_k^T with A_k = T^-1 sum_j G_j^T Sigma_{j,C_k}. The sums over all points use the
     Schur structure: Sigma_ji = s0^2 (delta_ij W_i^-1 + B_j Q_cc B_i^T), B = W^-1 E,
     Sigma_{j,C_k} = -s0^2 B_j Q_cc[:, k] J_k^T, so nothing bigger than (3P x 7) is formed.
+    `cof`: the `cofactors(problem, keep_system=True)` that `precision` was computed from
+    (computed here when not given).
     """
-    from .precision import _block_diagonal_3x3, _bsr_blocks, _inverse
-
-    jacobian, layout = whitened_jacobian(problem)
-    if not np.array_equal(layout.point_ids, precision.point_ids):
-        raise RuntimeError("the precision result does not belong to this problem")
-    nc = layout.num_c
+    if cof is None:
+        cof = cofactors(problem, redundancy=False, keep_system=True)
+    layout, q_cc = cof.layout, cof.q_cc
+    if cof.system is None or not np.array_equal(layout.point_ids, precision.point_ids):
+        raise RuntimeError("the precision result does not belong to these cofactors")
+    _, _, b, w_inv = cof.system
     num_points = len(layout.point_ids)
-    jacobian = jacobian.tocsc()
-    j_c = jacobian[:, :nc].tocsr()
-    j_p = jacobian[:, nc:].tocsr()
-    e = (j_p.T @ j_c).tocsr()
-    w_inv = np.linalg.inv(_block_diagonal_3x3(j_p.T @ j_p, num_points))
-    b = (_bsr_blocks(w_inv) @ e).tocsr()
-    s = (j_c.T @ j_c).toarray() - (e.T @ b).toarray()
-    q_cc, _ = _inverse(0.5 * (s + s.T))
     s0sq = precision.variance.sigma0_squared
 
     centre = precision.points.mean(0)
@@ -377,7 +373,9 @@ def adjust_subset(rec: pycolmap.Reconstruction, spec: SubsetSpec, priors: GNSSPr
     problem = HybridProblem(sub, None, None, subset_priors, adjustment, robust_images=False,
                             robust_planes=False)
     solve = problem.solve()
-    precision = estimate_precision(problem, alpha=options.alpha)
+    # Cofactors with their Schur system: estimate_precision and the inner datum share them.
+    cof = cofactors(problem, keep_system=inner)
+    precision = estimate_precision(problem, alpha=options.alpha, cof=cof)
     if len(precision.image_ids) != len(restriction.image_ids):
         # Unselected images of a selected rig frame, or the gauge images: report only the
         # subset's images that have a full pose covariance.
@@ -385,7 +383,7 @@ def adjust_subset(rec: pycolmap.Reconstruction, spec: SubsetSpec, priors: GNSSPr
         precision = _rows(precision, mask)
     inner_result = None
     if inner:
-        inner_result = inner_precision(problem, precision)
+        inner_result = inner_precision(problem, precision, cof)
     result = SubsetResult(spec, restriction, "gnss" if subset_priors is not None else "fixed",
                           0 if subset_priors is None else len(subset_priors), solve, precision,
                           inner_result, sub, time.perf_counter() - start)
