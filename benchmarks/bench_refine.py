@@ -34,7 +34,7 @@ from colmap_citymodel import logger
 from colmap_citymodel.assign_planes import assign
 from colmap_citymodel.hybrid_adjustment import HybridProblem
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.workflow import (align_to_planes, crop_to_reconstruction,
+from colmap_citymodel.workflow import (align_block_to_planes, crop_to_reconstruction,
                                        georegister, refine, tie_points)
 from colmap_citymodel.synthetic_scene import centre_errors
 
@@ -92,15 +92,9 @@ def main() -> None:
                         refine_options.assignment)
     first_assignment_s = time.perf_counter() - t
     t = time.perf_counter()
-    for _ in range(refine_options.workflow.alignment_rounds):  # as refine's iteration 0
-        move, mean_shift = align_to_planes(hybrid_rec, xyz, assignment, store_near, priors,
-                                           refine_options.adjustment)
-        hybrid_rec.transform(move)
-        ids, xyz = tie_points(hybrid_rec)
-        assignment = assign(xyz, ids, store_near, refine_options.assignment.max_threshold,
-                            refine_options.assignment)
-        if mean_shift < refine_options.workflow.alignment_tolerance:
-            break
+    _, xyz, assignment = align_block_to_planes(  # as refine's iteration 0
+        hybrid_rec, ids, xyz, assignment, store_near, priors,
+        refine_options.assignment.max_threshold, refine_options)
     hybrid = HybridProblem(hybrid_rec, store_near, assignment, priors,
                            refine_options.adjustment, robust_images=False, robust_planes=False)
     hybrid_report = hybrid.solve()

@@ -351,15 +351,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             # metres off and its first assignments are partly wrong; each round gets more
             # right (long Scn4: camera centres 5.5 m -> 4.7, 2.6, 1.1, 0.7 ... 0.58 m).
             t_align = time.perf_counter()
-            for _ in range(o_w.alignment_rounds):
-                move, mean_shift = align_to_planes(rec, points, assignment, current, priors,
-                                                   o_adj)
-                rec.transform(move)
-                sim3 = move * sim3
-                point_ids, points = tie_points(rec, exclude_point_ids)
-                assignment = assign(points, point_ids, current, threshold, o_a)
-                if mean_shift < o_w.alignment_tolerance or not assignment.num_assigned:
-                    break
+            move, points, assignment = align_block_to_planes(
+                rec, point_ids, points, assignment, current, priors, threshold, options)
+            sim3 = move * sim3
             timer["initial_alignment"] = time.perf_counter() - t_align
             t0 += timer["initial_alignment"]
         assign_seconds += time.perf_counter() - t0
@@ -445,12 +439,32 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         variance_components=vce, checkpoints=evaluation)
 
 
+def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
+                          points: np.ndarray, assignment: Assignment, store: PlaneStore,
+                          priors: GNSSPriors | None, threshold: float, options: RefineOptions
+                          ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
+    """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
+    by it, assign again at `threshold`, until a fit moves the tie points by less than
+    `alignment_tolerance` on average. Returns the total similarity and the moved `points`
+    (same ids) with their last assignment."""
+    total = pycolmap.Sim3d()
+    for _ in range(options.workflow.alignment_rounds):
+        move, moved = align_to_planes(rec, points, assignment, store, priors, options.adjustment)
+        rec.transform(move)
+        total = move * total
+        mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
+        points = moved
+        assignment = assign(points, point_ids, store, threshold, options.assignment)
+        if mean_shift < options.workflow.alignment_tolerance or not assignment.num_assigned:
+            break
+    return total, points, assignment
+
+
 def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
                     store: PlaneStore, priors: GNSSPriors | None, options
-                    ) -> tuple[pycolmap.Sim3d, float]:
+                    ) -> tuple[pycolmap.Sim3d, np.ndarray]:
     """The similarity that best puts the assigned tie points on their planes (and the block on
-    GNSS, with the adjustment's weights; see initial_alignment), and the mean distance (m) it
-    moves the tie points."""
+    GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it."""
     from .initial_alignment import similarity_to_planes
 
     assigned = assignment.assigned
@@ -463,12 +477,12 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
                                   options.sigma_dtp, options.plane_loss_scale, **gnss)
     matrix = np.asarray(result.sim3.matrix())
     moved = points @ matrix[:, :3].T + matrix[:, 3]
-    mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
     logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
                 "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
-                "%.3f m", int(assigned.sum()), result.iterations, mean_shift, result.sim3.scale,
+                "%.3f m", int(assigned.sum()), result.iterations,
+                float(np.linalg.norm(moved - points, axis=1).mean()), result.sim3.scale,
                 result.rms_before, result.rms_after)
-    return result.sim3, mean_shift
+    return result.sim3, moved
 
 
 def _current_from(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
