@@ -62,14 +62,21 @@ class GNSSPriors:
     def __len__(self) -> int:
         return len(self.image_ids)
 
+    def observed_in_rig(self, rec: pycolmap.Reconstruction, image: pycolmap.Image
+                        ) -> np.ndarray:
+        """What GNSS observed, in the image's rig frame: the antenna (lever arm) or the camera's
+        projection centre."""
+        if self.lever_arm is not None:
+            return np.asarray(self.lever_arm, float)
+        return _position_in_rig(rec, image)
+
     def observed_points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
         """Where the block currently puts what GNSS observed (antennas or centres): (N, 3)."""
         out = np.empty((len(self), 3))
         for k, image_id in enumerate(self.image_ids):
             image = rec.image(int(image_id))
-            in_rig = (_position_in_rig(rec, image) if self.lever_arm is None
-                      else np.asarray(self.lever_arm, float))
-            out[k] = rec.frame(image.frame_id).rig_from_world.inverse() * in_rig
+            out[k] = (rec.frame(image.frame_id).rig_from_world.inverse()
+                      * self.observed_in_rig(rec, image))
         return out
 
 
@@ -232,11 +239,9 @@ class HybridProblem:
             rig_from_world = frame.rig_from_world.params
             if not self.problem.has_parameter_block(rig_from_world):
                 continue
-            observed_in_rig = (_position_in_rig(rec, image) if gnss.lever_arm is None
-                               else np.asarray(gnss.lever_arm, float))
             cost = core.ProjectionCenterPriorCost(
                 np.asarray(position, float), np.asarray(sigma, float) / self.options.sigma_image,
-                observed_in_rig)
+                gnss.observed_in_rig(rec, image))
             self.problem.add_residual_block(cost, None, [rig_from_world])
             self.counts["gnss"] += 3
 
