@@ -717,33 +717,53 @@ def match_to_reconstruction(gnss: GNSSObservations, reconstruction, origin=None,
                             min_positions: int = 3):
     """Pair GNSS positions with the registered images of a pycolmap.Reconstruction.
 
-    Returns (image_ids (K,) int64, positions_local (K,3), sigmas (K,3)); positions_local are
-    gnss.to_local(origin) (origin None: zeros). GNSS naming images the reconstruction does not
-    have raises GNSSError (listing a few); GNSS positions of unregistered images are dropped with
-    a log line; fewer than `min_positions` usable positions raise GNSSError.
+    Returns (image_ids (K,) int64, positions_local (K,3), sigmas (K,3)) for the GNSS positions
+    whose image is registered in the reconstruction, in GNSS order; positions_local are
+    gnss.to_local(origin) (origin None: zeros).
+
+    GNSS positions of images that are not in the reconstruction, or are in it without a pose, are
+    normal (a COLMAP database holds priors for every image, while the mapper often registers a
+    subset or splits the block into sparse/0, sparse/1, ...): they are dropped and their number is
+    logged. Only fewer than `min_positions` usable positions raise GNSSError; the message then
+    shows a few GNSS names and a few reconstruction image names, so a naming mismatch (folder
+    prefixes, extensions) is visible.
     """
     by_name = {image.name: image for image in reconstruction.images.values()}
-    unknown = [n for n in gnss.image_names if n not in by_name]
-    if unknown:
-        raise GNSSError(
-            f"GNSS ({gnss.source}) names {len(unknown)} image(s) that are not in the "
-            f"reconstruction, e.g. {unknown[:5]}"
-        )
     origin = np.zeros(3) if origin is None else np.asarray(origin, dtype=np.float64)
     local = gnss.to_local(origin)
     ids, keep = [], []
+    not_in_model = not_registered = 0
     for i, name in enumerate(gnss.image_names):
-        image = by_name[name]
-        if image.has_pose:
+        image = by_name.get(name)
+        if image is None:
+            not_in_model += 1
+        elif not image.has_pose:
+            not_registered += 1
+        else:
             ids.append(image.image_id)
             keep.append(i)
-    dropped = len(gnss) - len(keep)
-    if dropped:
-        logger.info("%d GNSS position(s) belong to images that are not registered", dropped)
+    if not_in_model:
+        logger.info(
+            "%d of %d GNSS position(s) (%s) name images that are not in the reconstruction; "
+            "they are not used", not_in_model, len(gnss), gnss.source,
+        )
+    if not_registered:
+        logger.info(
+            "%d GNSS position(s) belong to images of the reconstruction without a pose; "
+            "they are not used", not_registered,
+        )
     if len(keep) < min_positions:
+        gnss_names = list(gnss.image_names[:5])
+        model_names = sorted(by_name)[:5]
+        if not keep:
+            what = "none of the"
+        else:
+            what = f"only {len(keep)} of the"
         raise GNSSError(
-            f"only {len(keep)} usable GNSS position(s) for registered images "
-            f"(at least {min_positions} needed)"
+            f"{what} {len(gnss)} GNSS ({gnss.source}) image name(s) match a registered image of "
+            f"the reconstruction (at least {min_positions} needed; {not_in_model} name(s) not in "
+            f"the reconstruction, {not_registered} without a pose); GNSS names e.g. "
+            f"{gnss_names}, reconstruction image names e.g. {model_names}"
         )
     keep = np.array(keep, dtype=np.int64)
     return np.array(ids, dtype=np.int64), local[keep], gnss.sigmas[keep]

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import logging
 import sqlite3
 import struct
 import warnings
@@ -268,11 +269,7 @@ def test_match_to_reconstruction_and_lever_arm():
         np.testing.assert_allclose(position, reconstruction.image(int(image_id)).projection_center())
     assert sigmas.shape == (5, 3)
 
-    unknown = gnss.subset(names[:3])
-    unknown.image_names = ["ghost1.png", "ghost2.png", names[2]]
-    with pytest.raises(GNSSError, match="ghost1.png"):
-        match_to_reconstruction(unknown, reconstruction, origin)
-    with pytest.raises(GNSSError, match="only 2 usable"):
+    with pytest.raises(GNSSError, match="only 2 of the 2 GNSS"):
         match_to_reconstruction(gnss.subset(names[:2]), reconstruction, origin)
 
     # Lever arm: antenna 0.3 m above the camera (-y in COLMAP's camera frame) -> centres recovered.
@@ -283,6 +280,45 @@ def test_match_to_reconstruction_and_lever_arm():
     corrected = apply_lever_arm(with_arm, rotations)
     np.testing.assert_allclose(corrected.positions, gnss.positions, atol=1e-12)
     assert corrected.lever_arm is None
+
+
+def test_match_to_reconstruction_partial_and_no_match(caplog):
+    """Priors of images outside the reconstruction are dropped; no match at all is an error."""
+    options = pycolmap.SyntheticDatasetOptions()
+    options.num_rigs = 1
+    options.num_frames_per_rig = 5
+    reconstruction = pycolmap.synthesize_dataset(options)
+    names = sorted(im.name for im in reconstruction.images.values())
+    by_name = {im.name: im for im in reconstruction.images.values()}
+    origin = np.array([100.0, 200.0, 300.0])
+    # GNSS of the whole image set (as a database holds it): two images are not in this model.
+    all_names = ["other_block_1.png", names[0], names[3], "other_block_2.png", names[1]]
+    positions = np.array(
+        [[1.0, 2.0, 3.0]]
+        + [by_name[names[0]].projection_center()]
+        + [by_name[names[3]].projection_center()]
+        + [[4.0, 5.0, 6.0]]
+        + [by_name[names[1]].projection_center()]
+    ) + origin
+    sigmas = np.arange(15, dtype=np.float64).reshape(5, 3) + 1.0
+    gnss = GNSSObservations(all_names, positions, sigmas, UTM32_DHHN, "database")
+    with caplog.at_level(logging.INFO, logger="colmap_citymodel.read_gnss"):
+        ids, local, matched_sigmas = match_to_reconstruction(gnss, reconstruction, origin)
+    expected = [by_name[n].image_id for n in (names[0], names[3], names[1])]
+    np.testing.assert_array_equal(ids, expected)
+    for image_id, position in zip(ids, local):
+        np.testing.assert_allclose(position, reconstruction.image(int(image_id)).projection_center())
+    np.testing.assert_array_equal(matched_sigmas, sigmas[[1, 2, 4]])
+    assert "2 of 5 GNSS position(s)" in caplog.text
+
+    # No name matches (e.g. the database stores folder prefixes): error shows both namings.
+    ghosts = GNSSObservations(
+        [f"seq/{n}" for n in names], positions, sigmas, UTM32_DHHN, "database"
+    )
+    with pytest.raises(GNSSError, match="none of the 5 GNSS") as info:
+        match_to_reconstruction(ghosts, reconstruction, origin)
+    message = str(info.value)
+    assert f"seq/{names[0]}" in message and repr(names[0]) in message
 
 
 def test_text_unknown_gnss_crs_names_file(tmp_path):
