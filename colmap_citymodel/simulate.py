@@ -9,7 +9,8 @@ workspace whose drift is COLMAP's own:
 2. Flight: key frames >= 1 m apart along a loop around the buildings (their footprints buffered
    by the facade distance), 5-15 m from the facades with a height profile, the camera looking
    sideways at the facades and tilted down (DJI Zenmuse X3 class: 4096 x 2160 px, f = 2400 px);
-   or looking forward along the path.
+   or looking forward along the path; or along a given polyline of waypoints (a vehicle drive,
+   a straight strip); or an orbit: one full circle around a centre, looking inward and down.
 3. Observations: points sampled on the true surfaces, visibility by ray casting (open3d) against
    the true mesh with distance and incidence limits, tracks broken by large viewpoint changes,
    detection losses and gaps, tracks of >= 3 views, 1 px image noise, unmatched keypoints and a
@@ -21,7 +22,8 @@ workspace whose drift is COLMAP's own:
    over 400 m after a Helmert fit). Check points: targets on facades and roofs, observed with 1 px
    noise, kept out of the SfM data.
 4. GNSS: true projection centres + white noise (default 3, 3, 5 m, the stated a priori sigma)
-   + a slowly varying bias (Gaussian-filtered noise along the path). The benchmark sequences use
+   + a slowly varying bias (Gaussian-filtered noise along the path) + optionally a constant bias
+   of a given magnitude in a direction drawn from the seed. The benchmark sequences use
    Unger-like filtered GNSS instead: 0.3-0.5 m white noise, a 1 m bias, stated sigma 3, 3, 5 m.
 5. COLMAP: database (camera, rig, frames, images, keypoints, matches, pose priors), geometric
    verification by COLMAP itself (`pycolmap.verify_matches`), then COLMAP's incremental mapper ->
@@ -83,6 +85,11 @@ SIMULATOR_VERSION = 1
 STAGE_FLIGHT, STAGE_POINTS, STAGE_OBS, STAGE_CHECK, STAGE_GNSS, STAGE_DETAILED = 21, 22, 23, 24, \
     25, 26
 MODEL_VARIANTS = ("detailed", "corrected", "original", "none")
+FLIGHT_MODES = ("sideways", "forward", "orbit")
+# Options added after sequences were first cached: left out of the sequence key while they hold
+# these defaults, so that existing sequences keep their keys.
+_KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_radius": 35.0},
+                "gnss": {"bias_magnitude": 0.0}}
 
 
 # ----------------------------------------------------------------------------------------------
@@ -100,7 +107,9 @@ class SceneOptions:
 
 @dataclass
 class FlightOptions:
-    mode: str = "sideways"  # "sideways": looking at the facades; "forward": along the path
+    # "sideways": looking at the facades; "forward": along the path; "orbit": one full circle
+    # of radius orbit_radius around orbit_centre, looking at the centre
+    mode: str = "sideways"
     num_key_frames: int = 90
     spacing: float = 1.0  # minimum distance between key frames (m) (Unger 5.3: base >= 1 m)
     spacing_jitter: float = 0.3  # plus U(0, jitter) m
@@ -117,6 +126,13 @@ class FlightOptions:
     start_xy: list[float] | None = None  # local; default: the footprints' lower-left corner
     waypoints: list[list[float]] | None = None  # local xy polyline instead of the loop
     look: str = "left"  # for waypoints: which side the facades are on
+    # the camera's heading turned from the mode's (towards the facades, the path tangent or the
+    # orbit centre) by this angle, counter-clockwise seen from above (deg)
+    yaw_offset_deg: float = 0.0
+    # orbit: centre (local xy; default: the centre of the model's bounding box) and radius (m);
+    # num_key_frames evenly spaced over the circle (spacing is then 2 pi r / n), counter-clockwise
+    orbit_centre: list[float] | None = None
+    orbit_radius: float = 35.0
     image_width: int = 4096
     image_height: int = 2160
     focal_length: float = 2400.0
@@ -160,6 +176,9 @@ class GNSSOptions:
     white_sigma: tuple[float, float, float] | None = None
     bias_sigma: tuple[float, float, float] = (1.0, 1.0, 1.5)  # slowly varying bias (m)
     bias_length: float = 100.0  # correlation length of the bias along the path (m)
+    # a constant bias of this length (m) over the whole block, its direction uniform on the
+    # sphere and drawn from the seed alone (the same direction for every magnitude)
+    bias_magnitude: float = 0.0
 
 
 @dataclass
@@ -284,8 +303,14 @@ def _validate(o: SimulationOptions, path: Path) -> None:
         bad(f"scenario.model must be one of {MODEL_VARIANTS}, got {o.scenario.model!r}")
     if o.scenario.gnss not in ("all", "first", "none"):
         bad(f"scenario.gnss must be all, first or none, got {o.scenario.gnss!r}")
-    if o.flight.mode not in ("sideways", "forward"):
-        bad(f"flight.mode must be sideways or forward, got {o.flight.mode!r}")
+    if o.flight.mode not in FLIGHT_MODES:
+        bad(f"flight.mode must be one of {FLIGHT_MODES}, got {o.flight.mode!r}")
+    if o.flight.mode == "orbit" and o.flight.waypoints:
+        bad("flight.waypoints and flight.mode = orbit exclude each other")
+    if o.flight.orbit_radius <= 0:
+        bad("flight.orbit_radius must be positive (metres)")
+    if o.gnss.bias_magnitude < 0:
+        bad("gnss.bias_magnitude must not be negative (metres)")
     if o.flight.num_key_frames < 3:
         bad("flight.num_key_frames must be at least 3")
     if o.flight.spacing < 0.05:
@@ -301,6 +326,10 @@ def _validate(o: SimulationOptions, path: Path) -> None:
 def sequence_key(options: SimulationOptions) -> str:
     """Hash of everything that defines a sequence (not the scenario), incl. the model file."""
     d = options.sequence_dict()
+    for group, defaults in _KEY_NEUTRAL.items():
+        for name, default in defaults.items():
+            if d[group][name] == default:
+                del d[group][name]
     src = options.scene.source
     if src != "procedural":
         h = hashlib.sha256()
@@ -381,6 +410,8 @@ def plan_flight(store, options: FlightOptions, seed: int, ground: GroundModel) -
     """Key frames along the path (see FlightOptions), deterministic for a seed."""
     from shapely.geometry import Point
 
+    if options.mode == "orbit":
+        return plan_orbit(store, options, seed, ground)
     rng = np.random.default_rng([seed, STAGE_FLIGHT])
     line, side = flight_path(store, options)
     L = line.length
@@ -430,14 +461,53 @@ def plan_flight(store, options: FlightOptions, seed: int, ground: GroundModel) -
         centres[k] = [p[0], p[1], z]
         heading = towards if options.mode == "sideways" else t
         yaw = math.atan2(heading[1], heading[0]) + jitter[k, 0]
-        pitch = math.radians(options.pitch_deg) + jitter[k, 1]
-        fwd = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch),
-                        -math.sin(pitch)])
-        rotations[k] = _look_rotation(fwd, jitter[k, 2])
-    names = [f"frame_{k + 1:05d}.jpg" for k in range(n)]
-    return Flight(names, centres, rotations, arc - s0, options.image_width,
-                  options.image_height, options.focal_length, options.radial_k1,
-                  options.calibrated_radial_k1)
+        if options.yaw_offset_deg:
+            yaw += math.radians(options.yaw_offset_deg)
+        rotations[k] = _camera_rotation(yaw, options.pitch_deg, jitter[k])
+    return _flight(options, centres, rotations, arc - s0)
+
+
+def _camera_rotation(yaw: float, pitch_deg: float, jitter: np.ndarray) -> np.ndarray:
+    """cam_from_world for a heading `yaw` (rad, jitter included), tilted down by pitch_deg plus
+    jitter[1] and rolled by jitter[2] (rad)."""
+    pitch = math.radians(pitch_deg) + jitter[1]
+    fwd = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch),
+                    -math.sin(pitch)])
+    return _look_rotation(fwd, jitter[2])
+
+
+def _flight(options: FlightOptions, centres: np.ndarray, rotations: np.ndarray,
+            arc: np.ndarray) -> Flight:
+    names = [f"frame_{k + 1:05d}.jpg" for k in range(len(centres))]
+    return Flight(names, centres, rotations, arc, options.image_width, options.image_height,
+                  options.focal_length, options.radial_k1, options.calibrated_radial_k1)
+
+
+def plan_orbit(store, options: FlightOptions, seed: int, ground: GroundModel) -> Flight:
+    """One counter-clockwise circle of key frames around `orbit_centre` at `orbit_radius`,
+    evenly spaced in angle (starting at a seed-drawn angle), each camera heading for the centre
+    (plus yaw_offset_deg) and tilted down by pitch_deg; height above ground as for the other
+    modes (flight_height + height_amplitude profile along the circle)."""
+    rng = np.random.default_rng([seed, STAGE_FLIGHT])
+    n, r = options.num_key_frames, options.orbit_radius
+    if options.orbit_centre is not None:
+        c = np.asarray(options.orbit_centre, dtype=np.float64)[:2]
+    else:
+        c = store.bbox_local.mean(axis=0)[:2]
+    theta0, phase_h = rng.uniform(0, 2 * np.pi, 2)
+    jitter = np.radians(np.asarray(options.attitude_sigma_deg))[None, :] * rng.standard_normal(
+        (n, 3))
+    theta = theta0 + 2 * np.pi * np.arange(n) / n
+    arc = r * (theta - theta0)
+    xy = c + r * np.c_[np.cos(theta), np.sin(theta)]
+    h = options.flight_height + options.height_amplitude * np.sin(
+        2 * np.pi * arc / options.height_period + phase_h)
+    centres = np.c_[xy, ground(xy) + h]
+    rotations = np.zeros((n, 3, 3))
+    for k in range(n):
+        yaw = theta[k] + np.pi + jitter[k, 0] + math.radians(options.yaw_offset_deg)
+        rotations[k] = _camera_rotation(yaw, options.pitch_deg, jitter[k])
+    return _flight(options, centres, rotations, arc)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -691,7 +761,9 @@ def simulate_checkpoints(flight: Flight, scene: TrueScene, raycaster, obs_opt: O
 
 def simulate_gnss(flight: Flight, opt: GNSSOptions, seed: int) -> np.ndarray:
     """Local GNSS positions: truth + white noise + a smooth bias (Gaussian-filtered noise along
-    the path with std `bias_sigma` and correlation length `bias_length`)."""
+    the path with std `bias_sigma` and correlation length `bias_length`) + a constant bias of
+    length `bias_magnitude` in a direction uniform on the sphere (drawn from the seed only, so
+    the same direction for every magnitude and independent of the other noise)."""
     rng = np.random.default_rng([seed, STAGE_GNSS])
     n = len(flight.centres)
     white_sigma = opt.sigma if opt.white_sigma is None else opt.white_sigma
@@ -706,7 +778,16 @@ def simulate_gnss(flight: Flight, opt: GNSSOptions, seed: int) -> np.ndarray:
     smooth = np.stack([np.convolve(raw[:, i], kernel, mode="same") for i in range(3)], axis=1)
     bias = np.stack([np.interp(s, grid, smooth[:, i]) for i in range(3)], axis=1)
     bias *= np.asarray(opt.bias_sigma)
+    if opt.bias_magnitude:
+        bias = bias + opt.bias_magnitude * constant_bias_direction(seed)
     return flight.centres + white + bias
+
+
+def constant_bias_direction(seed: int) -> np.ndarray:
+    """The unit direction of GNSSOptions.bias_magnitude's bias for a seed (uniform on the
+    sphere)."""
+    v = np.random.default_rng([seed, STAGE_GNSS, 1]).standard_normal(3)
+    return v / np.linalg.norm(v)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -405,3 +405,129 @@ def test_forward_mode_looks_along_the_path():
     horiz = fwd[:-1, :2] / np.linalg.norm(fwd[:-1, :2], axis=1, keepdims=True)
     assert np.all(np.einsum("ij,ij->i", horiz, step) > 0.9)
     np.testing.assert_allclose(np.degrees(np.arcsin(-fwd[:, 2])), o.flight.pitch_deg, atol=1e-9)
+
+
+def test_orbit_circles_the_centre_looking_at_it():
+    o = tiny_options(num_key_frames=24)
+    o.flight.mode = "orbit"
+    o.flight.orbit_centre = [30.0, 12.0]
+    o.flight.orbit_radius = 25.0
+    o.flight.height_amplitude = 0.0
+    o.flight.attitude_sigma_deg = (0.0, 0.0, 0.0)
+    o.flight.pitch_deg = 40.0
+    store = procedural_store(o.scene.procedural, o.seed)
+    ground = GroundModel(store)
+    fl = plan_flight(store, o.flight, o.seed, ground)
+    c = np.array(o.flight.orbit_centre)
+    to_centre = c - fl.centres[:, :2]
+    np.testing.assert_allclose(np.linalg.norm(to_centre, axis=1), 25.0, atol=1e-9)
+    np.testing.assert_allclose(fl.centres[:, 2] - ground(fl.centres[:, :2]), o.flight.flight_height,
+                               atol=1e-9)
+    fwd = fl.rotations[:, 2]  # viewing direction in the world (third row of cam_from_world)
+    horiz = fwd[:, :2] / np.linalg.norm(fwd[:, :2], axis=1, keepdims=True)
+    np.testing.assert_allclose(np.einsum("ij,ij->i", horiz, to_centre / 25.0), 1.0, atol=1e-9)
+    np.testing.assert_allclose(np.degrees(np.arcsin(-fwd[:, 2])), 40.0, atol=1e-9)
+    # one full counter-clockwise circle, evenly spaced
+    angles = np.unwrap(np.arctan2(-to_centre[:, 1], -to_centre[:, 0]))
+    np.testing.assert_allclose(np.diff(angles), 2 * np.pi / 24, atol=1e-9)
+    np.testing.assert_allclose(fl.arc, 25.0 * (angles - angles[0]), atol=1e-9)
+    # a yaw offset turns the heading away from the centre, counter-clockwise
+    o.flight.yaw_offset_deg = 20.0
+    turned = plan_flight(store, o.flight, o.seed, ground).rotations[:, 2, :2]
+    turned /= np.linalg.norm(turned, axis=1, keepdims=True)
+    sin_turn = horiz[:, 0] * turned[:, 1] - horiz[:, 1] * turned[:, 0]
+    np.testing.assert_allclose(sin_turn, np.sin(np.radians(20.0)), atol=1e-9)
+
+
+def test_straight_strip_is_collinear():
+    o = tiny_options(num_key_frames=30)
+    o.flight.waypoints = [[-20.0, -15.0], [80.0, 10.0]]
+    o.flight.look = "left"
+    o.flight.distance_amplitude = 0.0
+    o.flight.height_amplitude = 0.0
+    o.flight.attitude_sigma_deg = (0.0, 0.0, 0.0)
+    store = procedural_store(o.scene.procedural, o.seed)
+    ground = GroundModel(store)
+    fl = plan_flight(store, o.flight, o.seed, ground)
+    a, b = np.array(o.flight.waypoints)
+    u = (b - a) / np.linalg.norm(b - a)
+    rel = fl.centres[:, :2] - a
+    np.testing.assert_allclose(rel[:, 0] * u[1] - rel[:, 1] * u[0], 0.0, atol=1e-9)
+    assert np.all(np.diff(rel @ u) >= o.flight.spacing - 1e-9)  # forward, no turns
+    np.testing.assert_allclose(fl.centres[:, 2] - ground(fl.centres[:, :2]), o.flight.flight_height,
+                               atol=1e-9)
+    # sideways: every camera looks to the left of the strip, perpendicular to it
+    left = np.array([-u[1], u[0]])
+    fwd = fl.rotations[:, 2, :2] / np.linalg.norm(fl.rotations[:, 2, :2], axis=1, keepdims=True)
+    np.testing.assert_allclose(fwd @ left, 1.0, atol=1e-9)
+
+
+def test_gnss_constant_bias_magnitude():
+    from colmap_citymodel.simulate import Flight, GNSSOptions, constant_bias_direction, \
+        simulate_gnss
+
+    n = 50
+    arc = np.arange(n, dtype=float)
+    centres = np.c_[arc, np.zeros(n), np.full(n, 10.0)]
+    fl = Flight([f"{i}" for i in range(n)], centres, np.repeat(np.eye(3)[None], n, 0), arc,
+                100, 100, 100.0)
+    only_bias = dict(white_sigma=(0.0, 0.0, 0.0), bias_sigma=(0.0, 0.0, 0.0))
+    errors = {}
+    for m in (1.0, 2.0, 4.0, 8.0, 12.0):
+        err = simulate_gnss(fl, GNSSOptions(bias_magnitude=m, **only_bias), seed=3) - centres
+        np.testing.assert_allclose(err, np.repeat(err[:1], n, 0), atol=1e-12)  # constant
+        np.testing.assert_allclose(np.linalg.norm(err, axis=1), m, rtol=1e-12)  # exact length
+        errors[m] = err[0]
+    # one direction per seed, whatever the magnitude; another seed, another direction
+    np.testing.assert_allclose(errors[12.0] / 12.0, errors[1.0], atol=1e-12)
+    np.testing.assert_allclose(errors[1.0], constant_bias_direction(3), atol=1e-12)
+    assert np.linalg.norm(constant_bias_direction(4) - constant_bias_direction(3)) > 1e-3
+    # uniform on the sphere: no preferred direction, the z component uniform on [-1, 1]
+    dirs = np.array([constant_bias_direction(s) for s in range(4000)])
+    assert np.linalg.norm(dirs.mean(0)) < 0.05
+    assert abs(np.mean(np.abs(dirs[:, 2])) - 0.5) < 0.02
+    # the constant bias adds to the noise realisation without changing it
+    base = simulate_gnss(fl, GNSSOptions(), seed=3)
+    biased = simulate_gnss(fl, GNSSOptions(bias_magnitude=5.0), seed=3)
+    np.testing.assert_allclose(biased - base, np.repeat(5.0 * errors[1.0][None], n, 0),
+                               atol=1e-9)
+
+
+def test_new_options_keep_existing_sequence_keys():
+    from colmap_citymodel.simulate import sequence_key
+
+    o = SimulationOptions()
+    hashed = o.sequence_dict()
+    key = sequence_key(o)
+    for group, name in (("flight", "yaw_offset_deg"), ("flight", "orbit_radius"),
+                        ("gnss", "bias_magnitude")):
+        assert name in hashed[group]
+        changed = SimulationOptions()
+        setattr(getattr(changed, group), name, 3.0)
+        assert sequence_key(changed) != key, name
+    changed = SimulationOptions()
+    changed.flight.orbit_centre = [1.0, 2.0]
+    assert sequence_key(changed) != key
+
+
+@pytest.mark.parametrize("name", ["drive", "orbit", "strip", "short"])
+def test_robustness_workspaces_load(name):
+    path = REPO / "workspaces" / f"robust_{name}.toml"
+    if name != "short" and not (SHARED_DATA / "citygml").is_dir():
+        pytest.skip("needs ../shared/data next to the repository")
+    o = load_scenario(path)
+    assert tuple(o.gnss.sigma) == (3.0, 3.0, 5.0) and tuple(o.gnss.white_sigma) == (3.0, 3.0, 5.0)
+    assert 3.0 <= o.gnss.bias_magnitude <= 5.0
+    assert o.flight.mode == {"orbit": "orbit", "drive": "forward"}.get(name, "sideways")
+    if name != "short":
+        assert Path(o.scene.source).is_file()
+
+
+def test_orbit_options_are_checked(tmp_path):
+    p = tmp_path / "bad.toml"
+    p.write_text('[flight]\nmode = "orbit"\norbit_radius = -1.0\n')
+    with pytest.raises(InputError, match="orbit_radius"):
+        load_scenario(p)
+    p.write_text('[flight]\nmode = "circle"\n')
+    with pytest.raises(InputError, match="flight.mode"):
+        load_scenario(p)
