@@ -114,7 +114,7 @@ def _add_refine(subparsers) -> None:
     p.add_argument("--precision", choices=["auto", "on", "off"], default=None,
                    help="a posteriori covariances of images and tie points (default auto: on "
                         "below 500 images; s0 and the global test are always reported)")
-    quality = p.add_argument_group("check points and honest precision (issue 5)")
+    quality = p.add_argument_group("check points and honest precision")
     quality.add_argument("--checkpoints", help="check points 'id X Y Z' (model CRS), evaluated "
                          "at the end: never assigned to planes, never control")
     quality.add_argument("--checkpoint_observations",
@@ -129,7 +129,7 @@ def _add_refine(subparsers) -> None:
     def run(args):
         from .workflow import main
 
-        main(args.input_path, args.citymodel, args.output_path, database=args.database,
+        result = main(args.input_path, args.citymodel, args.output_path, database=args.database,
              gnss=args.gnss, gnss_crs=args.gnss_crs, exif=args.exif,
              initial_transform=args.initial_transform, preset=args.preset,
              options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
@@ -140,6 +140,8 @@ def _add_refine(subparsers) -> None:
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,
              variance_components=args.variance_components)
+        # The quality gate failed: the output holds the GNSS-only result.
+        return 3 if result.handed_back == "gnss_only" else 0
 
     p.set_defaults(func=run)
 
@@ -216,14 +218,14 @@ def main(argv: list[str] | None = None) -> int:
     if args.verbose:
         logger.setLevel("DEBUG")
     try:
-        args.func(args)
+        status = args.func(args)
     except CityModelError as error:
         print(f"error: {error}", file=sys.stderr)
         return error.exit_code
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
-    return 0
+    return status if isinstance(status, int) else 0
 
 
 if __name__ == "__main__":

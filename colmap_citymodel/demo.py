@@ -68,7 +68,7 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     logger.info("2/4 GNSS-only baseline")
     baseline = write_baseline(workspace, out / "gnss_only")
     logger.info("3/4 refine with the city model")
-    refine_main(workspace / "sparse" / "0", workspace / "given_model.gml", out / "refined",
+    refined = refine_main(workspace / "sparse" / "0", workspace / "given_model.gml", out / "refined",
                 database=workspace / "database.db", progress=progress)
     logger.info("4/4 check points")
     results = {}
@@ -76,6 +76,7 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
         evaluation = evaluate.main(model, workspace / "checkpoints.txt",
                                    workspace / "checkpoint_observations.txt", as_json=False)
         results[name] = evaluation["evaluated"]
+    results["refined"]["verdict"] = refined.quality.verdict
     lines = ["# colmap-citymodel demo", "",
              "Check point errors (known - estimated), m:", "",
              "| method | RMS X | RMS Y | RMS Z | RMS 3D | RMS 3D after Helmert |",
@@ -83,6 +84,8 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     for name, r in results.items():
         lines.append(f"| {name} | {r['rms_x']:.3f} | {r['rms_y']:.3f} | {r['rms_z']:.3f} | "
                      f"{r['rms_3d']:.3f} | {r['rms_3d_after_helmert']:.3f} |")
+    lines += ["", f"Refine's verdict: {refined.quality.verdict}"
+              + (f" ({'; '.join(refined.quality.reasons)})" if refined.quality.reasons else "")]
     table = "\n".join(lines) + "\n"
     (out / "summary.md").write_text(table)
     (out / "summary.json").write_text(json.dumps(results, indent=2))

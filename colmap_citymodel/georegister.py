@@ -42,6 +42,12 @@ class GeoregistrationOptions:
     max_num_trials: int = 100000
 
 
+#: Datum cues of the 7-parameter fit to GNSS, and of the fit to a (nearly) straight line.
+SIMILARITY_CUES = {"translation": "gnss", "scale": "gnss", "rotation": "gnss"}
+LINE_CUES = {"translation": "gnss", "scale": "gnss", "heading_and_pitch": "gnss",
+             "roll_about_line": "images (cameras upright)"}
+
+
 @dataclass
 class Georegistration:
     """Result: sim3 maps the reconstruction frame to the local (store) frame."""
@@ -53,6 +59,8 @@ class Georegistration:
     image_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
     max_error: float = float("nan")
     warnings: list[str] = field(default_factory=list)
+    # Which observation fixed each datum parameter (the model may fix some of them later).
+    cues: dict[str, str] = field(default_factory=lambda: dict(SIMILARITY_CUES))
 
     @property
     def num_inliers(self) -> int:
@@ -70,6 +78,7 @@ class Georegistration:
             "max_error_m": float(self.max_error),
             "outlier_image_ids": [int(i) for i in self.image_ids[~self.inlier_mask]],
             "warnings": list(self.warnings),
+            "cues": dict(self.cues),
         }
 
 
@@ -135,13 +144,10 @@ def estimate_georegistration(
     # Geometry checks: the reconstruction's centres are noise-free in their own frame, so
     # collinearity is judged there; the baseline is judged against the GNSS noise.
     spread_src = _principal_std(source)
-    if spread_src[0] <= 0 or spread_src[1] < options.min_noncollinearity * spread_src[0]:
+    if spread_src[0] <= 0:
         raise GeoregistrationError(
-            f"the {len(source)} camera centres with GNSS are (nearly) collinear "
-            f"(principal extents {spread_src[0]:.3g}, {spread_src[1]:.3g}, {spread_src[2]:.3g} in "
-            "reconstruction units): the rotation about that line is undetermined; give "
-            "--initial_transform or GNSS of images off that line"
-        )
+            f"the {len(source)} camera centres with GNSS coincide: no baseline for a "
+            "similarity transform")
     sigma_axis = np.median(sigmas, axis=0)
     spread_tgt = _principal_std(target)
     # The main axis of a flight is horizontal: compare it with the horizontal sigma.
@@ -153,12 +159,24 @@ def estimate_georegistration(
             f"({sigma_horizontal:.2f} m): not enough baseline for a similarity transform"
         )
     scale_guess = spread_tgt[0] / spread_src[0]
-    if spread_src[1] * scale_guess < float(sigma_axis[:2].max()):
+    if (spread_src[1] < options.min_noncollinearity * spread_src[0]
+            or spread_src[1] * scale_guess < sigma_horizontal):
+        # GNSS fixes the line but not the rotation about it: take that from the cameras.
+        sim3 = upright_line_similarity(source, target, *camera_axes(reconstruction, image_ids))
+        residuals = target - _transform(sim3, source)
+        rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
         warnings.append(
-            f"weak georegistration: the camera centres deviate only ~{spread_src[1] * scale_guess:.1f} m "
-            f"from a line, less than the GNSS sigma ({sigma_axis[:2].max():.1f} m); the rotation "
-            "about the flight line is poorly determined until the model planes fix it"
-        )
+            f"the camera centres deviate only ~{spread_src[1] * scale_guess:.1f} m from a line, "
+            f"less than the GNSS sigma ({sigma_horizontal:.1f} m): the rotation about the "
+            "flight line comes from the cameras' upright orientation until the model planes "
+            "fix it")
+        for warning in warnings:
+            logger.warning(warning)
+        logger.info("Georegistration along a line: scale %.6g, RMS %.3f m", sim3.scale, rms)
+        return Georegistration(sim3=sim3, inlier_mask=np.ones(len(target), bool),
+                               residuals=residuals, rms=rms, image_ids=image_ids,
+                               max_error=float("nan"), warnings=warnings,
+                               cues=dict(LINE_CUES))
 
     threshold = (options.max_error if options.max_error is not None
                  else options.sigma_factor * float(sigma_axis.max()))
@@ -221,6 +239,55 @@ def estimate_georegistration(
         max_error=float(threshold),
         warnings=warnings,
     )
+
+
+def camera_axes(reconstruction, image_ids) -> tuple[np.ndarray, np.ndarray]:
+    """(right, up) unit vectors (K,3) of the cameras in the reconstruction frame: the image x
+    axis and the image -y axis (COLMAP: x right, y down)."""
+    right = np.empty((len(image_ids), 3))
+    up = np.empty((len(image_ids), 3))
+    for k, image_id in enumerate(image_ids):
+        rotation = np.asarray(reconstruction.image(int(image_id)).cam_from_world().rotation.matrix())
+        right[k], up[k] = rotation[0], -rotation[1]
+    return right, up
+
+
+def upright_line_similarity(source: np.ndarray, target: np.ndarray, right: np.ndarray,
+                            up: np.ndarray) -> "pycolmap.Sim3d":  # noqa: F821
+    """Similarity from (nearly) collinear camera centres `source` to GNSS `target`.
+
+    Scale, translation and the line's direction come from GNSS; the rotation about the line
+    from the cameras: a camera held upright has a horizontal x axis (a strong cue when the
+    cameras look along the line, as from a vehicle) and its image "up" (-y) above the horizon
+    (the only cue for cameras looking sideways: it is off by their tilt, which the model then
+    fixes).
+    """
+    import pycolmap
+
+    cs, ct = source.mean(0), target.mean(0)
+    ds = np.linalg.svd(source - cs)[2][0]
+    dt = np.linalg.svd(target - ct)[2][0]
+    ps, pt = (source - cs) @ ds, (target - ct) @ dt
+    if ps @ pt < 0:
+        dt, pt = -dt, -pt
+    scale = float(ps @ pt / (ps @ ps))
+    # Unit vectors orthogonal to the line, in the source frame; the vertical is among them.
+    e1 = np.linalg.svd(np.eye(3) - np.outer(ds, ds))[0][:, 0]
+    e1 -= (e1 @ ds) * ds
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(ds, e1)
+    angles = np.radians(np.arange(0.0, 360.0, 0.25))
+    verticals = np.cos(angles)[:, None] * e1 + np.sin(angles)[:, None] * e2
+    cost = np.mean((right @ verticals.T) ** 2, axis=0) - 0.1 * np.mean(up @ verticals.T, axis=0)
+    vs = verticals[int(np.argmin(cost))]
+    vt = np.array([0.0, 0.0, 1.0]) - dt[2] * dt
+    if np.linalg.norm(vt) < 1e-6:  # a vertical line: any horizontal reference
+        vt = np.array([1.0, 0.0, 0.0]) - dt[0] * dt
+    vt /= np.linalg.norm(vt)
+    frame_src = np.column_stack([ds, vs, np.cross(ds, vs)])
+    frame_tgt = np.column_stack([dt, vt, np.cross(dt, vt)])
+    rotation = frame_tgt @ frame_src.T
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), ct - scale * rotation @ cs)
 
 
 def apply_sim3(reconstruction, sim3) -> None:

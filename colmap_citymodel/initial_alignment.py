@@ -42,14 +42,17 @@ def _skew(v: np.ndarray) -> np.ndarray:
 def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
                          sigma_plane: float, loss_scale: float = 2.0,
                          antennas: np.ndarray | None = None, gnss: np.ndarray | None = None,
-                         gnss_sigmas: np.ndarray | None = None, max_iterations: int = 50
-                         ) -> PlaneAlignment:
+                         gnss_sigmas: np.ndarray | None = None, max_iterations: int = 50,
+                         scale_sigma: float | None = None) -> PlaneAlignment:
     """The similarity X -> c + s R (X - c) + t that puts `points` on their planes.
 
     Minimises sum rho((n.X' + d) / sigma_plane) with Huber's rho (scale `loss_scale`, the f_dTP
     loss of the hybrid adjustment) plus, when given, sum ((A' - G) / sigma_G)^2 of the GNSS
-    antenna positions A (current block) against their observations G. Gauss-Newton with
-    iteratively reweighted least squares; analytic Jacobian about the centroid c.
+    antenna positions A (current block) against their observations G, plus (log s / scale_sigma)^2
+    when `scale_sigma` is given: the scale may change only as far as GNSS determines it (planes
+    alone pull a block whose assignments are partly wrong towards a smaller size, where every
+    distance is shorter). Gauss-Newton with iteratively reweighted least squares; analytic
+    Jacobian about the centroid c.
     """
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
@@ -88,6 +91,9 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
             jg = jg.reshape(-1, 7)
             normal_matrix += jg.T @ jg
             rhs -= jg.T @ rg
+        if scale_sigma is not None:
+            normal_matrix[6, 6] += 1.0 / scale_sigma ** 2
+            rhs[6] -= np.log(scale) / scale_sigma ** 2
         # A tiny damping keeps directions no plane constrains (e.g. parallel facades) at zero.
         damping = 1e-9 * max(np.trace(normal_matrix), 1.0)
         step = np.linalg.solve(normal_matrix + damping * np.eye(7), rhs)

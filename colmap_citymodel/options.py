@@ -18,13 +18,25 @@ from .errors import InputError
 
 @dataclass
 class AssignmentOptions:
-    """Assignment of tie points to model planes (method.md section 6, Unger 4.1 and 4.4)."""
+    """Assignment of tie points to model planes (method.md section 6, Unger 4.1 and 4.4).
+
+    Defaults are Unger's (4.4 and the parameter table of 5.3) unless a docstring says otherwise.
+    """
 
     method: str = "direct"
-    """"direct" = method (a). Methods (b) "msac" and (c) "roi_msac" plug in behind the same
-    interface (assign_planes.ASSIGNERS)."""
+    """"direct" = method (a), closest plane; "msac" = (b), planes extracted from the whole tie
+    point cloud and matched to the model; "roi_msac" = (c), one plane searched near each model
+    plane; "auto" = (b)/(c) (`auto_indirect_method`) while the threshold exceeds
+    `auto_switch_threshold`, (a) below it. Unger 6.5: (a) and (c) give similar results, (a)
+    slightly better; (b) assigns to far fewer planes but is the only one meant for poor initial
+    values (assign_planes.ASSIGNERS, assign_msac.py)."""
     max_threshold: float = 2.0
     """Upper limit of the point-to-plane distance threshold in metres (first iteration)."""
+    indirect_max_threshold: float = 3.0
+    """Upper limit (m) of the threshold for (b) (distance of an extracted plane's boundary
+    centroid to the model plane) and (c) (ROI search distance); Unger 5.3 sets it looser than
+    (a)'s 2 m since these methods only take points that form a plane. The lower limit is the
+    same 2 x sigma_dTP. The caller's schedule chooses the threshold passed to `assign`."""
     threshold_factor: float = 3.5
     """Later thresholds = factor x mean over planes of the per-plane mean distance."""
     min_threshold_sigmas: float = 2.0
@@ -37,6 +49,55 @@ class AssignmentOptions:
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
     """Faces no tie point can lie on: a building's ground is under it, closures are virtual."""
+    msac_inlier_distance: float = 0.3
+    """(b): MSAC inlier distance (m) of the plane extraction in the whole cloud (Unger 5.3:
+    tighter than (c)'s because the search is not restricted to the model's vicinity)."""
+    roi_inlier_distance: float = 0.4
+    """(c): MSAC inlier distance (m) inside a model plane's ROI (Unger 5.3)."""
+    alpha_radius: float = 1.0
+    """(b): alpha shape radius (m) for the connected components of an extracted plane's points:
+    gaps wider than two radii split it (a window is bridged, the gap to the next house is
+    not; Unger 4.4, 5.3)."""
+    max_normal_angle: float = 10.0
+    """(b): largest angle (deg) between an extracted and a matched model plane's normal; (c):
+    largest angle of the searched plane's normal from the model normal (Unger 5.3)."""
+    msac_confidence: float = 0.99
+    """Probability of drawing at least one all-inlier sample; sets the number of hypotheses
+    from the best inlier fraction found so far (not from Unger)."""
+    msac_max_trials: int = 256
+    """At most this many plane hypotheses per extracted plane (bounds the run time)."""
+    msac_sample_points: int = 2048
+    """Hypotheses are scored on a random subsample of at most this many points; the best few
+    are scored again on all (bounds the run time on 100k points)."""
+    msac_sample_cell: float = 4.0
+    """(b): half of the samples take their three points from one cube of this side (m), so
+    that small planes of a large cloud get sampled at all (not from Unger)."""
+    msac_point_normal_angle: float = 30.0
+    """(b): an MSAC inlier also needs its point normal (from its nearest neighbours) within this
+    angle (deg) of the plane's, as in Mulder's RANSAC (4.4.3); not in Unger. Without it, once
+    the large planes are gone, a horizontal slab cutting every facade of a street holds more
+    points than any one facade and is extracted as strips. 90 switches the test off."""
+    msac_point_normal_neighbours: int = 10
+    """(b): nearest neighbours (the point included) whose principal axes give a point's normal
+    (Mulder: 6; more are steadier for noisy tie points)."""
+    msac_max_planes: int = 1000
+    """(b): at most this many planes are extracted."""
+    msac_max_failures: int = 3
+    """(b): the extraction stops after this many planes in a row whose largest connected
+    component has fewer than `min_points_per_plane` points (Unger 4.3.1: "repeatedly
+    smaller than a threshold")."""
+    weighted_sampling: bool = False
+    """Weighted RANSAC (Mulder 4.4): with per-point quality weights given to `assign`, (b) and
+    (c) draw sample points with probability proportional to their weight and refit planes by
+    weighted least squares. Off by default: Mulder found no gain over plain RANSAC."""
+    auto_switch_threshold: float = 1.0
+    """"auto": above this threshold (m) the block is still far from the model and an indirect
+    method runs; at or below it, direct assignment (not from Unger)."""
+    auto_indirect_method: str = "roi_msac"
+    """The indirect method "auto" uses: "roi_msac" (fast, close to (a) in Unger 6.5) or
+    "msac" (independent of the model's position, slower)."""
+    random_seed: int = 0
+    """Seed of MSAC's sampling: the same input gives the same assignment."""
 
 
 #: sigma_generalisation (m) to use when the generalisation-aware model is switched on: Unger's
@@ -125,6 +186,15 @@ class WorkflowOptions:
     """The rounds stop when a fit moves the tie points by less than this on average (m)."""
     overlap_margin: float = 30.0
     """Metres around the reconstruction's footprint in which model buildings are kept."""
+    coarse_search_sigmas: float = 4.0
+    """Before the first assignment the block's shift (and, along a straight flight line, its
+    roll) is searched within +- this many GNSS sigmas of the GNSS-only position: GNSS errors
+    are mostly a bias of metres that a 2 m assignment threshold cannot bridge
+    (coarse_alignment). 0 switches the search off."""
+    divergence_tolerance: float = 0.05
+    """An iteration whose block objective (share of tie points off the model plus GNSS
+    residuals; workflow.BlockObjective) is worse than the best iterate's by more than this
+    ends the loop, and the best iterate is kept."""
 
 
 @dataclass

@@ -37,6 +37,7 @@ from .plane_store import PlaneStore
 if TYPE_CHECKING:
     from .evaluate import CheckpointEvaluation
     from .precision import PrecisionResult, VarianceComponents
+    from .quality import QualityReport
 
 logger = logging.getLogger("colmap_citymodel.workflow")
 
@@ -44,9 +45,6 @@ logger = logging.getLogger("colmap_citymodel.workflow")
 SAME_ORIENTATION_DEG = 10.0
 # A direction whose weight in sum(n n^T) is below this fraction of the largest is "weak".
 WEAK_DIRECTION_RATIO = 0.05
-# Tie points this close to a model face count as "on the model" when searching the roll of a
-# straight flight line.
-SEARCH_DISTANCE = 1.0
 
 
 @dataclass
@@ -95,6 +93,19 @@ class RefineResult:
     precision: "PrecisionResult | None" = None  # precision.py: s0, global test, covariances
     variance_components: "VarianceComponents | None" = None  # PrecisionOptions.variance_components
     checkpoints: "CheckpointEvaluation | None" = None  # Delta (and sigma) of given check points
+    # The GNSS-only adjustment of the same block (local frame); None without GNSS.
+    gnss_only: pycolmap.Reconstruction | None = None
+    quality: "QualityReport | None" = None  # the verdict; "failed": `reconstruction` is gnss_only
+    observability: dict = field(default_factory=dict)  # quality.observability, after the solve
+    refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
+    datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
+    coarse_alignment: dict | None = None  # what the coarse search found (coarse_alignment)
+
+    @property
+    def handed_back(self) -> str:
+        """"refined", or "gnss_only" when the quality gate failed."""
+        return ("gnss_only" if self.quality is not None and self.quality.verdict == "failed"
+                and self.gnss_only is not None else "refined")
 
     @property
     def origin(self) -> np.ndarray:
@@ -207,14 +218,18 @@ def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | Non
     return report, int(eliminated)
 
 
-def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_transform
+def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_transform,
+                details: dict | None = None
                 ) -> tuple[pycolmap.Sim3d, GNSSPriors | None, float | None]:
-    """Bring the reconstruction into the store's local frame; return the applied similarity."""
+    """Bring the reconstruction into the store's local frame; return the applied similarity.
+    `details`, when given, receives which cue fixed each datum parameter ("cues")."""
     from .georegister import estimate_georegistration
     from .read_gnss import match_to_reconstruction
 
     priors = None
     rms = None
+    cues = {"translation": "initial transform", "scale": "initial transform",
+            "rotation": "initial transform"}
     if gnss is not None:
         if getattr(gnss, "vertical_applied", None) is False:
             raise GNSSError(
@@ -234,7 +249,7 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
     elif priors is not None:
         result = estimate_georegistration(rec, priors.positions, priors.image_ids,
                                           sigmas=priors.sigmas)
-        sim3, rms = result.sim3, result.rms
+        sim3, rms, cues = result.sim3, result.rms, result.cues
         logger.info("georegistration to %d GNSS positions: scale %.4f, RMS %.2f m, %d inliers",
                     len(priors), sim3.scale, rms, int(np.count_nonzero(result.inlier_mask)))
     else:
@@ -242,6 +257,8 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
             "no GNSS positions and no initial transform: give --database/--gnss/--exif or "
             "--initial_transform")
     rec.transform(sim3)
+    if details is not None:
+        details["cues"] = dict(cues)
     return sim3, priors, rms
 
 
@@ -251,48 +268,55 @@ def _lateral_spread(centres: np.ndarray) -> float:
     return float(singular[1] / np.sqrt(len(centres)))
 
 
-def roll_about_flight_line(rec: pycolmap.Reconstruction, store: PlaneStore,
-                           step_deg: float = 1.0, max_points: int = 5000) -> pycolmap.Sim3d:
-    """The rotation about the flight line that best puts the tie points on the model.
+def camera_up_directions(rec: pycolmap.Reconstruction) -> np.ndarray:
+    """Image "up" (-y axis) of every registered camera in the world frame."""
+    return np.array([-np.asarray(rec.image(i).cam_from_world().rotation.matrix())[1]
+                     for i in rec.reg_image_ids()])
 
-    A flight along one street leaves the 7-parameter fit to GNSS almost free to rotate about
-    the flight line (the centres deviate from a line by less than the GNSS noise), and
-    side-looking images carry no roll cue either (that rotation is their tilt). The model does:
-    among the rotations about the line through the centres' centroid, take the one that puts
-    the most tie points within `SEARCH_DISTANCE` of a model face (a subsample of points, a
-    `step_deg` grid, then a finer grid around the best). Returns it as a Sim3d (identity when
-    no angle is clearly better than none).
-    """
-    centres = camera_centres(rec)
-    centroid = centres.mean(0)
-    direction = np.linalg.svd(centres - centroid)[2][0]
-    _, points = tie_points(rec)
-    rng = np.random.default_rng(0)
-    if len(points) > max_points:
-        points = points[rng.choice(len(points), max_points, replace=False)]
-    points = points - centroid
 
-    def rotation(theta: float) -> np.ndarray:
-        return np.asarray(pycolmap.Rotation3d(direction * theta).matrix())
+def scale_sigma_from_gnss(priors: GNSSPriors) -> float:
+    """Relative sigma of the block's scale that its GNSS positions determine."""
+    spread = priors.positions - priors.positions.mean(0)
+    return float(np.median(priors.sigmas) / np.sqrt(max(np.sum(spread ** 2), 1e-12)))
 
-    def score(theta: float) -> int:
-        moved = points @ rotation(theta).T + centroid
-        faces, _ = store.closest_faces(moved, max_distance=SEARCH_DISTANCE, margin=0.5)
-        return int(np.count_nonzero(faces >= 0))
 
-    coarse = np.radians(np.arange(-180.0, 180.0, step_deg))
-    scores = np.array([score(t) for t in coarse])
-    best = coarse[int(np.argmax(scores))]
-    fine = best + np.radians(np.linspace(-step_deg, step_deg, 11))
-    fine_scores = np.array([score(t) for t in fine])
-    theta = float(fine[int(np.argmax(fine_scores))])
-    if fine_scores.max() <= 1.2 * score(0.0):
-        return pycolmap.Sim3d()
-    matrix = rotation(theta)
-    logger.info("flight line nearly straight: rotated the block by %.1f deg about it to fit the "
-                "model (%d of %d sampled tie points near a face, %d before)",
-                np.degrees(theta), fine_scores.max(), len(points), score(0.0))
-    return pycolmap.Sim3d(1.0, pycolmap.Rotation3d(matrix), centroid - matrix @ centroid)
+class BlockObjective:
+    """One figure that every start-up move and loop iteration must lower: minus the share of a
+    fixed subset of tie points near the model surfaces, plus the mean squared normalised GNSS
+    residual weighted as in the translation search (a one-sigma shift of the whole block
+    costs as much as 1 % of the tie points on the model)."""
+
+    def __init__(self, surface, priors: GNSSPriors | None, point_ids: np.ndarray,
+                 radius: float):
+        from .coarse_alignment import MAX_SEARCH_POINTS, SHIFT_PENALTY
+
+        rng = np.random.default_rng(1)
+        self.ids = (point_ids if len(point_ids) <= 2 * MAX_SEARCH_POINTS else
+                    rng.choice(point_ids, 2 * MAX_SEARCH_POINTS, replace=False))
+        self.surface, self.priors, self.radius = surface, priors, radius
+        self.penalty = SHIFT_PENALTY
+
+    def points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
+        return np.array([rec.point3D(int(i)).xyz for i in self.ids if rec.exists_point3D(int(i))]
+                        ).reshape(-1, 3)
+
+    def __call__(self, rec: pycolmap.Reconstruction, moved: pycolmap.Sim3d | None = None
+                 ) -> float:
+        from .coarse_alignment import near_share
+
+        points, antennas = self.points(rec), None
+        if self.priors is not None:
+            antennas = self.priors.observed_points(rec)
+        if moved is not None:
+            matrix = np.asarray(moved.matrix())
+            points = points @ matrix[:, :3].T + matrix[:, 3]
+            if antennas is not None:
+                antennas = antennas @ matrix[:, :3].T + matrix[:, 3]
+        value = -near_share(self.surface(points), self.radius)
+        if antennas is not None:
+            v = (antennas - self.priors.positions) / self.priors.sigmas
+            value += self.penalty * float(np.mean(np.sum(v ** 2, axis=1)))
+        return value
 
 
 def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
@@ -305,14 +329,18 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     `gnss` is a `read_gnss.GNSSObservations` (model CRS) or None; `initial_transform` maps the
     input frame to model CRS coordinates (used instead of a GNSS similarity when given).
     `exclude_point_ids` are never assigned to planes (e.g. check points in the model).
-    The input reconstruction is not modified; the result holds a refined copy.
+    The input reconstruction is not modified; the result holds a refined copy, or, when the
+    quality gate fails, the GNSS-only adjustment (`result.quality`, `result.gnss_only`).
     `checkpoints` ({id: XYZ} model CRS) and `checkpoint_observations` ([(image, id, x, y)],
     evaluate.read_*) are only evaluated at the end (Delta, and sigma when covariances are on).
     """
+    from .coarse_alignment import SurfaceDistance, coarse_alignment
+
     options = options or RefineOptions()
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
-    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform)
+    details: dict = {}
+    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details)
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
@@ -320,15 +348,35 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
     warnings: list[str] = []
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
-    if priors is not None and initial_transform is None and \
-            _lateral_spread(camera_centres(rec)) < float(np.median(priors.sigmas[:, :2])):
-        # After step 2: GNSS alone has moved the block freely about the flight line there.
-        roll = roll_about_flight_line(rec, store)
-        rec.transform(roll)
-        sim3 = roll * sim3
+    gnss_only = gnss_only_sim3 = None
+    if priors is not None:
+        gnss_only, gnss_only_sim3 = pycolmap.Reconstruction(rec), sim3
     timer["step2"] = time.perf_counter() - timer["start"] - timer["georegistration"]
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
+    surface = SurfaceDistance(store, o_a.excluded_classes)
+    all_ids, _ = tie_points(rec, exclude_point_ids)
+    objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
+    scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
+    coarse = None
+    if priors is not None and initial_transform is None and o_w.coarse_search_sigmas > 0:
+        # The GNSS-only block is off the model by the GNSS error (metres, mostly a bias):
+        # search the shift (and, along a straight line, the roll) that puts the tie points
+        # on the model before any of them is assigned.
+        t_coarse = time.perf_counter()
+        _, points = tie_points(rec, exclude_point_ids)
+        centres = camera_centres(rec)
+        straight = _lateral_spread(centres) < float(np.median(priors.sigmas[:, :2]))
+        coarse = coarse_alignment(points, centres, camera_up_directions(rec), store, surface,
+                                  np.median(priors.sigmas, axis=0), straight,
+                                  o_w.coarse_search_sigmas)
+        if objective(rec, coarse.sim3) < objective(rec):
+            rec.transform(coarse.sim3)
+            sim3 = coarse.sim3 * sim3
+        else:
+            logger.info("coarse alignment kept the GNSS-only position (no better objective)")
+        timer["coarse_alignment"] = time.perf_counter() - t_coarse
+
     current = store
     threshold = o_a.max_threshold
     assignment: Assignment | None = None
@@ -336,23 +384,26 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     previous_rms = None
     solve_seconds = assign_seconds = 0.0
     last = None
+    best = None  # (objective, iteration, reconstruction copy, assignment, current)
+    diverged = None
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
         point_ids, points = tie_points(rec, exclude_point_ids)
         if assignment is not None:
             # The tie point set does not change inside the loop: same ids in the same order.
-            threshold = next_threshold(assignment, points, current, o_a, o_adj.sigma_dtp)
+            # The threshold never grows again: no flip-flop between two assignments.
+            threshold = min(threshold, next_threshold(assignment, points, current, o_a,
+                                                      o_adj.sigma_dtp))
         assignment = assign(points, point_ids, current, threshold, o_a)
         if iteration == 0 and assignment.num_assigned:
             # Initial values: move the block as a whole onto its planes first, so that the
             # adjustment is left with the block's deformation. As in ICP: fit, assign again,
-            # fit again. Where GNSS is missing or drifts (Scn4), the block's far end starts
-            # metres off and its first assignments are partly wrong; each round gets more
-            # right (long Scn4: camera centres 5.5 m -> 4.7, 2.6, 1.1, 0.7 ... 0.58 m).
+            # fit again; a round that does not lower the block objective is undone.
             t_align = time.perf_counter()
             move, points, assignment = align_block_to_planes(
-                rec, point_ids, points, assignment, current, priors, threshold, options)
+                rec, point_ids, points, assignment, current, priors, threshold, options,
+                objective=objective, scale_sigma=scale_sigma)
             sim3 = move * sim3
             timer["initial_alignment"] = time.perf_counter() - t_align
             t0 += timer["initial_alignment"]
@@ -401,16 +452,33 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                                           robust_report, final_report, change))
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
+        value = objective(rec)
         logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
-                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f",
-                    iteration, threshold, assignment.num_assigned, assignment.num_faces,
-                    len(outliers), rms, change,
+                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f, "
+                    "objective %.4f", iteration, threshold, assignment.num_assigned,
+                    assignment.num_faces, len(outliers), rms, change,
                     final_report.rms["dTP"] * o_adj.sigma_dtp,
-                    np.sqrt(final_report.sigma0_squared))
+                    np.sqrt(final_report.sigma0_squared), value)
         previous_rms = rms
+        if best is None or value <= best[0]:
+            best = (value, iteration, None, assignment, current)
+        elif value > best[0] + o_w.divergence_tolerance:
+            # The hybrid solve moved the block away from the model: go back to the best
+            # iterate and stop.
+            diverged = (f"objective {value:.3f} in iteration {iteration} against "
+                        f"{best[0]:.3f} in iteration {best[1]}")
+            logger.warning("refine diverged (%s); the best iterate is kept", diverged)
+            break
+        if best[1] == iteration:
+            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current)
         if change < o_w.convergence_rms_change:
             break
     bar.close()
+    if diverged is not None and best is not None and best[2] is not None:
+        _, _, rec, assignment, current = best
+        last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                             robust_planes=False, current=current)
+        last.solve()
 
     from .precision import final_solve_in_refine, precision_after_refine
 
@@ -419,8 +487,18 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         last, vce = final_solve_in_refine(rec, store, assignment, priors, options, current,
                                           last)
         current = _current_from(current, last)
-    precision = precision_after_refine(last, options.precision, checkpoint_observations)
-    evaluation = None
+    point_ids, points = tie_points(rec, exclude_point_ids)
+    observability = assigned_observability(points, assignment, current, priors, rec, options)
+    quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
+                              len(point_ids), options, diverged, scale_sigma)
+    logger.info(quality.line())
+    precision = evaluation = None
+    refined = rec
+    if quality.verdict == "failed" and gnss_only is not None:
+        # Never hand back a block worse than GNSS alone: the result is the GNSS-only one.
+        rec, sim3 = gnss_only, gnss_only_sim3
+    else:
+        precision = precision_after_refine(last, options.precision, checkpoint_observations)
     if checkpoints is not None and checkpoint_observations is not None:
         from .evaluate import evaluate_with_precision
 
@@ -436,20 +514,98 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
         step2=report2, step2_eliminated=eliminated2, iterations=iterations, options=options,
         warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
-        variance_components=vce, checkpoints=evaluation)
+        variance_components=vce, checkpoints=evaluation, gnss_only=gnss_only,
+        quality=quality, observability=observability, refined=refined,
+        datum_cues=details.get("cues", {}),
+        coarse_alignment=coarse.todict() if coarse is not None else None)
+
+
+def assigned_observability(points: np.ndarray, assignment: Assignment, store: PlaneStore,
+                           priors: GNSSPriors | None, rec: pycolmap.Reconstruction,
+                           options: RefineOptions) -> dict:
+    """quality.observability for the assigned tie points and the GNSS of `rec`."""
+    from .options import GENERALISATION_SIGMA
+    from .quality import observability
+
+    assigned = assignment.assigned
+    faces = assignment.face_index[assigned]
+    sigma_gen = options.adjustment.sigma_generalisation or GENERALISATION_SIGMA
+    return observability(points[assigned], store.normals[faces], faces,
+                         priors.observed_points(rec) if priors is not None else None,
+                         priors.sigmas if priors is not None else None,
+                         options.adjustment.sigma_dtp, sigma_gen)
+
+
+def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
+                    surface, priors: GNSSPriors | None, assignment: Assignment, last,
+                    observability_dict: dict, num_points: int, options: RefineOptions,
+                    diverged: str | None, scale_sigma: float | None):
+    """The figures of the quality gate (quality.quality_verdict) and the verdict."""
+    from .quality import QualityThresholds, gnss_scatter, planes_fix, quality_verdict
+
+    thresholds = QualityThresholds()
+    _, points = tie_points(rec)
+    metrics: dict = {
+        "assigned_share": assignment.num_assigned / max(num_points, 1),
+        "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
+        "near_share": float(np.mean(surface(points) < thresholds.near_distance))
+        if len(points) else 0.0,
+        "near_share_gnss_only": None, "diverged": diverged,
+        "planes_fix": planes_fix(observability_dict),
+    }
+    normalised = last.residuals.get("dTP", np.zeros(0))
+    if len(normalised):
+        dtp = float(np.sqrt(np.mean(normalised ** 2)))
+        metrics["dtp_rms_sigmas"] = float(dtp)
+        metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
+    if gnss_only is not None and priors is not None:
+        _, before = tie_points(gnss_only)
+        metrics["near_share_gnss_only"] = (float(np.mean(surface(before)
+                                                         < thresholds.near_distance))
+                                           if len(before) else 0.0)
+        ids = [i for i in rec.reg_image_ids() if gnss_only.exists_image(i)]
+        a = np.array([gnss_only.image(i).projection_center() for i in ids])
+        b = np.array([rec.image(i).projection_center() for i in ids])
+        sigma = np.median(priors.sigmas, axis=0)
+        mean_shift = (b - a).mean(0)
+        metrics["shift_m"] = float(np.linalg.norm(mean_shift))
+        metrics["shift_enu_m"] = mean_shift.tolist()
+        metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
+        similarity = pycolmap.estimate_sim3d(a, b)
+        if similarity is not None and scale_sigma:
+            change = float(similarity.scale) - 1.0
+            metrics["scale_change"] = change
+            metrics["scale_change_sigmas"] = abs(np.log1p(change)) / scale_sigma
+        before_scatter = gnss_scatter(priors.observed_points(gnss_only), priors.positions,
+                                      priors.sigmas)
+        after_scatter = gnss_scatter(priors.observed_points(rec), priors.positions,
+                                     priors.sigmas)
+        metrics["gnss_scatter_ratio"] = after_scatter / max(before_scatter, 1e-9)
+    return quality_verdict(metrics, thresholds)
 
 
 def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                           points: np.ndarray, assignment: Assignment, store: PlaneStore,
-                          priors: GNSSPriors | None, threshold: float, options: RefineOptions
+                          priors: GNSSPriors | None, threshold: float, options: RefineOptions,
+                          *, objective: BlockObjective | None = None,
+                          scale_sigma: float | None = None
                           ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
     """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
     by it, assign again at `threshold`, until a fit moves the tie points by less than
-    `alignment_tolerance` on average. Returns the total similarity and the moved `points`
-    (same ids) with their last assignment."""
+    `alignment_tolerance` on average. With an `objective`, a round that does not lower it is
+    undone and ends the rounds. Returns the total similarity and the moved `points` (same ids)
+    with their last assignment."""
     total = pycolmap.Sim3d()
+    value = objective(rec) if objective is not None else None
     for _ in range(options.workflow.alignment_rounds):
-        move, moved = align_to_planes(rec, points, assignment, store, priors, options.adjustment)
+        move, moved = align_to_planes(rec, points, assignment, store, priors, options.adjustment,
+                                      scale_sigma)
+        if objective is not None:
+            new_value = objective(rec, move)
+            if new_value >= value:
+                logger.info("alignment round undone: objective %.4f -> %.4f", value, new_value)
+                break
+            value = new_value
         rec.transform(move)
         total = move * total
         mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
@@ -461,10 +617,11 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
 
 
 def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
-                    store: PlaneStore, priors: GNSSPriors | None, options
-                    ) -> tuple[pycolmap.Sim3d, np.ndarray]:
+                    store: PlaneStore, priors: GNSSPriors | None, options,
+                    scale_sigma: float | None = None) -> tuple[pycolmap.Sim3d, np.ndarray]:
     """The similarity that best puts the assigned tie points on their planes (and the block on
-    GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it."""
+    GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it.
+    `scale_sigma`: how far (relative) GNSS lets the scale change."""
     from .initial_alignment import similarity_to_planes
 
     assigned = assignment.assigned
@@ -474,7 +631,8 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
         gnss = dict(antennas=priors.observed_points(rec), gnss=priors.positions,
                     gnss_sigmas=priors.sigmas)
     result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
-                                  options.sigma_dtp, options.plane_loss_scale, **gnss)
+                                  options.sigma_dtp, options.plane_loss_scale,
+                                  scale_sigma=scale_sigma, **gnss)
     matrix = np.asarray(result.sim3.matrix())
     moved = points @ matrix[:, :3].T + matrix[:, 3]
     logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
@@ -637,9 +795,14 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     # s0 of the final solve: the variance-component re-solve when there was one.
     s0 = (result.precision.variance.sigma0 if result.precision is not None
           else np.sqrt(last.final.sigma0_squared))
-    print(f"refined {result.reconstruction.num_reg_images()} images, "
-          f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points on "
-          f"{last.num_faces} planes; s0 {s0:.3f}")
+    if result.handed_back == "gnss_only":
+        print(f"the city model could not help: wrote the GNSS-only adjustment of "
+              f"{result.reconstruction.num_reg_images()} images")
+    else:
+        print(f"refined {result.reconstruction.num_reg_images()} images, "
+              f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points "
+              f"on {last.num_faces} planes; s0 {s0:.3f}")
+    print(result.quality.line())
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
     return result

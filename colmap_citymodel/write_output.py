@@ -103,6 +103,10 @@ def georeference_dict(result: RefineResult, output_frame: str) -> dict:
         "output_frame": output_frame,
         "note": ("model coordinates are CRS coordinates" if output_frame == "crs" else
                  "model coordinates are CRS coordinates minus origin"),
+        "result": result.handed_back,
+        "result_note": ("the refined block" if result.handed_back == "refined" else
+                        "the GNSS-only adjustment: the quality gate failed ("
+                        + "; ".join(result.quality.reasons) + ")"),
         "input_to_local_sim3": sim3_dict(result.input_to_local),
         "input_to_crs_sim3": sim3_dict(to_crs),
         "options": result.options.todict(),
@@ -139,11 +143,43 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "planes": plane_table(result),
         "warnings": result.warnings,
         "seconds": result.seconds,
+        "result": result.handed_back,
+        "quality": result.quality.todict() if result.quality is not None else None,
+        "observability": result.observability,
+        "datum_cues": result.datum_cues,
+        "coarse_alignment": result.coarse_alignment,
     }
 
 
 def report_markdown(report: dict) -> str:
     lines = ["# colmap-citymodel refine report", ""]
+    quality = report.get("quality")
+    if quality:
+        lines += [f"**Verdict: {quality['verdict']}**"
+                  + (" (the files hold the GNSS-only result)" if report["result"] == "gnss_only"
+                     else ""), ""] + [f"- {r}" for r in quality["reasons"]] + [""]
+    if report.get("observability"):
+        lines += ["## What fixes the datum", "",
+                  "| parameter | fixed by | sigma | sigma planes only | sigma GNSS only |",
+                  "|---|---|---|---|---|"]
+        for name, row in report["observability"].items():
+            unit = "deg" if name.startswith("rotation") else "" if name == "scale" else "m"
+            cells = [f"{row[k]:.4g} {unit}".strip() if row[k] is not None else "free"
+                     for k in ("sigma", "sigma_planes", "sigma_gnss")]
+            lines.append(f"| {name} | {row['source']} | " + " | ".join(cells) + " |")
+        lines += ["", "Scale sigmas are relative; each plane counts with its generalisation "
+                  "error, not once per tie point.", ""]
+    if report.get("datum_cues"):
+        lines += ["Georegistration cues: " + ", ".join(f"{k} from {v}" for k, v in
+                                                       report["datum_cues"].items()) + ".", ""]
+    coarse = report.get("coarse_alignment")
+    if coarse:
+        t = coarse["translation"]
+        lines += [f"Coarse alignment: shift {', '.join(f'{v:+.2f}' for v in t['shift_m'])} m, "
+                  f"tie points near the model {100 * t['near_share_before']:.0f} % -> "
+                  f"{100 * t['near_share_after']:.0f} %"
+                  + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
+                     if coarse["roll_deg"] is not None else "") + ".", ""]
     geo = report["georegistration"]
     if geo["rms_m"] is not None:
         lines.append(f"Georegistration to GNSS: RMS {geo['rms_m']:.2f} m, "

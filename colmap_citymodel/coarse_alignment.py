@@ -1,0 +1,340 @@
+"""Coarse alignment: bring a GNSS-registered block within reach of direct assignment.
+
+After the GNSS-only adjustment the block is off the model by the GNSS error: metres, often a
+bias common to the whole flight, which no assignment with a 2 m threshold can bridge. Two
+searches close that gap before any tie point is assigned:
+
+- `search_roll`: for a nearly straight flight line GNSS cannot fix the rotation about that line.
+  The planes found in the tie points (RANSAC) must have the orientations of model faces, which
+  does not depend on where the block is: the roll that best matches the two sets of normals,
+  with the cameras kept upright (their image "up" above the horizon), is searched on a 1 deg grid.
+- `search_translation`: the translation that puts the most tie points near a model surface,
+  within a box that covers the GNSS uncertainty (a few sigma), coarse to fine (kernel radius
+  2 m -> 1 m -> 0.4 m), with a mild penalty in units of the GNSS sigma so that a direction the
+  model leaves free stays where GNSS put it.
+
+Both use `SurfaceDistance`, the unsigned distance from a point to the model's surfaces that can
+carry tie points (walls, roofs, ...; not ground or closure surfaces), through Open3D's
+`RaycastingScene`.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from .plane_store import PlaneStore
+
+logger = logging.getLogger(__name__)
+
+#: Coarse-to-fine levels of the translation search: (kernel radius, grid step), metres.
+TRANSLATION_LEVELS = ((2.0, 1.5), (1.0, 0.5), (0.4, 0.2))
+#: Penalty of the translation search per squared GNSS sigma of shift, relative to the share of
+#: tie points near the model (a 3 sigma shift costs 4.5 % of the points).
+SHIFT_PENALTY = 0.01
+#: Tie points used by the searches (a random subset of a larger block).
+MAX_SEARCH_POINTS = 2000
+#: Cells of the coarse distance grid at most (its spacing grows for large blocks).
+MAX_GRID_CELLS = 4_000_000
+
+
+class SurfaceDistance:
+    """Unsigned distance (m) from points to the model faces that tie points can lie on."""
+
+    def __init__(self, store: PlaneStore, excluded_classes=("GroundSurface", "ClosureSurface")):
+        import open3d as o3d
+
+        from .export_mesh import store_to_trimesh
+
+        mesh, triangle_face = store_to_trimesh(store)
+        keep = np.array([store.faces[int(f)].semantic not in excluded_classes
+                         for f in triangle_face], bool)
+        if not keep.any():
+            keep[:] = True
+        self.triangle_face = triangle_face[keep]
+        self.scene = o3d.t.geometry.RaycastingScene()
+        self.scene.add_triangles(
+            o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)[keep]))
+        self._o3d = o3d
+
+    def __call__(self, points: np.ndarray) -> np.ndarray:
+        if len(points) == 0:
+            return np.zeros(0)
+        query = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
+        return self.scene.compute_distance(query).numpy().astype(np.float64)
+
+    def nearest_face(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """(distance, store face index) of the closest model surface point."""
+        if len(points) == 0:
+            return np.zeros(0), np.zeros(0, np.int64)
+        query = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
+        found = self.scene.compute_closest_points(query)
+        closest = found["points"].numpy().astype(np.float64)
+        triangles = found["primitive_ids"].numpy().astype(np.int64)
+        return (np.linalg.norm(closest - points, axis=1), self.triangle_face[triangles])
+
+
+def near_share(distances: np.ndarray, radius: float) -> float:
+    """Smooth share of points within `radius` of a surface: mean of (1 - (d/r)^2)^2, d < r."""
+    u = np.clip(distances / radius, 0.0, 1.0)
+    return float(np.mean((1.0 - u * u) ** 2)) if len(u) else 0.0
+
+
+def subsample(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:
+    if len(points) <= n:
+        return points
+    return points[np.random.default_rng(seed).choice(len(points), n, replace=False)]
+
+
+@dataclass
+class TranslationSearch:
+    """Result of `search_translation`."""
+
+    shift: np.ndarray  # (3,) metres, to add to the block
+    value: float  # the search objective at `shift` (finest level)
+    share_before: float  # near_share at the finest radius without / with the shift
+    share_after: float
+    shift_sigmas: np.ndarray  # (3,) |shift| per axis in GNSS sigmas
+    seconds: float = 0.0
+
+    def todict(self) -> dict:
+        return {"shift_m": self.shift.tolist(), "shift_sigmas": self.shift_sigmas.tolist(),
+                "near_share_before": self.share_before, "near_share_after": self.share_after}
+
+
+def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, half_box: np.ndarray,
+                         spacing: float):
+    """Distances on a regular grid around `points` (nearest-cell lookups) for the coarse
+    level: one distance query per cell instead of one per (point, shift)."""
+    lower = points.min(0) - half_box - 2 * spacing
+    upper = points.max(0) + half_box + 2 * spacing
+    cells = np.prod((upper - lower) / spacing)
+    if cells > MAX_GRID_CELLS:
+        spacing *= float((cells / MAX_GRID_CELLS) ** (1 / 3))
+    shape = np.ceil((upper - lower) / spacing).astype(int) + 1
+    axes = [lower[k] + spacing * np.arange(shape[k]) for k in range(3)]
+    grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    values = surface(grid).reshape(shape).astype(np.float32)
+
+    def lookup(xyz: np.ndarray) -> np.ndarray:
+        index = np.rint((xyz - lower) / spacing).astype(np.int64)
+        np.clip(index, 0, shape - 1, out=index)
+        return values[index[..., 0], index[..., 1], index[..., 2]]
+
+    return lookup, spacing
+
+
+def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.ndarray,
+                       search_sigmas: float = 4.0, candidates: int = 3,
+                       levels=TRANSLATION_LEVELS) -> TranslationSearch:
+    """The shift of `points` that maximises near_share - SHIFT_PENALTY * |shift / sigmas|^2.
+
+    `sigmas` (3,) is the uncertainty of the block's position (GNSS sigma per axis); the search
+    covers +- `search_sigmas` of it. The coarse level scores every grid shift with a distance
+    grid; the best `candidates` separate maxima are refined on the finer levels.
+    """
+    import time
+
+    t0 = time.perf_counter()
+    sigmas = np.maximum(np.asarray(sigmas, float), 1e-3)
+    pts = subsample(points, MAX_SEARCH_POINTS)
+    half_box = search_sigmas * sigmas
+
+    def objective(shares: np.ndarray, shifts: np.ndarray) -> np.ndarray:
+        return shares - SHIFT_PENALTY * np.sum((shifts / sigmas) ** 2, axis=-1)
+
+    # Coarse level on a distance grid.
+    radius, step = levels[0]
+    lookup, spacing = _grid_lookup_builder(pts, surface, half_box, step / 1.5)
+    axes = [np.arange(-np.floor(h / step), np.floor(h / step) + 1) * step for h in half_box]
+    shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
+    shares = np.empty(len(shifts))
+    for start in range(0, len(shifts), 256):
+        chunk = shifts[start:start + 256]
+        d = lookup(pts[None, :, :] + chunk[:, None, :])
+        u = np.clip(d / radius, 0.0, 1.0)
+        shares[start:start + 256] = np.mean((1.0 - u * u) ** 2, axis=1)
+    score = objective(shares, shifts)
+    order = np.argsort(-score)
+    seeds: list[np.ndarray] = []
+    for k in order:  # the best maxima at least two steps apart
+        if all(np.max(np.abs(shifts[k] - s)) > 1.5 * step for s in seeds):
+            seeds.append(shifts[k])
+        if len(seeds) == candidates:
+            break
+
+    def refine(centre: np.ndarray, radius: float, step: float, reach: float):
+        offsets = np.arange(-np.floor(reach / step), np.floor(reach / step) + 1) * step
+        local = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
+        local = centre + local
+        local = local[np.all(np.abs(local) <= half_box + step, axis=1)]
+        moved = (pts[None, :, :] + local[:, None, :]).reshape(-1, 3)
+        d = surface(moved).reshape(len(local), len(pts))
+        u = np.clip(d / radius, 0.0, 1.0)
+        s = objective(np.mean((1.0 - u * u) ** 2, axis=1), local)
+        best = int(np.argmax(s))
+        return local[best], float(s[best])
+
+    best_shift, best_score = np.zeros(3), -np.inf
+    for seed in seeds:
+        shift, value = seed, -np.inf
+        for (_, reach), (radius_k, step_k) in zip(levels[:-1], levels[1:]):
+            # Each level searches +- the previous level's step around its best shift.
+            shift, value = refine(shift, radius_k, step_k, reach)
+        if value > best_score:
+            best_shift, best_score = shift, value
+    finest = levels[-1][0]
+    result = TranslationSearch(
+        best_shift, best_score, near_share(surface(points if len(points) <= 20000 else pts), finest),
+        near_share(surface((points if len(points) <= 20000 else pts) + best_shift), finest),
+        np.abs(best_shift) / sigmas, time.perf_counter() - t0)
+    logger.info("translation search (+-%s m): shift %s m (%s GNSS sigma), tie points near the "
+                "model %.0f %% -> %.0f %%, %.1f s",
+                np.round(half_box, 1).tolist(), np.round(best_shift, 2).tolist(),
+                np.round(result.shift_sigmas, 1).tolist(), 100 * result.share_before,
+                100 * result.share_after, result.seconds)
+    return result
+
+
+# -- roll about a straight flight line -------------------------------------------------------
+
+
+def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
+    axis = axis / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def point_cloud_planes(points: np.ndarray, distance: float = 0.3, max_planes: int = 12,
+                       min_points: int = 40) -> tuple[np.ndarray, np.ndarray]:
+    """Dominant planes of a tie point cloud by sequential RANSAC (Open3D `segment_plane`):
+    (normals (K,3), inlier counts (K,))."""
+    import open3d as o3d
+
+    rest = subsample(points, 20000)
+    o3d.utility.random.seed(0)  # deterministic RANSAC samples
+    normals, counts = [], []
+    for _ in range(max_planes):
+        if len(rest) < min_points:
+            break
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
+        model, inliers = cloud.segment_plane(distance, 3, 500)
+        if len(inliers) < min_points:
+            break
+        normals.append(np.asarray(model[:3], float) / np.linalg.norm(model[:3]))
+        counts.append(len(inliers))
+        rest = np.delete(rest, np.asarray(inliers, np.int64), axis=0)
+    return np.array(normals).reshape(-1, 3), np.array(counts, float)
+
+
+@dataclass
+class RollSearch:
+    angle: float  # radians about `axis` through `centre`
+    axis: np.ndarray
+    centre: np.ndarray
+    score: float
+    score_at_zero: float
+    num_planes: int
+
+    @property
+    def rotation(self) -> np.ndarray:
+        return rotation_about(self.axis, self.angle)
+
+
+def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store: PlaneStore,
+                camera_up: np.ndarray, tolerance_deg: float = 4.0, step_deg: float = 1.0,
+                excluded_classes=("GroundSurface", "ClosureSurface")) -> RollSearch | None:
+    """The rotation about `axis` (through `centre`) that makes the tie point planes' normals
+    model normals, keeping the cameras upright: `camera_up` (N,3) are the cameras' image "up"
+    directions (-y axis) in the current frame and must keep a positive mean vertical
+    component. None when the tie points hold no plane."""
+    normals, counts = point_cloud_planes(points)
+    if not len(normals):
+        return None
+    faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
+    model = store.normals[faces] if faces else store.normals
+    cos_tol = np.cos(np.radians(tolerance_deg))
+    up_mean = np.mean(camera_up, axis=0)
+
+    def score(angle: float) -> float:
+        rotation = rotation_about(axis, angle)
+        if (rotation @ up_mean)[2] <= 0.0:
+            return -1.0
+        rotated = normals @ rotation.T
+        cosines = np.abs(rotated @ model.T).max(axis=1)
+        u = np.clip((1.0 - cosines) / (1.0 - cos_tol), 0.0, 1.0)
+        return float(np.sum(counts * (1.0 - u) ** 2) / counts.sum())
+
+    coarse = np.radians(np.arange(-180.0, 180.0, step_deg))
+    values = np.array([score(a) for a in coarse])
+    best = coarse[int(np.argmax(values))]
+    fine = best + np.radians(np.linspace(-step_deg, step_deg, 21))
+    fine_values = np.array([score(a) for a in fine])
+    angle = float(fine[int(np.argmax(fine_values))])
+    return RollSearch(angle, axis, centre, float(fine_values.max()), score(0.0), len(normals))
+
+
+@dataclass
+class CoarseAlignment:
+    """The similarity (rotation about the flight line, then a shift) that coarse alignment
+    applies, and what decided it."""
+
+    sim3: "pycolmap.Sim3d"  # noqa: F821
+    translation: TranslationSearch
+    roll_deg: float | None  # None: no roll search (the flight line is not straight)
+    roll_candidates: list[dict]
+
+    def todict(self) -> dict:
+        return {"translation": self.translation.todict(), "roll_deg": self.roll_deg,
+                "roll_candidates": self.roll_candidates, "seconds": self.translation.seconds}
+
+
+#: A roll about the flight line is tried when the tie point planes match the model normals
+#: better by this much (share of plane points) than without it.
+MIN_ROLL_GAIN = 0.05
+
+
+def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndarray,
+                     store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
+                     straight: bool, search_sigmas: float = 4.0) -> CoarseAlignment:
+    """Roll about a straight flight line (when `straight`) and shift of the whole block.
+
+    Each roll candidate (none, and the one `search_roll` prefers) gets its own translation
+    search; the pair with the best search objective wins, so a roll is kept only when it puts
+    more tie points on the model.
+    """
+    import pycolmap
+
+    candidates = [(None, np.eye(3), np.zeros(3))]
+    found: list[dict] = []
+    if straight:
+        centre = centres.mean(0)
+        axis = np.linalg.svd(centres - centre)[2][0]
+        roll = search_roll(points, axis, centre, store, camera_up)
+        if roll is not None:
+            found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
+                          "normal_score_unrotated": roll.score_at_zero})
+            if roll.score > roll.score_at_zero + MIN_ROLL_GAIN:
+                rotation = roll.rotation
+                candidates.append((float(np.degrees(roll.angle)), rotation,
+                                   centre - rotation @ centre))
+    best = None
+    for roll_deg, rotation, offset in candidates:
+        moved = points @ rotation.T + offset
+        search = search_translation(moved, surface, sigmas, search_sigmas)
+        for entry in found:
+            if roll_deg is not None and entry["roll_deg"] == roll_deg:
+                entry["search_value"] = search.value
+        if roll_deg is None and found:
+            found.append({"roll_deg": 0.0, "search_value": search.value})
+        if best is None or search.value > best[3].value:
+            best = (roll_deg, rotation, offset, search)
+    roll_deg, rotation, offset, search = best
+    if roll_deg is not None:
+        logger.info("flight line nearly straight: rotated the block by %.1f deg about it (tie "
+                    "point planes parallel to model faces)", roll_deg)
+    sim3 = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rotation), offset + search.shift)
+    return CoarseAlignment(sim3, search, roll_deg, found)

@@ -1,0 +1,207 @@
+"""What the model planes determine, and whether a refine result can be trusted.
+
+`observability`: which of the 7 datum parameters (E, N, U shifts, scale, rotations about E, N,
+U) the assigned planes fix, which GNSS fixes, and the a posteriori sigma of each. A plane's tie
+points share its generalisation error (Unger 6.3: systematic, about 0.2 m), so a plane adds at
+most about one observation of that size in its normal direction, however many points it holds;
+the information of plane p is J^T (s^2 I + g^2 1 1^T)^-1 J (Sherman-Morrison below).
+
+`quality_verdict`: compares the refined block with the GNSS-only adjustment of the same block.
+"ok": the model fitted and moved the block no further than GNSS allows; "weak": usable but
+with a stated doubt; "failed": refine hands back the GNSS-only result.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+#: The datum parameters, in the order of the information matrices below.
+DATUM = ("E", "N", "U", "scale", "rotation_E", "rotation_N", "rotation_U")
+#: A datum direction counts as fixed by a source whose sigma alone is below this many times
+#: the other's (else "both").
+DOMINANCE = 3.0
+#: Without either source, a sigma above these counts as "none": metres for shifts, relative
+#: scale, radians.
+UNDETERMINED = {"shift": 10.0, "scale": 0.1, "rotation": 0.1}
+
+
+def _datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarray
+                    ) -> np.ndarray:
+    """d (direction . X') / d (shift, log scale, rotation) for X' = X + t + s y + w x y."""
+    y = points - centre
+    return np.hstack([directions, np.einsum("ij,ij->i", directions, y)[:, None],
+                      np.cross(y, directions)])
+
+
+def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                      centre: np.ndarray, sigma: float, sigma_generalisation: float
+                      ) -> np.ndarray:
+    """7x7 information of the datum from tie points on planes (one group per plane)."""
+    jac = _datum_jacobian(points, normals, centre)
+    info = jac.T @ jac / sigma ** 2
+    g2, s2 = sigma_generalisation ** 2, sigma ** 2
+    for group in np.unique(groups):
+        j = jac[groups == group]
+        total = j.sum(0)
+        info -= np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2))
+    return info
+
+
+def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray
+                     ) -> np.ndarray:
+    info = np.zeros((7, 7))
+    for axis in range(3):
+        directions = np.zeros_like(positions)
+        directions[:, axis] = 1.0
+        jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
+        info += jac.T @ jac
+    return info
+
+
+def _sigmas(info: np.ndarray) -> np.ndarray:
+    """Marginal sigma per datum parameter; inf where the information leaves it free."""
+    scale = np.sqrt(np.maximum(np.diag(info), 1e-30))
+    normalised = info / np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(normalised)
+    keep = values > 1e-9 * max(values.max(), 1e-30)
+    inverse = (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
+    sigma = np.sqrt(np.maximum(np.diag(inverse), 0.0)) / scale
+    # A direction with (almost) no information is free, whatever the pseudo-inverse says.
+    free = vectors[:, ~keep]
+    if free.size:
+        sigma[np.abs(free).max(axis=1) > 0.1] = np.inf
+    return sigma
+
+
+def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                  gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
+                  sigma_dtp: float, sigma_generalisation: float) -> dict:
+    """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
+    (metres; relative for scale; degrees for rotations) from planes, GNSS and both."""
+    anchors = [points] + ([gnss_positions] if gnss_positions is not None else [])
+    centre = np.vstack(anchors).mean(0)
+    planes = (plane_information(points, normals, groups, centre, sigma_dtp, sigma_generalisation)
+              if len(points) else np.zeros((7, 7)))
+    gnss = (gnss_information(gnss_positions, gnss_sigmas, centre)
+            if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
+    # Our order is (shift, log scale, rotation); DATUM's is the same.
+    s_planes, s_gnss, s_both = _sigmas(planes), _sigmas(gnss), _sigmas(planes + gnss)
+    out = {}
+    for k, name in enumerate(DATUM):
+        kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
+        limit = UNDETERMINED[kind]
+        p_ok, g_ok = s_planes[k] < limit, s_gnss[k] < limit
+        if p_ok and (not g_ok or s_planes[k] * DOMINANCE < s_gnss[k]):
+            source = "planes"
+        elif g_ok and (not p_ok or s_gnss[k] * DOMINANCE < s_planes[k]):
+            source = "gnss"
+        elif p_ok and g_ok:
+            source = "both"
+        else:
+            source = "none"
+        factor = np.degrees(1.0) if kind == "rotation" else 1.0
+        out[name] = {"source": source,
+                     "sigma": _finite(s_both[k] * factor),
+                     "sigma_planes": _finite(s_planes[k] * factor),
+                     "sigma_gnss": _finite(s_gnss[k] * factor)}
+    return out
+
+
+def _finite(value: float) -> float | None:
+    return float(value) if np.isfinite(value) else None
+
+
+def planes_fix(observability_dict: dict) -> list[str]:
+    """The datum parameters the planes fix alone or together with GNSS."""
+    return [k for k, v in observability_dict.items() if v["source"] in ("planes", "both")]
+
+
+# -- verdict ---------------------------------------------------------------------------------
+
+
+@dataclass
+class QualityThresholds:
+    """Limits of the quality gate (one place)."""
+
+    shift_ok: float = 3.0
+    """Mean camera shift from the GNSS-only result, in GNSS sigmas (Mahalanobis over E, N, U),
+    up to which the result is "ok": GNSS errors are mostly a bias common to the block, so its
+    position is not known better than one GNSS sigma."""
+    shift_failed: float = 4.5
+    """Above this the model has pulled the block further than any plausible GNSS error."""
+    scale_failed_sigmas: float = 5.0
+    """Scale change from the GNSS-only result beyond this many of its GNSS sigmas."""
+    min_assigned_share: float = 0.02
+    """Fewer tie points than this share on planes: the model does not fit the block."""
+    min_near_share: float = 0.10
+    """Share of tie points within `near_distance` of the model below which the fit is weak."""
+    near_distance: float = 0.5
+    dtp_rms_weak: float = 2.0
+    """RMS point-to-plane distance above this many sigma_dTP: weak."""
+    gnss_scatter_weak: float = 1.5
+    """GNSS residual scatter (after removing their mean) that grows by this factor against the
+    GNSS-only result: the block was bent to the model; weak."""
+
+
+@dataclass
+class QualityReport:
+    verdict: str  # "ok" | "weak" | "failed"
+    reasons: list[str] = field(default_factory=list)
+    metrics: dict = field(default_factory=dict)
+
+    def todict(self) -> dict:
+        return {"verdict": self.verdict, "reasons": list(self.reasons), "metrics": self.metrics}
+
+    def line(self) -> str:
+        return f"quality: {self.verdict}" + (f" ({'; '.join(self.reasons)})" if self.reasons
+                                             else "")
+
+
+def gnss_scatter(observed: np.ndarray, positions: np.ndarray, sigmas: np.ndarray) -> float:
+    """RMS of the normalised GNSS residuals after removing their mean (the block's shape
+    against GNSS, free of the common bias)."""
+    v = (observed - positions) / sigmas
+    return float(np.sqrt(np.mean((v - v.mean(0)) ** 2)))
+
+
+def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
+                    ) -> QualityReport:
+    """Verdict from the figures refine measured (keys as written by workflow.measure_quality)."""
+    t = thresholds or QualityThresholds()
+    failed, weak = [], []
+    if metrics.get("diverged"):
+        failed.append(f"the assignment loop diverged ({metrics['diverged']})")
+    if metrics["assigned_share"] < t.min_assigned_share:
+        failed.append(f"only {100 * metrics['assigned_share']:.1f} % of the tie points lie on "
+                      "model planes: the model does not fit the block")
+    shift = metrics.get("shift_sigmas")
+    if shift is not None:
+        if shift > t.shift_failed:
+            failed.append(f"the model moved the cameras {metrics['shift_m']:.1f} m "
+                          f"({shift:.1f} GNSS sigma) from the GNSS-only result")
+        elif shift > t.shift_ok:
+            weak.append(f"the model moved the cameras {metrics['shift_m']:.1f} m "
+                        f"({shift:.1f} GNSS sigma) from the GNSS-only result")
+    scale = metrics.get("scale_change_sigmas")
+    if scale is not None and scale > t.scale_failed_sigmas:
+        failed.append(f"the block's scale changed by {100 * metrics['scale_change']:.2f} % "
+                      f"({scale:.1f} GNSS sigma)")
+    before, after = metrics.get("near_share_gnss_only"), metrics["near_share"]
+    if before is not None and after < before:
+        failed.append(f"fewer tie points near the model after refine ({100 * after:.0f} %) "
+                      f"than with GNSS only ({100 * before:.0f} %)")
+    elif after < t.min_near_share:
+        weak.append(f"only {100 * after:.0f} % of the tie points lie within "
+                    f"{t.near_distance:g} m of the model")
+    if metrics.get("dtp_rms_sigmas", 0.0) > t.dtp_rms_weak:
+        weak.append(f"tie points lie {metrics['dtp_rms_m']:.2f} m (RMS) from their planes")
+    ratio = metrics.get("gnss_scatter_ratio")
+    if ratio is not None and ratio > t.gnss_scatter_weak:
+        weak.append(f"the GNSS residuals scatter {ratio:.1f}x more than with GNSS only")
+    fixed = metrics.get("planes_fix")
+    if fixed is not None and not any(k in fixed for k in ("E", "N", "U")):
+        weak.append("the assigned planes fix no direction of the block's position")
+    verdict = "failed" if failed else "weak" if weak else "ok"
+    return QualityReport(verdict, failed + weak, metrics)
