@@ -6,7 +6,14 @@ per iteration. All methods finish with the same two tests per face: a minimum nu
 and a planarity test on the eigenvalues l1 >= l2 >= l3 of the assigned points' covariance,
 (l2 - l3) / l1 > threshold (rejects point sets close to a line).
 
-Only method (a), direct assignment, is implemented; (b) and (c) register in `ASSIGNERS`.
+Methods, by `AssignmentOptions.method` (registered in `ASSIGNERS`):
+- "direct", (a): each point to its closest face within the threshold (here).
+- "msac", (b): planes extracted from the whole cloud by MSAC, matched to faces (assign_msac.py).
+- "roi_msac", (c): one plane searched by MSAC near each face (assign_msac.py).
+- "auto": (b) or (c) while the threshold is large (the block is still far from the model),
+  (a) once it is small.
+(b) and (c) can weight the points' chances of entering an MSAC sample (weighted RANSAC,
+Mulder 4.4): `assign(..., weights=...)` with `AssignmentOptions.weighted_sampling`.
 """
 
 from __future__ import annotations
@@ -32,6 +39,7 @@ class Assignment:
     distance: np.ndarray  # (P,) float64 signed distance to the assigned plane, nan if none
     threshold: float
     rejected_faces: dict[str, int] = field(default_factory=dict)  # reason -> number of faces
+    method: str = "direct"  # the method that made it ("auto" resolves to one)
 
     @property
     def assigned(self) -> np.ndarray:
@@ -60,14 +68,16 @@ class Assignment:
         face_index[point_mask] = -1
         distance[point_mask] = np.nan
         return Assignment(self.point_ids, face_index, distance, self.threshold,
-                          dict(self.rejected_faces))
+                          dict(self.rejected_faces), self.method)
 
 
 class PlaneAssigner(Protocol):
-    """Interface of an assignment method."""
+    """Interface of an assignment method. `weights`: per-point quality (higher = better) for
+    methods that sample points; others ignore it."""
 
     def __call__(self, points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
-                 threshold: float, options: AssignmentOptions) -> Assignment: ...
+                 threshold: float, options: AssignmentOptions,
+                 weights: np.ndarray | None = None) -> Assignment: ...
 
 
 def planarity(points: np.ndarray) -> float:
@@ -105,11 +115,13 @@ def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:
 
 
 def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
-                  threshold: float, options: AssignmentOptions) -> Assignment:
+                  threshold: float, options: AssignmentOptions,
+                  weights: np.ndarray | None = None) -> Assignment:
     """Method (a): each tie point to its closest model face, if closer than `threshold`.
 
     "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
-    contains the point's orthogonal projection (grown by `polygon_margin`).
+    contains the point's orthogonal projection (grown by `polygon_margin`). `weights` play no
+    part.
     """
     face_index, distance = store.closest_faces(points, max_distance=threshold,
                                                margin=options.polygon_margin)
@@ -123,19 +135,54 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
                       rejected)
 
 
-ASSIGNERS: dict[str, PlaneAssigner] = {"direct": assign_direct}
+def _indirect(name: str) -> PlaneAssigner:
+    """Method `name` of assign_msac, imported on first use (that module builds on this one)."""
+
+    def assigner(points, point_ids, store, threshold, options, weights=None):
+        from . import assign_msac
+
+        return getattr(assign_msac, name)(points, point_ids, store, threshold, options,
+                                          weights=weights)
+
+    assigner.__name__ = assigner.__qualname__ = name
+    return assigner
+
+
+ASSIGNERS: dict[str, PlaneAssigner] = {
+    "direct": assign_direct,
+    "msac": _indirect("assign_msac"),
+    "roi_msac": _indirect("assign_roi_msac"),
+}
+
+
+def resolve_method(options: AssignmentOptions, threshold: float) -> str:
+    """The method to run: `options.method`, or for "auto" the indirect method while
+    `threshold` exceeds `options.auto_switch_threshold` and "direct" after."""
+    if options.method != "auto":
+        return options.method
+    if threshold > options.auto_switch_threshold:
+        return options.auto_indirect_method
+    return "direct"
 
 
 def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
-           options: AssignmentOptions) -> Assignment:
+           options: AssignmentOptions, weights: np.ndarray | None = None) -> Assignment:
+    """Assign tie points (local frame) to faces with the method of `options`. `weights`: per-point
+    quality (higher = better, e.g. assign_msac.point_quality_weights), used by the MSAC methods
+    when `options.weighted_sampling` is on."""
+    method = resolve_method(options, threshold)
     try:
-        assigner = ASSIGNERS[options.method]
+        assigner = ASSIGNERS[method]
     except KeyError:
         from .errors import InputError
 
-        raise InputError(f"unknown assignment method {options.method!r}; "
-                         f"available: {', '.join(sorted(ASSIGNERS))}") from None
-    result = assigner(points, point_ids, store, threshold, options)
+        raise InputError(f"unknown assignment method {method!r}; "
+                         f"available: {', '.join(sorted(ASSIGNERS))}, auto") from None
+    if options.method == "auto":
+        logger.info("assignment method auto: %s at threshold %.2f m (switch at %.2f m)",
+                    method, threshold, options.auto_switch_threshold)
+    result = assigner(points, point_ids, store, threshold, options, weights=weights)
+    result.method = method
     logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
                  result.num_assigned, len(point_ids), result.num_faces, threshold,
                  result.rejected_faces)
