@@ -18,6 +18,15 @@ benchmarks/results/{short,long}.md and benchmarks/results/scenarios.json
 seconds}}}}).
 
     .venv/bin/python benchmarks/scenarios.py [--sequences short long] [--scenarios Scn1 Scn3]
+
+With --robustness it runs the blocks shaped unlike the procedural street instead
+(`workspaces/robust_{drive,orbit,strip,short}.toml`: a vehicle drive, an orbit around one
+building, one straight strip, a 20-image block; GNSS with a 4-5 m bias): per case refine and the
+GNSS-only adjustment of the same block (camera centres against the simulated truth, per axis and
+3D; check points), refine's quality verdict and the seconds. Writes the `robustness` section of
+scenarios.json (the other sections are kept) and benchmarks/results/robustness.md.
+
+    .venv/bin/python benchmarks/scenarios.py --robustness [--cases drive orbit strip short]
 """
 
 from __future__ import annotations
@@ -140,6 +149,256 @@ def run_icp(workspace: Path):
     return rec, store
 
 
+# ----------------------------------------------------------------------------------------------
+# robustness: blocks shaped unlike the procedural street
+
+ROBUST_CASES = ("drive", "orbit", "strip", "short")
+# a run counts as at the truth when its camera centres are within this (RMS 3D, m)
+TRUTH_TOLERANCE = 0.25
+
+
+def code_version() -> str:
+    """The commit of the colmap_citymodel package that runs (its git checkout's HEAD), with
+    "+ uncommitted changes" when its sources differ from that commit."""
+    import subprocess
+
+    import colmap_citymodel
+
+    package = Path(colmap_citymodel.__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", "../cpp_ext")
+    except (OSError, subprocess.CalledProcessError):
+        return f"package at {package} (not a git checkout)"
+    return commit + (" + uncommitted changes" if dirty else "")
+
+
+def build_robust_workspace(case: str, *, seed: int | None = None) -> tuple[Path, dict]:
+    """workspaces/robust_<case>.toml -> workspaces/generated/robust/<case>[-seed<N>] (built
+    once, again when the toml no longer matches its sequence key; the sequence cached in
+    workspaces/generated/cache). Returns the workspace and its simulation.json (sizes,
+    registered images, build seconds)."""
+    return build_from_toml(ROOT / "workspaces" / f"robust_{case}.toml",
+                           GENERATED / "robust" / (case if seed is None else f"{case}-seed{seed}"),
+                           seed=seed)
+
+
+def build_from_toml(toml: Path, out: Path, *, seed: int | None = None) -> tuple[Path, dict]:
+    from colmap_citymodel import simulate
+
+    options = simulate.load_scenario(toml)
+    if seed is not None:
+        options.seed = seed
+    stats = out / "simulation.json"
+    if not ((out / "sparse" / "0").is_dir() and stats.exists() and json.loads(
+            stats.read_text()).get("sequence_key") == simulate.sequence_key(options)):
+        simulate.main(toml, out, seed=seed, cache_path=GENERATED / "cache",
+                      overwrite=out.exists(), progress=False)
+    return out, json.loads(stats.read_text())
+
+
+def truth_centres(workspace: Path) -> dict[str, np.ndarray]:
+    """True projection centres by image name, model CRS (truth/ is local to truth/origin.txt)."""
+    truth = pycolmap.Reconstruction(str(workspace / "truth"))
+    lines = [line for line in (workspace / "truth" / "origin.txt").read_text().splitlines()
+             if line.strip() and not line.lstrip().startswith("#")]
+    origin = np.array([float(v) for v in lines[0].split()[:3]])
+    return {im.name: im.projection_center() + origin for im in truth.images.values()}
+
+
+def centre_errors(rec: pycolmap.Reconstruction, origin: np.ndarray, truth: dict) -> dict:
+    """RMS of (estimated - true) camera centres of `rec` (local frame: model CRS - origin) per
+    axis and 3D, over its registered images; also how many of the true images it has."""
+    names, diff = [], []
+    for image in rec.images.values():
+        if image.has_pose and image.name in truth:
+            names.append(image.name)
+            diff.append(image.projection_center() + origin - truth[image.name])
+    if not diff:
+        return {"num_images": 0, "num_true_images": len(truth)}
+    d = np.array(diff)
+    rms = np.sqrt(np.mean(d ** 2, axis=0))
+    return {"rms_x": float(rms[0]), "rms_y": float(rms[1]), "rms_z": float(rms[2]),
+            "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
+            "mean_error": [float(v) for v in d.mean(axis=0)],
+            "num_images": len(names), "num_true_images": len(truth)}
+
+
+def checkpoint_errors(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> dict:
+    """Check point RMS (evaluate()) or, without usable check points, the reason."""
+    if not (workspace / "checkpoints.txt").exists():
+        return {}
+    try:
+        r = evaluate(rec, workspace, origin)
+    except Exception as error:  # too few triangulated check points is a result too
+        return {"error": f"{type(error).__name__}: {error}"}
+    return {k: r[k] for k in ("rms_x", "rms_y", "rms_z", "rms_3d", "num_checkpoints")}
+
+
+def refine_with_quality(workspace: Path, gnss=None) -> dict:
+    """refine() on the workspace (GNSS from its database unless given): the refined and the
+    GNSS-only reconstruction (local frame), their origin, the verdict and its reasons. A refine
+    that raises gives verdict "error" and no refined reconstruction. Without a GNSS-only result
+    from refine, the GNSS-only block is the 7-parameter fit to GNSS plus the bundle adjustment
+    with GNSS priors (run_gnss)."""
+    from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.workflow import refine
+
+    rec, store, gnss_db = inputs(workspace)
+    gnss = gnss_db if gnss is None else gnss
+    options = RefineOptions.preset(
+        "detailed" if model_variant(workspace) == "detailed" else "generalised")
+    options.precision.covariances = "off"
+    out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
+                 "verdict": "n/a", "reasons": [], "observability": None}
+    start = time.perf_counter()
+    try:
+        result = refine(rec, store, gnss, options, progress=False)
+    except Exception as error:
+        out["verdict"] = "error"
+        out["reasons"] = [f"{type(error).__name__}: {error}"]
+        result = None
+    out["seconds"] = time.perf_counter() - start
+    if result is not None:
+        out["refined"] = result.reconstruction
+        out["origin"] = np.asarray(getattr(result, "origin", store.origin))
+        out["gnss_only"] = getattr(result, "gnss_only", None)
+        quality = getattr(result, "quality", None)
+        if quality is not None:
+            out["verdict"] = str(getattr(quality, "verdict", "n/a"))
+            out["reasons"] = [str(r) for r in getattr(quality, "reasons", [])]
+        observability = getattr(result, "observability", None)
+        if observability is not None:
+            out["observability"] = json.loads(json.dumps(observability, default=str))
+    if out["gnss_only"] is None:
+        start = time.perf_counter()
+        out["gnss_only"], gnss_store = gnss_only_block(workspace, gnss)
+        out["gnss_only_origin"] = gnss_store.origin
+        out["gnss_only_seconds"] = time.perf_counter() - start
+    else:
+        out["gnss_only_origin"] = out["origin"]
+    return out
+
+
+def gnss_only_block(workspace: Path, gnss=None):
+    """The GNSS-only adjustment: 7-parameter fit to GNSS, bundle adjustment with GNSS priors."""
+    from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.workflow import georegister, step2_bundle_adjustment
+
+    rec, store, gnss_db = inputs(workspace)
+    _, priors, _ = georegister(rec, store, gnss_db if gnss is None else gnss, None)
+    step2_bundle_adjustment(rec, priors, RefineOptions())
+    return rec, store
+
+
+def robustness_case(case: str) -> dict:
+    start = time.perf_counter()
+    workspace, sim = build_robust_workspace(case)
+    build = time.perf_counter() - start
+    truth = truth_centres(workspace)
+    run = refine_with_quality(workspace)
+    r: dict = {"workspace": str(workspace.relative_to(ROOT)),
+               "num_key_frames": sim["num_key_frames"],
+               "num_registered_images": sim.get("num_registered_images"),
+               "num_models": sim.get("num_models"),
+               "build_seconds": sim.get("total_seconds"), "ready_seconds": build,
+               "verdict": run["verdict"], "reasons": run["reasons"],
+               "observability": run["observability"], "seconds": run["seconds"]}
+    for key, rec, origin in (("refine", run["refined"], run["origin"]),
+                             ("gnss_only", run["gnss_only"], run["gnss_only_origin"])):
+        if rec is None:
+            r[key] = None
+            continue
+        r[key] = {"cameras": centre_errors(rec, origin, truth),
+                  "checkpoints": checkpoint_errors(rec, workspace, origin)}
+    if "gnss_only_seconds" in run:
+        r["gnss_only_seconds"] = run["gnss_only_seconds"]
+    return r
+
+
+def _f(d: dict | None, *keys, fmt: str = "{:.3f}") -> str:
+    for k in keys:
+        if not isinstance(d, dict) or k not in d:
+            return "-"
+        d = d[k]
+    return fmt.format(d) if isinstance(d, (int, float)) else str(d)
+
+
+def robustness_table(results: dict) -> str:
+    lines = ["| case | images (registered) | method | cam RMS X | Y | Z | 3D | CP RMS 3D "
+             "| verdict | s |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for case, r in results.items():
+        images = f"{r['num_key_frames']} ({r['num_registered_images']})"
+        for key, label in (("gnss_only", "GNSS only"), ("refine", "refine")):
+            m = r.get(key)
+            cams = m["cameras"] if m else None
+            cps = m["checkpoints"] if m else None
+            verdict = r["verdict"] if key == "refine" else ""
+            secs = r["seconds"] if key == "refine" else r.get("gnss_only_seconds")
+            lines.append(
+                f"| {case} | {images} | {label} | {_f(cams, 'rms_x')} | {_f(cams, 'rms_y')} | "
+                f"{_f(cams, 'rms_z')} | {_f(cams, 'rms_3d')} | {_f(cps, 'rms_3d')} | {verdict} "
+                f"| {'' if secs is None else f'{secs:.0f}'} |")
+    lines += ["", "Workspaces (simulate: build + COLMAP mapping, seconds when they were built):",
+              "", "| case | key frames | registered | COLMAP models | build s |",
+              "|---|---|---|---|---|"]
+    for case, r in results.items():
+        lines.append(f"| {case} | {r['num_key_frames']} | {r['num_registered_images']} | "
+                     f"{r['num_models']} | {_f(r, 'build_seconds', fmt='{:.0f}')} |")
+    reasons = [(case, r["reasons"]) for case, r in results.items() if r["reasons"]]
+    if reasons:
+        lines += ["", "Reasons given with the verdicts:", ""]
+        lines += [f"- {case}: " + "; ".join(rs) for case, rs in reasons]
+    return "\n".join(lines) + "\n"
+
+
+def _code_versions(results: dict) -> str:
+    versions = sorted({r.get("code", "not recorded") for r in results.values()})
+    return ", ".join(versions) if versions else "-"
+
+
+def run_robustness(cases: list[str], json_path: Path) -> None:
+    everything = json.loads(json_path.read_text()) if json_path.exists() else {}
+    results = everything.setdefault("robustness", {})
+    for case in cases:
+        print(f"robustness {case}: ...", flush=True)
+        r = robustness_case(case)
+        results[case] = r
+        print(f"  verdict {r['verdict']}; camera RMS 3D refine "
+              f"{_f(r['refine'], 'cameras', 'rms_3d')} m, GNSS only "
+              f"{_f(r['gnss_only'], 'cameras', 'rms_3d')} m ({r['seconds']:.0f} s)", flush=True)
+        # re-read before writing: other benchmarks may have written their sections meanwhile
+        current = json.loads(json_path.read_text()) if json_path.exists() else {}
+        r["code"] = code_version()
+        current.setdefault("robustness", {})[case] = r
+        everything = current
+        json_path.write_text(json.dumps(everything, indent=2))
+    results = {c: everything["robustness"][c] for c in ROBUST_CASES
+               if c in everything.get("robustness", {})}
+    text = robustness_table(results)
+    (RESULTS / "robustness.md").write_text(
+        "# Robustness: blocks shaped unlike the procedural street\n\nProduced by (results "
+        "accumulate in scenarios.json, section `robustness`)\n\n    .venv/bin/python "
+        "benchmarks/scenarios.py --robustness\n\nCases (workspaces/robust_*.toml, "
+        "workspaces/README.md): `drive` a forward-looking vehicle camera at 2 m along one side of "
+        "a street (Berlin 3910_5819), `orbit` a UAV circle around one building (Berlin "
+        "3920_5820), `strip` one straight UAV strip (Berlin 3910_5819), `short` 20 images of "
+        "the procedural street. GNSS: white noise 3/3/5 m plus a constant bias of 4 m (drive, "
+        "orbit) or 5 m (strip, short), stated sigma 3/3/5 m. cam RMS: camera centres (estimated "
+        "- simulated truth, m) over the registered images; CP RMS 3D: check points "
+        "triangulated in the result. GNSS only: the GNSS-only adjustment of the same block "
+        "(refine's own when it returns one, else a 7-parameter fit to GNSS plus bundle "
+        "adjustment with GNSS priors). verdict: refine's quality verdict (n/a: this refine "
+        "has none); s: seconds of refine (for GNSS only: of that separate adjustment).\n\n"
+        f"Code measured: {_code_versions(results)}.\n\n" + text)
+    print(text)
+
+
 RUNNERS = {"refine_a": run_refine, "gnss_ba": lambda w: run_gnss(w, True),
            "gnss_sim3": lambda w: run_gnss(w, False), "icp": run_icp}
 
@@ -174,12 +433,19 @@ def main() -> None:
     parser.add_argument("--methods", nargs="+", default=list(METHODS))
     parser.add_argument("--tables_only", action="store_true",
                         help="only rewrite the tables from results/scenarios.json")
+    parser.add_argument("--robustness", action="store_true",
+                        help="run the robustness cases (workspaces/robust_*.toml) instead")
+    parser.add_argument("--cases", nargs="+", default=list(ROBUST_CASES),
+                        choices=ROBUST_CASES, help="robustness cases to run")
     args = parser.parse_args()
     import colmap_citymodel  # noqa: F401  (sets up the package logger first)
 
     logging.getLogger("colmap_citymodel").setLevel(logging.WARNING)
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "scenarios.json"
+    if args.robustness:
+        run_robustness([] if args.tables_only else args.cases, json_path)
+        return
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     for sequence in args.sequences:
         results = everything.setdefault(sequence, {})
