@@ -189,19 +189,28 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     return result
 
 
+def initial_threshold(options: AssignmentOptions) -> float:
+    """Upper limit of the threshold, used in the first iteration: `max_threshold` (2 m) for
+    direct assignment, `indirect_max_threshold` (3 m) for (b), (c) and "auto" (Unger 5.3)."""
+    if options.method in ("msac", "roi_msac", "auto"):
+        return options.indirect_max_threshold
+    return options.max_threshold
+
+
 def next_threshold(previous: Assignment, points: np.ndarray, store: PlaneStore,
                    options: AssignmentOptions, sigma_dtp: float) -> float:
-    """Threshold schedule of method (a): 3.5 x the mean over faces of the per-face mean
+    """Threshold schedule (Unger 4.2, 5.3): 3.5 x the mean over faces of the per-face mean
     |distance| of the previously assigned points (at their current coordinates), bounded to
-    [2 sigma_dTP, max_threshold]."""
+    [2 sigma_dTP, initial_threshold(options)]."""
     lower = options.min_threshold_sigmas * sigma_dtp
+    upper = initial_threshold(options)
     assigned = previous.assigned
     if not np.any(assigned):
-        return options.max_threshold
+        return upper
     faces = previous.face_index[assigned]
     pts = points[assigned]
     distances = np.abs(np.einsum("ij,ij->i", pts, store.normals[faces]) + store.offsets[faces])
     unique_faces, inverse = np.unique(faces, return_inverse=True)
     per_face_mean = np.bincount(inverse, weights=distances) / np.bincount(inverse)
     threshold = options.threshold_factor * float(np.mean(per_face_mean))
-    return float(np.clip(threshold, lower, options.max_threshold))
+    return float(np.clip(threshold, lower, upper))

@@ -56,6 +56,8 @@ def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np
     eigenvector of the smallest eigenvalue of the weighted covariance about the weighted
     centroid."""
     w = np.ones(len(points)) if weights is None else np.asarray(weights, float)
+    if not w.sum() > 0:
+        w = np.ones(len(points))
     centre = (w[:, None] * points).sum(0) / w.sum()
     centred = points - centre
     _, vectors = np.linalg.eigh((w[:, None] * centred).T @ centred)

@@ -8,7 +8,7 @@ import pytest
 from colmap_citymodel.assign_msac import (ExtractedPlane, alpha_components, assign_msac,
                                           assign_roi_msac, extract_planes, match_planes,
                                           point_quality_weights)
-from colmap_citymodel.assign_planes import assign
+from colmap_citymodel.assign_planes import assign, initial_threshold, next_threshold
 from colmap_citymodel.options import AssignmentOptions, RefineOptions
 from colmap_citymodel.plane_store import store_from_polygons
 from colmap_citymodel.synthetic_scene import (StreetSceneOptions, building_polygons,
@@ -260,6 +260,20 @@ def test_auto_uses_an_indirect_method_while_the_threshold_is_large(caplog):
     assert "auto: roi_msac" in caplog.text and "auto: direct" in caplog.text
     options.auto_indirect_method = "msac"
     assert assign(points, ids, store, 2.5, options).method == "msac"
+
+
+def test_threshold_upper_limit_depends_on_the_method():
+    rng = np.random.default_rng(20)
+    store = box_store()
+    points = plane_patch(rng, 60, [5, -1.5, 5], [1, 0, 0], [0, 0, 1], (8, 8), 0.3)
+    ids = np.arange(60)
+    for method, upper in (("direct", 2.0), ("roi_msac", 3.0), ("msac", 3.0), ("auto", 3.0)):
+        options = AssignmentOptions(method=method)
+        assert initial_threshold(options) == upper
+        first = assign(points, ids, store, upper, options)
+        assert first.num_assigned > 0, method
+        # 3.5 x ~1.5 m is above both limits: the schedule stays at the method's upper limit
+        assert next_threshold(first, points, store, options, sigma_dtp=0.2) == upper
 
 
 def test_options_file_selects_the_method():
