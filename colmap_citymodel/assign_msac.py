@@ -245,29 +245,31 @@ def point_quality_weights(reconstruction, point_ids: np.ndarray) -> np.ndarray:
     sigma, which depends on the same two quantities). Points with fewer than two images get 0.
     """
     point_ids = np.asarray(point_ids, dtype=np.int64)
-    centres = {i: np.asarray(reconstruction.image(i).projection_center())
-               for i in reconstruction.reg_image_ids()}
-    rays, lengths = [], np.zeros(len(point_ids), np.int64)
+    xyz = np.zeros((len(point_ids), 3))
+    lengths = np.zeros(len(point_ids), np.int64)
+    image_ids: list[int] = []
     for k, pid in enumerate(point_ids):
         point = reconstruction.point3D(int(pid))
-        ids = [e.image_id for e in point.track.elements]
-        if not ids:
-            continue
-        lengths[k] = len(ids)
-        rays.append(point.xyz - np.array([centres[i] for i in ids]))
-    weights = np.zeros(len(point_ids))
-    if not rays:
-        return weights
-    rays = np.vstack(rays)
+        elements = point.track.elements
+        lengths[k] = len(elements)
+        image_ids.extend(e.image_id for e in elements)
+        xyz[k] = point.xyz
+    image_ids = np.asarray(image_ids, np.int64)
+    registered = list(reconstruction.reg_image_ids())
+    centres = np.full((max(registered + [int(image_ids.max(initial=0))]) + 1, 3), np.nan)
+    for i in registered:  # images without a pose give no ray (nan, ignored)
+        centres[i] = reconstruction.image(i).projection_center()
+    rays = np.repeat(xyz, lengths, axis=0) - centres[image_ids]
     rays /= np.linalg.norm(rays, axis=1, keepdims=True)
-    # largest pairwise angle per point, over groups of equal track length (padded blocks)
+    # largest pairwise angle per point, in blocks of points with equal track length
     sine = np.zeros(len(point_ids))
     starts = np.r_[0, np.cumsum(lengths)[:-1]]
     for length in np.unique(lengths[lengths >= 2]):
         which = np.flatnonzero(lengths == length)
         for chunk in np.array_split(which, max(1, len(which) * length * length // 4_000_000)):
             block = rays[starts[chunk, None] + np.arange(length)]  # (m, L, 3)
-            cosine = np.einsum("mai,mbi->mab", block, block).min(axis=(1, 2))
+            cosine = np.einsum("mai,mbi->mab", block, block)
+            cosine = np.where(np.isnan(cosine), 1.0, cosine).min(axis=(1, 2))
             angle = np.arccos(np.clip(cosine, -1.0, 1.0))
             sine[chunk] = np.sin(np.minimum(angle, np.pi / 2))
     weights = np.sqrt(lengths) * sine
