@@ -35,7 +35,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .assign_planes import Assignment, excluded_faces, filter_faces
-from .msac import (alpha_components, boundary_centroid, fit_plane, inliers_of, msac_plane,
+from .msac import (alpha_components, boundary_centroid, fit_plane, msac_plane,
                    plane_coordinates, point_normals)
 from .options import AssignmentOptions
 from .plane_store import PlaneStore
@@ -71,7 +71,6 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
     order = np.argsort(keys, kind="stable")  # the remaining points stay sorted by cell
     normals = (point_normals(points, options.msac_point_normal_neighbours)
                if options.msac_point_normal_angle < 90.0 else None)
-    point_cos = math.cos(math.radians(options.msac_point_normal_angle))
     # the points not yet in a plane, kept sorted by cell and compacted after each plane
     remaining = order
     pts, cell_keys = points[order], keys[order]
@@ -84,9 +83,8 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
                            normals_of_points=pts_normals)
         if found is None:
             break
-        normal, offset = found
-        inliers = np.flatnonzero(inliers_of(pts, normal, offset, threshold, pts_normals,
-                                            point_cos))
+        normal, offset, inlier_mask = found
+        inliers = np.flatnonzero(inlier_mask)
         if len(inliers) < min_points:
             break
         labels = alpha_components(plane_coordinates(pts[inliers], normal), options.alpha_radius)
@@ -224,8 +222,7 @@ def assign_roi_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore
         if found is None:
             rejected["no_plane_in_roi"] = rejected.get("no_plane_in_roi", 0) + 1
             continue
-        normal, offset = found
-        face_index[idx[np.abs(pts @ normal + offset) < inlier_distance]] = face
+        face_index[idx[found[2]]] = face
     return _finish(points, point_ids, store, face_index, threshold, options, rejected,
                    "roi_msac")
 

@@ -163,9 +163,10 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
                rng: np.random.Generator, *, weights: np.ndarray | None = None,
                cell_keys: np.ndarray | None = None, reference: np.ndarray | None = None,
                normals_of_points: np.ndarray | None = None
-               ) -> tuple[np.ndarray, float] | None:
-    """The best plane of `points` by MSAC (unit normal, offset), refit to its inliers; None if
-    no hypothesis exists (fewer than three points, all collinear, or none within the angle).
+               ) -> tuple[np.ndarray, float, np.ndarray] | None:
+    """The best plane of `points` by MSAC, refit to its inliers: unit normal, offset and the
+    inlier mask; None if no hypothesis exists (fewer than three points, all collinear, or none
+    within the angle).
 
     `reference`: unit normal; only planes whose normal is within `options.max_normal_angle`
     of it (either sign) are considered. `cell_keys`: nondecreasing cell id per point for local
@@ -180,10 +181,11 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
               if n > options.msac_sample_points else np.arange(n))
     # the subset in single precision about its centre: half the memory traffic, and 1e-7
     # relative to tens of metres is far below any inlier distance
-    centre = points[subset].mean(0)
-    scored = (points[subset] - centre).astype(np.float32)
-    scored_normals = (None if normals_of_points is None
-                      else normals_of_points[subset].astype(np.float32))
+    sub_points = points[subset]
+    sub_normals = None if normals_of_points is None else normals_of_points[subset]
+    centre = sub_points.mean(0)
+    scored = (sub_points - centre).astype(np.float32)
+    scored_normals = None if sub_normals is None else sub_normals.astype(np.float32)
     min_cos = math.cos(math.radians(options.max_normal_angle))
     point_cos = math.cos(math.radians(options.msac_point_normal_angle))
     log_fail = math.log(max(1.0 - options.msac_confidence, 1e-12))
@@ -204,9 +206,8 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
         kept_normals.append(normals[top])
         kept_offsets.append(offsets[top])
         kept_costs.append(cost[top])
-        inliers = inliers_of(points[subset], normals[top[0]], offsets[top[0]], inlier_distance,
-                             None if normals_of_points is None else normals_of_points[subset],
-                             point_cos)
+        inliers = inliers_of(sub_points, normals[top[0]], offsets[top[0]], inlier_distance,
+                             sub_normals, point_cos)
         best_fraction = max(best_fraction, np.count_nonzero(inliers) / len(scored))
         if best_fraction > 0:
             miss = 1.0 - best_fraction ** 3
@@ -224,9 +225,8 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     else:
         best = 0
     normal, offset = normals[best], float(offsets[best])
+    inliers = inliers_of(points, normal, offset, inlier_distance, normals_of_points, point_cos)
     for _ in range(2):  # local optimisation: least squares on the inliers
-        inliers = inliers_of(points, normal, offset, inlier_distance, normals_of_points,
-                             point_cos)
         if np.count_nonzero(inliers) < 3:
             break
         refit, refit_offset = fit_plane(points[inliers],
@@ -234,7 +234,9 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
         if reference is not None and abs(refit @ reference) < min_cos:
             break
         normal, offset = refit, refit_offset
-    return normal, offset
+        inliers = inliers_of(points, normal, offset, inlier_distance, normals_of_points,
+                             point_cos)
+    return normal, offset, inliers
 
 
 # ----------------------------------------------------------------------------------------------
