@@ -1,17 +1,17 @@
 """MSAC plane estimation and alpha-shape components of planar point sets, for the indirect
 assignment methods (assign_msac.py; Unger 4.3, Mulder 4.4).
 
-MSAC (Torr and Zisserman 2000) scores a hypothesis by the truncated quadratic cost
-sum min(d^2, T^2) rather than RANSAC's inlier count: of two planes with equally many inliers the
-closer fit wins. Here hypotheses are drawn in batches and scored, vectorised, on a random
-subsample of at most `msac_sample_points` points; the best few are scored again on all points.
-The number of hypotheses follows the best inlier fraction so far (`msac_confidence`), bounded by
+MSAC (Torr and Zisserman 2000) scores a hypothesis by the truncated quadratic cost sum
+min(d^2, T^2) rather than RANSAC's inlier count: of two planes with equally many inliers the closer
+fit wins. Here hypotheses are drawn in batches and scored, vectorised, on a random subsample of at
+most `msac_sample_points` points; the best few are scored again on a four times larger one. The
+number of hypotheses follows the best inlier fraction so far (`msac_confidence`), bounded by
 `msac_max_trials`. The winner is refit by least squares to its inliers twice (the local
 optimisation of LO-RANSAC), so that a hypothesis from three nearby points extends to the whole
 plane. Optional, as the caller needs them: a reference normal the plane must stay close to
-(method (c)); local sampling, two of the three points from the first one's cell (method (b):
-three random points of a street's cloud almost never lie on one of its hundreds of planes); a
-point normal test (method (b)).
+(method (c)); local sampling, two of the three points from the first one's cell (method (b): three
+random points of a street's cloud almost never lie on one of its hundreds of planes); a point
+normal test (method (b)).
 
 Weighted RANSAC (Mulder 4.4): with per-point weights (higher = better), sample points are drawn
 with probability proportional to their weight and refits are weighted least squares; the MSAC
@@ -39,9 +39,11 @@ from scipy.spatial import Delaunay, QhullError
 
 from .options import AssignmentOptions
 
-#: Hypotheses drawn per vectorised batch, and how many of a run's best are scored on all points.
+#: Hypotheses drawn per vectorised batch; how many of a run's best are scored again, on a
+#: subsample this many times larger.
 _BATCH = 64
 _RESCORED = 8
+_RESCORE_FACTOR = 4
 #: Smallest number of hypotheses even when the first batch looks all-inlier.
 _MIN_TRIALS = 64
 
@@ -177,7 +179,9 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     if n < 3:
         return None
     sampler = _Sampler(n, rng, weights, cell_keys)
-    subset = (rng.choice(n, options.msac_sample_points, replace=False)
+    # subsamples drawn with replacement: a repeated point hardly changes a cost, and drawing
+    # without replacement costs a permutation of all points
+    subset = (rng.integers(0, n, options.msac_sample_points)
               if n > options.msac_sample_points else np.arange(n))
     # the subset in single precision about its centre: half the memory traffic, and 1e-7
     # relative to tens of metres is far below any inlier distance
@@ -219,9 +223,12 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     normals, offsets = np.vstack(kept_normals), np.concatenate(kept_offsets)
     top = np.argsort(np.concatenate(kept_costs))[:_RESCORED]
     normals, offsets = normals[top], offsets[top]
-    if len(subset) < n:  # the best few again, on all points
-        best = int(np.argmin(_msac_cost(points, normals, offsets, inlier_distance,
-                                        normals_of_points, point_cos)))
+    if len(subset) < n:  # the best few again, on a larger subsample
+        again = (rng.integers(0, n, _RESCORE_FACTOR * len(subset))
+                 if n > _RESCORE_FACTOR * len(subset) else slice(None))
+        best = int(np.argmin(_msac_cost(points[again], normals, offsets, inlier_distance,
+                                        None if normals_of_points is None
+                                        else normals_of_points[again], point_cos)))
     else:
         best = 0
     normal, offset = normals[best], float(offsets[best])

@@ -70,7 +70,8 @@ class AssignmentOptions:
     """At most this many plane hypotheses per MSAC run (bounds the run time; not from Unger)."""
     msac_sample_points: int = 2048
     """Hypotheses are scored on a random subsample of at most this many points; the best few
-    are scored again on all (bounds the run time on 100k points; not from Unger)."""
+    are scored again on four times as many (bounds the run time on 100k points; not from
+    Unger)."""
     msac_sample_cell: float = 4.0
     """(b): half of the samples take their three points from one cube of this side (m), so
     that small planes of a large cloud get sampled at all (not from Unger)."""
