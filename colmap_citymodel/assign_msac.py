@@ -65,6 +65,8 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
     """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1)."""
     rng = rng or np.random.default_rng(options.random_seed)
     threshold, min_points = options.msac_inlier_distance, options.min_points_per_plane
+    if len(points) < max(min_points, 3):
+        return []
     cells = np.floor((points - points.min(0)) / options.msac_sample_cell).astype(np.int64)
     dims = cells.max(0) + 1
     keys = cells[:, 0] + dims[0] * (cells[:, 1] + dims[1] * cells[:, 2])

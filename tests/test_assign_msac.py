@@ -262,6 +262,16 @@ def test_auto_uses_an_indirect_method_while_the_threshold_is_large(caplog):
     assert assign(points, ids, store, 2.5, options).method == "msac"
 
 
+@pytest.mark.parametrize("method", ["msac", "roi_msac"])
+def test_degenerate_inputs_assign_nothing(method):
+    store = box_store()
+    options = AssignmentOptions(method=method)
+    line = np.column_stack([np.linspace(1, 9, 40), np.full(40, -0.05), np.full(40, 5.0)])
+    for points in (np.zeros((0, 3)), line[:2], line, np.tile([5, -0.05, 5.0], (40, 1))):
+        result = assign(points, np.arange(len(points)), store, 2.0, options)
+        assert result.num_assigned == 0 and len(result.face_index) == len(points)
+
+
 def test_threshold_upper_limit_depends_on_the_method():
     rng = np.random.default_rng(20)
     store = box_store()
