@@ -131,8 +131,8 @@ def match_planes(planes: list[ExtractedPlane], store: PlaneStore, threshold: flo
         & (distance < threshold)
     candidate[:, excluded_faces(store, options)] = False
     plane, face = np.nonzero(candidate)
-    u, v = store._to_face_2d(face, centroids[plane])
-    inside = store._inside_pairs(face, u, v, options.polygon_margin)
+    inside = np.array([store.contains_projection(int(f), centroids[p], options.polygon_margin)[0]
+                       for p, f in zip(plane, face)], dtype=bool)
     plane, face = plane[inside], face[inside]
     order = np.lexsort((distance[plane, face], plane))
     plane, face = plane[order], face[order]
