@@ -104,6 +104,10 @@ def _add_refine(subparsers) -> None:
                    choices=["generalised", "detailed", "correct_model"],
                    help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane)")
     p.add_argument("--options", dest="options_file", help="TOML file overriding options")
+    p.add_argument("--assignment", choices=["direct", "msac", "roi_msac", "auto"], default=None,
+                   help="tie point to plane assignment: direct (a, default), msac (b: planes "
+                        "extracted from the cloud), roi_msac (c: one plane searched near each "
+                        "model plane), auto (indirect while the threshold is above 1 m)")
     p.add_argument("--lod", type=int, default=2, help="level of detail of the model to use")
     p.add_argument("--crs", dest="model_crs", help="CRS of a model file that names none")
     p.add_argument("--target_crs", help="projected CRS to reproject a geographic model to")
@@ -139,7 +143,7 @@ def _add_refine(subparsers) -> None:
              lever_arm=args.lever_arm, checkpoints=args.checkpoints,
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,
-             variance_components=args.variance_components)
+             variance_components=args.variance_components, assignment=args.assignment)
         # The quality gate failed: the output holds the GNSS-only result.
         return 3 if result.handed_back == "gnss_only" else 0
 

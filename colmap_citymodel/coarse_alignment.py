@@ -36,6 +36,9 @@ TRANSLATION_LEVELS = ((2.0, 1.5), (1.0, 0.5), (0.4, 0.2))
 SHIFT_PENALTY = 0.01
 #: Tie points used by the searches (a random subset of a larger block).
 MAX_SEARCH_POINTS = 2000
+#: Cameras of a street or UAV block do not look up at the sky: a roll that would make their
+#: mean viewing direction rise above this elevation (deg) is not considered.
+MAX_VIEW_ELEVATION_DEG = 20.0
 #: Cells of the coarse distance grid at most (its spacing grows for large blocks).
 MAX_GRID_CELLS = 4_000_000
 
@@ -209,14 +212,14 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def point_cloud_planes(points: np.ndarray, distance: float = 0.3, max_planes: int = 12,
-                       min_points: int = 40) -> tuple[np.ndarray, np.ndarray]:
+                       min_points: int = 40, with_inliers: bool = False):
     """Dominant planes of a tie point cloud by sequential RANSAC (Open3D `segment_plane`):
-    (normals (K,3), inlier counts (K,))."""
+    (normals (K,3), inlier counts (K,)), and with `with_inliers` the inlier points of each."""
     import open3d as o3d
 
     rest = subsample(points, 20000)
     o3d.utility.random.seed(0)  # deterministic RANSAC samples
-    normals, counts = [], []
+    normals, counts, members = [], [], []
     for _ in range(max_planes):
         if len(rest) < min_points:
             break
@@ -224,10 +227,26 @@ def point_cloud_planes(points: np.ndarray, distance: float = 0.3, max_planes: in
         model, inliers = cloud.segment_plane(distance, 3, 500)
         if len(inliers) < min_points:
             break
+        inliers = np.asarray(inliers, np.int64)
         normals.append(np.asarray(model[:3], float) / np.linalg.norm(model[:3]))
         counts.append(len(inliers))
-        rest = np.delete(rest, np.asarray(inliers, np.int64), axis=0)
-    return np.array(normals).reshape(-1, 3), np.array(counts, float)
+        members.append(rest[inliers])
+        rest = np.delete(rest, inliers, axis=0)
+    result = np.array(normals).reshape(-1, 3), np.array(counts, float)
+    return (*result, members) if with_inliers else result
+
+
+#: Planes of the tie point cloud within this angle of the vertical direction count as walls.
+WALL_TILT_DEG = 15.0
+
+
+def wall_points(points: np.ndarray) -> np.ndarray:
+    """Tie points on the dominant vertical planes of the cloud (walls): in a city they are
+    where a LoD2 model is surely right, unlike the ground (not modelled), trees or cars."""
+    normals, _, members = point_cloud_planes(points, with_inliers=True)
+    walls = [m for n, m in zip(normals, members)
+             if abs(n[2]) < np.sin(np.radians(WALL_TILT_DEG))]
+    return np.vstack(walls) if walls else np.zeros((0, 3))
 
 
 @dataclass
@@ -245,12 +264,16 @@ class RollSearch:
 
 
 def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store: PlaneStore,
-                camera_up: np.ndarray, tolerance_deg: float = 4.0, step_deg: float = 1.0,
+                camera_up: np.ndarray, camera_view: np.ndarray, tolerance_deg: float = 4.0,
+                step_deg: float = 1.0, max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
                 excluded_classes=("GroundSurface", "ClosureSurface")) -> RollSearch | None:
     """The rotation about `axis` (through `centre`) that makes the tie point planes' normals
     model normals, keeping the cameras upright: `camera_up` (N,3) are the cameras' image "up"
-    directions (-y axis) in the current frame and must keep a positive mean vertical
-    component. None when the tie points hold no plane."""
+    directions (-y axis), `camera_view` their viewing directions (z axis), in the current
+    frame. The mean image up must point above the horizon and the mean view must not rise
+    above `max_view_elevation_deg`: walls and flat roofs are both planes of model
+    orientations, so a block turned by 90 deg (walls on roofs, cameras looking at the sky)
+    would match as well. None when the tie points hold no plane."""
     normals, counts = point_cloud_planes(points)
     if not len(normals):
         return None
@@ -258,10 +281,13 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
     model = store.normals[faces] if faces else store.normals
     cos_tol = np.cos(np.radians(tolerance_deg))
     up_mean = np.mean(camera_up, axis=0)
+    view_mean = np.mean(camera_view, axis=0)
+    view_mean /= max(np.linalg.norm(view_mean), 1e-12)
+    max_rise = np.sin(np.radians(max_view_elevation_deg))
 
     def score(angle: float) -> float:
         rotation = rotation_about(axis, angle)
-        if (rotation @ up_mean)[2] <= 0.0:
+        if (rotation @ up_mean)[2] <= 0.0 or (rotation @ view_mean)[2] > max_rise:
             return -1.0
         rotated = normals @ rotation.T
         cosines = np.abs(rotated @ model.T).max(axis=1)
@@ -298,7 +324,7 @@ MIN_ROLL_GAIN = 0.05
 
 
 def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndarray,
-                     store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
+                     camera_view: np.ndarray, store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
                      straight: bool, search_sigmas: float = 4.0) -> CoarseAlignment:
     """Roll about a straight flight line (when `straight`) and shift of the whole block.
 
@@ -313,7 +339,7 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     if straight:
         centre = centres.mean(0)
         axis = np.linalg.svd(centres - centre)[2][0]
-        roll = search_roll(points, axis, centre, store, camera_up)
+        roll = search_roll(points, axis, centre, store, camera_up, camera_view)
         if roll is not None:
             found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
                           "normal_score_unrotated": roll.score_at_zero})

@@ -19,6 +19,10 @@ import pycolmap
 logger = logging.getLogger(__name__)
 
 
+#: With a scale prior, the fitted scale never leaves +- this many of its sigmas.
+SCALE_BOUND_SIGMAS = 3.0
+
+
 @dataclass
 class PlaneAlignment:
     """The similarity found and how well the points fit before and after it."""
@@ -51,8 +55,8 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
     antenna positions A (current block) against their observations G, plus (log s / scale_sigma)^2
     when `scale_sigma` is given: the scale may change only as far as GNSS determines it (planes
     alone pull a block whose assignments are partly wrong towards a smaller size, where every
-    distance is shorter). Gauss-Newton with iteratively reweighted least squares; analytic
-    Jacobian about the centroid c.
+    distance is shorter); the scale is also bounded to +- SCALE_BOUND_SIGMAS of it. Gauss-Newton
+    with iteratively reweighted least squares; analytic Jacobian about the centroid c.
     """
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
@@ -100,6 +104,10 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
         omega, dt, ds = step[:3], step[3:6], step[6]
         increment = np.asarray(pycolmap.Rotation3d(omega).matrix())
         # Compose: new X' = centre + e^ds * dR (X'_old - centre) + dt.
+        if scale_sigma is not None:
+            # Many wrongly assigned points outweigh any prior: bound the scale hard as well.
+            bound = SCALE_BOUND_SIGMAS * scale_sigma
+            ds = float(np.clip(np.log(scale) + ds, -bound, bound) - np.log(scale))
         rotation = increment @ rotation
         scale *= float(np.exp(ds))
         shift = np.exp(ds) * increment @ shift + dt

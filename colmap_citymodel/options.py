@@ -173,7 +173,9 @@ class AdjustmentOptions:
 
 
 #: Options that take one of a few words.
-CHOICES = {"adjustment.image_loss": ("huber", "cauchy")}
+CHOICES = {"adjustment.image_loss": ("huber", "cauchy"),
+           "assignment.method": ("direct", "msac", "roi_msac", "auto"),
+           "assignment.auto_indirect_method": ("msac", "roi_msac")}
 
 
 @dataclass

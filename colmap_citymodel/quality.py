@@ -37,16 +37,16 @@ def _datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarr
 
 def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                       centre: np.ndarray, sigma: float, sigma_generalisation: float
-                      ) -> np.ndarray:
-    """7x7 information of the datum from tie points on planes (one group per plane)."""
+                      ) -> list[np.ndarray]:
+    """7x7 information of the datum from the tie points of each plane (one group per plane)."""
     jac = _datum_jacobian(points, normals, centre)
-    info = jac.T @ jac / sigma ** 2
     g2, s2 = sigma_generalisation ** 2, sigma ** 2
+    out = []
     for group in np.unique(groups):
         j = jac[groups == group]
         total = j.sum(0)
-        info -= np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2))
-    return info
+        out.append(j.T @ j / s2 - np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2)))
+    return out
 
 
 def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray
@@ -80,19 +80,30 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   sigma_dtp: float, sigma_generalisation: float) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both."""
-    anchors = [points] + ([gnss_positions] if gnss_positions is not None else [])
-    centre = np.vstack(anchors).mean(0)
-    planes = (plane_information(points, normals, groups, centre, sigma_dtp, sigma_generalisation)
-              if len(points) else np.zeros((7, 7)))
+    # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
+    # the tie points': the position users care about, and rotations then do not leak into it.
+    centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
+              else points.mean(0))
+    per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
+                                   sigma_generalisation) if len(points) else [])
+    planes = sum(per_plane, np.zeros((7, 7)))
     gnss = (gnss_information(gnss_positions, gnss_sigmas, centre)
             if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss, s_both = _sigmas(planes), _sigmas(gnss), _sigmas(planes + gnss)
+    # A direction that only one plane fixes rests on that plane's assignment being right (one
+    # roof among facades): it counts for the planes only if it survives leaving any one out
+    # (judged with the other parameters held, so that two parallel facades, which together
+    # also fix the scale, still count for their normal direction).
+    diagonals = np.array([np.diag(planes - info) for info in per_plane]).reshape(-1, 7)
+    s_robust = (1.0 / np.sqrt(np.maximum(diagonals.min(axis=0), 1e-30)) if len(per_plane) > 1
+                else np.full(7, np.inf))
     out = {}
     for k, name in enumerate(DATUM):
         kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
         limit = UNDETERMINED[kind]
-        p_ok, g_ok = s_planes[k] < limit, s_gnss[k] < limit
+        g_ok = s_gnss[k] < limit
+        p_ok = s_planes[k] < limit and s_robust[k] < (s_gnss[k] if g_ok else limit)
         if p_ok and (not g_ok or s_planes[k] * DOMINANCE < s_gnss[k]):
             source = "planes"
         elif g_ok and (not p_ok or s_gnss[k] * DOMINANCE < s_planes[k]):
@@ -103,6 +114,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
             source = "none"
         factor = np.degrees(1.0) if kind == "rotation" else 1.0
         out[name] = {"source": source,
+                     "one_plane": bool(s_planes[k] < limit and not p_ok),
                      "sigma": _finite(s_both[k] * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor)}
@@ -135,9 +147,18 @@ class QualityThresholds:
     """Scale change from the GNSS-only result beyond this many of its GNSS sigmas."""
     min_assigned_share: float = 0.02
     """Fewer tie points than this share on planes: the model does not fit the block."""
-    min_near_share: float = 0.10
-    """Share of tie points within `near_distance` of the model below which the fit is weak."""
+    min_near_share: float = 0.35
+    """Share of tie points within `near_distance` of the model below which the fit is weak
+    (simulated streets, drives, strips and orbits that fit: 0.6-0.9, with ground and clutter
+    points; part of a model that fits only where it overlaps: 0.27)."""
+    failed_near_share: float = 0.10
+    """Below this share the model does not fit the block at all: failed."""
     near_distance: float = 0.5
+    wall_ok: float = 0.6
+    """Share of the tie points on vertical planes of the cloud (walls: the model's surest part)
+    that lie within `near_distance` of the model, below which the fit is weak."""
+    wall_failed: float = 0.3
+    """Below this share the model's walls are not where the block's walls are: failed."""
     dtp_rms_weak: float = 2.0
     """RMS point-to-plane distance above this many sigma_dTP: weak."""
     gnss_scatter_weak: float = 1.5
@@ -192,16 +213,26 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
     if before is not None and after < before:
         failed.append(f"fewer tie points near the model after refine ({100 * after:.0f} %) "
                       f"than with GNSS only ({100 * before:.0f} %)")
+    elif after < t.failed_near_share:
+        failed.append(f"only {100 * after:.0f} % of the tie points lie within "
+                      f"{t.near_distance:g} m of the model: it does not fit the block")
     elif after < t.min_near_share:
         weak.append(f"only {100 * after:.0f} % of the tie points lie within "
                     f"{t.near_distance:g} m of the model")
+    walls = metrics.get("wall_near_share")
+    if walls is not None and walls < t.wall_ok:
+        (failed if walls < t.wall_failed else weak).append(
+            f"only {100 * walls:.0f} % of the tie points on walls lie on the model's walls")
     if metrics.get("dtp_rms_sigmas", 0.0) > t.dtp_rms_weak:
         weak.append(f"tie points lie {metrics['dtp_rms_m']:.2f} m (RMS) from their planes")
     ratio = metrics.get("gnss_scatter_ratio")
     if ratio is not None and ratio > t.gnss_scatter_weak:
         weak.append(f"the GNSS residuals scatter {ratio:.1f}x more than with GNSS only")
     fixed = metrics.get("planes_fix")
-    if fixed is not None and not any(k in fixed for k in ("E", "N", "U")):
-        weak.append("the assigned planes fix no direction of the block's position")
+    if fixed is not None:
+        free = [k for k in ("E", "N", "U") if k not in fixed]
+        if free:
+            weak.append(f"the model planes do not fix {', '.join(free)}: there the position "
+                        "is GNSS's alone")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)

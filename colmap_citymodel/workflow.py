@@ -28,7 +28,8 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from .assign_planes import Assignment, assign, filter_faces, next_threshold
+from .assign_planes import (Assignment, assign, filter_faces, initial_threshold,
+                            next_threshold)
 from .errors import DatumError, GeoregistrationError, GNSSError, NoOverlapError
 from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
 from .options import RefineOptions
@@ -268,10 +269,12 @@ def _lateral_spread(centres: np.ndarray) -> float:
     return float(singular[1] / np.sqrt(len(centres)))
 
 
-def camera_up_directions(rec: pycolmap.Reconstruction) -> np.ndarray:
-    """Image "up" (-y axis) of every registered camera in the world frame."""
-    return np.array([-np.asarray(rec.image(i).cam_from_world().rotation.matrix())[1]
+def camera_up_and_view(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+    """Image "up" (-y axis) and viewing direction (z axis) of every registered camera in the
+    world frame."""
+    rows = np.array([np.asarray(rec.image(i).cam_from_world().rotation.matrix())
                      for i in rec.reg_image_ids()])
+    return -rows[:, 1], rows[:, 2]
 
 
 def scale_sigma_from_gnss(priors: GNSSPriors) -> float:
@@ -367,7 +370,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         _, points = tie_points(rec, exclude_point_ids)
         centres = camera_centres(rec)
         straight = _lateral_spread(centres) < float(np.median(priors.sigmas[:, :2]))
-        coarse = coarse_alignment(points, centres, camera_up_directions(rec), store, surface,
+        coarse = coarse_alignment(points, centres, *camera_up_and_view(rec), store, surface,
                                   np.median(priors.sigmas, axis=0), straight,
                                   o_w.coarse_search_sigmas)
         if objective(rec, coarse.sim3) < objective(rec):
@@ -378,7 +381,12 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
 
     current = store
-    threshold = o_a.max_threshold
+    threshold = initial_threshold(o_a)
+    weights = None
+    if o_a.weighted_sampling:
+        from .assign_msac import point_quality_weights
+
+        weights = point_quality_weights(rec, all_ids)
     assignment: Assignment | None = None
     iterations: list[IterationRecord] = []
     previous_rms = None
@@ -395,7 +403,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             # The threshold never grows again: no flip-flop between two assignments.
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
-        assignment = assign(points, point_ids, current, threshold, o_a)
+        assignment = assign(points, point_ids, current, threshold, o_a, weights)
         if iteration == 0 and assignment.num_assigned:
             # Initial values: move the block as a whole onto its planes first, so that the
             # adjustment is left with the block's deformation. As in ICP: fit, assign again,
@@ -403,7 +411,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             t_align = time.perf_counter()
             move, points, assignment = align_block_to_planes(
                 rec, point_ids, points, assignment, current, priors, threshold, options,
-                objective=objective, scale_sigma=scale_sigma)
+                objective=objective, scale_sigma=scale_sigma, weights=weights)
             sim3 = move * sim3
             timer["initial_alignment"] = time.perf_counter() - t_align
             t0 += timer["initial_alignment"]
@@ -558,6 +566,12 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         dtp = float(np.sqrt(np.mean(normalised ** 2)))
         metrics["dtp_rms_sigmas"] = float(dtp)
         metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
+    from .coarse_alignment import wall_points
+
+    walls = wall_points(points) if len(points) else np.zeros((0, 3))
+    metrics["num_wall_points"] = len(walls)
+    if len(walls) >= options.assignment.min_points_per_plane:
+        metrics["wall_near_share"] = float(np.mean(surface(walls) < thresholds.near_distance))
     if gnss_only is not None and priors is not None:
         _, before = tie_points(gnss_only)
         metrics["near_share_gnss_only"] = (float(np.mean(surface(before)
@@ -588,7 +602,7 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                           points: np.ndarray, assignment: Assignment, store: PlaneStore,
                           priors: GNSSPriors | None, threshold: float, options: RefineOptions,
                           *, objective: BlockObjective | None = None,
-                          scale_sigma: float | None = None
+                          scale_sigma: float | None = None, weights: np.ndarray | None = None
                           ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
     """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
     by it, assign again at `threshold`, until a fit moves the tie points by less than
@@ -610,7 +624,7 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
         total = move * total
         mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
         points = moved
-        assignment = assign(points, point_ids, store, threshold, options.assignment)
+        assignment = assign(points, point_ids, store, threshold, options.assignment, weights)
         if mean_shift < options.workflow.alignment_tolerance or not assignment.num_assigned:
             break
     return total, points, assignment
@@ -722,7 +736,7 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
          progress=True, precision=None, gnss_height_offset=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None) -> RefineResult:
+         variance_components=None, assignment=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
@@ -739,6 +753,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.adjustment.sigma_generalisation = float(sigma_generalisation)
     if variance_components is not None:
         options.precision.variance_components = bool(variance_components)
+    if assignment is not None:  # --assignment overrides the options file
+        options.assignment.method = assignment
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError

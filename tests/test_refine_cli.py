@@ -69,7 +69,7 @@ def test_refine_cli_end_to_end(workspace, tmp_path, capsys):
     ("missing_model", "COLMAP model directory does not exist"),
     ("not_a_model", "not a COLMAP model directory"),
     ("missing_citymodel", "no such file or directory"),
-    ("unknown_images", "not in the reconstruction"),
+    ("unknown_images", "match a registered image"),
     ("too_few_gnss", "at least 3"),
     ("no_gnss", "no GNSS positions and no initial transform"),
     ("gnss_without_crs", "--gnss needs --gnss_crs"),
@@ -88,7 +88,8 @@ def test_refine_cli_bad_input(workspace, tmp_path, capsys, case, expected):
         overrides["--citymodel"] = tmp_path / "missing.gml"
     elif case == "unknown_images":
         bad = tmp_path / "gnss.txt"
-        bad.write_text((root / "gnss.txt").read_text() + "ghost.jpg 691000 5335000 500\n")
+        # Priors of images the reconstruction lacks are normal; none that match is an error.
+        bad.write_text("".join(f"ghost_{k}.jpg 691000 5335000 500\n" for k in range(5)))
         overrides["--gnss"] = bad
     elif case == "too_few_gnss":
         few = tmp_path / "gnss.txt"
