@@ -90,7 +90,7 @@ def biased_gnss(gnss, truth: dict, level: float, seed: int):
 def run_one(workspace: Path, truth: dict, gnss_db, level: float, seed: int) -> dict:
     run = refine_with_quality(workspace, biased_gnss(gnss_db, truth, level, seed))
     r = {"bias_m": level, "seed": seed, "verdict": run["verdict"], "reasons": run["reasons"],
-         "seconds": run["seconds"],
+         "quality_metrics": run["quality_metrics"], "seconds": run["seconds"],
          "refine": None if run["refined"] is None else centre_errors(run["refined"],
                                                                      run["origin"], truth),
          "gnss_only": centre_errors(run["gnss_only"], run["gnss_only_origin"], truth)}

@@ -255,7 +255,7 @@ def refine_with_quality(workspace: Path, gnss=None) -> dict:
         "detailed" if model_variant(workspace) == "detailed" else "generalised")
     options.precision.covariances = "off"
     out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
-                 "verdict": "n/a", "reasons": [], "observability": None}
+                 "verdict": "n/a", "reasons": [], "quality_metrics": None, "observability": None}
     start = time.perf_counter()
     try:
         result = refine(rec, store, gnss, options, progress=False)
@@ -272,6 +272,8 @@ def refine_with_quality(workspace: Path, gnss=None) -> dict:
         if quality is not None:
             out["verdict"] = str(getattr(quality, "verdict", "n/a"))
             out["reasons"] = [str(r) for r in getattr(quality, "reasons", [])]
+            out["quality_metrics"] = json.loads(json.dumps(getattr(quality, "metrics", None),
+                                                           default=float))
         observability = getattr(result, "observability", None)
         if observability is not None:
             out["observability"] = json.loads(json.dumps(observability, default=str))
@@ -308,7 +310,8 @@ def robustness_case(case: str) -> dict:
                "num_models": sim.get("num_models"),
                "build_seconds": sim.get("total_seconds"), "ready_seconds": build,
                "verdict": run["verdict"], "reasons": run["reasons"],
-               "observability": run["observability"], "seconds": run["seconds"]}
+               "quality_metrics": run["quality_metrics"], "observability": run["observability"],
+               "seconds": run["seconds"]}
     for key, rec, origin in (("refine", run["refined"], run["origin"]),
                              ("gnss_only", run["gnss_only"], run["gnss_only_origin"])):
         if rec is None:
