@@ -48,6 +48,7 @@ from scenarios import (  # noqa: E402  (the benchmarks directory is not a packag
     inputs,
     refine_with_quality,
     truth_centres,
+    update_json,
 )
 
 CASES = {"demo": "demo.toml", "drive": "robust_drive.toml"}
@@ -138,7 +139,8 @@ def tables(section: dict) -> str:
     lines += ["", f"Runs further than {TRUTH_TOLERANCE} m from the truth with verdict ok: "
               f"**{total_wrong_ok}** (must be 0).", "", "## Runs", "",
               "| block | bias (m) | seed | refine RMS X | Y | Z | 3D "
-              "| GNSS only RMS X | Y | Z | 3D | verdict | s |", "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+              "| GNSS only RMS X | Y | Z | 3D | verdict | s |",
+              "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
 
     def axes(m):
         if not m or "rms_3d" not in m:
@@ -191,16 +193,15 @@ def main() -> None:
                       f"{r['final_rms_3d']:.3f} m, GNSS only "
                       f"{r['gnss_only'].get('rms_3d', float('nan')):.3f} m, verdict "
                       f"{r['verdict']} ({r['seconds']:.0f} s)", flush=True)
-                # read-modify-write: other benchmarks keep their sections
-                everything = json.loads(json_path.read_text()) if json_path.exists() else {}
-                section = everything.setdefault("capture", {"runs": {}})
-                section.setdefault("runs", {})[f"{case}/{level:g}/{seed}"] = r
-                section["summary"] = summarise(section["runs"])
-                section["settings"] = {"command": command,
-                                       "white_sigma": WHITE_SIGMA, "stated_sigma": STATED_SIGMA,
-                                       "tolerance_m": TRUTH_TOLERANCE,
-                                       "blocks": {c: f"workspaces/{t}" for c, t in CASES.items()}}
-                json_path.write_text(json.dumps(everything, indent=2))
+                # only this run's entry, then the summary of all: other benchmarks write their
+                # own sections of the file meanwhile
+                runs = update_json(json_path, ["capture", "runs", f"{case}/{level:g}/{seed}"],
+                                   r)["capture"]["runs"]
+                update_json(json_path, ["capture", "summary"], summarise(runs))
+                update_json(json_path, ["capture", "settings"], {
+                    "command": command, "white_sigma": WHITE_SIGMA, "stated_sigma": STATED_SIGMA,
+                    "tolerance_m": TRUTH_TOLERANCE,
+                    "blocks": {c: f"workspaces/{t}" for c, t in CASES.items()}})
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     section = everything.get("capture")
     if not section:
