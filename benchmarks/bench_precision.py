@@ -1,4 +1,4 @@
-"""Honest precision of check points (issue 5): Delta/sigma per axis, classical vs aware.
+"""Honest precision of check points: Delta/sigma per axis, classical vs aware.
 
 On a simulated workspace with check points (default: the short sequence's Scn3, the original
 generalised LOD2 model with systematic plane errors, GNSS everywhere; built by the simulator as

@@ -253,7 +253,7 @@ def main() -> None:
         print(f"parse_peak_over_store {peak_parse / store_mb:.2f}")
         print(f"parse_peak_over_store_py {peak_parse / store_py_mb:.2f}")
         print(f"load_average {os.getloadavg()[0]:.1f} (2 cores: wall-clock rates suffer above ~2)")
-        # issue 2 targets, full path (read_city_model = parse + build_store); the store size of
+        # the reader targets, full path (read_city_model = parse + build_store); the store size of
         # the target is store_mb (numpy array bytes, the stricter definition); *_py includes the
         # Python objects (lists, id strings) the store keeps
         rate = file_mb / full["seconds"]

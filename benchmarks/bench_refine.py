@@ -1,4 +1,4 @@
-"""Refine speed on a simulated flight mapped by COLMAP (issue 3).
+"""Refine speed on a simulated flight mapped by COLMAP.
 
 Default: the long sequence's Scn3 workspace (340 images, ~100k tie points, ~680k image
 observations; built by `colmap-citymodel simulate workspaces/long_scn3.toml ...` if missing);

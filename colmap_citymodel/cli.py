@@ -1,5 +1,6 @@
 """Command line interface. It only parses arguments and calls each stage's typed `main`, so the
-CLI and the Python API cannot drift. Domain errors become one line and exit code 2 here."""
+CLI and the Python API cannot drift. Domain errors become one line and exit code 2 here; a
+refine whose quality gate fails exits 3."""
 
 from __future__ import annotations
 
@@ -82,7 +83,10 @@ def _add_simulate(subparsers) -> None:
 
 def _add_refine(subparsers) -> None:
     p = subparsers.add_parser(
-        "refine", help="georeference and refine a COLMAP model with a city building model")
+        "refine", help="georeference and refine a COLMAP model with a city building model",
+        epilog="exit status: 0 refined (quality ok or weak: see the quality line and "
+               "report.json), 2 bad input, 3 the quality gate failed: the model could not help "
+               "and the output holds the GNSS-only adjustment")
     p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
     p.add_argument("--citymodel", required=True, nargs="+",
                    help="CityGML/CityJSON file(s) or a directory of tiles")
@@ -144,8 +148,8 @@ def _add_refine(subparsers) -> None:
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,
              variance_components=args.variance_components, assignment=args.assignment)
-        # The quality gate failed: the output holds the GNSS-only result.
-        return 3 if result.handed_back == "gnss_only" else 0
+        # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
+        return 3 if result.quality.verdict == "failed" else 0
 
     p.set_defaults(func=run)
 

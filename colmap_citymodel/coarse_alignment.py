@@ -266,6 +266,7 @@ class RollSearch:
 def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store: PlaneStore,
                 camera_up: np.ndarray, camera_view: np.ndarray, tolerance_deg: float = 4.0,
                 step_deg: float = 1.0, max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
+                window_deg: float = 180.0,
                 excluded_classes=("GroundSurface", "ClosureSurface")) -> RollSearch | None:
     """The rotation about `axis` (through `centre`) that makes the tie point planes' normals
     model normals, keeping the cameras upright: `camera_up` (N,3) are the cameras' image "up"
@@ -273,7 +274,8 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
     frame. The mean image up must point above the horizon and the mean view must not rise
     above `max_view_elevation_deg`: walls and flat roofs are both planes of model
     orientations, so a block turned by 90 deg (walls on roofs, cameras looking at the sky)
-    would match as well. None when the tie points hold no plane."""
+    would match as well. Only rolls within +- `window_deg` are searched. None when the tie
+    points hold no plane."""
     normals, counts = point_cloud_planes(points)
     if not len(normals):
         return None
@@ -294,7 +296,8 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
         u = np.clip((1.0 - cosines) / (1.0 - cos_tol), 0.0, 1.0)
         return float(np.sum(counts * (1.0 - u) ** 2) / counts.sum())
 
-    coarse = np.radians(np.arange(-180.0, 180.0, step_deg))
+    window = min(float(window_deg), 180.0)
+    coarse = np.radians(np.arange(-window, window + 1e-9, step_deg))
     values = np.array([score(a) for a in coarse])
     best = coarse[int(np.argmax(values))]
     fine = best + np.radians(np.linspace(-step_deg, step_deg, 21))
@@ -318,6 +321,9 @@ class CoarseAlignment:
                 "roll_candidates": self.roll_candidates, "seconds": self.translation.seconds}
 
 
+#: Cameras that look along a straight flight line fix the roll about it to about their
+#: mounting's roll (a vehicle, a gimbal): the planes may change it by this much (deg) at most.
+ROLL_WINDOW_DEG = 3.0
 #: A roll about the flight line is tried when the tie point planes match the model normals
 #: better by this much (share of plane points) than without it.
 MIN_ROLL_GAIN = 0.05
@@ -339,7 +345,14 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     if straight:
         centre = centres.mean(0)
         axis = np.linalg.svd(centres - centre)[2][0]
-        roll = search_roll(points, axis, centre, store, camera_up, camera_view)
+        # Cameras looking along the line (a vehicle) hold the roll with their horizontal image
+        # x axis (georegistration used it): the planes may only fine-tune it. Cameras looking
+        # sideways give no such cue: the whole circle is searched.
+        right = np.cross(camera_up, camera_view)
+        cue = float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1)))
+        window = ROLL_WINDOW_DEG / cue if cue > 0.5 else 180.0
+        roll = search_roll(points, axis, centre, store, camera_up, camera_view,
+                           window_deg=window)
         if roll is not None:
             found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
                           "normal_score_unrotated": roll.score_at_zero})

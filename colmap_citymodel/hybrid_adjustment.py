@@ -44,8 +44,22 @@ logger = logging.getLogger("colmap_citymodel.hybrid_adjustment")
 
 #: Observation groups in the order their residuals enter the problem. "gen": the priors
 #: o_p ~ N(0, sigma_generalisation^2) of the per-plane generalisation offsets (only with
-#: AdjustmentOptions.sigma_generalisation; otherwise empty).
-GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen")
+#: AdjustmentOptions.sigma_generalisation; otherwise empty). "scale": baseline lengths that
+#: hold the block's scale where the planes do not determine it (BaselinePriors; else empty).
+GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale")
+
+
+@dataclass
+class BaselinePriors:
+    """Distances between the projection centres of image pairs held at given lengths: the
+    block's scale from GNSS where the planes cannot give it (workflow.baseline_priors)."""
+
+    image_pairs: np.ndarray  # (K, 2) image ids
+    lengths: np.ndarray  # (K,) metres
+    sigmas: np.ndarray  # (K,) metres
+
+    def __len__(self) -> int:
+        return len(self.lengths)
 
 
 @dataclass
@@ -195,7 +209,8 @@ class HybridProblem:
     def __init__(self, reconstruction: pycolmap.Reconstruction, store: PlaneStore | None,
                  assignment: Assignment | None, gnss: GNSSPriors | None,
                  options: AdjustmentOptions, *, robust_images: bool, robust_planes: bool,
-                 current: PlaneStore | None = None, generalisation_offsets: bool = False):
+                 current: PlaneStore | None = None, generalisation_offsets: bool = False,
+                 baselines: BaselinePriors | None = None):
         """`store` is the model as observed (f_VT observes its vertices); `current` (same
         topology, default `store`) holds the current estimate used as initial values.
         `generalisation_offsets`: estimate a per-plane offset with the prior
@@ -226,6 +241,27 @@ class HybridProblem:
                             robust_planes)
         else:
             self.counts.update(dTP=0, dVT=0, VT=0, gen=0)
+        self._add_baselines(core, baselines)
+
+    def _add_baselines(self, core, baselines: BaselinePriors | None) -> None:
+        self.counts["scale"] = 0
+        if baselines is None:
+            return
+        rec = self.reconstruction
+        for (a, b), length, sigma in zip(baselines.image_pairs, baselines.lengths,
+                                         baselines.sigmas):
+            image_a, image_b = rec.image(int(a)), rec.image(int(b))
+            block_a = rec.frame(image_a.frame_id).rig_from_world.params
+            block_b = rec.frame(image_b.frame_id).rig_from_world.params
+            if image_a.frame_id == image_b.frame_id or not (
+                    self.problem.has_parameter_block(block_a)
+                    and self.problem.has_parameter_block(block_b)):
+                continue
+            cost = core.BaselineLengthPriorCost(
+                float(length), float(sigma) / self.options.sigma_image,
+                _position_in_rig(rec, image_a), _position_in_rig(rec, image_b))
+            self.problem.add_residual_block(cost, None, [block_a, block_b])
+            self.counts["scale"] += 1
 
     # -- building ---------------------------------------------------------------------------
     def _add_gnss(self, core, gnss: GNSSPriors | None) -> None:

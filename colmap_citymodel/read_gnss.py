@@ -1,6 +1,6 @@
 """Read GNSS projection-centre positions of images and bring them into the city model's CRS.
 
-Three sources (issue 3, part 3; method.md section 2, group f_pos):
+Three sources (method.md section 2, group f_pos):
 - a text file ``image_name X Y Z [sX sY sZ]`` in a user-given CRS (``--gnss_crs``),
 - the EXIF GPS tags of the images (Pillow),
 - the pose priors of a COLMAP 4 database (``pycolmap.Database.read_all_pose_priors``).

@@ -31,7 +31,7 @@ from tqdm import tqdm
 from .assign_planes import (Assignment, assign, filter_faces, initial_threshold,
                             next_threshold)
 from .errors import DatumError, GeoregistrationError, GNSSError, NoOverlapError
-from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
+from .hybrid_adjustment import BaselinePriors, GNSSPriors, HybridProblem, SolveReport
 from .options import RefineOptions
 from .plane_store import PlaneStore
 
@@ -98,6 +98,7 @@ class RefineResult:
     gnss_only: pycolmap.Reconstruction | None = None
     quality: "QualityReport | None" = None  # the verdict; "failed": `reconstruction` is gnss_only
     observability: dict = field(default_factory=dict)  # quality.observability, after the solve
+    observability_before: dict = field(default_factory=dict)  # the same at the first assignment
     refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
     datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
     coarse_alignment: dict | None = None  # what the coarse search found (coarse_alignment)
@@ -389,6 +390,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         weights = point_quality_weights(rec, all_ids)
     assignment: Assignment | None = None
     iterations: list[IterationRecord] = []
+    observability_before: dict = {}
+    baselines = None
     previous_rms = None
     solve_seconds = assign_seconds = 0.0
     last = None
@@ -418,11 +421,20 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         assign_seconds += time.perf_counter() - t0
         if iteration == 0:
             warnings += check_datum(store, assignment, priors is not None)
+            observability_before = assigned_observability(points, assignment, current, priors,
+                                                          rec, options)
+            if gnss_only is not None and scale_sigma and \
+                    observability_before.get("scale", {}).get("source") not in ("planes", "both"):
+                baselines = baseline_priors(gnss_only, priors, scale_sigma)
         elif assignment.num_assigned == 0 and priors is None:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
 
         t1 = time.perf_counter()
+        # Until the scale is held, keep the state before the solves: a solve that changes the
+        # scale further than GNSS allows is undone and repeated with the scale held.
+        before_solve = (pycolmap.Reconstruction(rec), current, assignment) \
+            if gnss_only is not None and baselines is None and scale_sigma else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
         rejected = dict(assignment.rejected_faces)
@@ -430,7 +442,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=current)
+                                  robust_planes=False, current=current, baselines=baselines)
             final_report = final.solve()
             normalised = final.residuals["dTP"]
             needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
@@ -438,7 +450,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             needs_robust = True
         if needs_robust:
             robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                   robust_planes=True, current=current)
+                                   robust_planes=True, current=current, baselines=baselines)
             robust_report = robust.solve()
             normalised = robust.residuals["dTP"]
             outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
@@ -447,11 +459,22 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             assignment.distance[assignment.face_index < 0] = np.nan
             assignment.rejected_faces = rejected
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=_current_from(current, robust))
+                                  robust_planes=False, current=_current_from(current, robust),
+                                  baselines=baselines)
             final_report = final.solve()
         solve_seconds += time.perf_counter() - t1
         current = _current_from(current, final)
         last = final
+        if before_solve is not None:
+            change = scale_change(gnss_only, rec)
+            if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
+                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
+                               "sigma): undone, the scale is held from now on", iteration,
+                               100 * change, abs(np.log1p(change)) / scale_sigma)
+                rec, current, assignment = before_solve
+                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+                last = None
+                continue
 
         rms = final_report.rms_total
         change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
@@ -484,9 +507,17 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     bar.close()
     if diverged is not None and best is not None and best[2] is not None:
         _, _, rec, assignment, current = best
+        last = None
+    if last is None:  # back to the best iterate, or the last iteration was undone
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                             robust_planes=False, current=current)
-        last.solve()
+                             robust_planes=False, current=current, baselines=baselines)
+        report = last.solve()
+        current = _current_from(current, last)
+        if not iterations:
+            iterations.append(IterationRecord(len(iterations), threshold,
+                                              assignment.num_assigned, assignment.num_faces,
+                                              dict(assignment.rejected_faces), 0, None, report,
+                                              float("inf")))
 
     from .precision import final_solve_in_refine, precision_after_refine
 
@@ -499,6 +530,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     observability = assigned_observability(points, assignment, current, priors, rec, options)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               len(point_ids), options, diverged, scale_sigma)
+    logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
     precision = evaluation = None
     refined = rec
@@ -523,9 +555,61 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         step2=report2, step2_eliminated=eliminated2, iterations=iterations, options=options,
         warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
         variance_components=vce, checkpoints=evaluation, gnss_only=gnss_only,
-        quality=quality, observability=observability, refined=refined,
+        quality=quality, observability=observability,
+        observability_before=observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
         coarse_alignment=coarse.todict() if coarse is not None else None)
+
+
+#: A solve that changes the block's scale from the GNSS-only one by more than this many GNSS
+#: scale sigmas is undone and repeated with the scale held (BaselinePriors): GNSS puts the
+#: true scale within three sigma, so further is the point-to-plane residuals shrinking.
+SCALE_RUNAWAY_SIGMAS = 3.0
+
+
+def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstruction) -> float:
+    """Relative scale of `rec`'s camera centres against `reference`'s (similarity fit) - 1."""
+    ids = [i for i in rec.reg_image_ids() if reference.exists_image(i)]
+    a = np.array([reference.image(i).projection_center() for i in ids])
+    b = np.array([rec.image(i).projection_center() for i in ids])
+    similarity = pycolmap.estimate_sim3d(a, b)
+    return float(similarity.scale) - 1.0 if similarity is not None else 0.0
+
+
+#: Where the planes do not determine the scale, the baseline priors hold the GNSS-only
+#: block's scale this many times tighter than GNSS's own scale sigma: point-to-plane residuals
+#: shrink with the block (a similarity changes no reprojection error), and 16 GNSS priors do
+#: not hold 2000 of them (a real drive past one facade row: -41 % with GNSS sigma 3 m).
+BASELINE_TIGHTENING = 10.0
+
+
+def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
+                    scale_sigma: float) -> BaselinePriors:
+    """Pairs of GNSS images half the block apart along its main axis, with their distances in
+    the GNSS-only adjustment; together they hold its scale to scale_sigma / BASELINE_TIGHTENING."""
+    ids = np.asarray(priors.image_ids)
+    centres = np.array([gnss_only.image(int(i)).projection_center() for i in ids])
+    axis = np.linalg.svd(centres - centres.mean(0))[2][0]
+    order = ids[np.argsort((centres - centres.mean(0)) @ axis)]
+    half = len(order) // 2
+    pairs = np.column_stack([order[:half], order[len(order) - half:]])
+    lengths = np.array([np.linalg.norm(gnss_only.image(int(a)).projection_center()
+                                       - gnss_only.image(int(b)).projection_center())
+                        for a, b in pairs])
+    relative = scale_sigma / BASELINE_TIGHTENING * np.sqrt(max(len(pairs), 1))
+    logger.info("the planes do not fix the block's scale: %d baseline priors hold the GNSS-only "
+                "scale (sigma %.2g)", len(pairs), scale_sigma / BASELINE_TIGHTENING)
+    return BaselinePriors(pairs, lengths, np.maximum(lengths * relative, 1e-6))
+
+
+def datum_line(observability_dict: dict) -> str:
+    """'E planes (0.09 m), ..., U gnss (0.79 m), ...' for the log and the console."""
+    parts = []
+    for name, row in observability_dict.items():
+        unit = " deg" if name.startswith("rotation") else "" if name == "scale" else " m"
+        sigma = f" ({row['sigma']:.3g}{unit})" if row["sigma"] is not None else ""
+        parts.append(f"{name} {row['source']}{sigma}")
+    return ", ".join(parts)
 
 
 def assigned_observability(points: np.ndarray, assignment: Assignment, store: PlaneStore,
@@ -561,6 +645,9 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "near_share_gnss_only": None, "diverged": diverged,
         "planes_fix": planes_fix(observability_dict),
     }
+    shift_sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
+    if all(v is not None for v in shift_sigmas):
+        metrics["position_sigma_m"] = float(np.linalg.norm(shift_sigmas))
     normalised = last.residuals.get("dTP", np.zeros(0))
     if len(normalised):
         dtp = float(np.sqrt(np.mean(normalised ** 2)))
@@ -585,9 +672,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["shift_m"] = float(np.linalg.norm(mean_shift))
         metrics["shift_enu_m"] = mean_shift.tolist()
         metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
-        similarity = pycolmap.estimate_sim3d(a, b)
-        if similarity is not None and scale_sigma:
-            change = float(similarity.scale) - 1.0
+        if scale_sigma:
+            change = scale_change(gnss_only, rec)
             metrics["scale_change"] = change
             metrics["scale_change_sigmas"] = abs(np.log1p(change)) / scale_sigma
         before_scatter = gnss_scatter(priors.observed_points(gnss_only), priors.positions,
@@ -814,11 +900,16 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     if result.handed_back == "gnss_only":
         print(f"the city model could not help: wrote the GNSS-only adjustment of "
               f"{result.reconstruction.num_reg_images()} images")
+    elif result.quality.verdict == "failed":
+        print("the city model could not help, and without GNSS there is no other result: the "
+              "refined block is written, but do not trust it")
     else:
         print(f"refined {result.reconstruction.num_reg_images()} images, "
               f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points "
               f"on {last.num_faces} planes; s0 {s0:.3f}")
     print(result.quality.line())
+    if result.observability:
+        print(f"datum fixed by: {datum_line(result.observability)}")
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
     return result

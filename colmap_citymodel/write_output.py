@@ -146,6 +146,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "result": result.handed_back,
         "quality": result.quality.todict() if result.quality is not None else None,
         "observability": result.observability,
+        "observability_before": result.observability_before,
         "datum_cues": result.datum_cues,
         "coarse_alignment": result.coarse_alignment,
     }

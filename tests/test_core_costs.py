@@ -376,3 +376,20 @@ def test_point_plane_costs_inside_colmap_bundle_adjuster(core):
     assert np.sqrt(np.mean(np.square(errors))) < 0.01
     assert np.sqrt(np.mean(np.square(errors))) <= np.sqrt(np.mean(np.square(control_errors)))
     assert max(errors) < 0.03
+
+
+def test_baseline_length_prior_closed_form_and_jacobians(core):
+    rng = np.random.default_rng(4)
+    for _ in range(5):
+        a, b = random_pose(rng), random_pose(rng)
+        in_a, in_b = rng.normal(scale=0.5, size=3), rng.normal(scale=0.5, size=3)
+        cost = core.BaselineLengthPriorCost(12.0, 0.05, in_a, in_b)
+        assert cost.parameter_block_sizes() == [ceres_blocks.POSE_BLOCK_SIZE] * 2
+        blocks = [np.array(a.params), np.array(b.params)]
+        residuals, jacobians = evaluate(cost, *blocks)
+        length = np.linalg.norm(a.inverse() * in_a - b.inverse() * in_b)
+        np.testing.assert_allclose(residuals, [(length - 12.0) / 0.05], atol=1e-9)
+        for analytic, numeric in zip(jacobians, numeric_jacobians(cost, blocks)):
+            np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-5)
+    with pytest.raises(ValueError):
+        core.BaselineLengthPriorCost(1.0, 0.0)

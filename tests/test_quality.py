@@ -132,7 +132,13 @@ def test_verdict_rules():
     assert quality_verdict({**good, "shift_sigmas": 6.0}).verdict == "failed"
     assert quality_verdict({**good, "near_share": 0.05}).verdict == "failed"
     assert quality_verdict({**good, "planes_fix": []}).verdict == "weak"
-    assert quality_verdict({**good, "diverged": "objective rose"}).verdict == "failed"
+    assert quality_verdict({**good, "position_sigma_m": 0.3}).verdict == "weak"
+    assert quality_verdict({**good, "diverged": "objective rose"}).verdict == "weak"
+    # A scale change of 4 GNSS sigma: the planes may have seen it; GNSS alone may not.
+    scaled = {**good, "scale_change": -0.04, "scale_change_sigmas": 4.0}
+    assert quality_verdict({**scaled, "planes_fix": ["E", "N", "U", "scale"]}).verdict == "ok"
+    assert quality_verdict(scaled).verdict == "failed"
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
+

@@ -6,6 +6,7 @@
 // pyceres/pycolmap (pybind11 3.0.x, internals v11). The Python object owns the
 // cost (take_ownership); pyceres wraps it in a non-owning CostFunctionWrapper
 // and keeps the Python object alive as long as the pyceres.Problem object.
+#include "colmap_citymodel/baseline_length_prior.h"
 #include "colmap_citymodel/point_plane_distance.h"
 #include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
@@ -166,6 +167,25 @@ PYBIND11_MODULE(_core, m) {
       "GNSS position prior on a frame, residual = L (R^T (p_in_rig - t) - "
       "P_obs) with L^T L = Sigma^-1.\nParameter block: rig_from_world.params "
       "(7).");
+
+  m.def(
+      "BaselineLengthPriorCost",
+      [](double length, double sigma, const Eigen::Vector3d& position_in_rig_a,
+         const Eigen::Vector3d& position_in_rig_b) -> ceres::CostFunction* {
+        if (!(sigma > 0.0)) {
+          throw std::invalid_argument("sigma must be positive");
+        }
+        return BaselineLengthPriorCostFunctor::Create(length, sigma, position_in_rig_a,
+                                                      position_in_rig_b);
+      },
+      "length"_a,
+      "sigma"_a,
+      "position_in_rig_a"_a = Eigen::Vector3d::Zero(),
+      "position_in_rig_b"_a = Eigen::Vector3d::Zero(),
+      kTake,
+      "Prior on the distance of two positions fixed in two rigs, residual = "
+      "(|P_a - P_b| - length) / sigma with P = R^T (p_in_rig - t).\nParameter "
+      "blocks: rig_from_world.params of a and of b (7 each).");
 
   m.attr("__ceres_version__") = CERES_VERSION_STRING;
   m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;
