@@ -13,13 +13,12 @@ from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import PrecisionOptions, RefineOptions
 from colmap_citymodel.precision import PrecisionResult, wants_covariances
 from colmap_citymodel.workflow import refine
-from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
 from colmap_citymodel.write_output import write_refined
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return make_street_scene(StreetSceneOptions(seed=7))
+def scene(street_scene):
+    return street_scene
 
 
 @pytest.fixture(scope="module")

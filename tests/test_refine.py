@@ -24,8 +24,8 @@ def rms(values):
 
 
 @pytest.fixture(scope="module")
-def scene():
-    return make_street_scene(StreetSceneOptions(seed=7))
+def scene(street_scene):
+    return street_scene
 
 
 @pytest.fixture(scope="module")
