@@ -54,6 +54,9 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__)
     parser.add_argument("--quick", action="store_true", help="the short sequence (~4x smaller)")
     parser.add_argument("--workspace", type=Path, help="a simulated workspace to use instead")
+    parser.add_argument("--methods", nargs="*", default=["msac", "roi_msac", "auto"],
+                        help="assignment methods to time besides direct, each in a full refine "
+                             "(assignment_fraction_<method>)")
     args = parser.parse_args()
     logger.setLevel(logging.WARNING)
     workspace = args.workspace or workspace_for("short" if args.quick else "long")
@@ -130,6 +133,20 @@ def main() -> None:
     print(f"hybrid_solve_ratio {hybrid_s / plain_s:.3f}")
     print(f"assignment_fraction {result.seconds['assignment'] / refine_s:.4f}")
     print(f"refine_ratio {refine_s / plain_s:.3f}")
+    print(f"assignment_fraction_direct {result.seconds['assignment'] / refine_s:.4f} "
+          f"(camera centres {error:.3f} m)")
+    for method in args.methods:
+        options = RefineOptions()
+        options.precision.covariances = "off"
+        options.assignment.method = method
+        t = time.perf_counter()
+        other = refine(sfm, store, gnss, options, progress=False)
+        seconds = time.perf_counter() - t
+        other_error = float(np.sqrt(np.mean(
+            centre_errors(other.reconstruction_in_crs(), truth) ** 2)))
+        print(f"assignment_fraction_{method} {other.seconds['assignment'] / seconds:.4f} "
+              f"(refine {seconds:.1f} s, assignment {other.seconds['assignment']:.1f} s, "
+              f"camera centres {other_error:.3f} m, verdict {other.quality.verdict})")
 
 
 if __name__ == "__main__":

@@ -127,7 +127,7 @@ def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, half_box:
         np.clip(index, 0, shape - 1, out=index)
         return values[index[..., 0], index[..., 1], index[..., 2]]
 
-    return lookup, spacing
+    return lookup
 
 
 def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.ndarray,
@@ -151,7 +151,7 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
 
     # Coarse level on a distance grid.
     radius, step = levels[0]
-    lookup, spacing = _grid_lookup_builder(pts, surface, half_box, step / 1.5)
+    lookup = _grid_lookup_builder(pts, surface, half_box, step / 1.5)
     axes = [np.arange(-np.floor(h / step), np.floor(h / step) + 1) * step for h in half_box]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     shares = np.empty(len(shifts))
@@ -190,10 +190,10 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
         if value > best_score:
             best_shift, best_score = shift, value
     finest = levels[-1][0]
-    result = TranslationSearch(
-        best_shift, best_score, near_share(surface(points if len(points) <= 20000 else pts), finest),
-        near_share(surface((points if len(points) <= 20000 else pts) + best_shift), finest),
-        np.abs(best_shift) / sigmas, time.perf_counter() - t0)
+    sample = subsample(points, 20000)
+    result = TranslationSearch(best_shift, best_score, near_share(surface(sample), finest),
+                               near_share(surface(sample + best_shift), finest),
+                               np.abs(best_shift) / sigmas, time.perf_counter() - t0)
     logger.info("translation search (+-%s m): shift %s m (%s GNSS sigma), tie points near the "
                 "model %.0f %% -> %.0f %%, %.1f s",
                 np.round(half_box, 1).tolist(), np.round(best_shift, 2).tolist(),

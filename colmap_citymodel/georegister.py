@@ -35,6 +35,10 @@ class GeoregistrationOptions:
     # Camera centres whose second principal extent is below this fraction of the first are
     # collinear: the rotation about that line is undetermined.
     min_noncollinearity: float = 1e-2
+    # Centres that deviate from a line by less than the GNSS sigma: the 7-parameter fit is
+    # kept while the GNSS scatter fixes the rotation about the line to this (deg), else the
+    # cameras' upright orientation fixes it (upright_line_similarity).
+    max_roll_sigma_deg: float = 5.0
     # The GNSS spread (largest principal std) must exceed this many GNSS sigmas.
     min_baseline_sigmas: float = 2.0
     random_seed: int = 0
@@ -159,17 +163,17 @@ def estimate_georegistration(
             f"({sigma_horizontal:.2f} m): not enough baseline for a similarity transform"
         )
     scale_guess = spread_tgt[0] / spread_src[0]
-    if (spread_src[1] < options.min_noncollinearity * spread_src[0]
-            or spread_src[1] * scale_guess < sigma_horizontal):
+    lateral = spread_src[1] * scale_guess  # metres the centres deviate from a line (std)
+
+    def along_the_line(reason: str) -> Georegistration:
         # GNSS fixes the line but not the rotation about it: take that from the cameras.
         sim3 = upright_line_similarity(source, target, *camera_axes(reconstruction, image_ids))
         residuals = target - _transform(sim3, source)
         rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
         warnings.append(
-            f"the camera centres deviate only ~{spread_src[1] * scale_guess:.1f} m from a line, "
-            f"less than the GNSS sigma ({sigma_horizontal:.1f} m): the rotation about the "
-            "flight line comes from the cameras' upright orientation until the model planes "
-            "fix it")
+            f"the camera centres with GNSS deviate only ~{lateral:.1f} m from a line ({reason}): "
+            "the rotation about the flight line comes from the cameras' upright orientation "
+            "until the model planes fix it")
         for warning in warnings:
             logger.warning(warning)
         logger.info("Georegistration along a line: scale %.6g, RMS %.3f m", sim3.scale, rms)
@@ -178,6 +182,8 @@ def estimate_georegistration(
                                max_error=float("nan"), warnings=warnings,
                                cues=dict(LINE_CUES))
 
+    if spread_src[1] < options.min_noncollinearity * spread_src[0]:
+        return along_the_line("collinear")
     threshold = (options.max_error if options.max_error is not None
                  else options.sigma_factor * float(sigma_axis.max()))
     ransac = pycolmap.RANSACOptions()
@@ -225,6 +231,16 @@ def estimate_georegistration(
             "%d of %d GNSS positions rejected as outliers (> %.2f m), e.g. %s",
             len(target) - num, len(target), threshold, names,
         )
+    if lateral < sigma_horizontal:
+        # How well GNSS fixes the rotation about the line: its scatter across the line over
+        # the centres' deviation from it (what the data show, not the stated sigma: filtered
+        # GNSS scatters far less than it states).
+        direction = np.linalg.svd(target - target.mean(0))[2][0]
+        across = residuals[inliers] - np.outer(residuals[inliers] @ direction, direction)
+        scatter = float(np.sqrt(np.mean(np.sum(across ** 2, axis=1)) / 2))
+        roll_sigma = np.degrees(scatter / (lateral * np.sqrt(num)))
+        if roll_sigma > options.max_roll_sigma_deg:
+            return along_the_line(f"GNSS fixes the rotation about it to {roll_sigma:.0f} deg")
     for warning in warnings:
         logger.warning(warning)
     logger.info(

@@ -264,17 +264,13 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
     return sim3, priors, rms
 
 
-def _lateral_spread(centres: np.ndarray) -> float:
-    """Standard deviation (m) of the camera centres across their main direction."""
-    singular = np.linalg.svd(centres - centres.mean(0), compute_uv=False)
-    return float(singular[1] / np.sqrt(len(centres)))
-
-
-def camera_up_and_view(rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
-    """Image "up" (-y axis) and viewing direction (z axis) of every registered camera in the
-    world frame."""
-    rows = np.array([np.asarray(rec.image(i).cam_from_world().rotation.matrix())
-                     for i in rec.reg_image_ids()])
+def camera_up_and_view(rec: pycolmap.Reconstruction, image_ids=None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Image "up" (-y axis) and viewing direction (z axis) of the cameras (default: every
+    registered one) in the world frame."""
+    ids = rec.reg_image_ids() if image_ids is None else image_ids
+    rows = np.array([np.asarray(rec.image(int(i)).cam_from_world().rotation.matrix())
+                     for i in ids])
     return -rows[:, 1], rows[:, 2]
 
 
@@ -369,9 +365,12 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         # on the model before any of them is assigned.
         t_coarse = time.perf_counter()
         _, points = tie_points(rec, exclude_point_ids)
-        centres = camera_centres(rec)
-        straight = _lateral_spread(centres) < float(np.median(priors.sigmas[:, :2]))
-        coarse = coarse_alignment(points, centres, *camera_up_and_view(rec), store, surface,
+        # The images with GNSS fixed the georegistration; if they lie on a line, its rotation
+        # about that line came from the cameras' upright orientation and is searched again.
+        centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
+        straight = "roll_about_line" in details.get("cues", {})
+        up, view = camera_up_and_view(rec, priors.image_ids)
+        coarse = coarse_alignment(points, centres, up, view, store, surface,
                                   np.median(priors.sigmas, axis=0), straight,
                                   o_w.coarse_search_sigmas)
         if objective(rec, coarse.sim3) < objective(rec):
@@ -466,7 +465,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         current = _current_from(current, final)
         last = final
         if before_solve is not None:
-            change = scale_change(gnss_only, rec)
+            change = scale_change(gnss_only, rec, priors.image_ids)
             if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
                                "sigma): undone, the scale is held from now on", iteration,
@@ -567,9 +566,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 SCALE_RUNAWAY_SIGMAS = 3.0
 
 
-def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstruction) -> float:
-    """Relative scale of `rec`'s camera centres against `reference`'s (similarity fit) - 1."""
-    ids = [i for i in rec.reg_image_ids() if reference.exists_image(i)]
+def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstruction,
+                 image_ids) -> float:
+    """Relative scale of the camera centres of `image_ids` in `rec` against `reference`
+    (similarity fit) - 1."""
+    ids = [int(i) for i in image_ids]
     a = np.array([reference.image(i).projection_center() for i in ids])
     b = np.array([rec.image(i).projection_center() for i in ids])
     similarity = pycolmap.estimate_sim3d(a, b)
@@ -664,7 +665,9 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["near_share_gnss_only"] = (float(np.mean(surface(before)
                                                          < thresholds.near_distance))
                                            if len(before) else 0.0)
-        ids = [i for i in rec.reg_image_ids() if gnss_only.exists_image(i)]
+        # Where GNSS observed: elsewhere (GNSS for part of the block) the GNSS-only result is
+        # an extrapolation that the model is there to correct.
+        ids = [int(i) for i in priors.image_ids]
         a = np.array([gnss_only.image(i).projection_center() for i in ids])
         b = np.array([rec.image(i).projection_center() for i in ids])
         sigma = np.median(priors.sigmas, axis=0)
@@ -673,7 +676,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["shift_enu_m"] = mean_shift.tolist()
         metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
         if scale_sigma:
-            change = scale_change(gnss_only, rec)
+            change = scale_change(gnss_only, rec, ids)
             metrics["scale_change"] = change
             metrics["scale_change_sigmas"] = abs(np.log1p(change)) / scale_sigma
         before_scatter = gnss_scatter(priors.observed_points(gnss_only), priors.positions,
