@@ -174,8 +174,10 @@ class QualityThresholds:
     dtp_rms_weak: float = 2.0
     """RMS point-to-plane distance above this many sigma_dTP: weak."""
     gnss_scatter_weak: float = 1.5
-    """GNSS residual scatter (after removing their mean) that grows by this factor against the
-    GNSS-only result: the block was bent to the model; weak."""
+    """GNSS residuals (after removing their mean) that scatter more than this many of their
+    stated sigmas and more than with GNSS only: the block was bent to the model against its
+    GNSS; weak. (A scatter that only grows, within the stated sigmas, is normal: GNSS-only
+    blocks follow their GNSS's slow bias, the model's corrected block exposes it.)"""
 
 
 @dataclass
@@ -246,9 +248,11 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
             f"only {100 * walls:.0f} % of the tie points on walls lie on the model's walls")
     if metrics.get("dtp_rms_sigmas", 0.0) > t.dtp_rms_weak:
         weak.append(f"tie points lie {metrics['dtp_rms_m']:.2f} m (RMS) from their planes")
-    ratio = metrics.get("gnss_scatter_ratio")
-    if ratio is not None and ratio > t.gnss_scatter_weak:
-        weak.append(f"the GNSS residuals scatter {ratio:.1f}x more than with GNSS only")
+    ratio, scatter = metrics.get("gnss_scatter_ratio"), metrics.get("gnss_scatter")
+    if ratio is not None and ratio > 1.0 and scatter is not None \
+            and scatter > t.gnss_scatter_weak:
+        weak.append(f"the GNSS residuals scatter {scatter:.1f} of their sigmas, {ratio:.1f}x "
+                    "more than with GNSS only")
     if fixed is not None:
         free = [k for k in ("E", "N", "U") if k not in fixed]
         if free:

@@ -683,6 +683,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
                                       priors.sigmas)
         after_scatter = gnss_scatter(priors.observed_points(rec), priors.positions,
                                      priors.sigmas)
+        metrics["gnss_scatter"] = after_scatter
         metrics["gnss_scatter_ratio"] = after_scatter / max(before_scatter, 1e-9)
     return quality_verdict(metrics, thresholds)
 

@@ -133,6 +133,11 @@ def test_verdict_rules():
     assert quality_verdict({**good, "near_share": 0.05}).verdict == "failed"
     assert quality_verdict({**good, "planes_fix": []}).verdict == "weak"
     assert quality_verdict({**good, "position_sigma_m": 0.3}).verdict == "weak"
+    # GNSS residuals that grow but stay within their sigmas: the slow GNSS bias exposed.
+    assert quality_verdict({**good, "gnss_scatter": 0.4, "gnss_scatter_ratio": 2.5}
+                           ).verdict == "ok"
+    assert quality_verdict({**good, "gnss_scatter": 2.0, "gnss_scatter_ratio": 2.5}
+                           ).verdict == "weak"
     assert quality_verdict({**good, "diverged": "objective rose"}).verdict == "weak"
     # A scale change of 4 GNSS sigma: the planes may have seen it; GNSS alone may not.
     scaled = {**good, "scale_change": -0.04, "scale_change_sigmas": 4.0}
