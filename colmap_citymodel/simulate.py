@@ -1,4 +1,4 @@
-"""Simulated UAV flights through city models, mapped by COLMAP (issue 4; Unger chapter 5).
+"""Simulated UAV flights through city models, mapped by COLMAP (Unger chapter 5).
 
 `colmap-citymodel simulate SCENARIO.toml --output_path WORKSPACE [--seed N]` builds a COLMAP
 workspace whose drift is COLMAP's own:

@@ -1,4 +1,4 @@
-"""Scenes of the UAV simulator (issue 4; Unger 5.1.1, 5.2.2): the given LOD2 model, its error
+"""Scenes of the UAV simulator (Unger 5.1.1, 5.2.2): the given LOD2 model, its error
 variants, and the *true* scene that the simulated camera sees.
 
 - The given model is a PlaneStore: a real CityGML/CityJSON file read by `read_city_model`, or a

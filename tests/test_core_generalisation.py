@@ -1,4 +1,4 @@
-"""Cost functions of the generalisation-aware stochastic model (issue 5): the tie point to plane
+"""Cost functions of the generalisation-aware stochastic model: the tie point to plane
 distance with a per-plane offset unknown, and the scalar prior on that offset. Closed form,
 Jacobians against finite differences, and the offset acting on a shared block in a problem."""
 

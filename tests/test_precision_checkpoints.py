@@ -1,4 +1,4 @@
-"""Check point precision and the generalisation-aware stochastic model (issue 5).
+"""Check point precision and the generalisation-aware stochastic model.
 
 - the check points' marginal covariance (precision.checkpoint_cofactors: their image observations
   eliminated in the normal system of the adjustment, Woodbury) equals the dense inverse of the

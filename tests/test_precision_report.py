@@ -141,7 +141,7 @@ def test_covariance_switch(tmp_path):
     assert options.precision.covariances == "off" and options.precision.max_images_auto == 100
 
 
-# -- check points through refine (issue 5: Delta/sigma in report.json) ----------------------------
+# -- check points through refine (Delta/sigma in report.json) ----------------------------
 
 def _street_checkpoints(scene, num: int = 12, seed: int = 0):
     """Check points at true tie point positions (model CRS), observed anew with 1 px noise."""
