@@ -125,6 +125,11 @@ def _finite(value: float) -> float | None:
     return float(value) if np.isfinite(value) else None
 
 
+def rests_on_one_plane(observability_dict: dict) -> list[str]:
+    """The datum parameters that only a single plane fixes."""
+    return [k for k, v in observability_dict.items() if v.get("one_plane")]
+
+
 def planes_fix(observability_dict: dict) -> list[str]:
     """The datum parameters the planes fix alone or together with GNSS."""
     return [k for k, v in observability_dict.items() if v["source"] in ("planes", "both")]
@@ -254,9 +259,13 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
         weak.append(f"the GNSS residuals scatter {scatter:.1f} of their sigmas, {ratio:.1f}x "
                     "more than with GNSS only")
     if fixed is not None:
-        free = [k for k in ("E", "N", "U") if k not in fixed]
+        single = [k for k in metrics.get("one_plane", []) if k in ("E", "N", "U")]
+        free = [k for k in ("E", "N", "U") if k not in fixed and k not in single]
         if free:
             weak.append(f"the model planes do not fix {', '.join(free)}: there the position "
                         "is GNSS's alone")
+        if single:
+            weak.append(f"{', '.join(single)} rest(s) on a single model plane, which nothing "
+                        "checks (a wrong assignment there moves the block unseen)")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)

@@ -634,7 +634,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
                     observability_dict: dict, num_points: int, options: RefineOptions,
                     diverged: str | None, scale_sigma: float | None):
     """The figures of the quality gate (quality.quality_verdict) and the verdict."""
-    from .quality import QualityThresholds, gnss_scatter, planes_fix, quality_verdict
+    from .quality import (QualityThresholds, gnss_scatter, planes_fix, quality_verdict,
+                          rests_on_one_plane)
 
     thresholds = QualityThresholds()
     _, points = tie_points(rec)
@@ -645,6 +646,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         if len(points) else 0.0,
         "near_share_gnss_only": None, "diverged": diverged,
         "planes_fix": planes_fix(observability_dict),
+        "one_plane": rests_on_one_plane(observability_dict),
     }
     shift_sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
     if all(v is not None for v in shift_sigmas):

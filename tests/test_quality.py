@@ -132,6 +132,8 @@ def test_verdict_rules():
     assert quality_verdict({**good, "shift_sigmas": 6.0}).verdict == "failed"
     assert quality_verdict({**good, "near_share": 0.05}).verdict == "failed"
     assert quality_verdict({**good, "planes_fix": []}).verdict == "weak"
+    one_roof = quality_verdict({**good, "planes_fix": ["E", "N"], "one_plane": ["U"]})
+    assert one_roof.verdict == "weak" and "single model plane" in one_roof.reasons[0]
     assert quality_verdict({**good, "position_sigma_m": 0.3}).verdict == "weak"
     # GNSS residuals that grow but stay within their sigmas: the slow GNSS bias exposed.
     assert quality_verdict({**good, "gnss_scatter": 0.4, "gnss_scatter_ratio": 2.5}
