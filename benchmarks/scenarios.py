@@ -1,4 +1,4 @@
-"""Unger's scenarios on simulated flights: check point accuracy per method (issue 4, part 4).
+"""Unger's scenarios on simulated flights: check point accuracy per method.
 
 For each sequence (short ~90, long ~340 key frames) and scenario Scn1..Scn6
 (`workspaces/{short,long}_scnN.toml`), the workspace is built by the simulator (each sequence is
@@ -6,6 +6,8 @@ mapped once by COLMAP; workspaces under workspaces/generated/, as workspaces/REA
 the same `sparse/0` and is evaluated on the simulated check points:
 
 - refine_a:  colmap-citymodel refine (global workflow, direct assignment (a));
+- refine_b, refine_c, refine_auto: the same with assignment (b) "msac", (c) "roi_msac" and
+             "auto";
 - gnss_ba:   7-parameter fit to GNSS + bundle adjustment with GNSS priors (COLMAP's pose-prior BA);
 - gnss_sim3: 7-parameter fit to GNSS only (what `colmap model_aligner` does);
 - icp:       gnss_sim3, then rigid point-to-plane ICP of the tie points to the model (open3d), the
@@ -45,7 +47,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 GENERATED = ROOT / "workspaces" / "generated"
 SCENARIOS = ("Scn1", "Scn2", "Scn3", "Scn4", "Scn5", "Scn6")
-METHODS = ("refine_a", "gnss_ba", "gnss_sim3", "icp")
+METHODS = ("refine_a", "refine_b", "refine_c", "refine_auto", "gnss_ba", "gnss_sim3", "icp")
 # Unger chapter 6 (method.md 8): RMS 3D of check points, m.
 UNGER = {"short": {"Scn1": 0.10, "Scn2": 0.19, "Scn3": 0.25, "Scn5": "< 1"},
          "long": {"Scn2": 0.12, "Scn4": 0.31, "Scn5": "metres", "Scn6": "~5"}}
@@ -113,7 +115,7 @@ def inputs(workspace: Path):
     return read_reconstruction(workspace / "sparse" / "0"), store, gnss
 
 
-def run_refine(workspace: Path):
+def run_refine(workspace: Path, assignment: str = "direct"):
     from colmap_citymodel.options import RefineOptions
     from colmap_citymodel.workflow import refine
 
@@ -122,6 +124,7 @@ def run_refine(workspace: Path):
     options = RefineOptions.preset(
         "detailed" if model_variant(workspace) == "detailed" else "generalised")
     options.precision.covariances = "off"
+    options.assignment.method = assignment
     result = refine(rec, store, gnss, options, progress=False)
     return result.reconstruction, store
 
@@ -417,8 +420,11 @@ def run_robustness(cases: list[str], json_path: Path) -> None:
     print(text)
 
 
-RUNNERS = {"refine_a": run_refine, "gnss_ba": lambda w: run_gnss(w, True),
-           "gnss_sim3": lambda w: run_gnss(w, False), "icp": run_icp}
+RUNNERS = {"refine_a": run_refine, "refine_b": lambda w: run_refine(w, "msac"),
+           "refine_c": lambda w: run_refine(w, "roi_msac"),
+           "refine_auto": lambda w: run_refine(w, "auto"),
+           "gnss_ba": lambda w: run_gnss(w, True), "gnss_sim3": lambda w: run_gnss(w, False),
+           "icp": run_icp}
 
 
 def table(sequence: str, results: dict) -> str:
@@ -474,7 +480,7 @@ def main() -> None:
                   flush=True)
             model = has_model(workspace)
             for method in args.methods:
-                if not model and method in ("refine_a", "icp"):
+                if not model and (method.startswith("refine") or method == "icp"):
                     continue
                 start = time.perf_counter()
                 try:
