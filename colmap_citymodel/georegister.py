@@ -3,7 +3,10 @@
 A robust 7-parameter similarity (Sim3: scale, rotation, translation) from the COLMAP camera
 centres to the GNSS positions of the same images in the store's local frame (CRS minus origin),
 estimated with pycolmap's LO-RANSAC (`pycolmap.estimate_sim3d_robust`) and refined by least
-squares on the inliers. Without GNSS the user gives the transform (`read_initial_transform`).
+squares on the inliers. Where the camera centres with GNSS lie (nearly) on a line, GNSS fixes
+the line, its scale and position, and the cameras' upright orientation the rotation about it
+(`upright_line_similarity`). Without GNSS the user gives the transform
+(`read_initial_transform`).
 
 Sim3 convention (pycolmap.Sim3d, "tgt_from_src"): x_tgt = scale * R @ x_src + t.
 """
@@ -33,7 +36,8 @@ class GeoregistrationOptions:
     sigma_factor: float = 3.0
     min_inliers: int = 3
     # Camera centres whose second principal extent is below this fraction of the first are
-    # collinear: the rotation about that line is undetermined.
+    # collinear: GNSS cannot fix the rotation about that line, the cameras' upright
+    # orientation does (upright_line_similarity).
     min_noncollinearity: float = 1e-2
     # Centres that deviate from a line by less than the GNSS sigma: the 7-parameter fit is
     # kept while the GNSS scatter fixes the rotation about the line to this (deg), else the
@@ -121,9 +125,10 @@ def estimate_georegistration(
     """Robust Sim3 from the camera centres of `image_ids` to `gnss_positions_local` (K,3).
 
     `sigmas` (K,3) GNSS sigmas set the default RANSAC threshold (see GeoregistrationOptions);
-    without them the default sigmas 3, 3, 5 m are assumed. Raises GeoregistrationError for
-    fewer than 3 positions, collinear centres, a GNSS spread within its noise, RANSAC failure
-    or fewer than `min_inliers` inliers.
+    without them the default sigmas 3, 3, 5 m are assumed. Centres on (or, for the GNSS
+    noise, nearly on) a line take the rotation about it from the cameras (`cues` says so).
+    Raises GeoregistrationError for fewer than 3 positions, coinciding centres, a GNSS spread
+    within its noise, RANSAC failure or fewer than `min_inliers` inliers.
     """
     import pycolmap
 

@@ -1,15 +1,23 @@
-"""The refine step (`colmap_citymodel.refine`): global workflow of Unger Table 3 with direct
-assignment (a). A sliding-window workflow (Unger 3.3.2) will sit beside it.
+"""The refine step (`colmap_citymodel.refine`): global workflow of Unger Table 3 with any
+assignment method (direct (a) by default; (b), (c), auto). A sliding-window workflow (Unger
+3.3.2) will sit beside it.
 
-1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform);
+1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform;
+   along a straight line the cameras' upright orientation fixes the roll);
 2. bundle adjustment with GNSS priors and no model, robust on image observations; image
-   observations with normalised residual > 3 eliminated;
-3. assign tie points to model planes;
+   observations with normalised residual > 3 eliminated. This is the GNSS-only result that
+   the quality gate compares with and hands back when the model cannot help;
+   then coarse alignment: the block's shift (and roll about a straight line) against the
+   model surfaces within a few GNSS sigma (coarse_alignment);
+3. assign tie points to model planes (the first time followed by similarity rounds that must
+   lower the block objective);
 4. hybrid bundle adjustment, robust on f_dTP; fictitious observations with normalised residual
    > 3 eliminated and the adjustment repeated with the original weights.
 Steps 3-4 repeat (assignments recomputed from the current estimate every iteration; vertex-plane
-relations never change) until the relative change of the RMS of normalised residuals < 1e-5
-or 10 iterations.
+relations never change; the threshold never grows) until the relative change of the RMS of
+normalised residuals < 1e-5 or 10 iterations, or until the block objective worsens (the best
+iterate is kept). The scale is held from the GNSS-only block where the planes cannot give it.
+At the end: observability of the datum and the quality verdict (quality.py).
 
 Everything happens in the plane store's local frame (model CRS minus `store.origin`).
 `refine()` works on pycolmap objects in memory and never modifies its inputs; `main()` is the
