@@ -6,21 +6,7 @@ import pytest
 from colmap_citymodel.assign_planes import (Assignment, assign, next_threshold, planarity)
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import AssignmentOptions
-from colmap_citymodel.plane_store import store_from_polygons
-
-
-def box_store():
-    """A 10 x 10 x 10 m box (5 faces without ground), local frame = CRS."""
-    a = 10.0
-    rings = [
-        [(0, 0, 0), (a, 0, 0), (a, 0, a), (0, 0, a)],  # y = 0 wall, normal -y
-        [(a, 0, 0), (a, a, 0), (a, a, a), (a, 0, a)],  # x = a wall, normal +x
-        [(a, a, 0), (0, a, 0), (0, a, a), (a, a, a)],  # y = a wall, normal +y
-        [(0, a, 0), (0, 0, 0), (0, 0, a), (0, a, a)],  # x = 0 wall, normal -x
-        [(0, 0, a), (a, 0, a), (a, a, a), (0, a, a)],  # roof, normal +z
-    ]
-    return store_from_polygons([np.array(r, float) for r in rings], origin=np.zeros(3),
-                               semantics=["WallSurface"] * 4 + ["RoofSurface"])
+from conftest import box_store
 
 
 def wall_points(rng, n, offset_sigma=0.05):
