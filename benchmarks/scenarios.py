@@ -259,7 +259,7 @@ def checkpoint_errors(rec: pycolmap.Reconstruction, workspace: Path, origin: np.
     return {k: r[k] for k in ("rms_x", "rms_y", "rms_z", "rms_3d", "num_checkpoints")}
 
 
-def refine_with_quality(workspace: Path, gnss=None) -> dict:
+def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct") -> dict:
     """refine() on the workspace (GNSS from its database unless given): the refined and the
     GNSS-only reconstruction (local frame), their origin, the verdict and its reasons. A refine
     that raises gives verdict "error" and no refined reconstruction. Without a GNSS-only result
@@ -273,6 +273,7 @@ def refine_with_quality(workspace: Path, gnss=None) -> dict:
     options = RefineOptions.preset(
         "detailed" if model_variant(workspace) == "detailed" else "generalised")
     options.precision.covariances = "off"
+    options.assignment.method = assignment
     out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
                  "verdict": "n/a", "reasons": [], "quality_metrics": None, "observability": None}
     start = time.perf_counter()
@@ -315,6 +316,23 @@ def gnss_only_block(workspace: Path, gnss=None):
     _, priors, _ = georegister(rec, store, gnss_db if gnss is None else gnss, None)
     step2_bundle_adjustment(rec, priors, RefineOptions())
     return rec, store
+
+
+#: The other assignment methods as robustness rows: benchmark name -> AssignmentOptions.method.
+ASSIGNMENT_METHODS = {"refine_b": "msac", "refine_c": "roi_msac", "refine_auto": "auto"}
+
+
+def robustness_method(case: str, method: str) -> dict:
+    """Refine of a robustness case with another assignment method: camera centre and check
+    point errors of its result (the GNSS-only block when it failed), verdict, seconds."""
+    workspace, _ = build_robust_workspace(case)
+    run = refine_with_quality(workspace, assignment=ASSIGNMENT_METHODS[method])
+    rec = run["refined"]
+    return {"verdict": run["verdict"], "reasons": run["reasons"], "seconds": run["seconds"],
+            "cameras": centre_errors(rec, run["origin"], truth_centres(workspace))
+            if rec is not None else None,
+            "checkpoints": checkpoint_errors(rec, workspace, run["origin"])
+            if rec is not None else None, "code": code_version()}
 
 
 def robustness_case(case: str) -> dict:
@@ -377,6 +395,17 @@ def robustness_table(results: dict) -> str:
     for case, r in results.items():
         lines.append(f"| {case} | {r['num_key_frames']} | {r['num_registered_images']} | "
                      f"{r['num_models']} | {_f(r, 'build_seconds', fmt='{:.0f}')} |")
+    methods = {case: r["methods"] for case, r in results.items() if r.get("methods")}
+    if methods:
+        lines += ["", "Other assignment methods (refine_a above is direct assignment): camera "
+                  "centre RMS 3D (m) and verdict", "",
+                  "| case | " + " | ".join(ASSIGNMENT_METHODS) + " |",
+                  "|---|" + "---|" * len(ASSIGNMENT_METHODS)]
+        for case, by_method in methods.items():
+            cells = [f"{_f(by_method.get(m), 'cameras', 'rms_3d')} "
+                     f"({by_method[m]['verdict']})" if m in by_method else "-"
+                     for m in ASSIGNMENT_METHODS]
+            lines.append(f"| {case} | " + " | ".join(cells) + " |")
     reasons = [(case, r["reasons"]) for case, r in results.items() if r["reasons"]]
     if reasons:
         lines += ["", "Reasons given with the verdicts:", ""]
@@ -389,16 +418,24 @@ def _code_versions(results: dict) -> str:
     return ", ".join(versions) if versions else "-"
 
 
-def run_robustness(cases: list[str], json_path: Path) -> None:
+def run_robustness(cases: list[str], json_path: Path, methods: list[str] = ()) -> None:
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     for case in cases:
         print(f"robustness {case}: ...", flush=True)
-        r = robustness_case(case)
-        r["code"] = code_version()
-        print(f"  verdict {r['verdict']}; camera RMS 3D refine "
-              f"{_f(r['refine'], 'cameras', 'rms_3d')} m, GNSS only "
-              f"{_f(r['gnss_only'], 'cameras', 'rms_3d')} m ({r['seconds']:.0f} s)", flush=True)
-        everything = update_json(json_path, ["robustness", case], r)
+        if "refine_a" in methods or not methods:
+            r = robustness_case(case)
+            r["code"] = code_version()
+            r["methods"] = everything.get("robustness", {}).get(case, {}).get("methods", {})
+            print(f"  verdict {r['verdict']}; camera RMS 3D refine "
+                  f"{_f(r['refine'], 'cameras', 'rms_3d')} m, GNSS only "
+                  f"{_f(r['gnss_only'], 'cameras', 'rms_3d')} m ({r['seconds']:.0f} s)",
+                  flush=True)
+            everything = update_json(json_path, ["robustness", case], r)
+        for method in [m for m in methods if m in ASSIGNMENT_METHODS]:
+            m = robustness_method(case, method)
+            print(f"  {method}: verdict {m['verdict']}; camera RMS 3D "
+                  f"{_f(m, 'cameras', 'rms_3d')} m ({m['seconds']:.0f} s)", flush=True)
+            everything = update_json(json_path, ["robustness", case, "methods", method], m)
     results = {c: everything["robustness"][c] for c in ROBUST_CASES
                if c in everything.get("robustness", {})}
     text = robustness_table(results)
@@ -454,7 +491,9 @@ def main() -> None:
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--sequences", nargs="+", default=["short", "long"])
     parser.add_argument("--scenarios", nargs="+", default=list(SCENARIOS))
-    parser.add_argument("--methods", nargs="+", default=list(METHODS))
+    parser.add_argument("--methods", nargs="+", default=None,
+                        help=f"methods (default: all, {', '.join(METHODS)}; with --robustness: "
+                             "refine_a)")
     parser.add_argument("--tables_only", action="store_true",
                         help="only rewrite the tables from results/scenarios.json")
     parser.add_argument("--robustness", action="store_true",
@@ -468,7 +507,9 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "scenarios.json"
     if args.robustness:
-        run_robustness([] if args.tables_only else args.cases, json_path)
+        # Robustness rows: refine_a (direct) unless --methods names others.
+        run_robustness([] if args.tables_only else args.cases, json_path,
+                       [m for m in args.methods or ["refine_a"] if m.startswith("refine")])
         return
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     for sequence in args.sequences:
@@ -479,7 +520,7 @@ def main() -> None:
             print(f"{sequence} {scenario}: workspace ready in {time.perf_counter() - start:.0f} s",
                   flush=True)
             model = has_model(workspace)
-            for method in args.methods:
+            for method in args.methods or METHODS:
                 if not model and (method.startswith("refine") or method == "icp"):
                     continue
                 start = time.perf_counter()
