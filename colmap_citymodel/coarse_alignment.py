@@ -56,7 +56,6 @@ class SurfaceDistance:
                          for f in triangle_face], bool)
         if not keep.any():
             keep[:] = True
-        self.triangle_face = triangle_face[keep]
         self.scene = o3d.t.geometry.RaycastingScene()
         self.scene.add_triangles(
             o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
@@ -68,16 +67,6 @@ class SurfaceDistance:
             return np.zeros(0)
         query = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
         return self.scene.compute_distance(query).numpy().astype(np.float64)
-
-    def nearest_face(self, points: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """(distance, store face index) of the closest model surface point."""
-        if len(points) == 0:
-            return np.zeros(0), np.zeros(0, np.int64)
-        query = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
-        found = self.scene.compute_closest_points(query)
-        closest = found["points"].numpy().astype(np.float64)
-        triangles = found["primitive_ids"].numpy().astype(np.int64)
-        return (np.linalg.norm(closest - points, axis=1), self.triangle_face[triangles])
 
 
 def near_share(distances: np.ndarray, radius: float) -> float:
@@ -355,7 +344,8 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
                            window_deg=window)
         if roll is not None:
             found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
-                          "normal_score_unrotated": roll.score_at_zero})
+                          "normal_score_unrotated": roll.score_at_zero,
+                          "tie_point_planes": roll.num_planes})
             if roll.score > roll.score_at_zero + MIN_ROLL_GAIN:
                 rotation = roll.rotation
                 candidates.append((float(np.degrees(roll.angle)), rotation,
