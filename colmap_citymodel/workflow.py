@@ -363,7 +363,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     surface = SurfaceDistance(store, o_a.excluded_classes)
-    all_ids, _ = tie_points(rec, exclude_point_ids)
+    all_ids, points = tie_points(rec, exclude_point_ids)
     objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
     scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
     coarse = None
@@ -372,7 +372,6 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         # search the shift (and, along a straight line, the roll) that puts the tie points
         # on the model before any of them is assigned.
         t_coarse = time.perf_counter()
-        _, points = tie_points(rec, exclude_point_ids)
         # The images with GNSS fixed the georegistration; if they lie on a line, its rotation
         # about that line came from the cameras' upright orientation and is searched again.
         centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
@@ -536,7 +535,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
-                              len(point_ids), options, diverged, scale_sigma)
+                              points, options, diverged, scale_sigma)
     logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
     precision = evaluation = None
@@ -639,16 +638,16 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
 
 def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
                     surface, priors: GNSSPriors | None, assignment: Assignment, last,
-                    observability_dict: dict, num_points: int, options: RefineOptions,
+                    observability_dict: dict, points: np.ndarray, options: RefineOptions,
                     diverged: str | None, scale_sigma: float | None):
-    """The figures of the quality gate (quality.quality_verdict) and the verdict."""
+    """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
+    are the refined tie points that could be assigned (check points left out)."""
     from .quality import (QualityThresholds, gnss_scatter, planes_fix, quality_verdict,
                           rests_on_one_plane)
 
     thresholds = QualityThresholds()
-    _, points = tie_points(rec)
     metrics: dict = {
-        "assigned_share": assignment.num_assigned / max(num_points, 1),
+        "assigned_share": assignment.num_assigned / max(len(points), 1),
         "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
         "near_share": float(np.mean(surface(points) < thresholds.near_distance))
         if len(points) else 0.0,
