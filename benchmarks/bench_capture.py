@@ -72,7 +72,7 @@ def build_block(case: str) -> tuple[Path, dict]:
 def biased_gnss(gnss, truth: dict, level: float, seed: int):
     """`gnss` (the workspace's observations, model CRS) with positions redrawn: truth + white
     noise + a constant bias of `level` metres (simulate.simulate_gnss)."""
-    from colmap_citymodel.simulate import Flight, GNSSOptions, simulate_gnss
+    from colmap_citymodel.simulate.sequence import Flight, GNSSOptions, simulate_gnss
 
     names = [n for n in gnss.image_names if n in truth]
     centres = np.array([truth[n] for n in names])

@@ -56,8 +56,9 @@ def options_for(variant: str):
 
 
 def run(workspace: Path, variant: str) -> dict:
-    from colmap_citymodel.evaluate import read_checkpoint_observations, read_checkpoints
-    from colmap_citymodel.read_city_model import read_city_model
+    from colmap_citymodel.precision.checkpoints import (read_checkpoint_observations,
+                                                        read_checkpoints)
+    from colmap_citymodel.citymodel.read import read_city_model
     from colmap_citymodel.workflow import read_gnss, read_reconstruction, refine
 
     store = read_city_model(workspace / "given_model.gml")
@@ -86,7 +87,7 @@ def run(workspace: Path, variant: str) -> dict:
 
 
 def markdown(workspace: Path, runs: list[dict], command: str) -> str:
-    from colmap_citymodel.evaluate import format_delta_sigma
+    from colmap_citymodel.precision.checkpoints import format_delta_sigma
 
     shown = workspace.relative_to(ROOT) if workspace.is_relative_to(ROOT) else workspace
     lines = ["# Check point Delta/sigma: classical vs generalisation-aware stochastic model", "",
@@ -161,7 +162,7 @@ def main() -> None:
                         help="markdown file to write (a .json beside it)")
     args = parser.parse_args()
     from colmap_citymodel import logger
-    from colmap_citymodel.evaluate import format_delta_sigma
+    from colmap_citymodel.precision.checkpoints import format_delta_sigma
 
     logger.setLevel(logging.WARNING)
     if args.workspace is None:

@@ -155,8 +155,8 @@ def store_nbytes(store) -> tuple[int, int, int]:
 def child(path: str, mode: str) -> None:
     import gc
 
-    from colmap_citymodel.read_city_model import read_city_model
-    from colmap_citymodel.read_citygml import read_citygml
+    from colmap_citymodel.citymodel.read import read_city_model
+    from colmap_citymodel.citymodel.read_citygml import read_citygml
 
     # warm up: imports, pyproj database, lxml
     read_city_model(SOURCE)

@@ -31,16 +31,16 @@ import numpy as np
 import pycolmap
 
 from colmap_citymodel import logger
-from colmap_citymodel.assign_planes import assign
-from colmap_citymodel.hybrid_adjustment import HybridProblem
+from colmap_citymodel.assign.assignment import assign
+from colmap_citymodel.adjust.problem import HybridProblem
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.workflow import (align_block_to_planes, crop_to_reconstruction,
-                                       georegister, refine, tie_points)
-from colmap_citymodel.synthetic_scene import centre_errors
+from colmap_citymodel.workflow import (align_block_to_planes, crop_to_reconstruction, georegister,
+                                       refine, tie_points)
+from colmap_citymodel.simulate.synthetic import centre_errors
 
 
 def workspace_for(sequence: str) -> Path:
-    from colmap_citymodel import simulate
+    from colmap_citymodel.simulate import sequence as simulate
 
     root = Path(__file__).resolve().parents[1] / "workspaces"
     out = root / "generated" / sequence / "Scn3"
@@ -60,7 +60,7 @@ def main() -> None:
     args = parser.parse_args()
     logger.setLevel(logging.WARNING)
     workspace = args.workspace or workspace_for("short" if args.quick else "long")
-    from colmap_citymodel.read_city_model import read_city_model
+    from colmap_citymodel.citymodel.read import read_city_model
     from colmap_citymodel.workflow import read_gnss, read_reconstruction
 
     store = read_city_model(workspace / "given_model.gml")

@@ -69,7 +69,7 @@ def update_json(path: Path, keys: list[str], value) -> dict:
 
 
 def build_workspace(sequence: str, scenario: str) -> Path:
-    from colmap_citymodel import simulate
+    from colmap_citymodel.simulate import sequence as simulate
 
     toml = ROOT / "workspaces" / f"{sequence}_{scenario.lower()}.toml"
     out = GENERATED / sequence / scenario
@@ -91,8 +91,9 @@ def has_model(workspace: Path) -> bool:
 
 
 def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> dict:
-    from colmap_citymodel.evaluate import (evaluate_checkpoints, read_checkpoint_observations,
-                                           read_checkpoints)
+    from colmap_citymodel.precision.checkpoints import (evaluate_checkpoints,
+                                                        read_checkpoint_observations,
+                                                        read_checkpoints)
 
     evaluation = evaluate_checkpoints(rec, read_checkpoints(workspace / "checkpoints.txt"),
                                       read_checkpoint_observations(
@@ -104,7 +105,7 @@ def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) 
 
 
 def inputs(workspace: Path):
-    from colmap_citymodel.read_city_model import read_city_model
+    from colmap_citymodel.citymodel.read import read_city_model
     from colmap_citymodel.workflow import read_gnss, read_reconstruction
 
     given = workspace / "given_model.gml"
@@ -144,7 +145,7 @@ def run_icp(workspace: Path):
     """Sim3 to GNSS, then rigid point-to-plane ICP of the tie points to the model surface."""
     import open3d as o3d
 
-    from colmap_citymodel.export_mesh import store_to_trimesh
+    from colmap_citymodel.citymodel.mesh import store_to_trimesh
     from colmap_citymodel.workflow import tie_points
 
     rec, store = run_gnss(workspace, with_ba=False)
@@ -208,7 +209,7 @@ def build_robust_workspace(case: str, *, seed: int | None = None) -> tuple[Path,
 
 
 def build_from_toml(toml: Path, out: Path, *, seed: int | None = None) -> tuple[Path, dict]:
-    from colmap_citymodel import simulate
+    from colmap_citymodel.simulate import sequence as simulate
 
     options = simulate.load_scenario(toml)
     if seed is not None:

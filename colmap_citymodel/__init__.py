@@ -18,7 +18,7 @@ if not logger.handlers:
 
 from .errors import CityModelError  # noqa: E402
 from .options import RefineOptions  # noqa: E402
-from .read_city_model import read_city_model  # noqa: E402
+from .citymodel.read import read_city_model  # noqa: E402
 from .workflow import RefineResult, refine  # noqa: E402
 
 __all__ = ["CityModelError", "RefineOptions", "RefineResult", "logger", "read_city_model",

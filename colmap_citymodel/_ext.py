@@ -25,7 +25,7 @@ import numpy as np
 
 from .errors import ExtensionImportError
 
-logger = logging.getLogger("colmap_citymodel._ext")
+logger = logging.getLogger(__name__)
 
 #: pybind11 internals version shared by pycolmap 4.2.1 and pyceres 2.6 (pybind11 3.0.x).
 EXPECTED_PYBIND11_INTERNALS_VERSION = 11

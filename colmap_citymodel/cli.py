@@ -20,7 +20,7 @@ def _add_model_info(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print one JSON object")
 
     def run(args):
-        from .model_info import main
+        from .citymodel.info import main
 
         main(args.path, lod=args.lod, crs=args.crs, target_crs=args.target_crs, as_json=args.json)
 
@@ -45,17 +45,17 @@ def _add_evaluate(subparsers) -> None:
                         "the one in --input_path) for the Delta/sigma table")
 
     def run(args):
-        from .evaluate import main
+        from .precision.checkpoints import main
 
         if args.output_path:  # a taken output directory fails before the evaluation
-            from .checkpoint_plots import check_new_directory
+            from .precision.plots import check_new_directory
 
             check_new_directory(args.output_path)
         out = main(args.input_path, args.checkpoints, args.observations,
                    origin_file=args.origin_file, frame=args.frame, as_json=args.json,
                    truth_path=args.truth_path, precision_file=args.checkpoint_precision)
         if args.output_path:
-            from .checkpoint_plots import write_evaluate_outputs
+            from .precision.plots import write_evaluate_outputs
 
             write_evaluate_outputs(args.output_path, out, args.checkpoints)
 
@@ -73,7 +73,7 @@ def _add_simulate(subparsers) -> None:
     p.add_argument("--overwrite", action="store_true", help="replace an existing workspace")
 
     def run(args):
-        from .simulate import main
+        from .simulate.sequence import main
 
         main(args.scenario, args.output_path, seed=args.seed, cache_path=args.cache_path,
              overwrite=args.overwrite)
@@ -195,7 +195,7 @@ def _add_precision(subparsers) -> None:
     p.add_argument("--no_progress", action="store_true", help="no progress bars")
 
     def run(args):
-        from .precision_subsets import main
+        from .precision.subsets import main
 
         main(args.input_path, args.subsets, output_path=args.output_path,
              database=args.database, gnss=args.gnss, gnss_crs=args.gnss_crs,

@@ -26,9 +26,9 @@ MARKER = ".colmap_citymodel_demo"
 def write_baseline(workspace: Path, out: Path) -> Path:
     """GNSS-only baseline: similarity to GNSS, then BA with GNSS priors, written in CRS."""
     from .options import RefineOptions
-    from .read_city_model import read_city_model
+    from .citymodel.read import read_city_model
     from .workflow import georegister, read_gnss, read_reconstruction, step2_bundle_adjustment
-    from .write_output import atomic_directory
+    from .output.write import atomic_directory
 
     store = read_city_model(workspace / "given_model.gml")
     gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)
@@ -48,7 +48,8 @@ def write_baseline(workspace: Path, out: Path) -> Path:
 
 def main(output_path: str | Path, *, scenario: str | Path | None = None,
          progress: bool = True) -> dict:
-    from . import evaluate, simulate
+    from .precision import checkpoints as evaluate
+    from .simulate import sequence as simulate
     from .workflow import main as refine_main
 
     scenario = Path(scenario) if scenario else DEMO_SCENARIO

@@ -36,19 +36,18 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from .assign_planes import (Assignment, assign, filter_faces, initial_threshold,
-                            next_threshold)
+from .assign.assignment import Assignment, assign, filter_faces, initial_threshold, next_threshold
 from .errors import DatumError, GeoregistrationError, GNSSError, NoOverlapError
-from .hybrid_adjustment import BaselinePriors, GNSSPriors, HybridProblem, SolveReport
+from .adjust.problem import BaselinePriors, GNSSPriors, HybridProblem, SolveReport
 from .options import RefineOptions
-from .plane_store import PlaneStore
+from .citymodel.store import PlaneStore
 
 if TYPE_CHECKING:
-    from .evaluate import CheckpointEvaluation
-    from .precision import PrecisionResult, VarianceComponents
-    from .quality import QualityReport
+    from .precision.checkpoints import CheckpointEvaluation
+    from .precision.estimate import PrecisionResult, VarianceComponents
+    from .precision.quality import QualityReport
 
-logger = logging.getLogger("colmap_citymodel.workflow")
+logger = logging.getLogger(__name__)
 
 # Two plane normals closer than this (either sign) count as the same orientation for the datum.
 SAME_ORIENTATION_DEG = 10.0
@@ -233,8 +232,8 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
                 ) -> tuple[pycolmap.Sim3d, GNSSPriors | None, float | None]:
     """Bring the reconstruction into the store's local frame; return the applied similarity.
     `details`, when given, receives which cue fixed each datum parameter ("cues")."""
-    from .georegister import estimate_georegistration
-    from .read_gnss import match_to_reconstruction
+    from .align.georegister import estimate_georegistration
+    from .block.gnss import match_to_reconstruction
 
     priors = None
     rms = None
@@ -296,7 +295,7 @@ class BlockObjective:
 
     def __init__(self, surface, priors: GNSSPriors | None, point_ids: np.ndarray,
                  radius: float):
-        from .coarse_alignment import MAX_SEARCH_POINTS, SHIFT_PENALTY
+        from .align.coarse import MAX_SEARCH_POINTS, SHIFT_PENALTY
 
         rng = np.random.default_rng(1)
         self.ids = (point_ids if len(point_ids) <= 2 * MAX_SEARCH_POINTS else
@@ -310,7 +309,7 @@ class BlockObjective:
 
     def __call__(self, rec: pycolmap.Reconstruction, moved: pycolmap.Sim3d | None = None
                  ) -> float:
-        from .coarse_alignment import near_share
+        from .align.coarse import near_share
 
         points, antennas = self.points(rec), None
         if self.priors is not None:
@@ -342,7 +341,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     `checkpoints` ({id: XYZ} model CRS) and `checkpoint_observations` ([(image, id, x, y)],
     evaluate.read_*) are only evaluated at the end (Delta, and sigma when covariances are on).
     """
-    from .coarse_alignment import SurfaceDistance, coarse_alignment
+    from .align.coarse import SurfaceDistance, coarse_alignment
 
     options = options or RefineOptions()
     timer = {"start": time.perf_counter()}
@@ -391,7 +390,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     threshold = initial_threshold(o_a)
     weights = None
     if o_a.weighted_sampling:
-        from .assign_msac import point_quality_weights
+        from .assign.indirect import point_quality_weights
 
         weights = point_quality_weights(rec, all_ids)
     assignment: Assignment | None = None
@@ -525,7 +524,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                                               dict(assignment.rejected_faces), 0, None, report,
                                               float("inf")))
 
-    from .precision import final_solve_in_refine, precision_after_refine
+    from .precision.estimate import final_solve_in_refine, precision_after_refine
 
     vce = None
     if last.blocks.faces.size:  # VCE and/or estimated generalisation offsets, if asked
@@ -546,7 +545,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     else:
         precision = precision_after_refine(last, options.precision, checkpoint_observations)
     if checkpoints is not None and checkpoint_observations is not None:
-        from .evaluate import evaluate_with_precision
+        from .precision.checkpoints import evaluate_with_precision
 
         evaluation = evaluate_with_precision(rec, checkpoints, checkpoint_observations,
                                              store.origin, precision)
@@ -625,7 +624,7 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                            options: RefineOptions) -> dict:
     """quality.observability for the assigned tie points and the GNSS of `rec`."""
     from .options import GENERALISATION_SIGMA
-    from .quality import observability
+    from .precision.quality import observability
 
     assigned = assignment.assigned
     faces = assignment.face_index[assigned]
@@ -642,8 +641,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
                     diverged: str | None, scale_sigma: float | None):
     """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
     are the refined tie points that could be assigned (check points left out)."""
-    from .quality import (QualityThresholds, gnss_scatter, planes_fix, quality_verdict,
-                          rests_on_one_plane)
+    from .precision.quality import (QualityThresholds, gnss_scatter, planes_fix, quality_verdict,
+                                    rests_on_one_plane)
 
     thresholds = QualityThresholds()
     metrics: dict = {
@@ -663,7 +662,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         dtp = float(np.sqrt(np.mean(normalised ** 2)))
         metrics["dtp_rms_sigmas"] = float(dtp)
         metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
-    from .coarse_alignment import wall_points
+    from .align.coarse import wall_points
 
     walls = wall_points(points) if len(points) else np.zeros((0, 3))
     metrics["num_wall_points"] = len(walls)
@@ -735,7 +734,7 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
     """The similarity that best puts the assigned tie points on their planes (and the block on
     GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it.
     `scale_sigma`: how far (relative) GNSS lets the scale change."""
-    from .initial_alignment import similarity_to_planes
+    from .align.initial_alignment import similarity_to_planes
 
     assigned = assignment.assigned
     faces = assignment.face_index[assigned]
@@ -778,8 +777,8 @@ def peek_crs(citymodel, assumed: str | None = None):
     the head names none (the model is then read whole first)."""
     import re
 
-    from .crs import resolve_crs, user_crs
-    from .read_city_model import city_model_files
+    from .citymodel.crs import resolve_crs, user_crs
+    from .citymodel.read import city_model_files
 
     files = city_model_files(citymodel)
     with open(files[0], "rb") as f:
@@ -813,7 +812,7 @@ def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
               default_sigma=(3.0, 3.0, 5.0)):
     """GNSS from exactly one source: COLMAP database pose priors, a text file or EXIF."""
     from .errors import InputError
-    from . import read_gnss as rg
+    from .block import gnss as rg
 
     given = [name for name, value in (("--database", database), ("--gnss", gnss),
                                       ("--exif", exif)) if value]
@@ -839,10 +838,10 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
-    from .crs import user_crs
-    from .georegister import read_initial_transform
-    from .read_city_model import read_city_model
-    from .write_output import atomic_directory, write_refined
+    from .citymodel.crs import user_crs
+    from .align.georegister import read_initial_transform
+    from .citymodel.read import read_city_model
+    from .output.write import atomic_directory, write_refined
 
     options = (RefineOptions.from_toml(options_file, preset) if options_file
                else RefineOptions.preset(preset))
@@ -860,7 +859,7 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
 
         raise InputError("give --checkpoints and --checkpoint_observations together")
     if checkpoints is not None:
-        from .evaluate import read_checkpoint_observations, read_checkpoints
+        from .precision.checkpoints import read_checkpoint_observations, read_checkpoints
 
         cp_known = read_checkpoints(checkpoints)
         cp_observations = read_checkpoint_observations(checkpoint_observations)

@@ -3,8 +3,8 @@
 import numpy as np
 import pytest
 
-from colmap_citymodel.plane_store import store_from_polygons
-from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
+from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 
 def box_store():

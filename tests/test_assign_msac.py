@@ -5,14 +5,14 @@ import logging
 import numpy as np
 import pytest
 
-from colmap_citymodel.assign_msac import (ExtractedPlane, alpha_components, assign_msac,
-                                          assign_roi_msac, extract_planes, match_planes,
-                                          point_quality_weights)
-from colmap_citymodel.assign_planes import assign, initial_threshold, next_threshold
+from colmap_citymodel.assign.indirect import (ExtractedPlane, alpha_components, assign_msac,
+                                              assign_roi_msac, extract_planes, match_planes,
+                                              point_quality_weights)
+from colmap_citymodel.assign.assignment import assign, initial_threshold, next_threshold
 from colmap_citymodel.options import AssignmentOptions, RefineOptions
-from colmap_citymodel.plane_store import store_from_polygons
-from colmap_citymodel.synthetic_scene import (StreetSceneOptions, building_polygons,
-                                              make_street_scene, sample_surface_points)
+from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.simulate.synthetic import (StreetSceneOptions, building_polygons,
+                                                 make_street_scene, sample_surface_points)
 from conftest import box_store
 
 
@@ -240,7 +240,7 @@ def test_auto_uses_an_indirect_method_while_the_threshold_is_large(caplog):
     store, points, _ = clean_building(rng)
     ids = np.arange(len(points))
     options = AssignmentOptions(method="auto")
-    with caplog.at_level(logging.INFO, logger="colmap_citymodel.assign_planes"):
+    with caplog.at_level(logging.INFO, logger="colmap_citymodel.assign"):
         far = assign(points, ids, store, 2.5, options)
         near = assign(points, ids, store, 0.4, options)
     assert far.method == "roi_msac" and near.method == "direct"

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from colmap_citymodel.assign_planes import (Assignment, assign, next_threshold, planarity)
+from colmap_citymodel.assign.assignment import Assignment, assign, next_threshold, planarity
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import AssignmentOptions
 from conftest import box_store

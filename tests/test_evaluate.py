@@ -11,14 +11,9 @@ from scipy.spatial.transform import Rotation
 
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import InputError
-from colmap_citymodel.evaluate import (
-    evaluate_checkpoints,
-    helmert_transform,
-    main,
-    read_checkpoint_observations,
-    read_checkpoints,
-    triangulate_checkpoints,
-)
+from colmap_citymodel.precision.checkpoints import (evaluate_checkpoints, helmert_transform, main,
+                                                    read_checkpoint_observations, read_checkpoints,
+                                                    triangulate_checkpoints)
 
 
 def test_helmert_recovers_known_similarity_exactly():
@@ -255,7 +250,7 @@ def test_delta_sigma_from_a_checkpoint_precision_file(tmp_path, capsys):
 def test_origin_text_file_with_comment_lines(tmp_path):
     """truth/origin.txt as simulate writes it: a comment header, the numbers, a CRS comment."""
     from colmap_citymodel.errors import InputError
-    from colmap_citymodel.evaluate import _read_origin
+    from colmap_citymodel.precision.checkpoints import _read_origin
 
     path = tmp_path / "origin.txt"
     path.write_text("# origin X Y Z: local = model CRS - origin\n691000.0 5336000.0 515.0\n"

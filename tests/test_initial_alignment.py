@@ -4,7 +4,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_citymodel.initial_alignment import similarity_to_planes
+from colmap_citymodel.align.initial_alignment import similarity_to_planes
 
 
 def _box_scene(rng):

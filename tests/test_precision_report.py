@@ -11,9 +11,9 @@ import pytest
 
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import PrecisionOptions, RefineOptions
-from colmap_citymodel.precision import PrecisionResult, wants_covariances
+from colmap_citymodel.precision.estimate import PrecisionResult, wants_covariances
 from colmap_citymodel.workflow import refine
-from colmap_citymodel.write_output import write_refined
+from colmap_citymodel.output.write import write_refined
 
 
 @pytest.fixture(scope="module")
@@ -172,7 +172,7 @@ def refined_with_checkpoints(scene):
 
 
 def test_refine_reports_delta_and_sigma_of_checkpoints(refined_with_checkpoints, tmp_path):
-    from colmap_citymodel.evaluate import main as evaluate_main
+    from colmap_citymodel.precision.checkpoints import main as evaluate_main
 
     result, known, observations = refined_with_checkpoints
     evaluation = result.checkpoints

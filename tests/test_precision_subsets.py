@@ -14,13 +14,14 @@ import pytest
 
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import InputError
-from colmap_citymodel.hybrid_adjustment import GNSSPriors, HybridProblem
+from colmap_citymodel.adjust.problem import GNSSPriors, HybridProblem
 from colmap_citymodel.options import AdjustmentOptions
-from colmap_citymodel.precision import estimate_precision, image_jacobian, whitened_jacobian
-from colmap_citymodel.precision_subsets import (SubsetOptions, inner_precision, parse_subset,
+from colmap_citymodel.precision.estimate import (estimate_precision, image_jacobian,
+                                                 whitened_jacobian)
+from colmap_citymodel.precision.subsets import (SubsetOptions, inner_precision, parse_subset,
                                                 precision_subsets, restrict, select_images,
                                                 shared_points, similarity_basis)
-from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 PNG = b"\x89PNG\r\n\x1a\n"
 #: Every other station: half the images over the same stretch of street.
@@ -246,7 +247,7 @@ def test_missing_model_and_taken_output(tmp_path, scene, capsys):
 def test_geographic_gnss_goes_to_its_utm_zone(tmp_path, scene, capsys):
     from pyproj import Transformer
 
-    from colmap_citymodel.precision_subsets import main
+    from colmap_citymodel.precision.subsets import main
 
     model = _workspace(tmp_path, scene)
     projected = main(model, [f"even={EVEN}"], gnss=tmp_path / "gnss.txt", gnss_crs="EPSG:25832",

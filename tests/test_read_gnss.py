@@ -14,17 +14,10 @@ import pyproj
 import pytest
 
 from colmap_citymodel.errors import GNSSError
-from colmap_citymodel.read_gnss import (
-    GNSSObservations,
-    _crs_info,
-    apply_lever_arm,
-    match_to_reconstruction,
-    read_gnss_database,
-    read_gnss_exif,
-    read_gnss_text,
-    reproject_with_report,
-    rotations_from_reconstruction,
-)
+from colmap_citymodel.block.gnss import (GNSSObservations, _crs_info, apply_lever_arm,
+                                         match_to_reconstruction, read_gnss_database,
+                                         read_gnss_exif, read_gnss_text, reproject_with_report,
+                                         rotations_from_reconstruction)
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 LUND = SHARED_DATA / "images" / "lund"
@@ -302,7 +295,7 @@ def test_match_to_reconstruction_partial_and_no_match(caplog):
     ) + origin
     sigmas = np.arange(15, dtype=np.float64).reshape(5, 3) + 1.0
     gnss = GNSSObservations(all_names, positions, sigmas, UTM32_DHHN, "database")
-    with caplog.at_level(logging.INFO, logger="colmap_citymodel.read_gnss"):
+    with caplog.at_level(logging.INFO, logger="colmap_citymodel.block.gnss"):
         ids, local, matched_sigmas = match_to_reconstruction(gnss, reconstruction, origin)
     expected = [by_name[n].image_id for n in (names[0], names[3], names[1])]
     np.testing.assert_array_equal(ids, expected)

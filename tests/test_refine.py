@@ -14,9 +14,8 @@ import pytest
 from colmap_citymodel.errors import DatumError, NoOverlapError
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.workflow import check_datum, georegister, refine, step2_bundle_adjustment
-from colmap_citymodel.synthetic_scene import (StreetSceneOptions, centre_errors,
-                                              make_street_scene)
-from colmap_citymodel.write_output import write_refined
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors, make_street_scene
+from colmap_citymodel.output.write import write_refined
 
 
 def rms(values):
@@ -165,11 +164,11 @@ def test_gnss_heights_in_another_height_system_are_a_clear_error(scene):
 def test_image_sigma_scales_all_groups_consistently(scene):
     """sigma_image = 2 px with all other sigmas doubled is the same relative weighting as the
     default (so the same minimum): every group's normalised residuals are exactly halved."""
-    from colmap_citymodel.hybrid_adjustment import HybridProblem
+    from colmap_citymodel.adjust.problem import HybridProblem
 
     rec = pycolmap.Reconstruction(scene.sfm)
     _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
-    from colmap_citymodel.assign_planes import assign
+    from colmap_citymodel.assign.assignment import assign
     from colmap_citymodel.workflow import tie_points
 
     ids, xyz = tie_points(rec)
@@ -193,7 +192,7 @@ def test_image_sigma_scales_all_groups_consistently(scene):
 def test_lever_arm_moves_the_observed_point_into_the_rig_frame(scene):
     """GNSS positions of an antenna 0.5 m above each camera (rig frame: -y is up for these
     level cameras, approximately): with the lever arm the GNSS residuals at the truth vanish."""
-    from colmap_citymodel.hybrid_adjustment import GNSSPriors, HybridProblem
+    from colmap_citymodel.adjust.problem import GNSSPriors, HybridProblem
 
     truth = pycolmap.Reconstruction(scene.truth)
     ids = np.array(sorted(truth.reg_image_ids()))

@@ -9,9 +9,9 @@ import pycolmap
 import pytest
 
 from colmap_citymodel.cli import main as cli_main
-from colmap_citymodel.crs import user_crs
-from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
-from colmap_citymodel.write_citygml import raw_from_store, write_citygml
+from colmap_citymodel.citymodel.crs import user_crs
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
+from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 
 
 @pytest.fixture(scope="module")

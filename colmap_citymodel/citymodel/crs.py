@@ -28,7 +28,7 @@ import numpy as np
 import pyproj
 from pyproj.crs import CompoundCRS
 
-from .errors import CRSError
+from ..errors import CRSError
 from .raw_model import CRSInfo
 
 # AdV (German surveying authorities) CRS names used in `urn:adv:crs:<horizontal>*<vertical>[*<geoid>]`

@@ -29,10 +29,10 @@ from typing import Iterable, Mapping
 
 import numpy as np
 
-from .errors import GNSSError, CRSError
-from .raw_model import CRSInfo
+from ..errors import GNSSError, CRSError
+from ..citymodel.raw_model import CRSInfo
 
-logger = logging.getLogger("colmap_citymodel.read_gnss")
+logger = logging.getLogger(__name__)
 
 DEFAULT_SIGMA = (3.0, 3.0, 5.0)  # metres, X Y Z (method.md section 2, Unger 5.3)
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff", ".png", ".webp")
@@ -105,7 +105,7 @@ def _pyproj_crs(crs):
 def _crs_info(text: str, path=None) -> CRSInfo:
     """A CRSInfo from a user string such as "EPSG:4979" or "EPSG:25832+7837"."""
     try:
-        from .crs import user_crs  # written by the CRS helper; optional here
+        from ..citymodel.crs import user_crs  # written by the CRS helper; optional here
     except ImportError:
         user_crs = None
     if user_crs is not None:

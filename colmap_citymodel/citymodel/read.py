@@ -14,11 +14,11 @@ from pathlib import Path
 import numpy as np
 
 from . import crs as crs_mod
-from .errors import CRSError, InputError, NoOverlapError
-from .plane_store import PlaneStore, build_store
+from ..errors import CRSError, InputError, NoOverlapError
+from .store import PlaneStore, build_store
 from .raw_model import RawCityModel, RawPolygonTable
 
-logger = logging.getLogger("colmap_citymodel.read_city_model")
+logger = logging.getLogger(__name__)
 
 CITYGML_SUFFIXES = (".gml", ".xml")
 CITYJSON_SUFFIXES = (".json", ".jsonl")

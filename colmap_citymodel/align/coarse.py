@@ -25,7 +25,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .plane_store import PlaneStore
+from ..citymodel.store import PlaneStore
 
 logger = logging.getLogger(__name__)
 
@@ -49,7 +49,7 @@ class SurfaceDistance:
     def __init__(self, store: PlaneStore, excluded_classes=("GroundSurface", "ClosureSurface")):
         import open3d as o3d
 
-        from .export_mesh import store_to_trimesh
+        from ..citymodel.mesh import store_to_trimesh
 
         mesh, triangle_face = store_to_trimesh(store)
         keep = np.array([store.faces[int(f)].semantic not in excluded_classes

@@ -30,9 +30,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .precision import PrecisionResult
+from .estimate import PrecisionResult
 
-logger = logging.getLogger("colmap_citymodel.precision_report")
+logger = logging.getLogger(__name__)
 
 #: At most this many planes get their own residual histogram (the ones with most points).
 MAX_PLANE_HISTOGRAMS = 11
@@ -80,7 +80,7 @@ def sigma_colours(values: np.ndarray) -> np.ndarray:
 
 def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
                     num_images: np.ndarray | None = None) -> None:
-    from .write_output import write_point_ply as write_ply
+    from ..output.write import write_point_ply as write_ply
 
     sigma = precision.point_sigmas
     conditional = precision.point_sigmas_conditional
@@ -261,7 +261,7 @@ def precision_markdown(report: dict) -> str:
 def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-citymodel report"
                 ) -> str:
     """A self-contained page: the markdown summary as preformatted text and the PNGs inline."""
-    from .write_output import report_markdown
+    from ..output.write import report_markdown
 
     try:
         text = report_markdown(report) + precision_markdown(report) + checkpoint_markdown(report)
@@ -305,7 +305,7 @@ def write_checkpoint_csv(path: Path, evaluation) -> None:
 
 def checkpoint_markdown(report: dict) -> str:
     """The report.md section of the check points: RMS, Helmert, Delta/sigma per model."""
-    from .evaluate import format_delta_sigma
+    from .checkpoints import format_delta_sigma
 
     c = report.get("checkpoints")
     if not c:
@@ -335,7 +335,7 @@ def checkpoint_plots(evaluation) -> dict[str, bytes]:
     """Error arrows (Unger Fig. 22) and |Delta| vs sigma of refine's check points, drawn by
     checkpoint_plots when it is available."""
     try:
-        from .checkpoint_plots import plot_checkpoint_errors, plot_delta_vs_sigma
+        from .plots import plot_checkpoint_errors, plot_delta_vs_sigma
     except ImportError:  # pragma: no cover - plots are optional for the report
         return {}
     plots = {}
@@ -387,7 +387,7 @@ def write_precision_outputs(result, directory: Path, report: dict, offset: np.nd
         report["variance_components"] = result.variance_components.todict()
     evaluation = getattr(result, "checkpoints", None)
     if evaluation is not None:
-        from .evaluate import CHECKPOINT_PRECISION_FILE, write_checkpoint_precision
+        from .checkpoints import CHECKPOINT_PRECISION_FILE, write_checkpoint_precision
 
         report["checkpoints"] = evaluation.todict()
         write_checkpoint_csv(directory / "checkpoint_precision.csv", evaluation)

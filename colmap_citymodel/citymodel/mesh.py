@@ -23,10 +23,10 @@ import mapbox_earcut
 import numpy as np
 import trimesh
 
-from .errors import InputError
-from .plane_store import PlaneStore
+from ..errors import InputError
+from .store import PlaneStore
 
-logger = logging.getLogger("colmap_citymodel.export_mesh")
+logger = logging.getLogger(__name__)
 
 SEMANTIC_COLOURS: dict[str, tuple[int, int, int]] = {
     "WallSurface": (200, 200, 200),

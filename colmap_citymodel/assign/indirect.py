@@ -34,13 +34,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .assign_planes import Assignment, excluded_faces, filter_faces
-from .msac import (alpha_components, boundary_centroid, fit_plane, msac_plane,
-                   plane_coordinates, point_normals)
-from .options import AssignmentOptions
-from .plane_store import PlaneStore
+from .assignment import Assignment, excluded_faces, filter_faces
+from .msac import (alpha_components, boundary_centroid, fit_plane, msac_plane, plane_coordinates,
+                   point_normals)
+from ..options import AssignmentOptions
+from ..citymodel.store import PlaneStore
 
-logger = logging.getLogger("colmap_citymodel.assign_msac")
+logger = logging.getLogger(__name__)
 
 
 # ----------------------------------------------------------------------------------------------

@@ -56,13 +56,12 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from .errors import InputError
-from .hybrid_adjustment import GNSSPriors, HybridProblem, SolveReport
-from .options import AdjustmentOptions
-from .precision import (Cofactors, PrecisionResult, cofactors, estimate_precision,
-                        image_jacobian)
+from ..errors import InputError
+from ..adjust.problem import GNSSPriors, HybridProblem, SolveReport
+from ..options import AdjustmentOptions
+from .estimate import Cofactors, PrecisionResult, cofactors, estimate_precision, image_jacobian
 
-logger = logging.getLogger("colmap_citymodel.precision_subsets")
+logger = logging.getLogger(__name__)
 
 #: Subset names become file names: letters, digits and ._+- only.
 NAME_PATTERN = re.compile(r"^[A-Za-z0-9][A-Za-z0-9._+-]*$")
@@ -502,7 +501,7 @@ def plot_sigma_maps(results: list[SubsetResult], datum: str = "solve", metric: b
     """Per subset: plan view of its tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5),
     one colour scale per axis shared by all subsets, the same extent and origin for all maps
     (a long strip gets its three panels stacked)."""
-    from .precision_report import _figure, _png
+    from .report import _figure, _png
 
     factor, unit = _scale(metric)
     xy_all = np.vstack([np.vstack([r.precision.points[:, :2], r.precision.centres[:, :2]])
@@ -548,7 +547,7 @@ def plot_sigma_histograms(results: list[SubsetResult], datum: str = "solve",
                           metric: bool = True) -> bytes:
     """Histograms of the tie point sigmas per axis, one line per subset, medians dashed
     (Mulder Fig. 5.8)."""
-    from .precision_report import _figure, _png
+    from .report import _figure, _png
 
     factor, unit = _scale(metric)
     figure = _figure(15, 4)
@@ -571,7 +570,7 @@ def plot_sigma_histograms(results: list[SubsetResult], datum: str = "solve",
 # -- inputs and the CLI entry --------------------------------------------------------------------
 
 def _utm_crs(lon: float, lat: float):
-    from .crs import user_crs
+    from ..citymodel.crs import user_crs
 
     zone = int((lon + 180.0) // 6.0) % 60 + 1
     return user_crs(f"EPSG:{(32600 if lat >= 0 else 32700) + zone}")
@@ -584,9 +583,9 @@ def _read_database_priors(database, target):
     import shutil
     import tempfile
 
-    from . import read_gnss as rg
-    from .crs import user_crs
-    from .errors import CityModelError
+    from ..block import gnss as rg
+    from ..citymodel.crs import user_crs
+    from ..errors import CityModelError
 
     source = Path(database)
     if not source.is_file():
@@ -611,9 +610,9 @@ def read_priors(rec: pycolmap.Reconstruction, *, database=None, gnss=None, gnss_
     """GNSS from one source, matched to the images and in a local metric frame; moves `rec`
     into that frame by a similarity (all images with GNSS). Returns (priors, origin, crs label)
     or None without a GNSS source. Geographic GNSS goes to `target_crs` or its UTM zone."""
-    from . import read_gnss as rg
-    from .crs import user_crs
-    from .georegister import estimate_georegistration
+    from ..block import gnss as rg
+    from ..citymodel.crs import user_crs
+    from ..align.georegister import estimate_georegistration
 
     if database and gnss:
         raise InputError("give one GNSS source, not --database and --gnss")
@@ -649,8 +648,8 @@ def write_outputs(results: list[SubsetResult], output_path, report: dict, markdo
                   datum: str, metric: bool, offset: np.ndarray) -> Path:
     """precision_subsets.json, precision_subsets.md, per subset <name>_sigma_map.png,
     <name>_images.csv and <name>_points.ply, and sigma_histograms.png, into a new directory."""
-    from .precision_report import write_image_csv, write_point_ply
-    from .write_output import atomic_directory
+    from .report import write_image_csv, write_point_ply
+    from ..output.write import atomic_directory
 
     output_path = Path(output_path)
     maps = plot_sigma_maps(results, datum, metric)
@@ -676,7 +675,7 @@ def main(input_path, subsets: list[str], *, output_path=None, database=None, gns
     Prints a table (or JSON); with `output_path` writes a new directory with the JSON, a
     Markdown table, sigma maps (Mulder Fig. 5.5), histograms (Fig. 5.8), per-image CSVs and
     per-point PLYs. Returns the report dict."""
-    from .workflow import read_reconstruction
+    from ..workflow import read_reconstruction
 
     if datum not in ("solve", "inner"):
         raise InputError(f"--datum must be solve or inner, not {datum!r}")
@@ -687,7 +686,7 @@ def main(input_path, subsets: list[str], *, output_path=None, database=None, gns
             raise InputError(f"--max_images must be at least {options.min_images}")
         options.max_images = int(max_images)
     if output_path is not None:  # fail on a taken output directory before the slow part
-        from .write_output import atomic_directory
+        from ..output.write import atomic_directory
 
         with atomic_directory(output_path):
             pass

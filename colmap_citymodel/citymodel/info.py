@@ -5,7 +5,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from .read_city_model import city_model_files, read_city_model
+from .read import city_model_files, read_city_model
 
 
 def _fmt_range(lo: float, hi: float) -> str:

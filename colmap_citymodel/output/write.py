@@ -17,10 +17,10 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .errors import InputError
-from .workflow import RefineResult
+from ..errors import InputError
+from ..workflow import RefineResult
 
-logger = logging.getLogger("colmap_citymodel.write_output")
+logger = logging.getLogger(__name__)
 
 UNASSIGNED_GREY = (160, 160, 160)
 
@@ -232,13 +232,13 @@ def write_refined(result: RefineResult, output_path: str | Path, *, output_type:
             json.dumps(georeference_dict(result, output_frame), indent=2))
         write_assignments_ply(result, tmp / "assignments.ply", offset)
         try:
-            from .export_mesh import write_mesh
+            from ..citymodel.mesh import write_mesh
 
             write_mesh(result.adjusted_store, tmp / "model_mesh.ply", frame=output_frame)
         except ImportError:  # pragma: no cover - mesh export is optional for the result
             logger.warning("model mesh not written: export_mesh is unavailable")
         report = report_dict(result, inputs)
-        from .precision_report import write_precision_outputs
+        from ..precision.report import write_precision_outputs
 
         # Adds sigma0_by_group, global_test, precision to `report`; CSV, PLY, plots, HTML.
         precision_md = write_precision_outputs(result, tmp, report, offset)

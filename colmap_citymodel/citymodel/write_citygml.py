@@ -21,7 +21,7 @@ from typing import Iterable
 import numpy as np
 from lxml import etree
 
-from .plane_store import THEMATIC_CLASSES
+from .store import THEMATIC_CLASSES
 from .raw_model import RawCityModel, RawPolygon
 
 NS = {

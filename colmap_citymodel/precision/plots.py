@@ -21,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .precision_report import _figure, _png, html_page
+from .report import _figure, _png, html_page
 
-logger = logging.getLogger("colmap_citymodel.checkpoint_plots")
+logger = logging.getLogger(__name__)
 
 #: The longest error arrow is drawn this fraction of the plot extent long.
 ARROW_FRACTION = 0.12
@@ -179,7 +179,7 @@ def evaluation_plots(evaluation: dict, known: dict | None = None) -> dict[str, b
 
 def evaluation_markdown(evaluation: dict) -> str:
     """RMS, Helmert, the Delta/sigma table (if any) and the per point errors as Markdown."""
-    from .evaluate import format_delta_sigma
+    from .checkpoints import format_delta_sigma
 
     lines = ["# Check point evaluation", ""]
     for key, label in (("evaluated", "Evaluated model"), ("truth", "Truth poses")):
@@ -235,7 +235,7 @@ def plot_file_name(index: int, name: str) -> str:
 def write_evaluation_report(directory, evaluation: dict, plots: dict[str, bytes]) -> Path:
     """New directory `directory` (atomic): evaluation.json, evaluation.md, the PNGs under
     plots/ and report.html with the same PNGs embedded."""
-    from .write_output import atomic_directory
+    from ..output.write import atomic_directory
 
     directory = Path(directory)
     with atomic_directory(directory) as tmp:
@@ -256,7 +256,7 @@ def write_evaluate_outputs(output_path, evaluation: dict, checkpoints=None) -> P
     report (`write_evaluation_report`)."""
     known = None
     if checkpoints is not None:
-        from .evaluate import read_checkpoints
+        from .checkpoints import read_checkpoints
 
         known = read_checkpoints(checkpoints)
     return write_evaluation_report(output_path, evaluation, evaluation_plots(evaluation, known))
@@ -264,7 +264,7 @@ def write_evaluate_outputs(output_path, evaluation: dict, checkpoints=None) -> P
 
 def check_new_directory(path) -> None:
     """Raise InputError now if `path` cannot become a new output directory."""
-    from .write_output import atomic_directory
+    from ..output.write import atomic_directory
 
     with atomic_directory(path):
         pass

@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from .plane_store import PlaneStore, store_from_polygons
-from .raw_model import CRSInfo
+from ..citymodel.store import PlaneStore, store_from_polygons
+from ..citymodel.raw_model import CRSInfo
 
 # An ETRS89 / UTM 32N-like origin so that every test exercises 6-7 digit CRS coordinates.
 DEFAULT_CRS_ORIGIN = (691000.0, 5335000.0, 500.0)
@@ -57,7 +57,7 @@ class StreetScene:
     gnss_sigmas: np.ndarray  # (N, 3) the sigmas a user would state (3, 3, 5 m)
 
     def gnss(self):
-        from .read_gnss import GNSSObservations
+        from ..block.gnss import GNSSObservations
 
         return GNSSObservations(self.gnss_names, self.gnss_positions_crs, self.gnss_sigmas,
                                 self.store.crs, "synthetic")

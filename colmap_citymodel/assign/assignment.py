@@ -24,10 +24,10 @@ from typing import Protocol
 
 import numpy as np
 
-from .options import AssignmentOptions
-from .plane_store import PlaneStore
+from ..options import AssignmentOptions
+from ..citymodel.store import PlaneStore
 
-logger = logging.getLogger("colmap_citymodel.assign_planes")
+logger = logging.getLogger(__name__)
 
 
 @dataclass
@@ -139,7 +139,7 @@ def _indirect(name: str) -> PlaneAssigner:
     """Method `name` of assign_msac, imported on first use (that module builds on this one)."""
 
     def assigner(points, point_ids, store, threshold, options, weights=None):
-        from . import assign_msac
+        from . import indirect as assign_msac
 
         return getattr(assign_msac, name)(points, point_ids, store, threshold, options,
                                           weights=weights)
@@ -174,7 +174,7 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     try:
         assigner = ASSIGNERS[method]
     except KeyError:
-        from .errors import InputError
+        from ..errors import InputError
 
         raise InputError(f"unknown assignment method {method!r}; "
                          f"available: {', '.join(sorted(ASSIGNERS))}, auto") from None

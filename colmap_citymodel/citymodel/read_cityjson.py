@@ -26,10 +26,10 @@ from typing import Any
 import numpy as np
 
 from .crs import output_crs, reproject_points, resolve_crs, user_crs
-from .errors import CityGMLError, CRSError, InputError, NoOverlapError
+from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
 from .raw_model import CRSInfo, RawCityModel, RawPolygonBuilder, RawPolygonTable
 
-logger = logging.getLogger("colmap_citymodel.read_cityjson")
+logger = logging.getLogger(__name__)
 
 BUILDING_TYPES = ("Building", "BuildingPart")
 SOLID_TYPES = ("Solid", "MultiSolid", "CompositeSolid")

@@ -66,9 +66,9 @@ import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
 from scipy.stats import chi2
 
-from .hybrid_adjustment import GROUPS, HybridProblem
+from ..adjust.problem import GROUPS, HybridProblem
 
-logger = logging.getLogger("colmap_citymodel.precision")
+logger = logging.getLogger(__name__)
 
 #: Rows of the point-camera block processed at once (memory ~ rows x camera unknowns x 8 B).
 CHUNK_ROWS = 6000
@@ -867,7 +867,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                                     if columns is not None else np.nan)
     checkpoints = None
     if checkpoint_observations is not None:
-        from .evaluate import triangulate_checkpoints
+        from .checkpoints import triangulate_checkpoints
 
         t2 = time.perf_counter()
         checkpoints = checkpoint_cofactors(
@@ -918,7 +918,7 @@ def wants_covariances(options, num_images: int) -> bool:
     """`PrecisionOptions.covariances`: "on", "off", or "auto" (fewer than max_images_auto)."""
     mode = str(options.covariances).lower()
     if mode not in ("on", "off", "auto"):
-        from .errors import InputError
+        from ..errors import InputError
 
         raise InputError(f"precision.covariances must be on, off or auto, not {mode!r}")
     return mode == "on" or (mode == "auto" and num_images < options.max_images_auto)

@@ -61,24 +61,12 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
-from .simulate_scene import (
-    LABEL_ROOF,
-    LABEL_WALL,
-    DetailOptions,
-    GroundModel,
-    ModelErrorOptions,
-    ProceduralOptions,
-    TrueScene,
-    build_true_scene,
-    building_footprints,
-    detailed_polygons,
-    perturb_planes,
-    perturb_polygons,
-    procedural_store,
-)
+from ..errors import InputError
+from .scene import (LABEL_ROOF, LABEL_WALL, DetailOptions, GroundModel, ModelErrorOptions,
+                    ProceduralOptions, TrueScene, build_true_scene, building_footprints,
+                    detailed_polygons, perturb_planes, perturb_polygons, procedural_store)
 
-logger = logging.getLogger("colmap_citymodel.simulate")
+logger = logging.getLogger(__name__)
 
 # Bump when the simulation changes in a way that makes cached sequences stale.
 SIMULATOR_VERSION = 1
@@ -1036,7 +1024,7 @@ def _write_lines(path: Path, header: str, lines) -> None:
 def _load_store(options: SimulationOptions):
     if options.scene.source == "procedural":
         return procedural_store(options.scene.procedural, options.seed)
-    from .read_city_model import read_city_model
+    from ..citymodel.read import read_city_model
 
     bbox = None
     if options.scene.bbox_crs is not None:
@@ -1049,7 +1037,7 @@ def _load_store(options: SimulationOptions):
 def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = True) -> dict:
     """Everything shared by the scenarios of a sequence, written into `out` (a new directory):
     models/, truth/, database.db with all GNSS priors, gnss_all.txt, check points, sparse/."""
-    from .write_citygml import raw_from_store, write_citygml
+    from ..citymodel.write_citygml import raw_from_store, write_citygml
 
     t_start = time.perf_counter()
     seed = options.seed
@@ -1087,7 +1075,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         p.holes = [h + origin for h in p.holes]
         p.gml_id = f"detailed_{i}"
     srs = raw_from_store(store).crs
-    from .raw_model import RawCityModel
+    from ..citymodel.raw_model import RawCityModel
 
     write_citygml(models / "detailed.gml",
                   RawCityModel("simulate", "CityGML", "2.0", srs, det,

@@ -34,9 +34,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
-logger = logging.getLogger("colmap_citymodel.evaluate")
+logger = logging.getLogger(__name__)
 
 MIN_VIEWS = 2
 GN_ITERATIONS = 20

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import GeoregistrationError, InputError
+from ..errors import GeoregistrationError, InputError
 
-logger = logging.getLogger("colmap_citymodel.georegister")
+logger = logging.getLogger(__name__)
 
 
 @dataclass

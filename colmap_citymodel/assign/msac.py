@@ -37,7 +37,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import Delaunay, QhullError
 
-from .options import AssignmentOptions
+from ..options import AssignmentOptions
 
 #: Hypotheses drawn per vectorised batch; how many of a run's best are scored again, on a
 #: subsample this many times larger.

@@ -30,10 +30,10 @@ import shapely
 from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
-from .plane_store import PlaneStore, store_from_polygons
-from .raw_model import RawPolygon
+from ..citymodel.store import PlaneStore, store_from_polygons
+from ..citymodel.raw_model import RawPolygon
 
-logger = logging.getLogger("colmap_citymodel.simulate_scene")
+logger = logging.getLogger(__name__)
 
 # triangle labels of the true mesh
 LABEL_WALL, LABEL_ROOF, LABEL_DETAIL, LABEL_CLUTTER, LABEL_GROUND = 0, 1, 2, 3, 4
@@ -409,7 +409,7 @@ def _box_building(x0, x1, y0, y1, h, pitch, kind):
 
 
 def procedural_store(options: ProceduralOptions, seed: int) -> PlaneStore:
-    from .crs import user_crs
+    from ..citymodel.crs import user_crs
 
     polygons, semantics, bids = procedural_street(options, seed)
     return store_from_polygons(polygons, semantics=semantics, building_ids=bids,

@@ -43,10 +43,10 @@ import numpy as np
 from lxml import etree
 
 from . import crs as crs_mod
-from .errors import CityGMLError, CRSError, InputError, NoOverlapError
+from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
 from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonBuilder, RawPolygonTable
 
-logger = logging.getLogger("colmap_citymodel.read_citygml")
+logger = logging.getLogger(__name__)
 
 XLINK_HREF = "{http://www.w3.org/1999/xlink}href"
 GML_NAMESPACES = ("http://www.opengis.net/gml", "http://www.opengis.net/gml/3.2")

@@ -35,12 +35,12 @@ import numpy as np
 import pyceres
 import pycolmap
 
-from ._ext import load_core
-from .assign_planes import Assignment
-from .options import AdjustmentOptions
-from .plane_store import PlaneStore
+from .._ext import load_core
+from ..assign.assignment import Assignment
+from ..options import AdjustmentOptions
+from ..citymodel.store import PlaneStore
 
-logger = logging.getLogger("colmap_citymodel.hybrid_adjustment")
+logger = logging.getLogger(__name__)
 
 #: Observation groups in the order their residuals enter the problem. "gen": the priors
 #: o_p ~ N(0, sigma_generalisation^2) of the per-plane generalisation offsets (only with
@@ -304,7 +304,7 @@ class HybridProblem:
         # Generalisation-aware model: an offset unknown per plane, shared by its tie points.
         with_offsets = self._generalisation_offsets and o.sigma_generalisation is not None
         if with_offsets and not o.sigma_generalisation > 0:
-            from .errors import InputError
+            from ..errors import InputError
 
             raise InputError("adjustment.sigma_generalisation must be > 0 (or unset for the "
                              f"classical model), got {o.sigma_generalisation}")

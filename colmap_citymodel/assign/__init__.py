@@ -1,0 +1,1 @@
+"""Tie points -> model planes: direct assignment and the indirect (MSAC) methods behind one interface."""

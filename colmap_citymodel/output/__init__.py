@@ -1,0 +1,1 @@
+"""The refined, georeferenced COLMAP model and the files people look at."""
