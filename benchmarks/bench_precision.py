@@ -56,10 +56,14 @@ def options_for(variant: str):
 
 
 def run(workspace: Path, variant: str) -> dict:
-    from colmap_citymodel.precision.checkpoints import (read_checkpoint_observations,
-                                                        read_checkpoints)
+    from colmap_citymodel.block.gnss import read_gnss
+    from colmap_citymodel.block.reconstruction import read_reconstruction
     from colmap_citymodel.citymodel.read import read_city_model
-    from colmap_citymodel.workflow import read_gnss, read_reconstruction, refine
+    from colmap_citymodel.precision.checkpoints import (
+        read_checkpoint_observations,
+        read_checkpoints,
+    )
+    from colmap_citymodel.workflow import refine
 
     store = read_city_model(workspace / "given_model.gml")
     gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)

@@ -31,12 +31,14 @@ import numpy as np
 import pycolmap
 
 from colmap_citymodel import logger
-from colmap_citymodel.assign.assignment import assign
 from colmap_citymodel.adjust.problem import HybridProblem
+from colmap_citymodel.adjust.steps import align_block_to_planes
+from colmap_citymodel.align.block_to_model import crop_to_reconstruction, georegister
+from colmap_citymodel.assign.schedule import assign
+from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.workflow import (align_block_to_planes, crop_to_reconstruction, georegister,
-                                       refine, tie_points)
 from colmap_citymodel.simulate.synthetic import centre_errors
+from colmap_citymodel.workflow import refine
 
 
 def workspace_for(sequence: str) -> Path:
@@ -60,8 +62,9 @@ def main() -> None:
     args = parser.parse_args()
     logger.setLevel(logging.WARNING)
     workspace = args.workspace or workspace_for("short" if args.quick else "long")
+    from colmap_citymodel.block.gnss import read_gnss
+    from colmap_citymodel.block.reconstruction import read_reconstruction
     from colmap_citymodel.citymodel.read import read_city_model
-    from colmap_citymodel.workflow import read_gnss, read_reconstruction
 
     store = read_city_model(workspace / "given_model.gml")
     gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)

@@ -91,9 +91,11 @@ def has_model(workspace: Path) -> bool:
 
 
 def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> dict:
-    from colmap_citymodel.precision.checkpoints import (evaluate_checkpoints,
-                                                        read_checkpoint_observations,
-                                                        read_checkpoints)
+    from colmap_citymodel.precision.checkpoints import (
+        evaluate_checkpoints,
+        read_checkpoint_observations,
+        read_checkpoints,
+    )
 
     evaluation = evaluate_checkpoints(rec, read_checkpoints(workspace / "checkpoints.txt"),
                                       read_checkpoint_observations(
@@ -105,8 +107,9 @@ def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) 
 
 
 def inputs(workspace: Path):
+    from colmap_citymodel.block.gnss import read_gnss
+    from colmap_citymodel.block.reconstruction import read_reconstruction
     from colmap_citymodel.citymodel.read import read_city_model
-    from colmap_citymodel.workflow import read_gnss, read_reconstruction
 
     given = workspace / "given_model.gml"
     # Scenarios without a model still need its CRS and local frame (origin) for GNSS and check
@@ -131,8 +134,9 @@ def run_refine(workspace: Path, assignment: str = "direct"):
 
 
 def run_gnss(workspace: Path, with_ba: bool):
+    from colmap_citymodel.adjust.steps import step2_bundle_adjustment
+    from colmap_citymodel.align.block_to_model import georegister
     from colmap_citymodel.options import RefineOptions
-    from colmap_citymodel.workflow import georegister, step2_bundle_adjustment
 
     rec, store, gnss = inputs(workspace)
     _, priors, _ = georegister(rec, store, gnss, None)
@@ -145,8 +149,8 @@ def run_icp(workspace: Path):
     """Sim3 to GNSS, then rigid point-to-plane ICP of the tie points to the model surface."""
     import open3d as o3d
 
+    from colmap_citymodel.block.reconstruction import tie_points
     from colmap_citymodel.citymodel.mesh import store_to_trimesh
-    from colmap_citymodel.workflow import tie_points
 
     rec, store = run_gnss(workspace, with_ba=False)
     mesh, triangle_face = store_to_trimesh(store)
@@ -310,8 +314,9 @@ def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct") 
 
 def gnss_only_block(workspace: Path, gnss=None):
     """The GNSS-only adjustment: 7-parameter fit to GNSS, bundle adjustment with GNSS priors."""
+    from colmap_citymodel.adjust.steps import step2_bundle_adjustment
+    from colmap_citymodel.align.block_to_model import georegister
     from colmap_citymodel.options import RefineOptions
-    from colmap_citymodel.workflow import georegister, step2_bundle_adjustment
 
     rec, store, gnss_db = inputs(workspace)
     _, priors, _ = georegister(rec, store, gnss_db if gnss is None else gnss, None)

@@ -48,7 +48,7 @@ def _add_evaluate(subparsers) -> None:
         from .precision.checkpoints import main
 
         if args.output_path:  # a taken output directory fails before the evaluation
-            from .precision.plots import check_new_directory
+            from .files import check_new_directory
 
             check_new_directory(args.output_path)
         out = main(args.input_path, args.checkpoints, args.observations,

@@ -13,7 +13,6 @@ import json
 import shutil
 from pathlib import Path
 
-import numpy as np
 import pycolmap
 
 from . import logger
@@ -25,10 +24,13 @@ MARKER = ".colmap_citymodel_demo"
 
 def write_baseline(workspace: Path, out: Path) -> Path:
     """GNSS-only baseline: similarity to GNSS, then BA with GNSS priors, written in CRS."""
-    from .options import RefineOptions
+    from .adjust.steps import step2_bundle_adjustment
+    from .align.block_to_model import georegister
+    from .block.gnss import read_gnss
+    from .block.reconstruction import read_reconstruction
     from .citymodel.read import read_city_model
-    from .workflow import georegister, read_gnss, read_reconstruction, step2_bundle_adjustment
-    from .output.write import atomic_directory
+    from .files import atomic_directory
+    from .options import RefineOptions
 
     store = read_city_model(workspace / "given_model.gml")
     gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)

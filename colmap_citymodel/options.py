@@ -29,7 +29,7 @@ class AssignmentOptions:
     plane; "auto" = (b)/(c) (`auto_indirect_method`) while the threshold exceeds
     `auto_switch_threshold`, (a) below it. Unger 6.5: (a) and (c) give similar results, (a)
     slightly better; (b) assigns to far fewer planes but is the only one meant for poor initial
-    values (assign_planes.ASSIGNERS, assign_msac.py)."""
+    values (assign.schedule.ASSIGNERS, assign/indirect.py)."""
     max_threshold: float = 2.0
     """(a): upper limit of the point-to-plane distance threshold in metres (first iteration)."""
     indirect_max_threshold: float = 3.0
@@ -37,7 +37,7 @@ class AssignmentOptions:
     centroid to the model plane) and (c) (ROI search distance); Unger 5.3 sets it looser than
     (a)'s 2 m since these methods only take points that form a plane. The lower limit is the
     same 2 x sigma_dTP. The caller's schedule chooses the threshold passed to `assign`;
-    assign_planes.initial_threshold gives the upper limit of the configured method."""
+    assign.schedule.initial_threshold gives the upper limit of the configured method."""
     threshold_factor: float = 3.5
     """Later thresholds = factor x mean over planes of the per-plane mean distance."""
     min_threshold_sigmas: float = 2.0
@@ -197,7 +197,7 @@ class WorkflowOptions:
     """Before the first assignment the block's shift (and, along a straight flight line, its
     roll) is searched within +- this many GNSS sigmas of the GNSS-only position: GNSS errors
     are mostly a bias of metres that a 2 m assignment threshold cannot bridge
-    (coarse_alignment). 0 switches the search off."""
+    (align.coarse). 0 switches the search off."""
     divergence_tolerance: float = 0.05
     """An iteration whose block objective (share of tie points off the model plus GNSS
     residuals; workflow.BlockObjective) is worse than the best iterate's by more than this

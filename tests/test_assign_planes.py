@@ -2,11 +2,12 @@
 
 import numpy as np
 import pytest
+from conftest import box_store
 
-from colmap_citymodel.assign.assignment import Assignment, assign, next_threshold, planarity
+from colmap_citymodel.assign.assignment import Assignment, planarity
+from colmap_citymodel.assign.schedule import assign, next_threshold
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import AssignmentOptions
-from conftest import box_store
 
 
 def wall_points(rng, n, offset_sigma=0.05):

@@ -16,8 +16,12 @@ import pycolmap
 import pycolmap.cost_functions
 import pytest
 
-from colmap_citymodel import _ext, ceres_blocks
+from colmap_citymodel import _ext
+from colmap_citymodel.block.reconstruction import position_in_rig
 from colmap_citymodel.errors import ExtensionImportError
+
+#: COLMAP 4's pose parameter block: Rigid3d.params, quaternion xyzw + translation.
+POSE_BLOCK_SIZE = 7
 
 
 @pytest.fixture(scope="module")
@@ -174,7 +178,7 @@ def test_projection_center_prior_closed_form_and_jacobians(core):
         observed = rng.normal(scale=10.0, size=3)
         sigma = np.array([3.0, 3.0, 5.0])
         cost = core.ProjectionCenterPriorCost(observed, sigma, position_in_rig)
-        assert cost.parameter_block_sizes() == [ceres_blocks.POSE_BLOCK_SIZE]
+        assert cost.parameter_block_sizes() == [POSE_BLOCK_SIZE]
 
         params = np.array(rig_from_world.params)
         residuals, jacobians = evaluate(cost, params)
@@ -211,8 +215,8 @@ def test_projection_center_prior_on_rig_frames_gives_camera_centres(core):
     reconstruction = pycolmap.synthesize_dataset(options)
     non_ref = 0
     for image_id, image in reconstruction.images.items():
-        block = ceres_blocks.frame_pose_block(reconstruction, image.frame_id)
-        offset = ceres_blocks.position_in_rig(reconstruction, image_id)
+        block = reconstruction.frames[image.frame_id].rig_from_world.params
+        offset = position_in_rig(reconstruction, image)
         non_ref += bool(np.any(offset != 0))
         centre = image.projection_center()
         cost = core.ProjectionCenterPriorCost(centre, np.ones(3), offset)
@@ -335,28 +339,35 @@ def test_point_plane_costs_inside_colmap_bundle_adjuster(core):
         reconstruction.points3D[point_id].xyz += rng.normal(scale=0.05, size=3)
     axis = np.cross(normal, [1.0, 0.0, 0.0])
     wrong_normal = pycolmap.Rotation3d(axis / np.linalg.norm(axis) * np.deg2rad(3.0)) * normal
-    hybrid = ceres_blocks.HybridProblem(_adjuster(reconstruction))
-    problem = hybrid.problem
+    # Hold the adjuster and its problem: pyceres keeps the costs alive only as long as the
+    # Python problem they were added through (adjust.problem.HybridProblem does the same).
+    adjuster = _adjuster(reconstruction)
+    problem = adjuster.problem
     num_blocks = problem.num_parameter_blocks()
     num_residuals = problem.num_residual_blocks()
 
-    plane = hybrid.add_plane(wrong_normal, offset + 0.1)
-    assert problem.parameter_block_tangent_size(plane.normal) == 2  # on the sphere
+    plane_normal = np.array(wrong_normal, dtype=np.float64)
+    plane_offset = np.array([offset + 0.1], dtype=np.float64)
+    problem.add_parameter_block(plane_normal, 3)
+    problem.set_manifold(plane_normal, pyceres.SphereManifold(3))
+    problem.add_parameter_block(plane_offset, 1)
+    assert problem.parameter_block_tangent_size(plane_normal) == 2  # on the sphere
     sigma = 1e-4  # scene units (~1); tighter than the ~1 mm scatter from the pixel noise
+    costs = []
     for point_id in planar:
-        block = ceres_blocks.point_block(reconstruction, point_id)
+        block = reconstruction.points3D[point_id].xyz  # a view: COLMAP's own block
         assert problem.has_parameter_block(block)
-        hybrid.add_residual(
-            core.PointPlaneDistanceCost(sigma), None, [block, plane.normal, plane.offset]
-        )
+        costs.append(core.PointPlaneDistanceCost(sigma))
+        problem.add_residual_block(costs[-1], None, [block, plane_normal, plane_offset])
     # The points were COLMAP's blocks already: only the two plane blocks are new.
     assert problem.num_parameter_blocks() == num_blocks + 2
     assert problem.num_residual_blocks() == num_residuals + len(planar)
 
-    summary = hybrid.solve()
+    summary = adjuster.solve()
     assert summary.is_solution_usable()
 
-    estimated = plane.plane
+    norm = np.linalg.norm(plane_normal)
+    estimated = np.concatenate([plane_normal / norm, plane_offset / norm])
     if estimated[:3] @ normal < 0:
         estimated = -estimated
     angle = np.degrees(np.arccos(np.clip(estimated[:3] @ normal, -1.0, 1.0)))
@@ -384,7 +395,7 @@ def test_baseline_length_prior_closed_form_and_jacobians(core):
         a, b = random_pose(rng), random_pose(rng)
         in_a, in_b = rng.normal(scale=0.5, size=3), rng.normal(scale=0.5, size=3)
         cost = core.BaselineLengthPriorCost(12.0, 0.05, in_a, in_b)
-        assert cost.parameter_block_sizes() == [ceres_blocks.POSE_BLOCK_SIZE] * 2
+        assert cost.parameter_block_sizes() == [POSE_BLOCK_SIZE] * 2
         blocks = [np.array(a.params), np.array(b.params)]
         residuals, jacobians = evaluate(cost, *blocks)
         length = np.linalg.norm(a.inverse() * in_a - b.inverse() * in_b)

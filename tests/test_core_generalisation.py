@@ -7,10 +7,9 @@ from __future__ import annotations
 import numpy as np
 import pyceres
 import pytest
+from test_core_costs import evaluate, numeric_jacobians
 
 from colmap_citymodel import _ext
-
-from test_core_costs import evaluate, numeric_jacobians
 
 
 @pytest.fixture(scope="module")

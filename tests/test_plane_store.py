@@ -7,9 +7,13 @@ import numpy as np
 import pytest
 import shapely
 
-from colmap_citymodel.citymodel.store import (Tolerances, build_store, merge_vertices,
-                                              store_from_polygons)
 from colmap_citymodel.citymodel.raw_model import CRSInfo, RawCityModel, RawPolygon
+from colmap_citymodel.citymodel.store import (
+    Tolerances,
+    build_store,
+    merge_vertices,
+    store_from_polygons,
+)
 
 CUBE_V = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],

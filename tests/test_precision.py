@@ -11,14 +11,21 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_citymodel.assign.assignment import assign
-from colmap_citymodel.adjust.problem import GROUPS, GNSSPriors, HybridProblem
+from colmap_citymodel.adjust.problem import GROUPS, HybridProblem
+from colmap_citymodel.assign.schedule import assign
+from colmap_citymodel.block.priors import GNSSPriors
+from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import AdjustmentOptions, AssignmentOptions
-from colmap_citymodel.precision.estimate import (PHOTOGRAMMETRIC_FLIP, cofactors,
-                                                 estimate_precision, global_test, image_jacobian,
-                                                 omega_phi_kappa, variance_factors,
-                                                 whitened_jacobian)
-from colmap_citymodel.workflow import tie_points
+from colmap_citymodel.precision.estimate import (
+    PHOTOGRAMMETRIC_FLIP,
+    cofactors,
+    estimate_precision,
+    global_test,
+    image_jacobian,
+    omega_phi_kappa,
+    variance_factors,
+    whitened_jacobian,
+)
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 GNSS_SIGMA = np.array([0.5, 0.5, 0.8])

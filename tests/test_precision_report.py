@@ -11,9 +11,9 @@ import pytest
 
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import PrecisionOptions, RefineOptions
+from colmap_citymodel.output.write import write_refined
 from colmap_citymodel.precision.estimate import PrecisionResult, wants_covariances
 from colmap_citymodel.workflow import refine
-from colmap_citymodel.output.write import write_refined
 
 
 @pytest.fixture(scope="module")
@@ -222,7 +222,8 @@ def test_refine_reports_delta_and_sigma_of_checkpoints(refined_with_checkpoints,
 
 
 def test_refine_cli_checkpoint_options(tmp_path, capsys):
-    from colmap_citymodel.cli import build_parser, main as cli_main
+    from colmap_citymodel.cli import build_parser
+    from colmap_citymodel.cli import main as cli_main
 
     args = build_parser().parse_args([
         "refine", "--input_path", "in", "--citymodel", "m.gml", "--output_path", "out",

@@ -16,10 +16,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
-from colmap_citymodel.citymodel.store import build_store
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.citymodel.read_citygml import read_citygml
+from colmap_citymodel.citymodel.store import build_store
+from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CITYGML = SHARED_DATA / "citygml"

@@ -12,9 +12,9 @@ import numpy as np
 import pyproj
 import pytest
 
-from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
-from colmap_citymodel.citymodel.store import build_store
 from colmap_citymodel.citymodel.read_cityjson import read_cityjson
+from colmap_citymodel.citymodel.store import build_store
+from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 CJ = SHARED_DATA / "cityjson"

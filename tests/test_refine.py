@@ -11,11 +11,18 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_citymodel.adjust.datum import check_datum
+from colmap_citymodel.adjust.steps import step2_bundle_adjustment
+from colmap_citymodel.align.block_to_model import georegister
 from colmap_citymodel.errors import DatumError, NoOverlapError
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.workflow import check_datum, georegister, refine, step2_bundle_adjustment
-from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors, make_street_scene
 from colmap_citymodel.output.write import write_refined
+from colmap_citymodel.simulate.synthetic import (
+    StreetSceneOptions,
+    centre_errors,
+    make_street_scene,
+)
+from colmap_citymodel.workflow import refine
 
 
 def rms(values):
@@ -168,8 +175,8 @@ def test_image_sigma_scales_all_groups_consistently(scene):
 
     rec = pycolmap.Reconstruction(scene.sfm)
     _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
-    from colmap_citymodel.assign.assignment import assign
-    from colmap_citymodel.workflow import tie_points
+    from colmap_citymodel.assign.schedule import assign
+    from colmap_citymodel.block.reconstruction import tie_points
 
     ids, xyz = tie_points(rec)
     default = RefineOptions().adjustment
@@ -192,7 +199,8 @@ def test_image_sigma_scales_all_groups_consistently(scene):
 def test_lever_arm_moves_the_observed_point_into_the_rig_frame(scene):
     """GNSS positions of an antenna 0.5 m above each camera (rig frame: -y is up for these
     level cameras, approximately): with the lever arm the GNSS residuals at the truth vanish."""
-    from colmap_citymodel.adjust.problem import GNSSPriors, HybridProblem
+    from colmap_citymodel.adjust.problem import HybridProblem
+    from colmap_citymodel.block.priors import GNSSPriors
 
     truth = pycolmap.Reconstruction(scene.truth)
     ids = np.array(sorted(truth.reg_image_ids()))

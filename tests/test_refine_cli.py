@@ -8,10 +8,10 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.citymodel.crs import user_crs
-from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
+from colmap_citymodel.cli import main as cli_main
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 
 @pytest.fixture(scope="module")

@@ -37,8 +37,10 @@ import pycolmap
 
 from .._ext import load_core
 from ..assign.assignment import Assignment
-from ..options import AdjustmentOptions
+from ..block.priors import GNSSPriors
+from ..block.reconstruction import position_in_rig
 from ..citymodel.store import PlaneStore
+from ..options import AdjustmentOptions
 
 logger = logging.getLogger(__name__)
 
@@ -60,38 +62,6 @@ class BaselinePriors:
 
     def __len__(self) -> int:
         return len(self.lengths)
-
-
-@dataclass
-class GNSSPriors:
-    """GNSS projection centres matched to the reconstruction, in the local frame."""
-
-    image_ids: np.ndarray  # (N,) int
-    positions: np.ndarray  # (N, 3)
-    sigmas: np.ndarray  # (N, 3)
-    # GNSS antenna in the rig frame (for a single camera: x right, y down, z along the view);
-    # None: the positions are of the projection centres.
-    lever_arm: np.ndarray | None = None
-
-    def __len__(self) -> int:
-        return len(self.image_ids)
-
-    def observed_in_rig(self, rec: pycolmap.Reconstruction, image: pycolmap.Image
-                        ) -> np.ndarray:
-        """What GNSS observed, in the image's rig frame: the antenna (lever arm) or the camera's
-        projection centre."""
-        if self.lever_arm is not None:
-            return np.asarray(self.lever_arm, float)
-        return _position_in_rig(rec, image)
-
-    def observed_points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
-        """Where the block currently puts what GNSS observed (antennas or centres): (N, 3)."""
-        out = np.empty((len(self), 3))
-        for k, image_id in enumerate(self.image_ids):
-            image = rec.image(int(image_id))
-            out[k] = (rec.frame(image.frame_id).rig_from_world.inverse()
-                      * self.observed_in_rig(rec, image))
-        return out
 
 
 @dataclass
@@ -259,7 +229,7 @@ class HybridProblem:
                 continue
             cost = core.BaselineLengthPriorCost(
                 float(length), float(sigma) / self.options.sigma_image,
-                _position_in_rig(rec, image_a), _position_in_rig(rec, image_b))
+                position_in_rig(rec, image_a), position_in_rig(rec, image_b))
             self.problem.add_residual_block(cost, None, [block_a, block_b])
             self.counts["scale"] += 1
 
@@ -412,11 +382,3 @@ class HybridProblem:
         )
 
 
-def _position_in_rig(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> np.ndarray:
-    """The camera's projection centre in its rig frame; zero for the rig's reference camera."""
-    if image.is_ref_in_frame():
-        return np.zeros(3)
-    rig = rec.rig(rec.frame(image.frame_id).rig_id)
-    cam_from_rig = rig.sensor_from_rig(image.camera.sensor_id)
-    rotation = np.asarray(cam_from_rig.rotation.matrix())
-    return -rotation.T @ np.asarray(cam_from_rig.translation)

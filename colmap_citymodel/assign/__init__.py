@@ -1,1 +1,2 @@
-"""Tie points -> model planes: direct assignment and the indirect (MSAC) methods behind one interface."""
+"""Tie points -> model planes: direct assignment and the indirect (MSAC) methods behind one
+interface."""

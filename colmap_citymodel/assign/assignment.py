@@ -8,8 +8,8 @@ and a planarity test on the eigenvalues l1 >= l2 >= l3 of the assigned points' c
 
 Methods, by `AssignmentOptions.method` (registered in `ASSIGNERS`):
 - "direct", (a): each point to its closest face within the threshold (here).
-- "msac", (b): planes extracted from the whole cloud by MSAC, matched to faces (assign_msac.py).
-- "roi_msac", (c): one plane searched by MSAC near each face (assign_msac.py).
+- "msac", (b): planes extracted from the whole cloud by MSAC, matched to faces (assign/indirect.py).
+- "roi_msac", (c): one plane searched by MSAC near each face (assign/indirect.py).
 - "auto": (b) or (c) while the threshold is large (the block is still far from the model),
   (a) once it is small.
 (b) and (c) can weight the points' chances of entering an MSAC sample (weighted RANSAC,
@@ -24,8 +24,8 @@ from typing import Protocol
 
 import numpy as np
 
-from ..options import AssignmentOptions
 from ..citymodel.store import PlaneStore
+from ..options import AssignmentOptions
 
 logger = logging.getLogger(__name__)
 
@@ -114,103 +114,3 @@ def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:
                      if f.semantic in options.excluded_classes], dtype=np.int64)
 
 
-def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
-                  threshold: float, options: AssignmentOptions,
-                  weights: np.ndarray | None = None) -> Assignment:
-    """Method (a): each tie point to its closest model face, if closer than `threshold`.
-
-    "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
-    contains the point's orthogonal projection (grown by `polygon_margin`). `weights` play no
-    part.
-    """
-    face_index, distance = store.closest_faces(points, max_distance=threshold,
-                                               margin=options.polygon_margin)
-    excluded = excluded_faces(store, options)
-    if len(excluded):
-        face_index = np.where(np.isin(face_index, excluded), -1, face_index)
-    rejected: dict[str, int] = {}
-    face_index = filter_faces(points, face_index, options, rejected)
-    distance = np.where(face_index >= 0, distance, np.nan)
-    return Assignment(np.asarray(point_ids, dtype=np.int64), face_index, distance, threshold,
-                      rejected)
-
-
-def _indirect(name: str) -> PlaneAssigner:
-    """Method `name` of assign_msac, imported on first use (that module builds on this one)."""
-
-    def assigner(points, point_ids, store, threshold, options, weights=None):
-        from . import indirect as assign_msac
-
-        return getattr(assign_msac, name)(points, point_ids, store, threshold, options,
-                                          weights=weights)
-
-    assigner.__name__ = assigner.__qualname__ = name
-    return assigner
-
-
-ASSIGNERS: dict[str, PlaneAssigner] = {
-    "direct": assign_direct,
-    "msac": _indirect("assign_msac"),
-    "roi_msac": _indirect("assign_roi_msac"),
-}
-
-
-def resolve_method(options: AssignmentOptions, threshold: float) -> str:
-    """The method to run: `options.method`, or for "auto" the indirect method while
-    `threshold` exceeds `options.auto_switch_threshold` and "direct" after."""
-    if options.method != "auto":
-        return options.method
-    if threshold > options.auto_switch_threshold:
-        return options.auto_indirect_method
-    return "direct"
-
-
-def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
-           options: AssignmentOptions, weights: np.ndarray | None = None) -> Assignment:
-    """Assign tie points (local frame) to faces with the method of `options`. `weights`: per-point
-    quality (higher = better, e.g. assign_msac.point_quality_weights), used by the MSAC methods
-    when `options.weighted_sampling` is on."""
-    method = resolve_method(options, threshold)
-    try:
-        assigner = ASSIGNERS[method]
-    except KeyError:
-        from ..errors import InputError
-
-        raise InputError(f"unknown assignment method {method!r}; "
-                         f"available: {', '.join(sorted(ASSIGNERS))}, auto") from None
-    if options.method == "auto":
-        logger.info("assignment method auto: %s at threshold %.2f m (switch at %.2f m)",
-                    method, threshold, options.auto_switch_threshold)
-    result = assigner(points, point_ids, store, threshold, options, weights=weights)
-    result.method = method
-    logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
-                 result.num_assigned, len(point_ids), result.num_faces, threshold,
-                 result.rejected_faces)
-    return result
-
-
-def initial_threshold(options: AssignmentOptions) -> float:
-    """Upper limit of the threshold, used in the first iteration: `max_threshold` (2 m) for
-    direct assignment, `indirect_max_threshold` (3 m) for (b), (c) and "auto" (Unger 5.3)."""
-    if options.method in ("msac", "roi_msac", "auto"):
-        return options.indirect_max_threshold
-    return options.max_threshold
-
-
-def next_threshold(previous: Assignment, points: np.ndarray, store: PlaneStore,
-                   options: AssignmentOptions, sigma_dtp: float) -> float:
-    """Threshold schedule (Unger 4.2, 5.3): 3.5 x the mean over faces of the per-face mean
-    |distance| of the previously assigned points (at their current coordinates), bounded to
-    [2 sigma_dTP, initial_threshold(options)]."""
-    lower = options.min_threshold_sigmas * sigma_dtp
-    upper = initial_threshold(options)
-    assigned = previous.assigned
-    if not np.any(assigned):
-        return upper
-    faces = previous.face_index[assigned]
-    pts = points[assigned]
-    distances = np.abs(np.einsum("ij,ij->i", pts, store.normals[faces]) + store.offsets[faces])
-    unique_faces, inverse = np.unique(faces, return_inverse=True)
-    per_face_mean = np.bincount(inverse, weights=distances) / np.bincount(inverse)
-    threshold = options.threshold_factor * float(np.mean(per_face_mean))
-    return float(np.clip(threshold, lower, upper))

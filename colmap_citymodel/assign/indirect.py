@@ -1,5 +1,5 @@
 """Indirect assignment: planes found in the tie point cloud by MSAC, then related to model planes
-(Unger 4.3; method.md section 6 (b) and (c)). The estimator is in msac.py.
+(Unger 4.3; method.md section 6 (b) and (c)). The estimator is in assign/msac.py.
 
 (b) "msac", without ROIs (Unger 4.3.1). Planes are extracted one after the other from the whole
 cloud: the best MSAC plane, its inliers projected into it and split into connected components of
@@ -34,11 +34,17 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .assignment import Assignment, excluded_faces, filter_faces
-from .msac import (alpha_components, boundary_centroid, fit_plane, msac_plane, plane_coordinates,
-                   point_normals)
-from ..options import AssignmentOptions
 from ..citymodel.store import PlaneStore
+from ..options import AssignmentOptions
+from .assignment import Assignment, excluded_faces, filter_faces
+from .msac import (
+    alpha_components,
+    boundary_centroid,
+    fit_plane,
+    msac_plane,
+    plane_coordinates,
+    point_normals,
+)
 
 logger = logging.getLogger(__name__)
 

@@ -1,5 +1,5 @@
 """MSAC plane estimation and alpha-shape components of planar point sets, for the indirect
-assignment methods (assign_msac.py; Unger 4.3, Mulder 4.4).
+assignment methods (assign/indirect.py; Unger 4.3, Mulder 4.4).
 
 MSAC (Torr and Zisserman 2000) scores a hypothesis by the truncated quadratic cost sum
 min(d^2, T^2) rather than RANSAC's inlier count: of two planes with equally many inliers the closer

@@ -28,9 +28,10 @@ from pathlib import Path
 from typing import Iterable, Mapping
 
 import numpy as np
+import pycolmap
 
-from ..errors import GNSSError, CRSError
 from ..citymodel.raw_model import CRSInfo
+from ..errors import CRSError, GNSSError
 
 logger = logging.getLogger(__name__)
 
@@ -572,7 +573,6 @@ def read_gnss_database(
     UNDEFINED priors are taken as CARTESIAN with a warning. Sigmas are the square roots of the
     covariance diagonal; a NaN or non-positive covariance gives `default_sigma`.
     """
-    import pycolmap
 
     database_path = Path(database_path)
     if not database_path.is_file():
@@ -767,3 +767,23 @@ def match_to_reconstruction(gnss: GNSSObservations, reconstruction, origin=None,
         )
     keep = np.array(keep, dtype=np.int64)
     return np.array(ids, dtype=np.int64), local[keep], gnss.sigmas[keep]
+
+
+def read_gnss(*, database=None, gnss=None, gnss_crs=None, exif=None, target_crs,
+              default_sigma=(3.0, 3.0, 5.0)):
+    """GNSS from exactly one source: COLMAP database pose priors, a text file or EXIF."""
+    from ..errors import InputError
+
+    given = [name for name, value in (("--database", database), ("--gnss", gnss),
+                                      ("--exif", exif)) if value]
+    if len(given) > 1:
+        raise InputError(f"give one GNSS source, not {' and '.join(given)}")
+    if database:
+        return read_gnss_database(database, target_crs, default_sigma)
+    if gnss:
+        if not gnss_crs:
+            raise InputError("--gnss needs --gnss_crs (e.g. EPSG:4979 or EPSG:25832+7837)", gnss)
+        return read_gnss_text(gnss, gnss_crs, target_crs, default_sigma)
+    if exif:
+        return read_gnss_exif(exif, target_crs, default_sigma)
+    return None

@@ -1,1 +1,2 @@
-"""City model files -> PlaneStore (and back): CRSs, CityGML/CityJSON reading, the plane and vertex store, CityGML and mesh writing."""
+"""City model files -> PlaneStore (and back): CRSs, CityGML/CityJSON reading, the plane and vertex
+store, CityGML and mesh writing."""

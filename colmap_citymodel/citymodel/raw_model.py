@@ -1,7 +1,7 @@
 """Plain data that every city model reader returns, before vertices are merged into a store.
 
 Readers (read_citygml.py, read_cityjson.py) produce a `RawCityModel` whose polygons are a flat
-`RawPolygonTable` (grown with a `RawPolygonBuilder`); plane_store.build_store() turns it into a
+`RawPolygonTable` (grown with a `RawPolygonBuilder`); citymodel.store.build_store() turns it into a
 `PlaneStore`. A plain list of `RawPolygon` is accepted as well (synthetic scenes, tests). Coordinates here are still in the file's CRS (or the target CRS
 when the reader reprojected), float64, never shifted.
 """
@@ -466,7 +466,7 @@ class RawPolygonTable(Sequence):
     def pop_coords(self, shift: np.ndarray | None = None) -> np.ndarray:
         """All coordinates minus `shift` as one new array, releasing the table's own copy chunk
         by chunk (peak: the result plus one chunk). The table has no coordinates afterwards:
-        only for a caller that owns the table (plane_store.build_store(release_raw=True))."""
+        only for a caller that owns the table (citymodel.store.build_store(release_raw=True))."""
         chunks, self._chunks = self._chunks, []
         if len(chunks) == 1:
             out = chunks.pop()
@@ -486,7 +486,7 @@ class RawPolygonTable(Sequence):
 
     def points_exteriors_first(self, shift: np.ndarray, release: bool = False) -> np.ndarray:
         """(P, 3) new array: coordinates minus `shift`, the points of all exteriors first (in
-        polygon order), then those of all holes (the ring order of plane_store.build_store).
+        polygon order), then those of all holes (the ring order of citymodel.store.build_store).
         release: drop the table's coordinates chunk by chunk while copying (peak: the result
         plus one chunk); the table has no coordinates afterwards (for an owner only)."""
         is_ext = np.zeros(self.num_rings, dtype=bool)

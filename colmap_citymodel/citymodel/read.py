@@ -3,7 +3,7 @@
 `read_city_model` accepts one file, several files or a directory of tiles (CityGML `*.gml`,
 `*.xml`; CityJSON `*.json`, `*.city.json`, `*.jsonl`), reads each with its format's reader, checks
 that all share one CRS, merges them into one RawCityModel and builds the store (vertex merging,
-planes, spatial index: plane_store.build_store).
+planes, spatial index: citymodel.store.build_store).
 """
 
 from __future__ import annotations
@@ -13,10 +13,10 @@ from pathlib import Path
 
 import numpy as np
 
-from . import crs as crs_mod
 from ..errors import CRSError, InputError, NoOverlapError
-from .store import PlaneStore, build_store
+from . import crs as crs_mod
 from .raw_model import RawCityModel, RawPolygonTable
+from .store import PlaneStore, build_store
 
 logger = logging.getLogger(__name__)
 
@@ -159,3 +159,22 @@ def read_city_model(
         store.num_buildings, store.num_faces, len(store.vertices), len(files), store.crs.label,
     )
     return store
+
+
+def peek_crs(citymodel, assumed: str | None = None):
+    """The CRS of the first city model file from its first srsName / referenceSystem, read
+    from the file's head only (so GNSS can bound what is read of a large model); None when
+    the head names none (the model is then read whole first)."""
+    import re
+
+    from .crs import resolve_crs, user_crs
+
+    files = city_model_files(citymodel)
+    with open(files[0], "rb") as f:
+        head = f.read(1 << 20).decode("utf-8", errors="ignore")
+    found = re.search(r'srsName="([^"]+)"', head) or \
+        re.search(r'"referenceSystem"\s*:\s*"([^"]+)"', head)
+    if found:
+        info = resolve_crs(found.group(1), path=files[0])
+        return info if info.is_projected else None
+    return user_crs(assumed) if assumed else None

@@ -42,9 +42,15 @@ from pathlib import Path
 import numpy as np
 from lxml import etree
 
-from . import crs as crs_mod
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
-from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonBuilder, RawPolygonTable
+from . import crs as crs_mod
+from .raw_model import (
+    CRSInfo,
+    RawCityModel,
+    RawPolygon,
+    RawPolygonBuilder,
+    RawPolygonTable,
+)
 
 logger = logging.getLogger(__name__)
 

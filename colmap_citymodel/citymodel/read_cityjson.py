@@ -25,8 +25,8 @@ from typing import Any
 
 import numpy as np
 
-from .crs import output_crs, reproject_points, resolve_crs, user_crs
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
+from .crs import output_crs, reproject_points, resolve_crs, user_crs
 from .raw_model import CRSInfo, RawCityModel, RawPolygonBuilder, RawPolygonTable
 
 logger = logging.getLogger(__name__)

@@ -21,8 +21,8 @@ from typing import Iterable
 import numpy as np
 from lxml import etree
 
-from .store import THEMATIC_CLASSES
 from .raw_model import RawCityModel, RawPolygon
+from .store import THEMATIC_CLASSES
 
 NS = {
     "core": "http://www.opengis.net/citygml/2.0",

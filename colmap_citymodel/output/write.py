@@ -8,40 +8,20 @@ from __future__ import annotations
 
 import json
 import logging
-import os
-import shutil
-import tempfile
-from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from ..adjust.result import RefineResult
 from ..errors import InputError
-from ..workflow import RefineResult
+from ..files import atomic_directory, write_point_ply
+from ..precision.figures import html_page
+from ..precision.report import write_precision_outputs
 
 logger = logging.getLogger(__name__)
 
 UNASSIGNED_GREY = (160, 160, 160)
-
-
-@contextmanager
-def atomic_directory(output_path: str | Path):
-    """Yield a temporary directory that becomes `output_path` when the block succeeds."""
-    output_path = Path(output_path)
-    if output_path.exists() and (not output_path.is_dir() or any(output_path.iterdir())):
-        raise InputError("output path exists and is not an empty directory; give a new one",
-                         output_path)
-    output_path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = Path(tempfile.mkdtemp(prefix=f".{output_path.name}.", dir=output_path.parent))
-    try:
-        yield tmp
-        if output_path.exists():
-            output_path.rmdir()
-        os.replace(tmp, output_path)
-    finally:
-        if tmp.exists():
-            shutil.rmtree(tmp, ignore_errors=True)
 
 
 def face_colours(num_faces: int) -> np.ndarray:
@@ -52,26 +32,6 @@ def face_colours(num_faces: int) -> np.ndarray:
 
     return (np.array([colorsys.hsv_to_rgb(h, 0.75, 0.95) for h in hue]).reshape(-1, 3)
             * 255).astype(np.uint8)
-
-
-def write_point_ply(path: Path, xyz: np.ndarray, rgb: np.ndarray,
-                    scalars: dict[str, np.ndarray] | None = None) -> None:
-    """Binary PLY with float64 coordinates (CRS coordinates do not fit float32) and colours."""
-    scalars = scalars or {}
-    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8"), ("red", "u1"), ("green", "u1"),
-              ("blue", "u1")] + [(name, "<f4") for name in scalars]
-    data = np.empty(len(xyz), dtype=fields)
-    data["x"], data["y"], data["z"] = xyz[:, 0], xyz[:, 1], xyz[:, 2]
-    data["red"], data["green"], data["blue"] = rgb[:, 0], rgb[:, 1], rgb[:, 2]
-    for name, values in scalars.items():
-        data[name] = values
-    ply_type = {"<f8": "double", "u1": "uchar", "<f4": "float"}
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(xyz)}"]
-    header += [f"property {ply_type[t]} {name}" for name, t in fields]
-    header += ["end_header"]
-    with open(path, "wb") as f:
-        f.write(("\n".join(header) + "\n").encode())
-        f.write(data.tobytes())
 
 
 def write_assignments_ply(result: RefineResult, path: Path, offset: np.ndarray) -> None:
@@ -236,14 +196,15 @@ def write_refined(result: RefineResult, output_path: str | Path, *, output_type:
 
             write_mesh(result.adjusted_store, tmp / "model_mesh.ply", frame=output_frame)
         except ImportError:  # pragma: no cover - mesh export is optional for the result
-            logger.warning("model mesh not written: export_mesh is unavailable")
+            logger.warning("model mesh not written: the mesh export is unavailable")
         report = report_dict(result, inputs)
-        from ..precision.report import write_precision_outputs
-
-        # Adds sigma0_by_group, global_test, precision to `report`; CSV, PLY, plots, HTML.
-        precision_md = write_precision_outputs(result, tmp, report, offset)
+        # Adds sigma0_by_group, global_test, precision to `report`; CSV, PLY, plots.
+        precision_md, plots = write_precision_outputs(result, tmp, report, offset)
+        summary = report_markdown(report) + precision_md
         (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
-        (tmp / "report.md").write_text(report_markdown(report) + precision_md)
+        (tmp / "report.md").write_text(summary)
+        (tmp / "report.html").write_text(html_page("colmap-citymodel refine report", plots,
+                                                   summary))
     logger.info("wrote the refined model and report to %s", output_path)
     return output_path
 
@@ -256,3 +217,6 @@ def _json_default(value):
     if isinstance(value, np.ndarray):
         return value.tolist()
     return str(value)
+
+
+

@@ -59,8 +59,8 @@ import time
 from dataclasses import dataclass, field
 
 import numpy as np
-import pycolmap
 import pyceres
+import pycolmap
 import scipy.linalg
 import scipy.sparse as sp
 from scipy.spatial.transform import Rotation
@@ -251,7 +251,7 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
     crs = problem.problem.evaluate_jacobian(evaluate)
     jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
                              shape=(crs.num_rows, crs.num_cols))
-    # Every group is evaluated in units of sigma_image (see hybrid_adjustment's docstring).
+    # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
     return jacobian / problem.options.sigma_image, layout
 
 
@@ -572,7 +572,7 @@ def checkpoint_cofactors(problem: HybridProblem, cof: Cofactors, points: dict[st
     never used as control. With a datum defect the check points' own small influence on the
     poses is left out (Q_cc' = Q_cc, the triangulation with the adjusted poses).
 
-    `points`: id -> (3,) in the problem's frame (evaluate.triangulate_checkpoints on the
+    `points`: id -> (3,) in the problem's frame (checkpoints.triangulate_checkpoints on the
     problem's reconstruction); `observations`: [(image_name, id, x, y)] in pixels."""
     rec = problem.reconstruction
     layout = cof.layout
@@ -790,7 +790,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     """Variance factors, global test and (optionally) covariances at the current state of a
     solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
 
-    `checkpoint_observations` ([(image_name, id, x, y)], evaluate.read_checkpoint_observations):
+    `checkpoint_observations` ([(image_name, id, x, y)], checkpoints.read_checkpoint_observations):
     check points are triangulated with the adjusted poses and get their marginal covariance
     (`checkpoint_cofactors`); needs `covariances`. `sigma_generalisation` (m; default the
     problem's AdjustmentOptions.sigma_generalisation): also the generalisation-aware

@@ -5,12 +5,12 @@
 - `plot_delta_vs_sigma`: |Delta| against the a posteriori sigma per axis, with the 1:1 line and
   the band 0.5 <= |Delta| / sigma <= 2 (points above it: sigma over-optimistic, Unger Table 12);
 - `write_evaluation_report`: a new directory with `evaluation.json`, the PNGs and a
-  self-contained `report.html` (PNGs embedded as base64, as precision_report's report).
+  self-contained `report.html` (PNGs embedded as base64, as refine's report).
 
-The evaluation is the dict `evaluate.main` returns ({"evaluated": ..., "truth": ...}); a check
+The evaluation is the dict `precision.checkpoints.main` returns ({"evaluated": ..., "truth": ...}); a check
 point's sigma is its `points[id]["sigma"]` (present only when the adjustment's covariance was
 available), so every sigma plot is skipped without it. Plots use matplotlib's object API with
-the Agg canvas, through precision_report's `_figure` / `_png`.
+the Agg canvas, through precision.figures' `new_figure` / `png_bytes`.
 """
 
 from __future__ import annotations
@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .report import _figure, _png, html_page
+from .figures import html_page, new_figure, png_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -69,7 +69,7 @@ def plot_checkpoint_errors(known_xy, errors_xyz, *, ids=None,
     aspect = (x_range[1] - x_range[0]) / (y_range[1] - y_range[0])
     width = 10.0
     height = float(np.clip(0.78 * width / aspect + 1.6, 3.8, 10.0))
-    figure = _figure(width, height)
+    figure = new_figure(width, height)
     figure.subplots_adjust(left=0.08, right=0.95, bottom=1.0 / height, top=1 - 0.75 / height)
     ax = figure.add_subplot(1, 1, 1)
     arrows = ax.quiver(xy[:, 0], xy[:, 1], errors[:, 0], errors[:, 1], errors[:, 2],
@@ -92,7 +92,7 @@ def plot_checkpoint_errors(known_xy, errors_xyz, *, ids=None,
                  f"Z {rms[2]:.3f} m", fontsize=9)
     bar = figure.colorbar(arrows, ax=ax, shrink=0.8)
     bar.set_label("Z error, known - estimated (m)", fontsize=8)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 def plot_delta_vs_sigma(delta_xyz, sigma_xyz, *, title: str = "|Delta| vs sigma") -> bytes:
@@ -112,7 +112,7 @@ def plot_delta_vs_sigma(delta_xyz, sigma_xyz, *, title: str = "|Delta| vs sigma"
     lo = max(min(float(sigma.min()), float(np.percentile(delta, 10))) / 3, 1e-6 * hi)
     floor = lo * 1.05
     line = np.array([lo, hi])
-    figure = _figure(14, 4.8)
+    figure = new_figure(14, 4.8)
     figure.subplots_adjust(left=0.06, right=0.98, bottom=0.13, top=0.82, wspace=0.3)
     for k, axis in enumerate(AXES):
         ax = figure.add_subplot(1, 3, k + 1)
@@ -136,7 +136,7 @@ def plot_delta_vs_sigma(delta_xyz, sigma_xyz, *, title: str = "|Delta| vs sigma"
         if k == 0:
             ax.legend(fontsize=7, loc="upper left")
     figure.suptitle(f"{title} ({len(delta)} check points)", fontsize=10)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 # -- the evaluation dict -------------------------------------------------------------------------
@@ -156,9 +156,9 @@ def _point_arrays(block: dict) -> tuple[list[str], np.ndarray, np.ndarray | None
 
 
 def evaluation_plots(evaluation: dict, known: dict | None = None) -> dict[str, bytes]:
-    """The plots of an `evaluate.main` result: error arrows of the evaluated model (and of the
+    """The plots of an `precision.checkpoints.main` result: error arrows of the evaluated model (and of the
     truth poses, if evaluated) when the known coordinates are given, |Delta| vs sigma when the
-    check points have sigmas. `known`: id -> (3,) known coordinates (evaluate.read_checkpoints)."""
+    check points have sigmas. `known`: id -> (3,) known coordinates (checkpoints.read_checkpoints)."""
     plots: dict[str, bytes] = {}
     blocks = [("evaluated", "evaluated model")]
     if evaluation.get("truth"):
@@ -235,7 +235,7 @@ def plot_file_name(index: int, name: str) -> str:
 def write_evaluation_report(directory, evaluation: dict, plots: dict[str, bytes]) -> Path:
     """New directory `directory` (atomic): evaluation.json, evaluation.md, the PNGs under
     plots/ and report.html with the same PNGs embedded."""
-    from ..output.write import atomic_directory
+    from ..files import atomic_directory
 
     directory = Path(directory)
     with atomic_directory(directory) as tmp:
@@ -260,15 +260,6 @@ def write_evaluate_outputs(output_path, evaluation: dict, checkpoints=None) -> P
 
         known = read_checkpoints(checkpoints)
     return write_evaluation_report(output_path, evaluation, evaluation_plots(evaluation, known))
-
-
-def check_new_directory(path) -> None:
-    """Raise InputError now if `path` cannot become a new output directory."""
-    from ..output.write import atomic_directory
-
-    with atomic_directory(path):
-        pass
-    Path(path).rmdir()
 
 
 def _json(value):

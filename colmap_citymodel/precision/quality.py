@@ -16,6 +16,14 @@ from __future__ import annotations
 from dataclasses import dataclass, field
 
 import numpy as np
+import pycolmap
+
+from ..adjust.scale import scale_change
+from ..assign.assignment import Assignment
+from ..block.priors import GNSSPriors
+from ..block.reconstruction import tie_points
+from ..citymodel.store import PlaneStore
+from ..options import RefineOptions
 
 #: The datum parameters, in the order of the information matrices below.
 DATUM = ("E", "N", "U", "scale", "rotation_E", "rotation_N", "rotation_U")
@@ -269,3 +277,87 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                         "checks (a wrong assignment there moves the block unseen)")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
+
+
+def datum_line(observability_dict: dict) -> str:
+    """'E planes (0.09 m), ..., U gnss (0.79 m), ...' for the log and the console."""
+    parts = []
+    for name, row in observability_dict.items():
+        unit = " deg" if name.startswith("rotation") else "" if name == "scale" else " m"
+        sigma = f" ({row['sigma']:.3g}{unit})" if row["sigma"] is not None else ""
+        parts.append(f"{name} {row['source']}{sigma}")
+    return ", ".join(parts)
+
+
+def assigned_observability(points: np.ndarray, assignment: Assignment, store: PlaneStore,
+                           priors: GNSSPriors | None, rec: pycolmap.Reconstruction,
+                           options: RefineOptions) -> dict:
+    """quality.observability for the assigned tie points and the GNSS of `rec`."""
+    from ..options import GENERALISATION_SIGMA
+
+    assigned = assignment.assigned
+    faces = assignment.face_index[assigned]
+    sigma_gen = options.adjustment.sigma_generalisation or GENERALISATION_SIGMA
+    return observability(points[assigned], store.normals[faces], faces,
+                         priors.observed_points(rec) if priors is not None else None,
+                         priors.sigmas if priors is not None else None,
+                         options.adjustment.sigma_dtp, sigma_gen)
+
+
+def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
+                    surface, priors: GNSSPriors | None, assignment: Assignment, last,
+                    observability_dict: dict, points: np.ndarray, options: RefineOptions,
+                    diverged: str | None, scale_sigma: float | None):
+    """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
+    are the refined tie points that could be assigned (check points left out)."""
+
+    thresholds = QualityThresholds()
+    metrics: dict = {
+        "assigned_share": assignment.num_assigned / max(len(points), 1),
+        "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
+        "near_share": float(np.mean(surface(points) < thresholds.near_distance))
+        if len(points) else 0.0,
+        "near_share_gnss_only": None, "diverged": diverged,
+        "planes_fix": planes_fix(observability_dict),
+        "one_plane": rests_on_one_plane(observability_dict),
+    }
+    shift_sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
+    if all(v is not None for v in shift_sigmas):
+        metrics["position_sigma_m"] = float(np.linalg.norm(shift_sigmas))
+    normalised = last.residuals.get("dTP", np.zeros(0))
+    if len(normalised):
+        dtp = float(np.sqrt(np.mean(normalised ** 2)))
+        metrics["dtp_rms_sigmas"] = float(dtp)
+        metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
+    from ..align.coarse import wall_points
+
+    walls = wall_points(points) if len(points) else np.zeros((0, 3))
+    metrics["num_wall_points"] = len(walls)
+    if len(walls) >= options.assignment.min_points_per_plane:
+        metrics["wall_near_share"] = float(np.mean(surface(walls) < thresholds.near_distance))
+    if gnss_only is not None and priors is not None:
+        _, before = tie_points(gnss_only)
+        metrics["near_share_gnss_only"] = (float(np.mean(surface(before)
+                                                         < thresholds.near_distance))
+                                           if len(before) else 0.0)
+        # Where GNSS observed: elsewhere (GNSS for part of the block) the GNSS-only result is
+        # an extrapolation that the model is there to correct.
+        ids = [int(i) for i in priors.image_ids]
+        a = np.array([gnss_only.image(i).projection_center() for i in ids])
+        b = np.array([rec.image(i).projection_center() for i in ids])
+        sigma = np.median(priors.sigmas, axis=0)
+        mean_shift = (b - a).mean(0)
+        metrics["shift_m"] = float(np.linalg.norm(mean_shift))
+        metrics["shift_enu_m"] = mean_shift.tolist()
+        metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
+        if scale_sigma:
+            change = scale_change(gnss_only, rec, ids)
+            metrics["scale_change"] = change
+            metrics["scale_change_sigmas"] = abs(np.log1p(change)) / scale_sigma
+        before_scatter = gnss_scatter(priors.observed_points(gnss_only), priors.positions,
+                                      priors.sigmas)
+        after_scatter = gnss_scatter(priors.observed_points(rec), priors.positions,
+                                     priors.sigmas)
+        metrics["gnss_scatter"] = after_scatter
+        metrics["gnss_scatter_ratio"] = after_scatter / max(before_scatter, 1e-9)
+    return quality_verdict(metrics, thresholds)

@@ -9,7 +9,7 @@ and a self-contained HTML report next to `report.json`.
   (Unger Fig. 17), a plan-view tie point sigma map (Mulder Fig. 5.5), image sigmas along the
   flight, and with check points (refine --checkpoints) their error arrows (Unger Fig. 22),
   |Delta| vs sigma and the Delta/sigma tables (Unger Tables 12/13);
-- with check points: report.json `checkpoints` (evaluate.CheckpointEvaluation.todict: RMS,
+- with check points: report.json `checkpoints` (checkpoints.CheckpointEvaluation.todict: RMS,
   Helmert, per point Delta and sigma, `delta_sigma_by_model` with per-axis RMS of Delta, RMS of
   sigma and their ratio before and after Helmert), `checkpoint_precision.csv` and
   `checkpoint_precision.json` (the joint covariances, read by `colmap-citymodel evaluate`);
@@ -21,16 +21,14 @@ Plots use matplotlib's object API with the Agg canvas (no display, no pyplot sta
 
 from __future__ import annotations
 
-import base64
 import csv
-import html
-import io
 import logging
 from pathlib import Path
 
 import numpy as np
 
 from .estimate import PrecisionResult
+from .figures import new_figure, png_bytes
 
 logger = logging.getLogger(__name__)
 
@@ -80,7 +78,7 @@ def sigma_colours(values: np.ndarray) -> np.ndarray:
 
 def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
                     num_images: np.ndarray | None = None) -> None:
-    from ..output.write import write_point_ply as write_ply
+    from ..files import write_point_ply as write_ply
 
     sigma = precision.point_sigmas
     conditional = precision.point_sigmas_conditional
@@ -100,23 +98,6 @@ def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
 
 # -- plots ---------------------------------------------------------------------------------------
 
-def _figure(width: float, height: float):
-    from matplotlib.figure import Figure
-
-    # A fixed layout: constrained/tight layout measure every text and cost seconds per figure.
-    figure = Figure(figsize=(width, height), dpi=90)
-    figure.subplots_adjust(left=0.06, right=0.97, bottom=0.1, top=0.9, wspace=0.3, hspace=0.6)
-    return figure
-
-
-def _png(figure) -> bytes:
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    FigureCanvasAgg(figure)
-    buffer = io.BytesIO()
-    figure.savefig(buffer, format="png")
-    return buffer.getvalue()
-
 
 def plot_plane_histograms(residuals: dict[int, np.ndarray], labels: dict[int, str] | None = None
                           ) -> bytes | None:
@@ -129,7 +110,7 @@ def plot_plane_histograms(residuals: dict[int, np.ndarray], labels: dict[int, st
         (labels.get(f, f"face {f}"), residuals[f]) for f in order]
     columns = 4
     rows = int(np.ceil(len(panels) / columns))
-    figure = _figure(3.2 * columns, 2.4 * rows)
+    figure = new_figure(3.2 * columns, 2.4 * rows)
     everything = panels[0][1]
     limit = max(float(np.percentile(np.abs(everything), 99)), 1e-3)
     bins = np.linspace(-limit, limit, 31)
@@ -142,14 +123,14 @@ def plot_plane_histograms(residuals: dict[int, np.ndarray], labels: dict[int, st
         ax.tick_params(labelsize=7)
         if k >= len(panels) - columns:
             ax.set_xlabel("distance to plane (m)", fontsize=8)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> bytes | None:
     """Plan view of the tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5), with cameras."""
     if not len(precision.point_ids):
         return None
-    figure = _figure(15, 4.6)
+    figure = new_figure(15, 4.6)
     xy = precision.points[:, :2] - precision.points[:, :2].mean(0)
     centres = precision.centres[:, :2] - precision.points[:, :2].mean(0)
     sigma = precision.point_sigmas * 100.0
@@ -167,7 +148,7 @@ def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> byte
         ax.set_ylabel("Y - mean (m)", fontsize=8)
         ax.tick_params(labelsize=7)
         figure.colorbar(scatter, ax=ax, shrink=0.8)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
@@ -176,7 +157,7 @@ def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
         return None
     order = np.argsort(precision.image_names)
     sigma = precision.image_sigmas[order]
-    figure = _figure(12, 4)
+    figure = new_figure(12, 4)
     ax = figure.add_subplot(1, 2, 1)
     for i, axis in enumerate(("X0", "Y0", "Z0")):
         ax.plot(sigma[:, i] * 100.0, ".-", ms=3, lw=0.6, label=axis)
@@ -192,7 +173,7 @@ def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
     ax.set_yscale("log")
     ax.legend(fontsize=8)
     ax.set_title("rotations", fontsize=9)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 # -- report text ---------------------------------------------------------------------------------
@@ -258,33 +239,6 @@ def precision_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def html_report(report: dict, plots: dict[str, bytes], title: str = "colmap-citymodel report"
-                ) -> str:
-    """A self-contained page: the markdown summary as preformatted text and the PNGs inline."""
-    from ..output.write import report_markdown
-
-    try:
-        text = report_markdown(report) + precision_markdown(report) + checkpoint_markdown(report)
-    except (KeyError, TypeError):  # a report from another stage (e.g. evaluate)
-        text = precision_markdown(report)
-    return html_page(title, plots, text)
-
-
-def html_page(title: str, plots: dict[str, bytes], summary: str) -> str:
-    """A self-contained HTML page: the PNGs inline (base64), then `summary` preformatted."""
-    parts = ["<!DOCTYPE html>", "<html><head><meta charset='utf-8'>",
-             f"<title>{html.escape(title)}</title>",
-             "<style>body{font-family:sans-serif;max-width:1300px;margin:auto;padding:1em}"
-             "pre{background:#f6f6f6;padding:1em;overflow-x:auto}img{max-width:100%}</style>",
-             "</head><body>", f"<h1>{html.escape(title)}</h1>"]
-    for name, png in plots.items():
-        encoded = base64.b64encode(png).decode("ascii")
-        parts += [f"<h2>{html.escape(name)}</h2>",
-                  f"<img alt='{html.escape(name)}' src='data:image/png;base64,{encoded}'>"]
-    parts += ["<h2>Summary</h2>", f"<pre>{html.escape(summary)}</pre>", "</body></html>"]
-    return "\n".join(parts)
-
-
 # -- check points ---------------------------------------------------------------------------------
 
 def write_checkpoint_csv(path: Path, evaluation) -> None:
@@ -333,7 +287,7 @@ def checkpoint_markdown(report: dict) -> str:
 
 def checkpoint_plots(evaluation) -> dict[str, bytes]:
     """Error arrows (Unger Fig. 22) and |Delta| vs sigma of refine's check points, drawn by
-    checkpoint_plots when it is available."""
+    precision.plots when it is available."""
     try:
         from .plots import plot_checkpoint_errors, plot_delta_vs_sigma
     except ImportError:  # pragma: no cover - plots are optional for the report
@@ -371,9 +325,10 @@ def refine_plots(result, offset: np.ndarray) -> dict[str, bytes]:
     return {k: v for k, v in plots.items() if v is not None}
 
 
-def write_precision_outputs(result, directory: Path, report: dict, offset: np.ndarray) -> str:
-    """Called by write_output.write_refined: add the precision keys to `report`, write the CSV,
-    the PLY, the plots and report.html into `directory`; return the markdown section."""
+def write_precision_outputs(result, directory: Path, report: dict, offset: np.ndarray
+                            ) -> tuple[str, dict[str, bytes]]:
+    """Add the precision keys to `report`, write the CSV, the PLY and the plots into
+    `directory`; return the markdown section and the plots (name -> PNG) for the page."""
     precision: PrecisionResult | None = result.precision
     if precision is not None:
         report.update(precision_report_dict(precision))
@@ -399,6 +354,4 @@ def write_precision_outputs(result, directory: Path, report: dict, offset: np.nd
         for k, (name, png) in enumerate(plots.items()):
             slug = "".join(c if c.isalnum() else "_" for c in name.split(" (")[0]).strip("_")
             (directory / "plots" / f"{k}_{slug}.png").write_bytes(png)
-    (directory / "report.html").write_text(html_report(report, plots,
-                                                       "colmap-citymodel refine report"))
-    return precision_markdown(report) + checkpoint_markdown(report)
+    return precision_markdown(report) + checkpoint_markdown(report), plots

@@ -49,17 +49,24 @@ import json
 import logging
 import re
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 from tqdm import tqdm
 
+from ..adjust.problem import HybridProblem, SolveReport
+from ..block.priors import GNSSPriors
 from ..errors import InputError
-from ..adjust.problem import GNSSPriors, HybridProblem, SolveReport
 from ..options import AdjustmentOptions
-from .estimate import Cofactors, PrecisionResult, cofactors, estimate_precision, image_jacobian
+from .estimate import (
+    Cofactors,
+    PrecisionResult,
+    cofactors,
+    estimate_precision,
+    image_jacobian,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -501,7 +508,7 @@ def plot_sigma_maps(results: list[SubsetResult], datum: str = "solve", metric: b
     """Per subset: plan view of its tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5),
     one colour scale per axis shared by all subsets, the same extent and origin for all maps
     (a long strip gets its three panels stacked)."""
-    from .report import _figure, _png
+    from .figures import new_figure, png_bytes
 
     factor, unit = _scale(metric)
     xy_all = np.vstack([np.vstack([r.precision.points[:, :2], r.precision.centres[:, :2]])
@@ -518,10 +525,10 @@ def plot_sigma_maps(results: list[SubsetResult], datum: str = "solve", metric: b
     for r in results:
         if stacked:  # panels ~8.5 in wide, their height set by the extent's aspect
             panel = min(max(8.5 / aspect, 1.2), 4.0)
-            figure = _figure(10, 4.0 * panel + 0.8)
+            figure = new_figure(10, 4.0 * panel + 0.8)
             figure.subplots_adjust(top=1 - 0.5 / (4.0 * panel + 0.8), bottom=0.04, hspace=0.3)
         else:
-            figure = _figure(15, 4.6)
+            figure = new_figure(15, 4.6)
         xy = r.precision.points[:, :2] - centre
         sigma = r.point_sigmas(datum) * factor
         cams = r.precision.centres[:, :2] - centre
@@ -539,7 +546,7 @@ def plot_sigma_maps(results: list[SubsetResult], datum: str = "solve", metric: b
             figure.colorbar(scatter, ax=ax, shrink=0.9, pad=0.01)
         figure.suptitle(f"tie point sigmas, {datum} datum ({r.num_images} images; red: "
                         "projection centres; axes: m from the common centre)", fontsize=10)
-        plots[r.name] = _png(figure)
+        plots[r.name] = png_bytes(figure)
     return plots
 
 
@@ -547,10 +554,10 @@ def plot_sigma_histograms(results: list[SubsetResult], datum: str = "solve",
                           metric: bool = True) -> bytes:
     """Histograms of the tie point sigmas per axis, one line per subset, medians dashed
     (Mulder Fig. 5.8)."""
-    from .report import _figure, _png
+    from .figures import new_figure, png_bytes
 
     factor, unit = _scale(metric)
-    figure = _figure(15, 4)
+    figure = new_figure(15, 4)
     everything = np.vstack([r.point_sigmas(datum) for r in results]) * factor
     for i, axis in enumerate("XYZ"):
         ax = figure.add_subplot(1, 3, i + 1)
@@ -564,7 +571,7 @@ def plot_sigma_histograms(results: list[SubsetResult], datum: str = "solve",
         ax.set_xlabel(f"sigma {axis} ({unit})", fontsize=8)
         ax.tick_params(labelsize=7)
         ax.legend(fontsize=7)
-    return _png(figure)
+    return png_bytes(figure)
 
 
 # -- inputs and the CLI entry --------------------------------------------------------------------
@@ -610,9 +617,9 @@ def read_priors(rec: pycolmap.Reconstruction, *, database=None, gnss=None, gnss_
     """GNSS from one source, matched to the images and in a local metric frame; moves `rec`
     into that frame by a similarity (all images with GNSS). Returns (priors, origin, crs label)
     or None without a GNSS source. Geographic GNSS goes to `target_crs` or its UTM zone."""
+    from ..align.georegister import estimate_georegistration
     from ..block import gnss as rg
     from ..citymodel.crs import user_crs
-    from ..align.georegister import estimate_georegistration
 
     if database and gnss:
         raise InputError("give one GNSS source, not --database and --gnss")
@@ -648,8 +655,8 @@ def write_outputs(results: list[SubsetResult], output_path, report: dict, markdo
                   datum: str, metric: bool, offset: np.ndarray) -> Path:
     """precision_subsets.json, precision_subsets.md, per subset <name>_sigma_map.png,
     <name>_images.csv and <name>_points.ply, and sigma_histograms.png, into a new directory."""
+    from ..files import atomic_directory
     from .report import write_image_csv, write_point_ply
-    from ..output.write import atomic_directory
 
     output_path = Path(output_path)
     maps = plot_sigma_maps(results, datum, metric)
@@ -675,7 +682,7 @@ def main(input_path, subsets: list[str], *, output_path=None, database=None, gns
     Prints a table (or JSON); with `output_path` writes a new directory with the JSON, a
     Markdown table, sigma maps (Mulder Fig. 5.5), histograms (Fig. 5.8), per-image CSVs and
     per-point PLYs. Returns the report dict."""
-    from ..workflow import read_reconstruction
+    from ..block.reconstruction import read_reconstruction
 
     if datum not in ("solve", "inner"):
         raise InputError(f"--datum must be solve or inner, not {datum!r}")
@@ -686,7 +693,7 @@ def main(input_path, subsets: list[str], *, output_path=None, database=None, gns
             raise InputError(f"--max_images must be at least {options.min_images}")
         options.max_images = int(max_images)
     if output_path is not None:  # fail on a taken output directory before the slow part
-        from ..output.write import atomic_directory
+        from ..files import atomic_directory
 
         with atomic_directory(output_path):
             pass

@@ -1,1 +1,2 @@
-"""Simulated flights with known truth, mapped by COLMAP: scene, flight, observations, mapping, sequences."""
+"""Simulated flights with known truth, mapped by COLMAP: scene, flight, observations, mapping,
+sequences."""

@@ -30,8 +30,8 @@ import shapely
 from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
-from ..citymodel.store import PlaneStore, store_from_polygons
 from ..citymodel.raw_model import RawPolygon
+from ..citymodel.store import PlaneStore, store_from_polygons
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 `colmap-citymodel simulate SCENARIO.toml --output_path WORKSPACE [--seed N]` builds a COLMAP
 workspace whose drift is COLMAP's own:
 
-1. Scene (simulate_scene.py): the given LOD2 model (a real CityGML/CityJSON file or a procedural
+1. Scene (simulate/scene.py): the given LOD2 model (a real CityGML/CityJSON file or a procedural
    street) and the true scene = model + generalisation effects (facade relief, recessed doors,
    balconies, roof overhangs, roof furniture, trees, cars, terrain) as a triangle mesh.
 2. Flight: key frames >= 1 m apart along a loop around the buildings (their footprints buffered
@@ -62,9 +62,21 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
-from .scene import (LABEL_ROOF, LABEL_WALL, DetailOptions, GroundModel, ModelErrorOptions,
-                    ProceduralOptions, TrueScene, build_true_scene, building_footprints,
-                    detailed_polygons, perturb_planes, perturb_polygons, procedural_store)
+from .scene import (
+    LABEL_ROOF,
+    LABEL_WALL,
+    DetailOptions,
+    GroundModel,
+    ModelErrorOptions,
+    ProceduralOptions,
+    TrueScene,
+    build_true_scene,
+    building_footprints,
+    detailed_polygons,
+    perturb_planes,
+    perturb_polygons,
+    procedural_store,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -1151,7 +1163,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
 
 README = """# Simulated COLMAP workspace: {name}
 
-Made by `colmap-citymodel simulate` (colmap_citymodel/simulate.py), seed {seed},
+Made by `colmap-citymodel simulate` (colmap_citymodel/simulate/), seed {seed},
 sequence {sequence} (key {key}). Scenario: given model `{model}`, GNSS `{gnss}`.
 
 | file | content |

@@ -6,7 +6,7 @@ scene (the model plus facade relief and balconies/clutter the model does not hav
 along the street looking left and right, image observations with noise, GNSS with a bias of
 metres. The "SfM" input is the truth moved into an arbitrary frame with a smooth drift.
 
-The full simulator with COLMAP's own mapper is `simulate.py`; this module stays tiny and fast.
+The full simulator with COLMAP's own mapper is `simulate.sequence`; this module stays tiny and fast.
 """
 
 from __future__ import annotations
@@ -16,8 +16,8 @@ from dataclasses import dataclass
 import numpy as np
 import pycolmap
 
-from ..citymodel.store import PlaneStore, store_from_polygons
 from ..citymodel.raw_model import CRSInfo
+from ..citymodel.store import PlaneStore, store_from_polygons
 
 # An ETRS89 / UTM 32N-like origin so that every test exercises 6-7 digit CRS coordinates.
 DEFAULT_CRS_ORIGIN = (691000.0, 5335000.0, 500.0)

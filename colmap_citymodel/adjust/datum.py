@@ -1,0 +1,58 @@
+"""Does the assignment fix the datum? Plane orientations that received tie points."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from ..assign.assignment import Assignment
+from ..citymodel.store import PlaneStore
+from ..errors import DatumError
+
+logger = logging.getLogger(__name__)
+
+
+# Two plane normals closer than this (either sign) count as the same orientation for the datum.
+SAME_ORIENTATION_DEG = 10.0
+
+
+# A direction whose weight in sum(n n^T) is below this fraction of the largest is "weak".
+WEAK_DIRECTION_RATIO = 0.05
+
+
+def check_datum(store: PlaneStore, assignment: Assignment, has_gnss: bool) -> list[str]:
+    """Unger 3.2.3: at least four planes of different orientation fix the 7 datum parameters;
+    GNSS adds a weak datum. Raise without GNSS and too few orientations; warn about weak
+    directions (e.g. only parallel facades leave the translation along the street free)."""
+    normals = store.normals[assignment.faces]
+    orientations: list[np.ndarray] = []
+    cos_same = np.cos(np.radians(SAME_ORIENTATION_DEG))
+    for n in normals:
+        if all(abs(n @ o) < cos_same for o in orientations):
+            orientations.append(n)
+    if len(orientations) < 4 and not has_gnss:
+        raise DatumError(
+            f"only {len(orientations)} model plane orientation(s) received tie points "
+            f"({len(normals)} planes); at least 4 different orientations are needed to fix the "
+            "datum without GNSS: give GNSS positions or a model that covers more of the scene")
+    warnings = []
+    if len(normals):
+        scatter = normals.T @ normals
+        eigenvalues, eigenvectors = np.linalg.eigh(scatter)
+        for value, direction in zip(eigenvalues, eigenvectors.T):
+            if value < WEAK_DIRECTION_RATIO * eigenvalues[-1]:
+                warnings.append(
+                    f"the assigned planes hardly constrain the translation along {describe(direction)}"
+                    + ("; only GNSS fixes it" if has_gnss else ""))
+    for w in warnings:
+        logger.warning(w)
+    return warnings
+
+
+def describe(direction: np.ndarray) -> str:
+    """A direction in words: vertical, or a horizontal azimuth in the CRS (clockwise from north)."""
+    if abs(direction[2]) > 0.9:
+        return "the vertical"
+    azimuth = np.degrees(np.arctan2(direction[0], direction[1])) % 180.0
+    return f"the horizontal direction of azimuth {azimuth:.0f} deg"

@@ -1,0 +1,107 @@
+"""The record that refine returns: the adjusted block, the model state, the assignment, the
+iterations, and what the precision and quality stages found. The output stage reads it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pycolmap
+
+from ..assign.assignment import Assignment
+from ..block.priors import GNSSPriors
+from ..citymodel.store import PlaneStore
+from ..options import RefineOptions
+from .problem import SolveReport
+
+if TYPE_CHECKING:  # filled in by the later stages; only their types are named here
+    from ..precision.checkpoints import CheckpointEvaluation
+    from ..precision.estimate import PrecisionResult, VarianceComponents
+    from ..precision.quality import QualityReport
+
+
+@dataclass
+class IterationRecord:
+    iteration: int
+    threshold: float
+    num_assigned: int
+    num_faces: int
+    rejected_faces: dict[str, int]
+    num_eliminated: int
+    robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
+    final: SolveReport
+    relative_change: float
+
+    def todict(self) -> dict:
+        return {
+            "iteration": self.iteration, "threshold": self.threshold,
+            "num_assigned_points": self.num_assigned, "num_planes": self.num_faces,
+            "rejected_planes": self.rejected_faces, "num_eliminated_dTP": self.num_eliminated,
+            "robust_solve": self.robust.todict() if self.robust else None,
+            "solve": self.final.todict(),
+            "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
+        }
+
+
+@dataclass
+class RefineResult:
+    """What refine() returns. `reconstruction` is in the store's local frame."""
+
+    reconstruction: pycolmap.Reconstruction
+    store: PlaneStore  # the model as given (cropped to the reconstruction)
+    adjusted_store: PlaneStore  # same topology with adjusted vertices
+    assignment: Assignment
+    plane_faces: np.ndarray  # faces that were unknowns in the last solve
+    plane_normals: np.ndarray  # their adjusted normals (local frame)
+    plane_offsets: np.ndarray
+    input_to_local: pycolmap.Sim3d  # the initial similarity applied to the input
+    georegistration_rms: float | None
+    step2: SolveReport | None
+    step2_eliminated: int
+    iterations: list[IterationRecord]
+    options: RefineOptions
+    warnings: list[str] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+    gnss_priors: GNSSPriors | None = None  # the GNSS priors of the last solve (local frame)
+    precision: "PrecisionResult | None" = None  # precision.py: s0, global test, covariances
+    variance_components: "VarianceComponents | None" = None  # PrecisionOptions.variance_components
+    checkpoints: "CheckpointEvaluation | None" = None  # Delta (and sigma) of given check points
+    # The GNSS-only adjustment of the same block (local frame); None without GNSS.
+    gnss_only: pycolmap.Reconstruction | None = None
+    quality: "QualityReport | None" = None  # the verdict; "failed": `reconstruction` is gnss_only
+    observability: dict = field(default_factory=dict)  # quality.observability, after the solve
+    observability_before: dict = field(default_factory=dict)  # the same at the first assignment
+    refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
+    datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
+    coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
+
+    @property
+    def handed_back(self) -> str:
+        """"refined", or "gnss_only" when the quality gate failed."""
+        return ("gnss_only" if self.quality is not None and self.quality.verdict == "failed"
+                and self.gnss_only is not None else "refined")
+
+    @property
+    def origin(self) -> np.ndarray:
+        return self.store.origin
+
+    def reconstruction_in_crs(self) -> pycolmap.Reconstruction:
+        """A copy of the refined reconstruction in model CRS coordinates (origin added)."""
+        rec = pycolmap.Reconstruction(self.reconstruction)
+        rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), self.origin))
+        return rec
+
+    def plane_residuals(self) -> dict[int, np.ndarray]:
+        """Signed distances (m) of the assigned tie points to their adjusted planes, per face."""
+        slot = {int(f): k for k, f in enumerate(self.plane_faces)}
+        out: dict[int, list[float]] = {}
+        a = self.assignment
+        for point_id, face in zip(a.point_ids[a.assigned], a.face_index[a.assigned]):
+            k = slot.get(int(face))
+            if k is None:
+                continue
+            xyz = self.reconstruction.point3D(int(point_id)).xyz
+            out.setdefault(int(face), []).append(float(self.plane_normals[k] @ xyz
+                                                       + self.plane_offsets[k]))
+        return {f: np.array(v) for f, v in out.items()}

@@ -1,0 +1,104 @@
+"""The adjustments of the refine loop other than the hybrid solve itself: the bundle adjustment
+with GNSS and no model, the similarity rounds onto the assigned planes, and the model state
+after a solve."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pycolmap
+
+from ..align.objective import BlockObjective
+from ..assign.assignment import Assignment
+from ..assign.schedule import assign
+from ..block.priors import GNSSPriors
+from ..citymodel.store import PlaneStore
+from ..options import RefineOptions
+from .problem import HybridProblem, SolveReport
+
+logger = logging.getLogger(__name__)
+
+
+def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
+                            options: RefineOptions) -> tuple[SolveReport, int]:
+    """BA with GNSS priors and no model, robust on image observations; then eliminate image
+    observations with normalised residual > 3 (and points with too small intersection angle)."""
+    o = options.adjustment
+    problem = HybridProblem(rec, None, None, gnss, o, robust_images=True, robust_planes=False)
+    report = problem.solve()
+    eliminated = pycolmap.ObservationManager(rec).filter_all_points3D(
+        o.elimination_threshold * o.sigma_image, o.min_triangulation_angle)
+    logger.info("step 2 (BA without model): %d Ceres iterations, %.1f s, image RMS %.3f px, "
+                "%d image observations eliminated", report.ceres_iterations, report.seconds,
+                report.rms["image"] * o.sigma_image, eliminated)
+    return report, int(eliminated)
+
+
+def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
+                          points: np.ndarray, assignment: Assignment, store: PlaneStore,
+                          priors: GNSSPriors | None, threshold: float, options: RefineOptions,
+                          *, objective: BlockObjective | None = None,
+                          scale_sigma: float | None = None, weights: np.ndarray | None = None
+                          ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
+    """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
+    by it, assign again at `threshold`, until a fit moves the tie points by less than
+    `alignment_tolerance` on average. With an `objective`, a round that does not lower it is
+    undone and ends the rounds. Returns the total similarity and the moved `points` (same ids)
+    with their last assignment."""
+    total = pycolmap.Sim3d()
+    value = objective(rec) if objective is not None else None
+    for _ in range(options.workflow.alignment_rounds):
+        move, moved = align_to_planes(rec, points, assignment, store, priors, options.adjustment,
+                                      scale_sigma)
+        if objective is not None:
+            new_value = objective(rec, move)
+            if new_value >= value:
+                logger.info("alignment round undone: objective %.4f -> %.4f", value, new_value)
+                break
+            value = new_value
+        rec.transform(move)
+        total = move * total
+        mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
+        points = moved
+        assignment = assign(points, point_ids, store, threshold, options.assignment, weights)
+        if mean_shift < options.workflow.alignment_tolerance or not assignment.num_assigned:
+            break
+    return total, points, assignment
+
+
+def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
+                    store: PlaneStore, priors: GNSSPriors | None, options,
+                    scale_sigma: float | None = None) -> tuple[pycolmap.Sim3d, np.ndarray]:
+    """The similarity that best puts the assigned tie points on their planes (and the block on
+    GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it.
+    `scale_sigma`: how far (relative) GNSS lets the scale change."""
+    from ..align.initial_alignment import similarity_to_planes
+
+    assigned = assignment.assigned
+    faces = assignment.face_index[assigned]
+    gnss = {}
+    if priors is not None:
+        gnss = dict(antennas=priors.observed_points(rec), gnss=priors.positions,
+                    gnss_sigmas=priors.sigmas)
+    result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
+                                  options.sigma_dtp, options.plane_loss_scale,
+                                  scale_sigma=scale_sigma, **gnss)
+    matrix = np.asarray(result.sim3.matrix())
+    moved = points @ matrix[:, :3].T + matrix[:, 3]
+    logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
+                "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
+                "%.3f m", int(assigned.sum()), result.iterations,
+                float(np.linalg.norm(moved - points, axis=1).mean()), result.sim3.scale,
+                result.rms_before, result.rms_after)
+    return result.sim3, moved
+
+
+def model_after_solve(current: PlaneStore, problem: HybridProblem) -> PlaneStore:
+    """The model state after a solve: adjusted vertices, planes refitted to them."""
+    blocks = problem.blocks
+    if len(blocks.vertex_ids) == 0:
+        return current
+    vertices = current.vertices.copy()
+    vertices[blocks.vertex_ids] = blocks.vertex_array
+    return current.with_vertices(vertices)

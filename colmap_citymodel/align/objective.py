@@ -1,0 +1,47 @@
+"""The one figure that every start-up move and refine iteration must lower."""
+
+from __future__ import annotations
+
+import numpy as np
+import pycolmap
+
+from ..block.priors import GNSSPriors
+
+
+class BlockObjective:
+    """One figure that every start-up move and loop iteration must lower: minus the share of a
+    fixed subset of tie points near the model surfaces, plus the mean squared normalised GNSS
+    residual weighted as in the translation search (a one-sigma shift of the whole block
+    costs as much as 1 % of the tie points on the model)."""
+
+    def __init__(self, surface, priors: GNSSPriors | None, point_ids: np.ndarray,
+                 radius: float):
+        from .coarse import MAX_SEARCH_POINTS, SHIFT_PENALTY
+
+        rng = np.random.default_rng(1)
+        self.ids = (point_ids if len(point_ids) <= 2 * MAX_SEARCH_POINTS else
+                    rng.choice(point_ids, 2 * MAX_SEARCH_POINTS, replace=False))
+        self.surface, self.priors, self.radius = surface, priors, radius
+        self.penalty = SHIFT_PENALTY
+
+    def points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
+        return np.array([rec.point3D(int(i)).xyz for i in self.ids if rec.exists_point3D(int(i))]
+                        ).reshape(-1, 3)
+
+    def __call__(self, rec: pycolmap.Reconstruction, moved: pycolmap.Sim3d | None = None
+                 ) -> float:
+        from .coarse import near_share
+
+        points, antennas = self.points(rec), None
+        if self.priors is not None:
+            antennas = self.priors.observed_points(rec)
+        if moved is not None:
+            matrix = np.asarray(moved.matrix())
+            points = points @ matrix[:, :3].T + matrix[:, 3]
+            if antennas is not None:
+                antennas = antennas @ matrix[:, :3].T + matrix[:, 3]
+        value = -near_share(self.surface(points), self.radius)
+        if antennas is not None:
+            v = (antennas - self.priors.positions) / self.priors.sigmas
+            value += self.penalty * float(np.mean(np.sum(v ** 2, axis=1)))
+        return value

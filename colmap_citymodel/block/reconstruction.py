@@ -1,0 +1,57 @@
+"""The COLMAP reconstruction: reading it, and the tie points, camera centres and camera axes
+that later stages use."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+
+def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
+               ) -> tuple[np.ndarray, np.ndarray]:
+    ids = np.array([i for i in rec.point3D_ids() if not exclude or i not in exclude], np.int64)
+    xyz = np.array([rec.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
+    return ids, xyz
+
+
+def camera_centres(rec: pycolmap.Reconstruction) -> np.ndarray:
+    return np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()])
+
+
+def camera_up_and_view(rec: pycolmap.Reconstruction, image_ids=None
+                       ) -> tuple[np.ndarray, np.ndarray]:
+    """Image "up" (-y axis) and viewing direction (z axis) of the cameras (default: every
+    registered one) in the world frame."""
+    ids = rec.reg_image_ids() if image_ids is None else image_ids
+    rows = np.array([np.asarray(rec.image(int(i)).cam_from_world().rotation.matrix())
+                     for i in ids])
+    return -rows[:, 1], rows[:, 2]
+
+
+def read_reconstruction(path: str | Path) -> pycolmap.Reconstruction:
+    from ..errors import InputError
+
+    path = Path(path)
+    if not path.is_dir():
+        raise InputError("COLMAP model directory does not exist", path)
+    if not any((path / f"cameras.{ext}").exists() for ext in ("bin", "txt")):
+        raise InputError("not a COLMAP model directory (no cameras.bin or cameras.txt)", path)
+    try:
+        rec = pycolmap.Reconstruction(str(path))
+    except Exception as error:  # pycolmap raises plain RuntimeErrors for broken files
+        raise InputError(f"cannot read the COLMAP model: {error}", path) from None
+    if rec.num_reg_images() < 3:
+        raise InputError(f"the model has only {rec.num_reg_images()} registered images", path)
+    return rec
+
+
+def position_in_rig(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> np.ndarray:
+    """The camera's projection centre in its rig frame; zero for the rig's reference camera."""
+    if image.is_ref_in_frame():
+        return np.zeros(3)
+    rig = rec.rig(rec.frame(image.frame_id).rig_id)
+    cam_from_rig = rig.sensor_from_rig(image.camera.sensor_id)
+    rotation = np.asarray(cam_from_rig.rotation.matrix())
+    return -rotation.T @ np.asarray(cam_from_rig.translation)
