@@ -72,7 +72,9 @@ def build_block(case: str) -> tuple[Path, dict]:
 def biased_gnss(gnss, truth: dict, level: float, seed: int):
     """`gnss` (the workspace's observations, model CRS) with positions redrawn: truth + white
     noise + a constant bias of `level` metres (simulate.simulate_gnss)."""
-    from colmap_citymodel.simulate.sequence import Flight, GNSSOptions, simulate_gnss
+    from colmap_citymodel.simulate.flight import Flight
+    from colmap_citymodel.simulate.scenario import GNSSOptions
+    from colmap_citymodel.simulate.observations import simulate_gnss
 
     names = [n for n in gnss.image_names if n in truth]
     centres = np.array([truth[n] for n in names])

@@ -59,10 +59,7 @@ def run(workspace: Path, variant: str) -> dict:
     from colmap_citymodel.block.gnss import read_gnss
     from colmap_citymodel.block.reconstruction import read_reconstruction
     from colmap_citymodel.citymodel.read import read_city_model
-    from colmap_citymodel.precision.checkpoints import (
-        read_checkpoint_observations,
-        read_checkpoints,
-    )
+    from colmap_citymodel.precision.checkpoints import read_checkpoint_observations, read_checkpoints
     from colmap_citymodel.workflow import refine
 
     store = read_city_model(workspace / "given_model.gml")

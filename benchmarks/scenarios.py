@@ -91,11 +91,7 @@ def has_model(workspace: Path) -> bool:
 
 
 def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> dict:
-    from colmap_citymodel.precision.checkpoints import (
-        evaluate_checkpoints,
-        read_checkpoint_observations,
-        read_checkpoints,
-    )
+    from colmap_citymodel.precision.checkpoints import evaluate_checkpoints, read_checkpoint_observations, read_checkpoints
 
     evaluation = evaluate_checkpoints(rec, read_checkpoints(workspace / "checkpoints.txt"),
                                       read_checkpoint_observations(
@@ -214,13 +210,14 @@ def build_robust_workspace(case: str, *, seed: int | None = None) -> tuple[Path,
 
 def build_from_toml(toml: Path, out: Path, *, seed: int | None = None) -> tuple[Path, dict]:
     from colmap_citymodel.simulate import sequence as simulate
+    from colmap_citymodel.simulate.scenario import load_scenario, sequence_key
 
-    options = simulate.load_scenario(toml)
+    options = load_scenario(toml)
     if seed is not None:
         options.seed = seed
     stats = out / "simulation.json"
     if not ((out / "sparse" / "0").is_dir() and stats.exists() and json.loads(
-            stats.read_text()).get("sequence_key") == simulate.sequence_key(options)):
+            stats.read_text()).get("sequence_key") == sequence_key(options)):
         simulate.main(toml, out, seed=seed, cache_path=GENERATED / "cache",
                       overwrite=out.exists(), progress=False)
     return out, json.loads(stats.read_text())

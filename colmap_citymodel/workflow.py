@@ -36,11 +36,7 @@ from .adjust.datum import check_datum
 from .adjust.problem import HybridProblem
 from .adjust.result import IterationRecord, RefineResult
 from .adjust.scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
-from .adjust.steps import (
-    align_block_to_planes,
-    model_after_solve,
-    step2_bundle_adjustment,
-)
+from .adjust.steps import align_block_to_planes, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .assign.assignment import Assignment, filter_faces
@@ -334,10 +330,7 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
 
         raise InputError("give --checkpoints and --checkpoint_observations together")
     if checkpoints is not None:
-        from .precision.checkpoints import (
-            read_checkpoint_observations,
-            read_checkpoints,
-        )
+        from .precision.checkpoints import read_checkpoint_observations, read_checkpoints
 
         cp_known = read_checkpoints(checkpoints)
         cp_observations = read_checkpoint_observations(checkpoint_observations)

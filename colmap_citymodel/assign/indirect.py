@@ -37,14 +37,7 @@ import numpy as np
 from ..citymodel.store import PlaneStore
 from ..options import AssignmentOptions
 from .assignment import Assignment, excluded_faces, filter_faces
-from .msac import (
-    alpha_components,
-    boundary_centroid,
-    fit_plane,
-    msac_plane,
-    plane_coordinates,
-    point_normals,
-)
+from .msac import alpha_components, boundary_centroid, fit_plane, msac_plane, plane_coordinates, point_normals
 
 logger = logging.getLogger(__name__)
 

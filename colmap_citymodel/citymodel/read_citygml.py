@@ -44,13 +44,7 @@ from lxml import etree
 
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
 from . import crs as crs_mod
-from .raw_model import (
-    CRSInfo,
-    RawCityModel,
-    RawPolygon,
-    RawPolygonBuilder,
-    RawPolygonTable,
-)
+from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonBuilder, RawPolygonTable
 
 logger = logging.getLogger(__name__)
 

@@ -33,15 +33,7 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .raw_model import (
-    CodedStrings,
-    CRSInfo,
-    PackedStrings,
-    RawCityModel,
-    RawPolygon,
-    RawPolygonTable,
-    row_index,
-)
+from .raw_model import CodedStrings, CRSInfo, PackedStrings, RawCityModel, RawPolygon, RawPolygonTable, row_index
 
 logger = logging.getLogger(__name__)
 

@@ -60,13 +60,7 @@ from ..adjust.problem import HybridProblem, SolveReport
 from ..block.priors import GNSSPriors
 from ..errors import InputError
 from ..options import AdjustmentOptions
-from .estimate import (
-    Cofactors,
-    PrecisionResult,
-    cofactors,
-    estimate_precision,
-    image_jacobian,
-)
+from .estimate import Cofactors, PrecisionResult, cofactors, estimate_precision, image_jacobian
 
 logger = logging.getLogger(__name__)
 
