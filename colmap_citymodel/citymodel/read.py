@@ -16,7 +16,8 @@ import numpy as np
 from ..errors import CRSError, InputError, NoOverlapError
 from . import crs as crs_mod
 from .raw_model import RawCityModel, RawPolygonTable
-from .store import PlaneStore, build_store
+from .store import PlaneStore
+from .build import build_store
 
 logger = logging.getLogger(__name__)
 

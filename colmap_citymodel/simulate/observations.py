@@ -10,15 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .flight import Flight
-from .scenario import (
-    STAGE_CHECK,
-    STAGE_GNSS,
-    STAGE_OBS,
-    STAGE_POINTS,
-    CheckPointOptions,
-    GNSSOptions,
-    ObservationOptions,
-)
+from .scenario import STAGE_CHECK, STAGE_GNSS, STAGE_OBS, STAGE_POINTS, CheckPointOptions, GNSSOptions, ObservationOptions
 from .scene import LABEL_ROOF, LABEL_WALL, TrueScene
 
 logger = logging.getLogger(__name__)

@@ -31,7 +31,8 @@ from shapely.geometry import Polygon, box
 from shapely.geometry.polygon import orient
 
 from ..citymodel.raw_model import RawPolygon
-from ..citymodel.store import PlaneStore, store_from_polygons
+from ..citymodel.store import PlaneStore
+from ..citymodel.build import store_from_polygons
 
 logger = logging.getLogger(__name__)
 

@@ -62,14 +62,7 @@ from .flight import plan_flight
 from .mapping import run_mapping, truth_reconstruction, write_database
 from .observations import simulate_checkpoints, simulate_gnss, simulate_observations
 from .scenario import STAGE_DETAILED, SimulationOptions, load_scenario, sequence_key
-from .scene import (
-    GroundModel,
-    build_true_scene,
-    detailed_polygons,
-    perturb_planes,
-    perturb_polygons,
-    procedural_store,
-)
+from .scene import GroundModel, build_true_scene, detailed_polygons, perturb_planes, perturb_polygons, procedural_store
 
 logger = logging.getLogger(__name__)
 

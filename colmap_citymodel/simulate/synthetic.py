@@ -17,7 +17,8 @@ import numpy as np
 import pycolmap
 
 from ..citymodel.raw_model import CRSInfo
-from ..citymodel.store import PlaneStore, store_from_polygons
+from ..citymodel.store import PlaneStore
+from ..citymodel.build import store_from_polygons
 
 # An ETRS89 / UTM 32N-like origin so that every test exercises 6-7 digit CRS coordinates.
 DEFAULT_CRS_ORIGIN = (691000.0, 5335000.0, 500.0)
