@@ -28,6 +28,7 @@ from __future__ import annotations
 import logging
 import time
 from pathlib import Path
+
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -36,7 +37,11 @@ from .adjust.datum import check_datum
 from .adjust.problem import HybridProblem
 from .adjust.result import IterationRecord, RefineResult
 from .adjust.scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
-from .adjust.steps import align_block_to_planes, model_after_solve, step2_bundle_adjustment
+from .adjust.steps import (
+    align_block_to_planes,
+    model_after_solve,
+    step2_bundle_adjustment,
+)
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .assign.assignment import Assignment, filter_faces
@@ -251,7 +256,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                                               dict(assignment.rejected_faces), 0, None, report,
                                               float("inf")))
 
-    from .precision.estimate import final_solve_in_refine, precision_after_refine
+    from .precision.estimate import precision_after_refine
+    from .precision.variance_components import final_solve_in_refine
 
     vce = None
     if last.blocks.faces.size:  # VCE and/or estimated generalisation offsets, if asked
@@ -330,7 +336,10 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
 
         raise InputError("give --checkpoints and --checkpoint_observations together")
     if checkpoints is not None:
-        from .precision.checkpoints import read_checkpoint_observations, read_checkpoints
+        from .precision.checkpoints import (
+            read_checkpoint_observations,
+            read_checkpoints,
+        )
 
         cp_known = read_checkpoints(checkpoints)
         cp_observations = read_checkpoint_observations(checkpoint_observations)

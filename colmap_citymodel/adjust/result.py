@@ -17,8 +17,9 @@ from .problem import SolveReport
 
 if TYPE_CHECKING:  # filled in by the later stages; only their types are named here
     from ..precision.checkpoints import CheckpointEvaluation
-    from ..precision.estimate import PrecisionResult, VarianceComponents
+    from ..precision.estimate import PrecisionResult
     from ..precision.quality import QualityReport
+    from ..precision.variance_components import VarianceComponents
 
 
 @dataclass

@@ -15,22 +15,8 @@ from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 from scipy.spatial import cKDTree
 
-from .faces import (
-    FaceList,
-    compress_rows,
-    compute_planes,
-    gather_segments,
-    offsets_from_counts,
-    segment_gather,
-)
-from .raw_model import (
-    CodedStrings,
-    CRSInfo,
-    PackedStrings,
-    RawCityModel,
-    RawPolygon,
-    RawPolygonTable,
-)
+from .faces import FaceList, compress_rows, compute_planes, gather_segments, offsets_from_counts, segment_gather
+from .raw_model import CodedStrings, CRSInfo, PackedStrings, RawCityModel, RawPolygon, RawPolygonTable
 from .store import DEFAULT_TOLERANCES, PlaneStore, Tolerances
 
 logger = logging.getLogger(__name__)

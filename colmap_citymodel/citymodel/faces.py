@@ -8,11 +8,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .raw_model import (
-    CodedStrings,
-    PackedStrings,
-    row_index,
-)
+from .raw_model import CodedStrings, PackedStrings, row_index
 
 
 @dataclass(slots=True)
