@@ -12,11 +12,12 @@ assignment method (direct (a) by default; (b), (c), auto).
    lower the block objective);
 4. hybrid bundle adjustment, robust on f_dTP; fictitious observations with normalised residual
    > 3 eliminated and the adjustment repeated with the original weights.
-Steps 3-4 repeat (assignments recomputed from the current estimate every iteration; vertex-plane
-relations never change; the threshold never grows) until the relative change of the RMS of
-normalised residuals < 1e-5 or 10 iterations, or until the block objective worsens (the best
-iterate is kept). The scale is held from the GNSS-only block where the planes cannot give it.
-At the end: observability of the datum and the quality verdict (precision.quality).
+Steps 3-4 repeat (adjust.loop; assignments recomputed from the current estimate every
+iteration; vertex-plane relations never change; the threshold never grows) until the relative
+change of the RMS of normalised residuals < 1e-5 or 10 iterations, or until the block objective
+worsens (the best iterate is kept). The scale is held from the GNSS-only block where the planes
+cannot give it. At the end: observability of the datum (adjust.observability) and the quality
+verdict (precision.quality).
 
 Everything happens in the plane store's local frame (model CRS minus `store.origin`).
 `refine()` works on pycolmap objects in memory and never modifies its inputs; `main()` is the
@@ -31,29 +32,21 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from tqdm import tqdm
 
-from .adjust.datum import check_datum
-from .adjust.problem import HybridProblem
-from .adjust.result import IterationRecord, RefineResult
-from .adjust.scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
-from .adjust.steps import (
-    align_block_to_planes,
-    model_after_solve,
-    step2_bundle_adjustment,
-)
+from .adjust.loop import adjustment_loop
+from .adjust.observability import assigned_observability, datum_line
+from .adjust.result import RefineResult
+from .adjust.steps import model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
-from .assign.assignment import Assignment, filter_faces
-from .assign.schedule import assign, initial_threshold, next_threshold
 from .block.gnss import read_gnss
 from .block.priors import scale_sigma_from_gnss
 from .block.reconstruction import camera_up_and_view, read_reconstruction, tie_points
 from .citymodel.read import peek_crs
 from .citymodel.store import PlaneStore
-from .errors import DatumError, NoOverlapError
+from .errors import NoOverlapError
 from .options import RefineOptions
-from .precision.quality import assigned_observability, datum_line, measure_quality
+from .precision.quality import measure_quality
 
 logger = logging.getLogger(__name__)
 
@@ -71,7 +64,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     The input reconstruction is not modified; the result holds a refined copy, or, when the
     quality gate fails, the GNSS-only adjustment (`result.quality`, `result.gnss_only`).
     `checkpoints` ({id: XYZ} model CRS) and `checkpoint_observations` ([(image, id, x, y)],
-    precision.checkpoints.read_*) are only evaluated at the end (Delta, and sigma when covariances are on).
+    precision.checkpoints.read_*) are only evaluated at the end (Delta, and sigma when
+    covariances are on).
     """
     from .align.coarse import SurfaceDistance, coarse_alignment
 
@@ -118,143 +112,13 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             logger.info("coarse alignment kept the GNSS-only position (no better objective)")
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
 
-    current = store
-    threshold = initial_threshold(o_a)
-    weights = None
-    if o_a.weighted_sampling:
-        from .assign.indirect import point_quality_weights
-
-        weights = point_quality_weights(rec, all_ids)
-    assignment: Assignment | None = None
-    iterations: list[IterationRecord] = []
-    observability_before: dict = {}
-    baselines = None
-    previous_rms = None
-    solve_seconds = assign_seconds = 0.0
-    last = None
-    best = None  # (objective, iteration, reconstruction copy, assignment, current)
-    diverged = None
-    bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
-    for iteration in bar:
-        t0 = time.perf_counter()
-        point_ids, points = tie_points(rec, exclude_point_ids)
-        if assignment is not None:
-            # The tie point set does not change inside the loop: same ids in the same order.
-            # The threshold never grows again: no flip-flop between two assignments.
-            threshold = min(threshold, next_threshold(assignment, points, current, o_a,
-                                                      o_adj.sigma_dtp))
-        assignment = assign(points, point_ids, current, threshold, o_a, weights)
-        if iteration == 0 and assignment.num_assigned:
-            # Initial values: move the block as a whole onto its planes first, so that the
-            # adjustment is left with the block's deformation. As in ICP: fit, assign again,
-            # fit again; a round that does not lower the block objective is undone.
-            t_align = time.perf_counter()
-            move, points, assignment = align_block_to_planes(
-                rec, point_ids, points, assignment, current, priors, threshold, options,
-                objective=objective, scale_sigma=scale_sigma, weights=weights)
-            sim3 = move * sim3
-            timer["initial_alignment"] = time.perf_counter() - t_align
-            t0 += timer["initial_alignment"]
-        assign_seconds += time.perf_counter() - t0
-        if iteration == 0:
-            warnings += check_datum(store, assignment, priors is not None)
-            observability_before = assigned_observability(points, assignment, current, priors,
-                                                          rec, options)
-            if gnss_only is not None and scale_sigma and \
-                    observability_before.get("scale", {}).get("source") not in ("planes", "both"):
-                baselines = baseline_priors(gnss_only, priors, scale_sigma)
-        elif assignment.num_assigned == 0 and priors is None:
-            raise DatumError("no tie point could be assigned to a model plane and there is no "
-                             "GNSS: the datum is undefined", store.source)
-
-        t1 = time.perf_counter()
-        # Until the scale is held, keep the state before the solves: a solve that changes the
-        # scale further than GNSS allows is undone and repeated with the scale held.
-        before_solve = (pycolmap.Reconstruction(rec), current, assignment) \
-            if gnss_only is not None and baselines is None and scale_sigma else None
-        robust_report = None
-        outliers = np.zeros(0, np.int64)
-        rejected = dict(assignment.rejected_faces)
-        if iteration > 0:
-            # Förstner-Wrobel only where needed: with the original weights first; robust
-            # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
-            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=current, baselines=baselines)
-            final_report = final.solve()
-            normalised = final.residuals["dTP"]
-            needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
-        else:
-            needs_robust = True
-        if needs_robust:
-            robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                   robust_planes=True, current=current, baselines=baselines)
-            robust_report = robust.solve()
-            normalised = robust.residuals["dTP"]
-            outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
-            assignment = assignment.without(np.isin(assignment.point_ids, outliers))
-            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
-            assignment.distance[assignment.face_index < 0] = np.nan
-            assignment.rejected_faces = rejected
-            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=model_after_solve(current, robust),
-                                  baselines=baselines)
-            final_report = final.solve()
-        solve_seconds += time.perf_counter() - t1
-        current = model_after_solve(current, final)
-        last = final
-        if before_solve is not None:
-            change = scale_change(gnss_only, rec, priors.image_ids)
-            if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
-                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
-                               "sigma): undone, the scale is held from now on", iteration,
-                               100 * change, abs(np.log1p(change)) / scale_sigma)
-                rec, current, assignment = before_solve
-                baselines = baseline_priors(gnss_only, priors, scale_sigma)
-                last = None
-                continue
-
-        rms = final_report.rms_total
-        change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
-        iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
-                                          assignment.num_faces, rejected, len(outliers),
-                                          robust_report, final_report, change))
-        bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
-                        rms=f"{rms:.4f}")
-        value = objective(rec)
-        logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
-                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f, "
-                    "objective %.4f", iteration, threshold, assignment.num_assigned,
-                    assignment.num_faces, len(outliers), rms, change,
-                    final_report.rms["dTP"] * o_adj.sigma_dtp,
-                    np.sqrt(final_report.sigma0_squared), value)
-        previous_rms = rms
-        if best is None or value <= best[0]:
-            best = (value, iteration, None, assignment, current)
-        elif value > best[0] + o_w.divergence_tolerance:
-            # The hybrid solve moved the block away from the model: go back to the best
-            # iterate and stop.
-            diverged = (f"objective {value:.3f} in iteration {iteration} against "
-                        f"{best[0]:.3f} in iteration {best[1]}")
-            logger.warning("refine diverged (%s); the best iterate is kept", diverged)
-            break
-        if best[1] == iteration:
-            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current)
-        if change < o_w.convergence_rms_change:
-            break
-    bar.close()
-    if diverged is not None and best is not None and best[2] is not None:
-        _, _, rec, assignment, current = best
-        last = None
-    if last is None:  # back to the best iterate, or the last iteration was undone
-        last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                             robust_planes=False, current=current, baselines=baselines)
-        report = last.solve()
-        current = model_after_solve(current, last)
-        if not iterations:
-            iterations.append(IterationRecord(len(iterations), threshold,
-                                              assignment.num_assigned, assignment.num_faces,
-                                              dict(assignment.rejected_faces), 0, None, report,
-                                              float("inf")))
+    loop = adjustment_loop(rec, store, priors, options, objective, all_ids,
+                           exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
+                           scale_sigma=scale_sigma, progress=progress)
+    rec, current, assignment, last = loop.reconstruction, loop.current, loop.assignment, loop.last
+    sim3 = loop.move * sim3
+    warnings += loop.warnings
+    timer.update(loop.seconds)
 
     from .precision.estimate import precision_after_refine
     from .precision.variance_components import final_solve_in_refine
@@ -267,7 +131,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
-                              points, options, diverged, scale_sigma)
+                              points, options, loop.diverged, scale_sigma)
     logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
     precision = evaluation = None
@@ -283,18 +147,17 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         evaluation = evaluate_with_precision(rec, checkpoints, checkpoint_observations,
                                              store.origin, precision)
     blocks = last.blocks
-    timer.update(assignment=assign_seconds, hybrid_solves=solve_seconds,
-                 total=time.perf_counter() - timer["start"])
+    timer["total"] = time.perf_counter() - timer["start"]
     del timer["start"]
     return RefineResult(
         reconstruction=rec, store=store, adjusted_store=current, assignment=assignment,
         plane_faces=blocks.faces, plane_normals=blocks.normal_array,
         plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
-        step2=report2, step2_eliminated=eliminated2, iterations=iterations, options=options,
-        warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
+        step2=report2, step2_eliminated=eliminated2, iterations=loop.iterations,
+        options=options, warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
         variance_components=vce, checkpoints=evaluation, gnss_only=gnss_only,
         quality=quality, observability=observability,
-        observability_before=observability_before, refined=refined,
+        observability_before=loop.observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
         coarse_alignment=coarse.todict() if coarse is not None else None)
 
@@ -379,7 +242,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     result = refine(reconstruction, store, observations, options,
                     initial_transform=transform, progress=progress, checkpoints=cp_known,
                     checkpoint_observations=cp_observations)
-    inputs = {"input_path": str(input_path), "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
+    inputs = {"input_path": str(input_path),
+              "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}

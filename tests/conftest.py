@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 

@@ -6,24 +6,11 @@ import numpy as np
 import pytest
 from conftest import box_store
 
-from colmap_citymodel.assign.indirect import (
-    ExtractedPlane,
-    alpha_components,
-    assign_msac,
-    assign_roi_msac,
-    extract_planes,
-    match_planes,
-    point_quality_weights,
-)
+from colmap_citymodel.assign.indirect import ExtractedPlane, alpha_components, assign_msac, assign_roi_msac, extract_planes, match_planes, point_quality_weights
 from colmap_citymodel.assign.schedule import assign, initial_threshold, next_threshold
-from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.options import AssignmentOptions, RefineOptions
-from colmap_citymodel.simulate.synthetic import (
-    StreetSceneOptions,
-    building_polygons,
-    make_street_scene,
-    sample_surface_points,
-)
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, building_polygons, make_street_scene, sample_surface_points
 
 
 def face_with_normal(store, normal):

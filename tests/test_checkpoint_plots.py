@@ -13,14 +13,7 @@ import pytest
 
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import InputError
-from colmap_citymodel.precision.plots import (
-    _round_length,
-    evaluation_markdown,
-    evaluation_plots,
-    plot_checkpoint_errors,
-    plot_delta_vs_sigma,
-    write_evaluation_report,
-)
+from colmap_citymodel.precision.plots import _round_length, evaluation_markdown, evaluation_plots, plot_checkpoint_errors, plot_delta_vs_sigma, write_evaluation_report
 
 PNG = b"\x89PNG\r\n\x1a\n"
 OFFSET = np.array([691_000.0, 5_336_000.0, 500.0])

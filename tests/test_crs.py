@@ -6,15 +6,7 @@ import numpy as np
 import pyproj
 import pytest
 
-from colmap_citymodel.citymodel.crs import (
-    ADV_CRS,
-    lat_first,
-    output_crs,
-    reproject_points,
-    resolve_crs,
-    same_crs,
-    user_crs,
-)
+from colmap_citymodel.citymodel.crs import ADV_CRS, lat_first, output_crs, reproject_points, resolve_crs, same_crs, user_crs
 from colmap_citymodel.errors import CRSError
 
 

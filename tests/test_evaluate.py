@@ -11,14 +11,7 @@ from scipy.spatial.transform import Rotation
 
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import InputError
-from colmap_citymodel.precision.checkpoints import (
-    evaluate_checkpoints,
-    helmert_transform,
-    main,
-    read_checkpoint_observations,
-    read_checkpoints,
-    triangulate_checkpoints,
-)
+from colmap_citymodel.precision.checkpoints import evaluate_checkpoints, helmert_transform, main, read_checkpoint_observations, read_checkpoints, triangulate_checkpoints
 
 
 def test_helmert_recovers_known_similarity_exactly():

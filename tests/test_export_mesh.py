@@ -9,13 +9,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from colmap_citymodel.citymodel.mesh import (
-    SEMANTIC_COLOURS,
-    store_to_trimesh,
-    write_mesh,
-)
+from colmap_citymodel.citymodel.mesh import SEMANTIC_COLOURS, store_to_trimesh, write_mesh
 from colmap_citymodel.citymodel.read_cityjson import read_cityjson
-from colmap_citymodel.citymodel.store import build_store, store_from_polygons
+from colmap_citymodel.citymodel.build import build_store, store_from_polygons
 from colmap_citymodel.errors import InputError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -9,13 +9,7 @@ import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
 
-from colmap_citymodel.align.georegister import (
-    apply_sim3,
-    camera_centres,
-    estimate_georegistration,
-    read_initial_transform,
-    sim3_to_local,
-)
+from colmap_citymodel.align.georegister import apply_sim3, camera_centres, estimate_georegistration, read_initial_transform, sim3_to_local
 from colmap_citymodel.errors import GeoregistrationError, InputError
 
 

@@ -8,12 +8,8 @@ import pytest
 import shapely
 
 from colmap_citymodel.citymodel.raw_model import CRSInfo, RawCityModel, RawPolygon
-from colmap_citymodel.citymodel.store import (
-    Tolerances,
-    build_store,
-    merge_vertices,
-    store_from_polygons,
-)
+from colmap_citymodel.citymodel.store import Tolerances
+from colmap_citymodel.citymodel.build import build_store, merge_vertices, store_from_polygons
 
 CUBE_V = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],

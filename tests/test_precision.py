@@ -16,16 +16,7 @@ from colmap_citymodel.assign.schedule import assign
 from colmap_citymodel.block.priors import GNSSPriors
 from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import AdjustmentOptions, AssignmentOptions
-from colmap_citymodel.precision.estimate import (
-    PHOTOGRAMMETRIC_FLIP,
-    cofactors,
-    estimate_precision,
-    global_test,
-    image_jacobian,
-    omega_phi_kappa,
-    variance_factors,
-    whitened_jacobian,
-)
+from colmap_citymodel.precision.estimate import PHOTOGRAMMETRIC_FLIP, cofactors, estimate_precision, global_test, image_jacobian, omega_phi_kappa, variance_factors, whitened_jacobian
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 GNSS_SIGMA = np.array([0.5, 0.5, 0.8])
@@ -273,7 +264,7 @@ def test_omega_phi_kappa_convention():
 def test_variance_components_recover_the_true_sigmas():
     # Relief of 3 cm off the planes (no clutter), image noise 1 px, GNSS noise GNSS_SIGMA; the
     # stated sigmas are sigma_dTP 0.2 m (generalised preset) and GNSS 3x too large.
-    from colmap_citymodel.precision.estimate import estimate_variance_components
+    from colmap_citymodel.precision.variance_components import estimate_variance_components
 
     scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=1.5,
                                                  image_noise_px=1.0, relief_sigma=0.03,

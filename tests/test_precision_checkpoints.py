@@ -23,19 +23,8 @@ from colmap_citymodel.assign.schedule import assign
 from colmap_citymodel.block.priors import GNSSPriors
 from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import AdjustmentOptions, AssignmentOptions
-from colmap_citymodel.precision.checkpoints import (
-    delta_sigma_table,
-    evaluate_with_precision,
-    helmert_design_matrix,
-    helmert_residual_sigmas,
-    helmert_transform,
-)
-from colmap_citymodel.precision.estimate import (
-    checkpoint_cofactors,
-    cofactors,
-    estimate_precision,
-    whitened_jacobian,
-)
+from colmap_citymodel.precision.checkpoints import delta_sigma_table, evaluate_with_precision, helmert_design_matrix, helmert_residual_sigmas, helmert_transform
+from colmap_citymodel.precision.estimate import checkpoint_cofactors, cofactors, estimate_precision, whitened_jacobian
 from colmap_citymodel.simulate.scene import ModelErrorOptions, perturb_planes
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
@@ -224,10 +213,7 @@ def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
     # plane's f_dTP observations by 0.3 m (shift its tie points' plane by moving the plane in
     # the model) and compare the change of the check points with the predicted sensitivity.
     from colmap_citymodel.precision.checkpoints import triangulate_checkpoints
-    from colmap_citymodel.precision.estimate import (
-        checkpoint_cofactors,
-        generalisation_effects,
-    )
+    from colmap_citymodel.precision.estimate import checkpoint_cofactors, generalisation_effects
 
     scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=2.5,
                                                  image_noise_px=0.0, relief_sigma=0.0,

@@ -17,21 +17,8 @@ from colmap_citymodel.block.priors import GNSSPriors
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import AdjustmentOptions
-from colmap_citymodel.precision.estimate import (
-    estimate_precision,
-    image_jacobian,
-    whitened_jacobian,
-)
-from colmap_citymodel.precision.subsets import (
-    SubsetOptions,
-    inner_precision,
-    parse_subset,
-    precision_subsets,
-    restrict,
-    select_images,
-    shared_points,
-    similarity_basis,
-)
+from colmap_citymodel.precision.estimate import estimate_precision, image_jacobian, whitened_jacobian
+from colmap_citymodel.precision.subsets import SubsetOptions, inner_precision, parse_subset, precision_subsets, restrict, select_images, shared_points, similarity_basis
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 
 PNG = b"\x89PNG\r\n\x1a\n"

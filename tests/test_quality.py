@@ -8,17 +8,13 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_citymodel.adjust.observability import DATUM, observability
 from colmap_citymodel.align.initial_alignment import similarity_to_planes
 from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.precision.quality import (
-    DATUM,
-    QualityThresholds,
-    observability,
-    quality_verdict,
-)
+from colmap_citymodel.precision.quality import QualityThresholds, quality_verdict
 from colmap_citymodel.simulate.synthetic import (
     StreetSceneOptions,
     centre_errors,

@@ -18,7 +18,7 @@ import pytest
 
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.citymodel.read_citygml import read_citygml
-from colmap_citymodel.citymodel.store import build_store
+from colmap_citymodel.citymodel.build import build_store
 from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

@@ -13,7 +13,7 @@ import pyproj
 import pytest
 
 from colmap_citymodel.citymodel.read_cityjson import read_cityjson
-from colmap_citymodel.citymodel.store import build_store
+from colmap_citymodel.citymodel.build import build_store
 from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

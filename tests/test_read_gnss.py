@@ -13,17 +13,7 @@ import pycolmap
 import pyproj
 import pytest
 
-from colmap_citymodel.block.gnss import (
-    GNSSObservations,
-    _crs_info,
-    apply_lever_arm,
-    match_to_reconstruction,
-    read_gnss_database,
-    read_gnss_exif,
-    read_gnss_text,
-    reproject_with_report,
-    rotations_from_reconstruction,
-)
+from colmap_citymodel.block.gnss import GNSSObservations, _crs_info, apply_lever_arm, match_to_reconstruction, read_gnss_database, read_gnss_exif, read_gnss_text, reproject_with_report, rotations_from_reconstruction
 from colmap_citymodel.errors import GNSSError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

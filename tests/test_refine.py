@@ -17,11 +17,7 @@ from colmap_citymodel.align.block_to_model import georegister
 from colmap_citymodel.errors import DatumError, NoOverlapError
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.output.write import write_refined
-from colmap_citymodel.simulate.synthetic import (
-    StreetSceneOptions,
-    centre_errors,
-    make_street_scene,
-)
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors, make_street_scene
 from colmap_citymodel.workflow import refine
 
 

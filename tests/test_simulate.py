@@ -10,28 +10,12 @@ import pytest
 
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.errors import InputError
-from colmap_citymodel.simulate.scene import (
-    LABEL_CLUTTER,
-    LABEL_DETAIL,
-    LABEL_GROUND,
-    GroundModel,
-    ModelErrorOptions,
-    build_true_scene,
-    perturb_planes,
-    procedural_store,
-)
-from colmap_citymodel.simulate.sequence import (
-    SimulationOptions,
-    build_sequence,
-    load_scenario,
-    main,
-    make_camera,
-    plan_flight,
-    sample_surface_points,
-    simulate_checkpoints,
-    simulate_observations,
-    visibility,
-)
+from colmap_citymodel.simulate.scene import LABEL_CLUTTER, LABEL_DETAIL, LABEL_GROUND, GroundModel, ModelErrorOptions, build_true_scene, perturb_planes, procedural_store
+from colmap_citymodel.simulate.scenario import SimulationOptions, load_scenario
+from colmap_citymodel.simulate.sequence import build_sequence, main
+from colmap_citymodel.simulate.mapping import make_camera
+from colmap_citymodel.simulate.flight import plan_flight
+from colmap_citymodel.simulate.observations import sample_surface_points, simulate_checkpoints, simulate_observations, visibility
 
 REPO = Path(__file__).resolve().parents[1]
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -335,12 +319,7 @@ def test_drift_with_gnss_only_at_start(tmp_path):
     """Scn6 on a 60-key-frame street (the long sequence's settings): COLMAP's model aligned to
     the first 20 GNSS positions has check point errors of metres (measured 2.1 m), although the
     block itself is consistent (3 cm after a Helmert fit)."""
-    from colmap_citymodel.precision.checkpoints import (
-        helmert_transform,
-        read_checkpoint_observations,
-        read_checkpoints,
-        triangulate_checkpoints,
-    )
+    from colmap_citymodel.precision.checkpoints import helmert_transform, read_checkpoint_observations, read_checkpoints, triangulate_checkpoints
 
     seq = tmp_path / "s.toml"
     seq.write_text(
@@ -378,7 +357,9 @@ def test_drift_with_gnss_only_at_start(tmp_path):
 
 
 def test_gnss_noise_model():
-    from colmap_citymodel.simulate.sequence import Flight, GNSSOptions, simulate_gnss
+    from colmap_citymodel.simulate.flight import Flight
+    from colmap_citymodel.simulate.scenario import GNSSOptions
+    from colmap_citymodel.simulate.observations import simulate_gnss
 
     n = 4000
     arc = np.arange(n, dtype=float)
@@ -467,12 +448,9 @@ def test_straight_strip_is_collinear():
 
 
 def test_gnss_constant_bias_magnitude():
-    from colmap_citymodel.simulate.sequence import (
-        Flight,
-        GNSSOptions,
-        constant_bias_direction,
-        simulate_gnss,
-    )
+    from colmap_citymodel.simulate.flight import Flight
+    from colmap_citymodel.simulate.scenario import GNSSOptions
+    from colmap_citymodel.simulate.observations import constant_bias_direction, simulate_gnss
 
     n = 50
     arc = np.arange(n, dtype=float)
@@ -502,7 +480,7 @@ def test_gnss_constant_bias_magnitude():
 
 
 def test_new_options_keep_existing_sequence_keys():
-    from colmap_citymodel.simulate.sequence import sequence_key
+    from colmap_citymodel.simulate.scenario import sequence_key
 
     o = SimulationOptions()
     hashed = o.sequence_dict()

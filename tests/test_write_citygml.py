@@ -8,7 +8,7 @@ from lxml import etree
 
 from colmap_citymodel.citymodel.raw_model import RawPolygon
 from colmap_citymodel.citymodel.read import read_city_model
-from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"

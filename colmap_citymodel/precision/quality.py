@@ -1,10 +1,4 @@
-"""What the model planes determine, and whether a refine result can be trusted.
-
-`observability`: which of the 7 datum parameters (E, N, U shifts, scale, rotations about E, N,
-U) the assigned planes fix, which GNSS fixes, and the a posteriori sigma of each. A plane's tie
-points share its generalisation error (Unger 6.3: systematic, about 0.2 m), so a plane adds at
-most about one observation of that size in its normal direction, however many points it holds;
-the information of plane p is J^T (s^2 I + g^2 1 1^T)^-1 J (Sherman-Morrison below).
+"""Whether a refine result can be trusted.
 
 `quality_verdict`: compares the refined block with the GNSS-only adjustment of the same block.
 "ok": the model fitted and moved the block no further than GNSS allows; "weak": usable but
@@ -18,130 +12,12 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
+from ..adjust.observability import planes_fix, rests_on_one_plane
 from ..adjust.scale import scale_change
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
-from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
-
-#: The datum parameters, in the order of the information matrices below.
-DATUM = ("E", "N", "U", "scale", "rotation_E", "rotation_N", "rotation_U")
-#: A datum direction counts as fixed by a source whose sigma alone is below this many times
-#: the other's (else "both").
-DOMINANCE = 3.0
-#: Without either source, a sigma above these counts as "none": metres for shifts, relative
-#: scale, radians.
-UNDETERMINED = {"shift": 10.0, "scale": 0.1, "rotation": 0.1}
-
-
-def _datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarray
-                    ) -> np.ndarray:
-    """d (direction . X') / d (shift, log scale, rotation) for X' = X + t + s y + w x y."""
-    y = points - centre
-    return np.hstack([directions, np.einsum("ij,ij->i", directions, y)[:, None],
-                      np.cross(y, directions)])
-
-
-def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
-                      centre: np.ndarray, sigma: float, sigma_generalisation: float
-                      ) -> list[np.ndarray]:
-    """7x7 information of the datum from the tie points of each plane (one group per plane)."""
-    jac = _datum_jacobian(points, normals, centre)
-    g2, s2 = sigma_generalisation ** 2, sigma ** 2
-    out = []
-    for group in np.unique(groups):
-        j = jac[groups == group]
-        total = j.sum(0)
-        out.append(j.T @ j / s2 - np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2)))
-    return out
-
-
-def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray
-                     ) -> np.ndarray:
-    info = np.zeros((7, 7))
-    for axis in range(3):
-        directions = np.zeros_like(positions)
-        directions[:, axis] = 1.0
-        jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
-        info += jac.T @ jac
-    return info
-
-
-def _sigmas(info: np.ndarray) -> np.ndarray:
-    """Marginal sigma per datum parameter; inf where the information leaves it free."""
-    scale = np.sqrt(np.maximum(np.diag(info), 1e-30))
-    normalised = info / np.outer(scale, scale)
-    values, vectors = np.linalg.eigh(normalised)
-    keep = values > 1e-9 * max(values.max(), 1e-30)
-    inverse = (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
-    sigma = np.sqrt(np.maximum(np.diag(inverse), 0.0)) / scale
-    # A direction with (almost) no information is free, whatever the pseudo-inverse says.
-    free = vectors[:, ~keep]
-    if free.size:
-        sigma[np.abs(free).max(axis=1) > 0.1] = np.inf
-    return sigma
-
-
-def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
-                  gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
-                  sigma_dtp: float, sigma_generalisation: float) -> dict:
-    """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
-    (metres; relative for scale; degrees for rotations) from planes, GNSS and both."""
-    # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
-    # the tie points': the position users care about, and rotations then do not leak into it.
-    centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
-              else points.mean(0))
-    per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
-                                   sigma_generalisation) if len(points) else [])
-    planes = sum(per_plane, np.zeros((7, 7)))
-    gnss = (gnss_information(gnss_positions, gnss_sigmas, centre)
-            if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
-    # Our order is (shift, log scale, rotation); DATUM's is the same.
-    s_planes, s_gnss, s_both = _sigmas(planes), _sigmas(gnss), _sigmas(planes + gnss)
-    # A direction that only one plane fixes rests on that plane's assignment being right (one
-    # roof among facades): it counts for the planes only if it survives leaving any one out
-    # (judged with the other parameters held, so that two parallel facades, which together
-    # also fix the scale, still count for their normal direction).
-    diagonals = np.array([np.diag(planes - info) for info in per_plane]).reshape(-1, 7)
-    s_robust = (1.0 / np.sqrt(np.maximum(diagonals.min(axis=0), 1e-30)) if len(per_plane) > 1
-                else np.full(7, np.inf))
-    out = {}
-    for k, name in enumerate(DATUM):
-        kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
-        limit = UNDETERMINED[kind]
-        g_ok = s_gnss[k] < limit
-        p_ok = s_planes[k] < limit and s_robust[k] < (s_gnss[k] if g_ok else limit)
-        if p_ok and (not g_ok or s_planes[k] * DOMINANCE < s_gnss[k]):
-            source = "planes"
-        elif g_ok and (not p_ok or s_gnss[k] * DOMINANCE < s_planes[k]):
-            source = "gnss"
-        elif p_ok and g_ok:
-            source = "both"
-        else:
-            source = "none"
-        factor = np.degrees(1.0) if kind == "rotation" else 1.0
-        out[name] = {"source": source,
-                     "one_plane": bool(s_planes[k] < limit and not p_ok),
-                     "sigma": _finite(s_both[k] * factor),
-                     "sigma_planes": _finite(s_planes[k] * factor),
-                     "sigma_gnss": _finite(s_gnss[k] * factor)}
-    return out
-
-
-def _finite(value: float) -> float | None:
-    return float(value) if np.isfinite(value) else None
-
-
-def rests_on_one_plane(observability_dict: dict) -> list[str]:
-    """The datum parameters that only a single plane fixes."""
-    return [k for k, v in observability_dict.items() if v.get("one_plane")]
-
-
-def planes_fix(observability_dict: dict) -> list[str]:
-    """The datum parameters the planes fix alone or together with GNSS."""
-    return [k for k, v in observability_dict.items() if v["source"] in ("planes", "both")]
-
 
 # -- verdict ---------------------------------------------------------------------------------
 
@@ -277,31 +153,6 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                         "checks (a wrong assignment there moves the block unseen)")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
-
-
-def datum_line(observability_dict: dict) -> str:
-    """'E planes (0.09 m), ..., U gnss (0.79 m), ...' for the log and the console."""
-    parts = []
-    for name, row in observability_dict.items():
-        unit = " deg" if name.startswith("rotation") else "" if name == "scale" else " m"
-        sigma = f" ({row['sigma']:.3g}{unit})" if row["sigma"] is not None else ""
-        parts.append(f"{name} {row['source']}{sigma}")
-    return ", ".join(parts)
-
-
-def assigned_observability(points: np.ndarray, assignment: Assignment, store: PlaneStore,
-                           priors: GNSSPriors | None, rec: pycolmap.Reconstruction,
-                           options: RefineOptions) -> dict:
-    """quality.observability for the assigned tie points and the GNSS of `rec`."""
-    from ..options import GENERALISATION_SIGMA
-
-    assigned = assignment.assigned
-    faces = assignment.face_index[assigned]
-    sigma_gen = options.adjustment.sigma_generalisation or GENERALISATION_SIGMA
-    return observability(points[assigned], store.normals[faces], faces,
-                         priors.observed_points(rec) if priors is not None else None,
-                         priors.sigmas if priors is not None else None,
-                         options.adjustment.sigma_dtp, sigma_gen)
 
 
 def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,

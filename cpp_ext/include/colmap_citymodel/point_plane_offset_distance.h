@@ -1,5 +1,5 @@
 // Fictitious observation "distance of a tie point to its plane = 0" with a
-// per-plane generalisation offset (issue 5; Unger 2020 6.3: generalisation
+// per-plane generalisation offset (Unger 2020 6.3: generalisation
 // errors are systematic per plane, so independent f_dTP sigmas make the a
 // posteriori precision over-optimistic).
 //

@@ -1,4 +1,4 @@
-// Direct observation of one scalar unknown (issue 5: the prior of a plane's
+// Direct observation of one scalar unknown (used for the prior of a plane's
 // generalisation offset, o ~ N(0, sigma_generalisation^2)).
 //
 //   residual = (x - x_obs) / sigma

@@ -1,0 +1,207 @@
+"""Steps 3-4 of the global workflow, repeated: assign the tie points to the model planes, solve
+the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
+settles, the block objective worsens, or the iterations run out.
+
+Assignments are recomputed from the current estimate every iteration; vertex-plane relations
+never change; the threshold never grows (no flip-flop between two assignments). The first
+assignment is followed by similarity rounds that move the whole block onto its planes. A solve
+that changes the scale further than GNSS allows is undone and the scale held from then on; a
+solve that moves the block away from the model ends the loop at the best iterate.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+
+import numpy as np
+import pycolmap
+from tqdm import tqdm
+
+from ..align.objective import BlockObjective
+from ..assign.assignment import Assignment, filter_faces
+from ..assign.schedule import assign, initial_threshold, next_threshold
+from ..block.priors import GNSSPriors
+from ..block.reconstruction import tie_points
+from ..citymodel.store import PlaneStore
+from ..errors import DatumError
+from ..options import RefineOptions
+from .datum import check_datum
+from .observability import assigned_observability
+from .problem import HybridProblem
+from .result import IterationRecord
+from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
+from .steps import align_block_to_planes, model_after_solve
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class LoopResult:
+    """Where the loop ended: the block (the best iterate), the model state, the assignment and
+    the last solved problem."""
+
+    reconstruction: pycolmap.Reconstruction
+    current: PlaneStore  # the model after the last solve (adjusted vertices, refitted planes)
+    assignment: Assignment
+    last: HybridProblem
+    iterations: list[IterationRecord]
+    move: pycolmap.Sim3d  # what the similarity rounds after the first assignment applied
+    observability_before: dict  # of the first assignment
+    diverged: str | None  # why the loop stopped early, if the objective worsened
+    warnings: list[str] = field(default_factory=list)
+    seconds: dict[str, float] = field(default_factory=dict)
+
+
+def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
+                    options: RefineOptions, objective: BlockObjective, all_ids: np.ndarray, *,
+                    exclude_point_ids: set[int] | None = None,
+                    gnss_only: pycolmap.Reconstruction | None = None,
+                    scale_sigma: float | None = None, progress: bool = True) -> LoopResult:
+    """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
+    instead). `store` is the model as given (its vertices are observed); `gnss_only` and
+    `scale_sigma` let the loop hold the block's scale where the planes cannot give it."""
+    o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
+    current = store
+    threshold = initial_threshold(o_a)
+    weights = None
+    if o_a.weighted_sampling:
+        from ..assign.indirect import point_quality_weights
+
+        weights = point_quality_weights(rec, all_ids)
+    assignment: Assignment | None = None
+    iterations: list[IterationRecord] = []
+    observability_before: dict = {}
+    warnings: list[str] = []
+    seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
+    total_move = pycolmap.Sim3d()
+    baselines = None
+    previous_rms = None
+    last = None
+    best = None  # (objective, iteration, reconstruction copy, assignment, current)
+    diverged = None
+    bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
+    for iteration in bar:
+        t0 = time.perf_counter()
+        point_ids, points = tie_points(rec, exclude_point_ids)
+        if assignment is not None:
+            # The tie point set does not change inside the loop: same ids in the same order.
+            # The threshold never grows again: no flip-flop between two assignments.
+            threshold = min(threshold, next_threshold(assignment, points, current, o_a,
+                                                      o_adj.sigma_dtp))
+        assignment = assign(points, point_ids, current, threshold, o_a, weights)
+        if iteration == 0 and assignment.num_assigned:
+            # Initial values: move the block as a whole onto its planes first, so that the
+            # adjustment is left with the block's deformation. As in ICP: fit, assign again,
+            # fit again; a round that does not lower the block objective is undone.
+            t_align = time.perf_counter()
+            total_move, points, assignment = align_block_to_planes(
+                rec, point_ids, points, assignment, current, priors, threshold, options,
+                objective=objective, scale_sigma=scale_sigma, weights=weights)
+            seconds["initial_alignment"] = time.perf_counter() - t_align
+            t0 += seconds["initial_alignment"]
+        seconds["assignment"] += time.perf_counter() - t0
+        if iteration == 0:
+            warnings += check_datum(store, assignment, priors is not None)
+            observability_before = assigned_observability(points, assignment, current, priors,
+                                                          rec, options)
+            if gnss_only is not None and scale_sigma and \
+                    observability_before.get("scale", {}).get("source") not in ("planes", "both"):
+                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+        elif assignment.num_assigned == 0 and priors is None:
+            raise DatumError("no tie point could be assigned to a model plane and there is no "
+                             "GNSS: the datum is undefined", store.source)
+
+        t1 = time.perf_counter()
+        # Until the scale is held, keep the state before the solves: a solve that changes the
+        # scale further than GNSS allows is undone and repeated with the scale held.
+        before_solve = (pycolmap.Reconstruction(rec), current, assignment) \
+            if gnss_only is not None and baselines is None and scale_sigma else None
+        robust_report = None
+        outliers = np.zeros(0, np.int64)
+        rejected = dict(assignment.rejected_faces)
+        if iteration > 0:
+            # Förstner-Wrobel only where needed: with the original weights first; robust
+            # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
+            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                  robust_planes=False, current=current, baselines=baselines)
+            final_report = final.solve()
+            normalised = final.residuals["dTP"]
+            needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
+        else:
+            needs_robust = True
+        if needs_robust:
+            robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                   robust_planes=True, current=current, baselines=baselines)
+            robust_report = robust.solve()
+            normalised = robust.residuals["dTP"]
+            outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
+            assignment = assignment.without(np.isin(assignment.point_ids, outliers))
+            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
+            assignment.distance[assignment.face_index < 0] = np.nan
+            assignment.rejected_faces = rejected
+            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                                  robust_planes=False, current=model_after_solve(current, robust),
+                                  baselines=baselines)
+            final_report = final.solve()
+        seconds["hybrid_solves"] += time.perf_counter() - t1
+        current = model_after_solve(current, final)
+        last = final
+        if before_solve is not None:
+            change = scale_change(gnss_only, rec, priors.image_ids)
+            if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
+                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
+                               "sigma): undone, the scale is held from now on", iteration,
+                               100 * change, abs(np.log1p(change)) / scale_sigma)
+                rec, current, assignment = before_solve
+                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+                last = None
+                continue
+
+        rms = final_report.rms_total
+        change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
+        iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
+                                          assignment.num_faces, rejected, len(outliers),
+                                          robust_report, final_report, change))
+        bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
+                        rms=f"{rms:.4f}")
+        value = objective(rec)
+        logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
+                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f, "
+                    "objective %.4f", iteration, threshold, assignment.num_assigned,
+                    assignment.num_faces, len(outliers), rms, change,
+                    final_report.rms["dTP"] * o_adj.sigma_dtp,
+                    np.sqrt(final_report.sigma0_squared), value)
+        previous_rms = rms
+        if best is None or value <= best[0]:
+            best = (value, iteration, None, assignment, current)
+        elif value > best[0] + o_w.divergence_tolerance:
+            # The hybrid solve moved the block away from the model: go back to the best
+            # iterate and stop.
+            diverged = (f"objective {value:.3f} in iteration {iteration} against "
+                        f"{best[0]:.3f} in iteration {best[1]}")
+            logger.warning("refine diverged (%s); the best iterate is kept", diverged)
+            break
+        if best[1] == iteration:
+            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current)
+        if change < o_w.convergence_rms_change:
+            break
+    bar.close()
+    if diverged is not None and best is not None and best[2] is not None:
+        _, _, rec, assignment, current = best
+        last = None
+    if last is None:  # back to the best iterate, or the last iteration was undone
+        last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                             robust_planes=False, current=current, baselines=baselines)
+        report = last.solve()
+        current = model_after_solve(current, last)
+        if not iterations:
+            iterations.append(IterationRecord(len(iterations), threshold,
+                                              assignment.num_assigned, assignment.num_faces,
+                                              dict(assignment.rejected_faces), 0, None, report,
+                                              float("inf")))
+    return LoopResult(reconstruction=rec, current=current, assignment=assignment, last=last,
+                      iterations=iterations, move=total_move,
+                      observability_before=observability_before, diverged=diverged,
+                      warnings=warnings, seconds=seconds)
