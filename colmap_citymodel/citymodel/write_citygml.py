@@ -8,7 +8,7 @@ full float64 precision). Polygons with another semantic go into the building's o
 `lod{N}MultiSurface`. Every feature, surface and polygon gets a `gml:id`. `srsName` is set on the
 envelope and on every geometry, so readers that look at either find it.
 
-The output round-trips through `read_city_model` (tests/test_write_citygml.py).
+The output round-trips through `read_city_model` (tests/test_citymodel_write_citygml.py).
 """
 
 from __future__ import annotations

@@ -21,7 +21,7 @@ Q is computed by Schur elimination of the tie points from the normal matrix N = 
     Q_pp (point i, conditional) = W_i^-1            (all other unknowns held fixed)
 
 `pycolmap.estimate_ba_covariance_from_problem` does the same elimination (verified equal in
-tests/test_precision.py, also with our plane and vertex blocks in the problem, which keep the
+tests/test_precision_estimate.py, also with our plane and vertex blocks in the problem, which keep the
 Schur structure: every residual touches at most one point), but its `get_point_cov` is the
 *conditional* W_i^-1 and it exposes no camera-plane cross covariances, which the marginal point
 covariance needs; so the numbers reported here come from our own sparse normal matrix built from
