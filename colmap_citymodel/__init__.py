@@ -16,10 +16,10 @@ if not logger.handlers:
     logger.setLevel(logging.INFO)
     logger.propagate = False
 
-from .adjust.result import RefineResult
 from .citymodel.read import read_city_model  # noqa: E402
 from .errors import CityModelError  # noqa: E402
 from .options import RefineOptions  # noqa: E402
+from .output.result import RefineResult
 from .workflow import refine  # noqa: E402
 
 __all__ = ["CityModelError", "RefineOptions", "RefineResult", "logger", "read_city_model",

@@ -35,7 +35,6 @@ import pycolmap
 
 from .adjust.loop import adjustment_loop
 from .adjust.observability import assigned_observability, datum_line
-from .adjust.result import RefineResult
 from .adjust.steps import model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -46,6 +45,7 @@ from .citymodel.read import peek_crs
 from .citymodel.store import PlaneStore
 from .errors import NoOverlapError
 from .options import RefineOptions
+from .output.result import RefineResult
 from .precision.quality import measure_quality
 
 logger = logging.getLogger(__name__)

@@ -128,10 +128,10 @@ def test_one_definition_per_class():
 
 def test_public_api():
     import colmap_citymodel as api
-    from colmap_citymodel.adjust.result import RefineResult
     from colmap_citymodel.citymodel.read import read_city_model
     from colmap_citymodel.errors import CityModelError, InputError
     from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.output.result import RefineResult
     from colmap_citymodel.workflow import refine
 
     assert api.refine is refine

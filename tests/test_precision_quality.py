@@ -15,11 +15,7 @@ from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_cityg
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.precision.quality import QualityThresholds, quality_verdict
-from colmap_citymodel.simulate.synthetic import (
-    StreetSceneOptions,
-    centre_errors,
-    make_street_scene,
-)
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors, make_street_scene
 from colmap_citymodel.workflow import refine
 
 

@@ -30,7 +30,7 @@ from ..options import RefineOptions
 from .datum import check_datum
 from .observability import assigned_observability
 from .problem import HybridProblem
-from .result import IterationRecord
+from .record import IterationRecord
 from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
 from .steps import align_block_to_planes, model_after_solve
 

@@ -13,11 +13,11 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..adjust.result import RefineResult
 from ..errors import InputError
 from ..files import atomic_directory, write_point_ply
 from ..precision.figures import html_page
 from ..precision.report import write_precision_outputs
+from .result import RefineResult
 
 logger = logging.getLogger(__name__)
 

@@ -1,48 +1,23 @@
 """The record that refine returns: the adjusted block, the model state, the assignment, the
-iterations, and what the precision and quality stages found. The output stage reads it."""
+iterations, and what the precision and quality stages found. The output stage writes it."""
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
 
 import numpy as np
 import pycolmap
 
+from ..adjust.problem import SolveReport
+from ..adjust.record import IterationRecord
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
-from .problem import SolveReport
-
-if TYPE_CHECKING:  # filled in by the later stages; only their types are named here
-    from ..precision.checkpoints import CheckpointEvaluation
-    from ..precision.estimate import PrecisionResult
-    from ..precision.quality import QualityReport
-    from ..precision.variance_components import VarianceComponents
-
-
-@dataclass
-class IterationRecord:
-    iteration: int
-    threshold: float
-    num_assigned: int
-    num_faces: int
-    rejected_faces: dict[str, int]
-    num_eliminated: int
-    robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
-    final: SolveReport
-    relative_change: float
-
-    def todict(self) -> dict:
-        return {
-            "iteration": self.iteration, "threshold": self.threshold,
-            "num_assigned_points": self.num_assigned, "num_planes": self.num_faces,
-            "rejected_planes": self.rejected_faces, "num_eliminated_dTP": self.num_eliminated,
-            "robust_solve": self.robust.todict() if self.robust else None,
-            "solve": self.final.todict(),
-            "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
-        }
+from ..precision.checkpoints import CheckpointEvaluation
+from ..precision.estimate import PrecisionResult
+from ..precision.quality import QualityReport
+from ..precision.variance_components import VarianceComponents
 
 
 @dataclass
@@ -65,12 +40,12 @@ class RefineResult:
     warnings: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
     gnss_priors: GNSSPriors | None = None  # the GNSS priors of the last solve (local frame)
-    precision: "PrecisionResult | None" = None  # precision.py: s0, global test, covariances
-    variance_components: "VarianceComponents | None" = None  # PrecisionOptions.variance_components
-    checkpoints: "CheckpointEvaluation | None" = None  # Delta (and sigma) of given check points
+    precision: PrecisionResult | None = None  # precision.py: s0, global test, covariances
+    variance_components: VarianceComponents | None = None  # PrecisionOptions.variance_components
+    checkpoints: CheckpointEvaluation | None = None  # Delta (and sigma) of given check points
     # The GNSS-only adjustment of the same block (local frame); None without GNSS.
     gnss_only: pycolmap.Reconstruction | None = None
-    quality: "QualityReport | None" = None  # the verdict; "failed": `reconstruction` is gnss_only
+    quality: QualityReport | None = None  # the verdict; "failed": `reconstruction` is gnss_only
     observability: dict = field(default_factory=dict)  # quality.observability, after the solve
     observability_before: dict = field(default_factory=dict)  # the same at the first assignment
     refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back

@@ -1,0 +1,32 @@
+"""One iteration of the refine loop as the report shows it."""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+from .problem import SolveReport
+
+
+@dataclass
+class IterationRecord:
+    iteration: int
+    threshold: float
+    num_assigned: int
+    num_faces: int
+    rejected_faces: dict[str, int]
+    num_eliminated: int
+    robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
+    final: SolveReport
+    relative_change: float
+
+    def todict(self) -> dict:
+        return {
+            "iteration": self.iteration, "threshold": self.threshold,
+            "num_assigned_points": self.num_assigned, "num_planes": self.num_faces,
+            "rejected_planes": self.rejected_faces, "num_eliminated_dTP": self.num_eliminated,
+            "robust_solve": self.robust.todict() if self.robust else None,
+            "solve": self.final.todict(),
+            "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
+        }
+
+
