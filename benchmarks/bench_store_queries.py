@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from colmap_citymodel.citymodel.store import store_from_polygons
+from colmap_citymodel.citymodel.build import store_from_polygons
 
 
 def house(x, y, w, d, h, ridge):
