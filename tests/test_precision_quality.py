@@ -124,6 +124,27 @@ def test_observability_of_one_facade_row_is_cross_track_only():
     assert 0.1 < result["N"]["sigma"] < 0.2
 
 
+def test_a_height_on_one_roof_is_flagged_and_only_as_precise_as_gnss():
+    """Facades on both sides plus one small roof: the roof alone fixes the height, so leaving
+    it out leaves the height to GNSS. It is flagged, and its sigma is GNSS's, not the roof's."""
+    rng = np.random.default_rng(2)
+    left = np.column_stack([rng.uniform(-50, 50, 500), np.full(500, 10.0), rng.uniform(0, 15, 500)])
+    right = left * [1, -1, 1]
+    roof = np.column_stack([rng.uniform(20, 30, 60), rng.uniform(12, 20, 60), np.full(60, 15.0)])
+    points = np.vstack([left, right, roof])
+    normals = np.vstack([np.tile([0, 1.0, 0], (500, 1)), np.tile([0, -1.0, 0], (500, 1)),
+                         np.tile([0, 0, 1.0], (60, 1))])
+    groups = np.repeat([0, 1, 2], [500, 500, 60])
+    cams = np.column_stack([np.linspace(-50, 50, 30), np.zeros(30), np.full(30, 2.0)])
+    sigmas = np.tile([3.0, 3.0, 5.0], (30, 1))
+    result = observability(points, normals, groups, cams, sigmas, 0.2, 0.2)
+    height = result["U"]
+    assert height["one_plane"] and height["source"] == "gnss"
+    assert height["sigma_planes"] < height["sigma_gnss"] / 2  # the roof, if it is right
+    assert height["sigma"] == pytest.approx(height["sigma_gnss"])
+    assert height["sigma"] == pytest.approx(5.0 / np.sqrt(30), rel=0.05)
+
+
 def test_verdict_rules():
     good = {"assigned_share": 0.6, "near_share": 0.8, "near_share_gnss_only": 0.1,
             "shift_m": 4.0, "shift_sigmas": 1.5, "planes_fix": ["E", "N", "U"]}
