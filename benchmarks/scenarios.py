@@ -29,6 +29,10 @@ GNSS-only adjustment of the same block (camera centres against the simulated tru
 scenarios.json (the other sections are kept) and benchmarks/results/robustness.md.
 
     .venv/bin/python benchmarks/scenarios.py --robustness [--cases drive orbit strip short]
+
+`--model_variants corrected detailed` adds, per case, refine against the other variants of the
+case's model: the given one has systematic plane errors, so this separates the method's error
+from the model's.
 """
 
 from __future__ import annotations
@@ -102,12 +106,15 @@ def evaluate(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) 
                               "helmert", "num_checkpoints")}
 
 
-def inputs(workspace: Path):
+def inputs(workspace: Path, model: str | None = None):
+    """The workspace's reconstruction, city model and GNSS; `model` names another variant of
+    the model (`models/<model>.gml`) than the scenario's given one."""
     from colmap_citymodel.block.gnss import read_gnss
     from colmap_citymodel.block.reconstruction import read_reconstruction
     from colmap_citymodel.citymodel.read import read_city_model
 
-    given = workspace / "given_model.gml"
+    given = (workspace / "given_model.gml" if model is None
+             else workspace / "models" / f"{model}.gml")
     # Scenarios without a model still need its CRS and local frame (origin) for GNSS and check
     # points: take them from the sequence's corrected model, which no method then uses.
     store = read_city_model(given if given.exists() else workspace / "models" / "corrected.gml")
@@ -261,7 +268,8 @@ def checkpoint_errors(rec: pycolmap.Reconstruction, workspace: Path, origin: np.
     return {k: r[k] for k in ("rms_x", "rms_y", "rms_z", "rms_3d", "num_checkpoints")}
 
 
-def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct") -> dict:
+def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct",
+                        model: str | None = None) -> dict:
     """refine() on the workspace (GNSS from its database unless given): the refined and the
     GNSS-only reconstruction (local frame), their origin, the verdict and its reasons. A refine
     that raises gives verdict "error" and no refined reconstruction. Without a GNSS-only result
@@ -270,10 +278,10 @@ def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct") 
     from colmap_citymodel.options import RefineOptions
     from colmap_citymodel.workflow import refine
 
-    rec, store, gnss_db = inputs(workspace)
+    rec, store, gnss_db = inputs(workspace, model)
     gnss = gnss_db if gnss is None else gnss
-    options = RefineOptions.preset(
-        "detailed" if model_variant(workspace) == "detailed" else "generalised")
+    variant = model or model_variant(workspace)
+    options = RefineOptions.preset("detailed" if variant == "detailed" else "generalised")
     options.precision.covariances = "off"
     options.assignment.method = assignment
     out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
@@ -335,6 +343,25 @@ def robustness_method(case: str, method: str) -> dict:
             "cameras": centre_errors(rec, run["origin"], truth_centres(workspace))
             if rec is not None else None,
             "checkpoints": checkpoint_errors(rec, workspace, run["origin"])
+            if rec is not None else None, "code": code_version()}
+
+
+#: Other variants of a robustness case's model (models/ of its workspace): `corrected` has the
+#: generalisation effects of a published LOD2 model only, `detailed` the true building planes;
+#: the given `original` adds systematic plane errors (0.2 m shift, 0.5 deg tilt per face).
+MODEL_VARIANTS = ("corrected", "detailed")
+
+
+def robustness_model(case: str, variant: str) -> dict:
+    """Refine of a robustness case against another variant of its model: camera centre errors
+    per axis, verdict, what fixes E/N/U, seconds. Separates the method's error from the given
+    model's."""
+    workspace, _ = build_robust_workspace(case)
+    run = refine_with_quality(workspace, model=variant)
+    rec = run["refined"]
+    return {"verdict": run["verdict"], "reasons": run["reasons"], "seconds": run["seconds"],
+            "observability": run["observability"],
+            "cameras": centre_errors(rec, run["origin"], truth_centres(workspace))
             if rec is not None else None, "code": code_version()}
 
 
@@ -409,6 +436,26 @@ def robustness_table(results: dict) -> str:
                      f"({by_method[m]['verdict']})" if m in by_method else "-"
                      for m in ASSIGNMENT_METHODS]
             lines.append(f"| {case} | " + " | ".join(cells) + " |")
+    models = {case: r["models"] for case, r in results.items() if r.get("models")}
+    if models:
+        lines += ["", "The same blocks against other variants of their model (the given one is "
+                  "`original`: the LOD2 model with systematic plane errors of 0.2 m and 0.5 deg "
+                  "per face; `corrected`: generalisation effects only; `detailed`: the true "
+                  "building planes): camera centre RMS per axis and 3D (m), what fixes E / N / U, "
+                  "verdict", "", "| case | model | X | Y | Z | 3D | E / N / U from | verdict |",
+                  "|---|---|---|---|---|---|---|---|"]
+        for case, by_model in models.items():
+            rows = [("original", {"cameras": (r.get("refine") or {}).get("cameras"),
+                                  "observability": r.get("observability"),
+                                  "verdict": r["verdict"]})]
+            rows += [(v, by_model[v]) for v in MODEL_VARIANTS if v in by_model]
+            for variant, m in rows:
+                cams = m.get("cameras")
+                obs = m.get("observability") or {}
+                fixed = " / ".join(obs.get(k, {}).get("source", "-") for k in ("E", "N", "U"))
+                lines.append(f"| {case} | {variant} | {_f(cams, 'rms_x')} | {_f(cams, 'rms_y')} "
+                             f"| {_f(cams, 'rms_z')} | {_f(cams, 'rms_3d')} | {fixed} | "
+                             f"{m['verdict']} |")
     reasons = [(case, r["reasons"]) for case, r in results.items() if r["reasons"]]
     if reasons:
         lines += ["", "Reasons given with the verdicts:", ""]
@@ -421,7 +468,8 @@ def _code_versions(results: dict) -> str:
     return ", ".join(versions) if versions else "-"
 
 
-def run_robustness(cases: list[str], json_path: Path, methods: list[str] = ()) -> None:
+def run_robustness(cases: list[str], json_path: Path, methods: list[str] = (),
+                   models: list[str] = ()) -> None:
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     for case in cases:
         print(f"robustness {case}: ...", flush=True)
@@ -429,6 +477,7 @@ def run_robustness(cases: list[str], json_path: Path, methods: list[str] = ()) -
             r = robustness_case(case)
             r["code"] = code_version()
             r["methods"] = everything.get("robustness", {}).get(case, {}).get("methods", {})
+            r["models"] = everything.get("robustness", {}).get(case, {}).get("models", {})
             print(f"  verdict {r['verdict']}; camera RMS 3D refine "
                   f"{_f(r['refine'], 'cameras', 'rms_3d')} m, GNSS only "
                   f"{_f(r['gnss_only'], 'cameras', 'rms_3d')} m ({r['seconds']:.0f} s)",
@@ -439,6 +488,11 @@ def run_robustness(cases: list[str], json_path: Path, methods: list[str] = ()) -
             print(f"  {method}: verdict {m['verdict']}; camera RMS 3D "
                   f"{_f(m, 'cameras', 'rms_3d')} m ({m['seconds']:.0f} s)", flush=True)
             everything = update_json(json_path, ["robustness", case, "methods", method], m)
+        for variant in models:
+            m = robustness_model(case, variant)
+            print(f"  model {variant}: verdict {m['verdict']}; camera RMS 3D "
+                  f"{_f(m, 'cameras', 'rms_3d')} m ({m['seconds']:.0f} s)", flush=True)
+            everything = update_json(json_path, ["robustness", case, "models", variant], m)
     results = {c: everything["robustness"][c] for c in ROBUST_CASES
                if c in everything.get("robustness", {})}
     text = robustness_table(results)
@@ -503,6 +557,9 @@ def main() -> None:
                         help="run the robustness cases (workspaces/robust_*.toml) instead")
     parser.add_argument("--cases", nargs="+", default=list(ROBUST_CASES),
                         choices=ROBUST_CASES, help="robustness cases to run")
+    parser.add_argument("--model_variants", nargs="*", default=[], choices=MODEL_VARIANTS,
+                        help="with --robustness: also refine each case against these variants "
+                             "of its model")
     args = parser.parse_args()
     import colmap_citymodel  # noqa: F401  (sets up the package logger first)
 
@@ -512,7 +569,8 @@ def main() -> None:
     if args.robustness:
         # Robustness rows: refine_a (direct) unless --methods names others.
         run_robustness([] if args.tables_only else args.cases, json_path,
-                       [m for m in args.methods or ["refine_a"] if m.startswith("refine")])
+                       [m for m in args.methods or ["refine_a"] if m.startswith("refine")],
+                       args.model_variants)
         return
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     for sequence in args.sequences:
