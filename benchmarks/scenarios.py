@@ -445,9 +445,10 @@ def robustness_table(results: dict) -> str:
                   "verdict", "", "| case | model | X | Y | Z | 3D | E / N / U from | verdict |",
                   "|---|---|---|---|---|---|---|---|"]
         for case, by_model in models.items():
-            rows = [("original", {"cameras": (r.get("refine") or {}).get("cameras"),
-                                  "observability": r.get("observability"),
-                                  "verdict": r["verdict"]})]
+            given = results[case]
+            rows = [("original", {"cameras": (given.get("refine") or {}).get("cameras"),
+                                  "observability": given.get("observability"),
+                                  "verdict": given["verdict"]})]
             rows += [(v, by_model[v]) for v in MODEL_VARIANTS if v in by_model]
             for variant, m in rows:
                 cams = m.get("cameras")
