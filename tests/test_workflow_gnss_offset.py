@@ -168,3 +168,19 @@ def test_priors_fit_and_remove_the_offset():
     np.testing.assert_allclose(v[:, 2], [-2.0, 0.0, 2.0])  # the level is removed
     np.testing.assert_allclose(v[:, :2], antennas[:, :2])
     assert priors.offset_directions().shape == (3, 1)
+
+
+@pytest.mark.slow
+def test_constant_3d_bias_is_found_where_the_planes_fix_all_directions(street_scene):
+    # A constant bias of 6 m, 5 m, -4 m on top of the simulated GNSS's own error.
+    applied = np.array([6.0, 5.0, -4.0])
+    gnss = street_scene.gnss()
+    gnss.positions = gnss.positions + applied
+    options = RefineOptions()
+    options.adjustment.gnss_offset = "all"
+    result = refine(street_scene.sfm, street_scene.store, gnss, options, progress=False)
+    expected = -(applied + gnss_mean_error(street_scene))
+    np.testing.assert_allclose(result.gnss_offset["bias_enu_m"], expected, atol=0.2)
+    assert all(s is not None and s < 1.0 for s in result.gnss_offset["bias_sigma_enu_m"])
+    assert rms(centre_errors(result.reconstruction, street_scene.truth)) < 0.10
+    assert result.quality.verdict == "ok", result.quality.todict()
