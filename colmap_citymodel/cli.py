@@ -91,7 +91,7 @@ def _offset_value(text: str) -> float | str:
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected metres or auto, got {text!r}") from None
     if not math.isfinite(value):
-        raise argparse.ArgumentTypeError(f"expected finite metres, got {text!r}")
+        raise argparse.ArgumentTypeError(f"expected finite metres or auto, got {text!r}")
     return value
 
 
