@@ -5,6 +5,7 @@ refine whose quality gate fails exits 3."""
 from __future__ import annotations
 
 import argparse
+import math
 import sys
 
 from . import logger
@@ -81,6 +82,19 @@ def _add_simulate(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _offset_value(text: str) -> float | str:
+    """--gnss_height_offset: metres, or "auto"."""
+    if text.strip().lower() == "auto":
+        return "auto"
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected metres or auto, got {text!r}") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected finite metres or auto, got {text!r}")
+    return value
+
+
 def _add_refine(subparsers) -> None:
     p = subparsers.add_parser(
         "refine", help="georeference and refine a COLMAP model with a city building model",
@@ -96,9 +110,15 @@ def _add_refine(subparsers) -> None:
     gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
     gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:4979 or EPSG:25832+7837")
     gnss.add_argument("--exif", help="directory of the images with EXIF GPS")
-    gnss.add_argument("--gnss_height_offset", type=float, default=None,
-                      help="metres added to GNSS heights (model height minus GNSS height) when "
-                           "PROJ cannot convert them, e.g. ellipsoidal to national heights")
+    gnss.add_argument("--gnss_height_offset", type=_offset_value, default=None,
+                      metavar="METRES|auto",
+                      help="metres added to GNSS heights (model height minus GNSS height), or "
+                           "auto: a constant offset estimated from the model's roofs and eaves "
+                           "(GNSS heights in another height system: ellipsoidal, EGM96 from "
+                           "the flight controller, above take-off)")
+    gnss.add_argument("--gnss_bias", choices=["auto"], default=None,
+                      help="auto: a constant 3D GNSS bias estimated from the model (needs "
+                           "planes that fix all three directions; includes the height offset)")
     gnss.add_argument("--lever_arm", type=float, nargs=3, metavar=("X", "Y", "Z"),
                       help="GNSS antenna in the camera (rig) frame, metres: x right, y down, "
                            "z along the view")
@@ -144,6 +164,7 @@ def _add_refine(subparsers) -> None:
              target_crs=args.target_crs, output_type=args.output_type,
              output_frame=args.output_frame, progress=not args.no_progress,
              precision=args.precision, gnss_height_offset=args.gnss_height_offset,
+             gnss_bias=args.gnss_bias,
              lever_arm=args.lever_arm, checkpoints=args.checkpoints,
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,

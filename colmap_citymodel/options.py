@@ -170,10 +170,24 @@ class AdjustmentOptions:
     points about their planes (their relief is real), and only the priors and GNSS resist; on
     the simulated short Scn3 the block shrank by 2.2 % and the check point RMS went from 0.25 to
     0.76 m (benchmarks/results/precision.md); in the assignment loop it collapsed the block."""
+    gnss_offset: str = "none"
+    """A constant offset of all GNSS positions as unknowns of the adjustment, fixed by the model
+    planes (roofs and eaves fix the height, walls of several orientations the plan position):
+    "none"; "height" (`--gnss_height_offset auto`: GNSS heights in another height system, e.g.
+    ellipsoidal without the national geoid, EGM96 from a flight controller, above take-off);
+    "all" (`--gnss_bias auto`: a constant 3D bias). Refused where the planes do not fix the
+    directions concerned (adjust.observability). The coarse search then looks for the block's
+    height over the whole height range of the model."""
+    sigma_gnss_offset: float = 3.0
+    """A priori sigma (m) of the estimated offset about 0, i.e. about the positions as read and
+    converted (national grid, or the fallback geoid EGM96, typically within 2 m of it, plus the
+    GNSS's own bias). Dropped, leaving the offset free, when the coarse search finds the block
+    further off than 3 of it (heights above take-off, another height system); 0: always free."""
 
 
 #: Options that take one of a few words.
 CHOICES = {"adjustment.image_loss": ("huber", "cauchy"),
+           "adjustment.gnss_offset": ("none", "height", "all"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
            "assignment.auto_indirect_method": ("msac", "roi_msac")}
 

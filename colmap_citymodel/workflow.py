@@ -73,7 +73,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     details: dict = {}
-    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details)
+    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details,
+                                        options.adjustment.gnss_offset)
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
@@ -87,6 +88,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer["step2"] = time.perf_counter() - timer["start"] - timer["georegistration"]
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
+    estimate_offset = priors is not None and priors.estimates_offset
+    if estimate_offset:
+        priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
+        priors.fit_offset(rec)
     surface = SurfaceDistance(store, o_a.excluded_classes)
     all_ids, points = tie_points(rec, exclude_point_ids)
     objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
@@ -104,13 +109,15 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         up, view = camera_up_and_view(rec, priors.image_ids)
         coarse = coarse_alignment(points, centres, up, view, store, surface,
                                   np.median(priors.sigmas, axis=0), straight,
-                                  o_w.coarse_search_sigmas)
+                                  o_w.coarse_search_sigmas,
+                                  free_height=bool(priors.offset_axes[2]))
         if objective(rec, coarse.sim3) < objective(rec):
             rec.transform(coarse.sim3)
             sim3 = coarse.sim3 * sim3
         else:
             logger.info("coarse alignment kept the GNSS-only position (no better objective)")
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
+    offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
 
     loop = adjustment_loop(rec, store, priors, options, objective, all_ids,
                            exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
@@ -128,8 +135,14 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         last, vce = final_solve_in_refine(rec, store, assignment, priors, options, current,
                                           last)
         current = model_after_solve(current, last)
+    if estimate_offset:  # the last solve's priors (a re-weighted copy after VCE) hold it
+        priors.offset = np.array(last.gnss.offset if last.gnss is not None else priors.offset)
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options)
+    gnss_offset = (offset_report(priors, observability, offset_start, gnss)
+                   if estimate_offset else None)
+    if gnss_offset is not None:
+        logger.info(offset_line(gnss_offset))
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma)
     logger.info("datum fixed by: %s", datum_line(observability))
@@ -159,7 +172,66 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         quality=quality, observability=observability,
         observability_before=loop.observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
-        coarse_alignment=coarse.todict() if coarse is not None else None)
+        coarse_alignment=coarse.todict() if coarse is not None else None,
+        gnss_offset=gnss_offset)
+
+
+def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
+    """The GNSS offset where the start-up (coarse search, or the georegistration) put the
+    block; drops its prior when the block is further off than 3 prior sigmas (heights in
+    another system, above take-off), leaving the offset free."""
+    offset = priors.fit_offset(rec).copy()
+    axes = np.asarray(priors.offset_axes, bool)
+    prior = priors.offset_prior_sigma
+    record = {"start_m": offset[axes].tolist(), "prior_sigma_m": prior, "prior_dropped": False}
+    if prior and np.any(np.abs(offset[axes]) > 3.0 * prior):
+        logger.info("the GNSS positions are %s m off the block on the model: more than 3 x %g m, "
+                    "so the GNSS offset is estimated without its prior (another height system, "
+                    "heights above take-off?)", np.round(offset[axes], 2).tolist(), prior)
+        priors.offset_prior_sigma = None
+        record["prior_dropped"] = True
+    else:
+        logger.info("GNSS offset at the start: %s m", np.round(offset[axes], 2).tolist())
+    return record
+
+
+def offset_report(priors, observability: dict, start: dict | None, gnss) -> dict:
+    """report.json `gnss_height_offset` (and the 3D bias): the estimated constant GNSS offset
+    (model minus GNSS, m) with its a posteriori sigma (the planes' hold on the block's
+    position, each plane with its generalisation error, and the GNSS mean)."""
+    from .adjust.observability import offset_sigma
+
+    axes = np.asarray(priors.offset_axes, bool)
+    sigma = offset_sigma(observability, priors)
+    geoid = getattr(gnss, "geoid", None)
+    out = {"estimated": "all" if axes.all() else "height",
+           "value_m": float(priors.offset[2]),
+           "sigma_m": None if np.isnan(sigma[2]) else float(sigma[2]),
+           "relative_to": ("GNSS heights converted with the fallback geoid "
+                           f"{geoid['name']} ({geoid['grid']})" if geoid else
+                           "GNSS heights as read"),
+           "geoid": geoid,
+           "prior_m": 0.0, **(start or {}),
+           "prior_sigma_used_m": priors.offset_prior_sigma}
+    if axes.all():
+        out["bias_enu_m"] = priors.offset.tolist()
+        out["bias_sigma_enu_m"] = [None if np.isnan(v) else float(v) for v in sigma]
+    return out
+
+
+def offset_line(report: dict) -> str:
+    """One line for the log and the console."""
+    sigma = f" +- {report['sigma_m']:.2f}" if report["sigma_m"] is not None else ""
+    line = (f"GNSS height offset (model minus GNSS, estimated from the model): "
+            f"{report['value_m']:+.2f}{sigma} m")
+    if report.get("geoid"):
+        line += f" relative to {report['geoid']['name']} heights"
+    if "bias_enu_m" in report:
+        bias = ", ".join(f"{v:+.2f}" for v in report["bias_enu_m"][:2])
+        sigmas = [s for s in report["bias_sigma_enu_m"][:2]]
+        line += (f"; horizontal GNSS bias E, N: {bias} m" + (
+            f" (+- {sigmas[0]:.2f}, {sigmas[1]:.2f})" if None not in sigmas else ""))
+    return line
 
 
 # -- CLI entry: read inputs, refine, write outputs ------------------------------------------------
@@ -171,12 +243,14 @@ GNSS_READ_MARGIN = 250.0
 def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
          exif=None, initial_transform=None, preset="generalised", options_file=None,
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True, precision=None, gnss_height_offset=None, lever_arm=None,
+         progress=True, precision=None, gnss_height_offset=None, gnss_bias=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
          variance_components=None, assignment=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
-    are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
+    are evaluated at the end (Delta, sigma; report.json `checkpoints`).
+    `gnss_height_offset`: metres added to the GNSS heights, or "auto" (estimated from the
+    model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all")."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -193,6 +267,16 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.precision.variance_components = bool(variance_components)
     if assignment is not None:  # --assignment overrides the options file
         options.assignment.method = assignment
+    if gnss_bias == "auto":
+        options.adjustment.gnss_offset = "all"
+    elif gnss_bias is not None:
+        from .errors import InputError
+
+        raise InputError(f"--gnss_bias takes auto, got {gnss_bias!r}")
+    if gnss_height_offset == "auto":
+        if options.adjustment.gnss_offset == "none":
+            options.adjustment.gnss_offset = "height"
+        gnss_height_offset = None
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError
@@ -264,6 +348,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
               f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points "
               f"on {last.num_faces} planes; s0 {s0:.3f}")
     print(result.quality.line())
+    if result.gnss_offset is not None:
+        print(offset_line(result.gnss_offset))
     if result.observability:
         print(f"datum fixed by: {datum_line(result.observability)}")
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"

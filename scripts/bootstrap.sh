@@ -7,7 +7,10 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
-APT_PACKAGES=(libceres-dev libeigen3-dev libgoogle-glog-dev libusb-1.0-0 g++ cmake python3-venv)
+# proj-data: the worldwide EGM96 geoid (egm96_15.gtx) for GNSS heights where the national
+# geoid grid of the city model's height system is missing.
+APT_PACKAGES=(libceres-dev libeigen3-dev libgoogle-glog-dev libusb-1.0-0 g++ cmake python3-venv
+  proj-data)
 
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do

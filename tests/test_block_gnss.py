@@ -14,6 +14,7 @@ import pyproj
 import pytest
 
 from colmap_citymodel.block.gnss import GNSSObservations, _crs_info, apply_lever_arm, match_to_reconstruction, read_gnss_database, read_gnss_exif, read_gnss_text, reproject_with_report, rotations_from_reconstruction
+from colmap_citymodel.citymodel import crs
 from colmap_citymodel.errors import GNSSError
 
 SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
@@ -48,29 +49,77 @@ def test_text_same_crs_with_sigmas_and_comments(tmp_path):
         gnss.subset(["c.jpg"])
 
 
-def test_text_wgs84_to_utm_warns_heights_stay_ellipsoidal(tmp_path, caplog):
-    lat, lon, h = 48.1489, 11.5680, 560.0  # TUM main campus, Munich
+@pytest.fixture
+def no_fallback_geoid(monkeypatch):
+    """A machine without Debian's proj-data: no EGM96 grid anywhere."""
+    monkeypatch.setattr(crs, "fallback_geoid", lambda: None)
+
+
+def _write_wgs84(tmp_path, lat, lon, h):
     path = tmp_path / "gnss.txt"
     path.write_text(f"img1.jpg {lat} {lon} {h}\nimg2.jpg {lat + 1e-4} {lon} {h + 1}\n")
-    with caplog.at_level("WARNING", logger="colmap_citymodel"):
-        gnss = read_gnss_text(path, "EPSG:4979", UTM32_DHHN)
-    # Horizontal: lat/lon (EPSG axis order) -> easting/northing, agrees with a 2D transform.
-    np.testing.assert_allclose(gnss.positions[0, :2], _utm32(lat, lon), atol=0.01)
-    assert 10.5 < gnss.positions[1, 1] - gnss.positions[0, 1] < 11.6  # 1e-4 deg north ~ 11.1 m
+    return path
+
+
+def _german_grid_installed() -> bool:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", UserWarning)
         group = pyproj.transformer.TransformerGroup("EPSG:4979", "EPSG:25832+7837")
-    if not group.best_available:
-        # No German geoid grid on this machine: heights unchanged, clearly reported.
-        assert gnss.vertical_applied is False
+    return bool(group.best_available)
+
+
+def test_text_wgs84_to_utm_without_any_geoid_keeps_heights_ellipsoidal(tmp_path, caplog,
+                                                                       no_fallback_geoid):
+    lat, lon, h = 48.1489, 11.5680, 560.0  # TUM main campus, Munich
+    with caplog.at_level("WARNING", logger="colmap_citymodel"):
+        gnss = read_gnss_text(_write_wgs84(tmp_path, lat, lon, h), "EPSG:4979", UTM32_DHHN)
+    # Horizontal: lat/lon (EPSG axis order) -> easting/northing, agrees with a 2D transform.
+    np.testing.assert_allclose(gnss.positions[0, :2], _utm32(lat, lon), atol=0.01)
+    assert 10.5 < gnss.positions[1, 1] - gnss.positions[0, 1] < 11.6  # 1e-4 deg north ~ 11.1 m
+    if not _german_grid_installed():
+        # No German geoid grid and no EGM96: heights unchanged, clearly reported.
+        assert gnss.vertical_applied is False and gnss.geoid is None
         np.testing.assert_allclose(gnss.positions[:, 2], [h, h + 1])
         assert "ELLIPSOIDAL" in caplog.text and "de_bkg_gcg2016" in caplog.text
+        assert "proj-data" in caplog.text and "--gnss_height_offset auto" in caplog.text
     assert "ballpark offset" not in caplog.text  # the horizontal datum shift is a real one
 
 
-def test_vertical_transformation_applied_when_grid_present(tmp_path):
-    # A fake EGM96 grid (constant undulation 40 m) in GTX format proves that the applied path
-    # is detected and reported with the undulation.
+@pytest.mark.skipif(crs.fallback_geoid() is None, reason="EGM96 grid (proj-data) not installed")
+def test_text_wgs84_to_utm_falls_back_to_egm96_and_says_so(tmp_path, caplog):
+    lat, lon, h = 48.1489, 11.5680, 560.0
+    with caplog.at_level("WARNING", logger="colmap_citymodel"):
+        gnss = read_gnss_text(_write_wgs84(tmp_path, lat, lon, h), "EPSG:4979", UTM32_DHHN)
+    np.testing.assert_allclose(gnss.positions[0, :2], _utm32(lat, lon), atol=0.01)
+    if _german_grid_installed():
+        pytest.skip("the German grid is installed: PROJ applies it, no fallback")
+    undulation = crs.geoid_undulation([lon, lon], [lat, lat + 1e-4], crs.fallback_geoid())
+    assert 44.0 < undulation[0] < 49.0  # EGM96 in Munich
+    np.testing.assert_allclose(gnss.positions[:, 2], np.array([h, h + 1]) - undulation,
+                               atol=1e-6)
+    assert gnss.vertical_applied is True
+    assert gnss.geoid["name"] == "EGM96" and gnss.geoid["missing_grids"] == ["de_bkg_gcg2016.tif"]
+    assert gnss.geoid["mean_undulation_m"] == pytest.approx(undulation.mean())
+    # The warning names the grid used, its accuracy and the national grid that was missing.
+    assert "EGM96" in caplog.text and crs.fallback_geoid().grid in caplog.text
+    assert "de_bkg_gcg2016.tif" in caplog.text and "within 2 m" in caplog.text
+
+
+@pytest.mark.skipif(crs.fallback_geoid() is None, reason="EGM96 grid (proj-data) not installed")
+def test_fallback_geoid_for_a_model_crs_without_height_system(tmp_path):
+    # City models hold physical heights even where the CRS names none (EPSG:25832 alone).
+    lat, lon, h = 48.1489, 11.5680, 560.0
+    gnss = read_gnss_text(_write_wgs84(tmp_path, lat, lon, h), "EPSG:4979",
+                          _crs_info("EPSG:25832"))
+    undulation = crs.geoid_undulation([lon], [lat], crs.fallback_geoid())[0]
+    assert gnss.positions[0, 2] == pytest.approx(h - undulation)
+    assert gnss.vertical_applied is True and gnss.geoid["missing_grids"] == []
+
+
+def test_a_grid_proj_has_wins_over_the_fallback(tmp_path, monkeypatch):
+    # A fake EGM96 grid (constant undulation 40 m) in GTX format where PROJ looks: PROJ applies
+    # it itself (the national grid of the model's height system, here EGM96 height), and the
+    # fallback is not used. Without it: the fallback (the real EGM96, if installed) or nothing.
     grid_dir = tmp_path / "grids"
     grid_dir.mkdir()
     rows, cols = 181, 361
@@ -79,15 +128,21 @@ def test_vertical_transformation_applied_when_grid_present(tmp_path):
         f.write(np.full(rows * cols, 40.0, dtype=">f4").tobytes())
     target = _crs_info("EPSG:32633+5773")  # UTM 33N + EGM96 height
     lla = np.array([[55.7, 13.19, 100.0]])
-    before, report = reproject_with_report(lla, "EPSG:4979", target)
+    with monkeypatch.context() as patch:
+        patch.setattr(crs, "fallback_geoid", lambda: None)
+        before, report = reproject_with_report(lla, "EPSG:4979", target)
     assert report.vertical_applied is False and before[0, 2] == pytest.approx(100.0)
+    if crs.fallback_geoid() is not None:
+        fallback, report = reproject_with_report(lla, "EPSG:4979", target)
+        assert report.vertical_applied is True and report.geoid["name"] == "EGM96"
+        assert 30.0 < 100.0 - fallback[0, 2] < 40.0  # EGM96 near Lund: ~35 m
     original = pyproj.datadir.get_data_dir()
     try:
         pyproj.datadir.append_data_dir(str(grid_dir))
         after, report = reproject_with_report(lla, "EPSG:4979", target)
     finally:
         pyproj.datadir.set_data_dir(original)
-    assert report.vertical_applied is True
+    assert report.vertical_applied is True and report.geoid is None
     assert after[0, 2] == pytest.approx(60.0, abs=1e-6)
     assert any("undulation 40.00 m" in n for n in report.notes)
     np.testing.assert_allclose(after[0, :2], before[0, :2], atol=1e-6)
@@ -202,7 +257,11 @@ def test_database_pose_priors_round_trip(tmp_path):
         if kind == "wgs":
             np.testing.assert_allclose(gnss.positions[i, :2], _utm32(value[0], value[1]),
                                        atol=0.01)
-            assert gnss.positions[i, 2] == pytest.approx(value[2])  # no geoid grid here
+            # No German grid here: the fallback geoid, if installed, else ellipsoidal.
+            geoid = crs.fallback_geoid()
+            undulation = (0.0 if geoid is None else
+                          crs.geoid_undulation([value[1]], [value[0]], geoid)[0])
+            assert gnss.positions[i, 2] == pytest.approx(value[2] - undulation)
             np.testing.assert_allclose(gnss.sigmas[i], [0.5, 0.6, 1.0])
         else:
             np.testing.assert_array_equal(gnss.positions[i], value)

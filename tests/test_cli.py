@@ -131,3 +131,19 @@ def test_refine_cli_subprocess_reports_errors_without_traceback(tmp_path):
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
     assert "does not exist" in result.stderr
+
+
+@pytest.mark.parametrize("value, expected", [("auto", "auto"), ("AUTO", "auto"),
+                                             ("-47.5", -47.5), ("12", 12.0)])
+def test_gnss_height_offset_takes_metres_or_auto(value, expected):
+    from colmap_citymodel.cli import _offset_value
+
+    assert _offset_value(value) == expected
+
+
+@pytest.mark.parametrize("value", ["abc", "nan", "inf"])
+def test_gnss_height_offset_rejects_anything_else(tmp_path, capsys, value):
+    with pytest.raises(SystemExit) as exit_info:  # argparse's usage error
+        cli_main(["refine", "--input_path", str(tmp_path), "--citymodel", str(tmp_path),
+                  "--output_path", str(tmp_path / "out"), "--gnss_height_offset", value])
+    assert exit_info.value.code == 2 and "metres or auto" in capsys.readouterr().err

@@ -226,6 +226,47 @@ def test_projection_center_prior_on_rig_frames_gives_camera_centres(core):
     assert non_ref == 3  # one non-reference camera per frame
 
 
+@pytest.mark.parametrize("directions", [np.array([[0.0], [0.0], [1.0]]), np.eye(3)],
+                         ids=["height", "bias"])
+def test_projection_center_offset_prior_closed_form_and_jacobians(core, directions):
+    rng = np.random.default_rng(5)
+    k = directions.shape[1]
+    for _ in range(5):
+        rig_from_world = random_pose(rng)
+        position_in_rig = rng.normal(scale=0.5, size=3)
+        observed = rng.normal(scale=10.0, size=3)
+        offset = rng.normal(scale=50.0, size=k)
+        sigma = np.array([3.0, 3.0, 5.0])
+        cost = core.ProjectionCenterOffsetPriorCost(observed, sigma, position_in_rig,
+                                                    directions)
+        assert cost.parameter_block_sizes() == [POSE_BLOCK_SIZE, k]
+
+        params = np.array(rig_from_world.params)
+        residuals, jacobians = evaluate(cost, params, offset)
+        position = rig_from_world.inverse() * position_in_rig
+        expected = (position - observed - directions @ offset) / sigma
+        np.testing.assert_allclose(residuals, expected, atol=1e-10)
+        # d r / d b = -D / sigma (closed form); the pose part as the plain prior's.
+        np.testing.assert_allclose(jacobians[1], -directions / sigma[:, None], atol=1e-12)
+        numeric = numeric_jacobians(cost, [params, offset])
+        np.testing.assert_allclose(jacobians[0], numeric[0], rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(jacobians[1], numeric[1], rtol=1e-5, atol=1e-6)
+        plain = core.ProjectionCenterPriorCost(observed + directions @ offset, sigma,
+                                               position_in_rig)
+        r_plain, j_plain = evaluate(plain, params)
+        np.testing.assert_allclose(residuals, r_plain, atol=1e-10)
+        np.testing.assert_allclose(jacobians[0], j_plain[0], atol=1e-10)
+
+
+def test_projection_center_offset_prior_rejects_bad_directions(core):
+    with pytest.raises(ValueError, match="1 or 3 columns"):
+        core.ProjectionCenterOffsetPriorCost(np.zeros(3), np.ones(3), np.zeros(3),
+                                             np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="3 x k"):
+        core.ProjectionCenterOffsetPriorCost(np.zeros(3), np.ones(3), np.zeros(3),
+                                             np.zeros((2, 1)))
+
+
 # ---------------------------------------------------------------- extension loading errors
 
 

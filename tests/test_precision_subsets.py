@@ -245,6 +245,7 @@ def test_missing_model_and_taken_output(tmp_path, scene, capsys):
 def test_geographic_gnss_goes_to_its_utm_zone(tmp_path, scene, capsys):
     from pyproj import Transformer
 
+    from colmap_citymodel.citymodel.crs import fallback_geoid
     from colmap_citymodel.precision.subsets import main
 
     model = _workspace(tmp_path, scene)
@@ -264,6 +265,10 @@ def test_geographic_gnss_goes_to_its_utm_zone(tmp_path, scene, capsys):
     assert "EPSG:32632" in geographic["gauge_note"]  # UTM zone 32N, as ETRS89 / UTM 32N
     a, b = projected["subsets"][0], geographic["subsets"][0]
     assert a["num_points3D"] == b["num_points3D"]
+    # The geographic file's ellipsoidal heights go through the geoid (EGM96, where installed)
+    # into the UTM frame, the projected file's stay as given: the frames differ by the geoid's
+    # height and slope, and the sigmas by a few per mille.
+    tolerance = 2e-3 if fallback_geoid() is None else 1e-2
     for key in ("median_point_sigma", "median_centre_sigma", "median_point_sigma_inner"):
         for axis, value in a[key].items():
-            assert b[key][axis] == pytest.approx(value, rel=2e-3), (key, axis)
+            assert b[key][axis] == pytest.approx(value, rel=tolerance), (key, axis)

@@ -28,7 +28,7 @@ from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import RefineOptions
 from .datum import check_datum
-from .observability import assigned_observability
+from .observability import assigned_observability, offset_refusal
 from .problem import HybridProblem
 from .record import IterationRecord
 from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
@@ -106,6 +106,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             warnings += check_datum(store, assignment, priors is not None)
             observability_before = assigned_observability(points, assignment, current, priors,
                                                           rec, options)
+            if priors is not None and priors.estimates_offset:
+                refusal = offset_refusal(observability_before, priors.offset_axes)
+                if refusal:
+                    raise DatumError(
+                        f"{offset_name(priors)} cannot be estimated from this model: {refusal}. "
+                        "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
+                        "model's height system", store.source)
             if gnss_only is not None and scale_sigma and \
                     observability_before.get("scale", {}).get("source") not in ("planes", "both"):
                 baselines = baseline_priors(gnss_only, priors, scale_sigma)
@@ -116,7 +123,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         t1 = time.perf_counter()
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
-        before_solve = (pycolmap.Reconstruction(rec), current, assignment) \
+        before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
             if gnss_only is not None and baselines is None and scale_sigma else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
@@ -154,7 +161,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
                                "sigma): undone, the scale is held from now on", iteration,
                                100 * change, abs(np.log1p(change)) / scale_sigma)
-                rec, current, assignment = before_solve
+                rec, current, assignment, offset = before_solve
+                _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma)
                 last = None
                 continue
@@ -175,7 +183,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     np.sqrt(final_report.sigma0_squared), value)
         previous_rms = rms
         if best is None or value <= best[0]:
-            best = (value, iteration, None, assignment, current)
+            best = (value, iteration, None, assignment, current, _offset(priors))
         elif value > best[0] + o_w.divergence_tolerance:
             # The hybrid solve moved the block away from the model: go back to the best
             # iterate and stop.
@@ -184,12 +192,14 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             logger.warning("refine diverged (%s); the best iterate is kept", diverged)
             break
         if best[1] == iteration:
-            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current)
+            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current,
+                    _offset(priors))
         if change < o_w.convergence_rms_change:
             break
     bar.close()
     if diverged is not None and best is not None and best[2] is not None:
-        _, _, rec, assignment, current = best
+        _, _, rec, assignment, current, offset = best
+        _restore_offset(priors, offset)
         last = None
     if last is None:  # back to the best iterate, or the last iteration was undone
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
@@ -205,3 +215,20 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       iterations=iterations, move=total_move,
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds)
+
+
+def offset_name(priors: GNSSPriors) -> str:
+    """How the user asked for the GNSS offset, for messages."""
+    if np.all(priors.offset_axes):
+        return "the constant GNSS bias (--gnss_bias auto)"
+    return "the GNSS height offset (--gnss_height_offset auto)"
+
+
+def _offset(priors: GNSSPriors | None) -> np.ndarray | None:
+    return None if priors is None else np.array(priors.offset, dtype=np.float64)
+
+
+def _restore_offset(priors: GNSSPriors | None, offset: np.ndarray | None) -> None:
+    """Back to the GNSS offset of an earlier state (solves write their estimate into it)."""
+    if priors is not None and offset is not None:
+        priors.offset = np.array(offset, dtype=np.float64)

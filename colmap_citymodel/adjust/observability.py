@@ -52,14 +52,23 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
     return out
 
 
-def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray
-                     ) -> np.ndarray:
+def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray,
+                     free_axes=None) -> np.ndarray:
+    """7x7 information of the datum from GNSS. Along `free_axes` (bool (3,)) a constant offset
+    of all positions is an unknown too (GNSSPriors.offset_axes): it is eliminated, so GNSS
+    keeps only the differences between its positions there (tilts, scale), not their level."""
     info = np.zeros((7, 7))
+    free = np.zeros(3, bool) if free_axes is None else np.asarray(free_axes, bool)
     for axis in range(3):
         directions = np.zeros_like(positions)
         directions[:, axis] = 1.0
         jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
         info += jac.T @ jac
+        if free[axis]:
+            a = 1.0 / sigmas[:, axis]  # the offset's column (whitened, sign irrelevant)
+            g = jac.T @ a
+            info -= np.outer(g, g) / float(a @ a)
+            info[axis, :] = info[:, axis] = 0.0  # exactly: no information on that level
     return info
 
 
@@ -80,9 +89,10 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
 
 def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
-                  sigma_dtp: float, sigma_generalisation: float) -> dict:
+                  sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
-    (metres; relative for scale; degrees for rotations) from planes, GNSS and both."""
+    (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
+    `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none)."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
@@ -90,7 +100,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
                                    sigma_generalisation) if len(points) else [])
     planes = sum(per_plane, np.zeros((7, 7)))
-    gnss = (gnss_information(gnss_positions, gnss_sigmas, centre)
+    gnss = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes)
             if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss, s_both = _sigmas(planes), _sigmas(gnss), _sigmas(planes + gnss)
@@ -164,4 +174,37 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
     return observability(points[assigned], store.normals[faces], faces,
                          priors.observed_points(rec) if priors is not None else None,
                          priors.sigmas if priors is not None else None,
-                         options.adjustment.sigma_dtp, sigma_gen)
+                         options.adjustment.sigma_dtp, sigma_gen,
+                         priors.offset_axes if priors is not None else None)
+
+
+def offset_refusal(observability_dict: dict, offset_axes) -> str | None:
+    """Why the model planes cannot fix a GNSS offset along `offset_axes` (bool (3,), E N U),
+    or None when they fix every one of them (source "planes" or "both")."""
+    reasons = []
+    for name, free in zip(("E", "N", "U"), np.asarray(offset_axes, bool)):
+        row = observability_dict.get(name, {})
+        if not free or row.get("source") in ("planes", "both"):
+            continue
+        what = "the height" if name == "U" else f"the {name} position"
+        if row.get("one_plane"):
+            reasons.append(f"{what} rests on a single model plane, which nothing checks")
+        elif name == "U":
+            reasons.append(f"{what}: no roof or eave the block sees carries enough tie points")
+        else:
+            reasons.append(f"{what}: too few walls facing that way carry tie points")
+    return "; ".join(reasons) or None
+
+
+
+def offset_sigma(observability_dict: dict, priors: GNSSPriors) -> np.ndarray:
+    """(3,) a posteriori sigma (m) of the GNSS offset per axis: the block's position there as
+    the planes fix it (each plane with its generalisation error) and the mean of the GNSS
+    positions; NaN where no offset is estimated or the planes leave the direction free."""
+    out = np.full(3, np.nan)
+    gnss_mean = priors.offset_mean_sigma()
+    for k, name in enumerate(("E", "N", "U")):
+        sigma = observability_dict.get(name, {}).get("sigma")
+        if priors.offset_axes[k] and sigma is not None:
+            out[k] = float(np.hypot(sigma, gnss_mean[k]))
+    return out

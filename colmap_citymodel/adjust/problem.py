@@ -5,6 +5,8 @@ Unger 3.2 (method.md section 2). The problem is the `pyceres.Problem` of
 registered images), to which this module adds, through the C++ extension's cost functions:
 
 - f_pos: GNSS projection centre priors on each frame's rig_from_world block (sigma 3, 3, 5 m);
+  with a model and `GNSSPriors.offset_axes`, a constant offset of all GNSS positions is one
+  more parameter block (1 value for the height, 3 for a bias) with its prior (group "offset");
 - f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
 - f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
 - f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed");
@@ -48,7 +50,8 @@ logger = logging.getLogger(__name__)
 #: o_p ~ N(0, sigma_generalisation^2) of the per-plane generalisation offsets (only with
 #: AdjustmentOptions.sigma_generalisation; otherwise empty). "scale": baseline lengths that
 #: hold the block's scale where the planes do not determine it (BaselinePriors; else empty).
-GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale")
+#: "offset": the prior of the GNSS offset (GNSSPriors.offset_prior_sigma; else empty).
+GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale", "offset")
 
 
 @dataclass
@@ -205,13 +208,19 @@ class HybridProblem:
         self.point_faces = np.zeros(0, np.int64)  # the face of each f_dTP row
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
         self._generalisation_offsets = generalisation_offsets
-        self._add_gnss(core, gnss)
+        self.gnss = gnss
+        # The GNSS offset's unknown components (a view of nothing else: solve() copies it back
+        # into gnss.offset); None when the offset is not estimated in this problem.
+        self.gnss_offset: np.ndarray | None = None
+        self._add_gnss(core, gnss, estimate_offset=bool(with_model) and gnss is not None
+                       and gnss.estimates_offset)
         if with_model:
             self._add_model(core, store, current if current is not None else store, assignment,
                             robust_planes)
         else:
             self.counts.update(dTP=0, dVT=0, VT=0, gen=0)
         self._add_baselines(core, baselines)
+        self._add_offset_prior(core, gnss)
 
     def _add_baselines(self, core, baselines: BaselinePriors | None) -> None:
         self.counts["scale"] = 0
@@ -234,22 +243,51 @@ class HybridProblem:
             self.counts["scale"] += 1
 
     # -- building ---------------------------------------------------------------------------
-    def _add_gnss(self, core, gnss: GNSSPriors | None) -> None:
+    def _add_gnss(self, core, gnss: GNSSPriors | None, estimate_offset: bool) -> None:
         self.counts["gnss"] = 0
         if gnss is None:
             return
         rec = self.reconstruction
-        for image_id, position, sigma in zip(gnss.image_ids, gnss.positions, gnss.sigmas):
+        axes = np.asarray(gnss.offset_axes, bool)
+        if estimate_offset:
+            directions = gnss.offset_directions()
+            self.gnss_offset = np.ascontiguousarray(gnss.offset[axes], dtype=np.float64)
+            self.problem.add_parameter_block(self.gnss_offset, len(self.gnss_offset))
+            # The constant part of what GNSS observed: the positions with the offset's fixed
+            # components (the unknown ones enter through the block).
+            observed = gnss.positions + np.where(axes, 0.0, gnss.offset)
+        else:
+            observed = gnss.observed
+        for image_id, position, sigma in zip(gnss.image_ids, observed, gnss.sigmas):
             image = rec.image(int(image_id))
             frame = rec.frame(image.frame_id)
             rig_from_world = frame.rig_from_world.params
             if not self.problem.has_parameter_block(rig_from_world):
                 continue
-            cost = core.ProjectionCenterPriorCost(
-                np.asarray(position, float), np.asarray(sigma, float) / self.options.sigma_image,
-                gnss.observed_in_rig(rec, image))
-            self.problem.add_residual_block(cost, None, [rig_from_world])
+            sigma = np.asarray(sigma, float) / self.options.sigma_image
+            if self.gnss_offset is not None:
+                cost = core.ProjectionCenterOffsetPriorCost(
+                    np.asarray(position, float), sigma, gnss.observed_in_rig(rec, image),
+                    directions)
+                self.problem.add_residual_block(cost, None, [rig_from_world, self.gnss_offset])
+            else:
+                cost = core.ProjectionCenterPriorCost(np.asarray(position, float), sigma,
+                                                      gnss.observed_in_rig(rec, image))
+                self.problem.add_residual_block(cost, None, [rig_from_world])
             self.counts["gnss"] += 3
+
+    def _add_offset_prior(self, core, gnss: GNSSPriors | None) -> None:
+        """Group "offset" (last): the prior N(0, sigma^2) of each unknown offset component."""
+        self.counts["offset"] = 0
+        if self.gnss_offset is None or not gnss.offset_prior_sigma:
+            return
+        sigma = gnss.offset_prior_sigma / self.options.sigma_image
+        if len(self.gnss_offset) == 1:
+            cost = core.ScalarPriorCost(0.0, sigma)
+        else:
+            cost = core.PointPositionPriorCost(np.zeros(3), np.full(3, sigma))
+        self.problem.add_residual_block(cost, None, [self.gnss_offset])
+        self.counts["offset"] = len(self.gnss_offset)
 
     def _add_model(self, core, store: PlaneStore, current: PlaneStore, assignment: Assignment,
                    robust_planes: bool) -> None:
@@ -342,6 +380,7 @@ class HybridProblem:
             u += sum(len(c.params) - 2 for c in rec.cameras.values())  # principal point fixed
         u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
         u += len(self.blocks.generalisation)
+        u += 0 if self.gnss_offset is None else len(self.gnss_offset)
         return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
     def group_residuals(self) -> dict[str, np.ndarray]:
@@ -368,6 +407,11 @@ class HybridProblem:
                       if ceres_summary is not None else -1)
         if ceres_summary is not None:
             logger.debug("ceres: %s", ceres_summary.FullReport())
+        if self.gnss_offset is not None:  # the estimate back into the priors
+            axes = np.asarray(self.gnss.offset_axes, bool)
+            offset = np.array(self.gnss.offset, dtype=np.float64)
+            offset[axes] = self.gnss_offset
+            self.gnss.offset = offset
         residuals = self.group_residuals()
         self.residuals = residuals  # at the solution, until the next solve
         return SolveReport(

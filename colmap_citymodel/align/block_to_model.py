@@ -8,7 +8,7 @@ import logging
 import numpy as np
 import pycolmap
 
-from ..block.priors import GNSSPriors
+from ..block.priors import OFFSET_AXES, GNSSPriors
 from ..block.reconstruction import camera_centres, tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import GeoregistrationError, GNSSError, NoOverlapError
@@ -40,10 +40,12 @@ def _fmt_box(box: np.ndarray) -> str:
 
 
 def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_transform,
-                details: dict | None = None
+                details: dict | None = None, gnss_offset: str = "none"
                 ) -> tuple[pycolmap.Sim3d, GNSSPriors | None, float | None]:
     """Bring the reconstruction into the store's local frame; return the applied similarity.
-    `details`, when given, receives which cue fixed each datum parameter ("cues")."""
+    `details`, when given, receives which cue fixed each datum parameter ("cues").
+    `gnss_offset` (AdjustmentOptions.gnss_offset): the GNSS offset the adjustment estimates;
+    with "height" or "all", heights that PROJ could not convert are accepted as they are."""
     from ..block.gnss import match_to_reconstruction
     from .georegister import estimate_georegistration
 
@@ -52,17 +54,21 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
     cues = {"translation": "initial transform", "scale": "initial transform",
             "rotation": "initial transform"}
     if gnss is not None:
-        if getattr(gnss, "vertical_applied", None) is False:
+        axes = np.array(OFFSET_AXES[gnss_offset], bool)
+        if getattr(gnss, "vertical_applied", None) is False and not axes[2]:
             raise GNSSError(
                 f"the GNSS heights ({gnss.source}) could not be converted to the model's height "
-                f"system {store.crs.label} (PROJ lacks the geoid grid; see the warning above): "
-                "install the grid, or give the heights already converted, or "
+                f"system {store.crs.label} (PROJ lacks the geoid grid and the worldwide EGM96 "
+                "grid of Debian's proj-data is not installed; see the warning above): let refine "
+                "estimate the offset from the model (--gnss_height_offset auto), install "
+                "proj-data or the national grid, give the heights already converted, or "
                 "--gnss_height_offset METRES (model height minus GNSS height, e.g. about -47 "
                 "for ellipsoidal heights in Germany)")
         image_ids, positions, sigmas = match_to_reconstruction(gnss, rec, store.origin)
         lever_arm = getattr(gnss, "lever_arm", None)
         priors = GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas),
-                            None if lever_arm is None else np.asarray(lever_arm, float))
+                            None if lever_arm is None else np.asarray(lever_arm, float),
+                            offset_axes=axes)
     if initial_transform is not None:
         # The given transform maps the input frame to model CRS coordinates.
         to_local = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), -store.origin)

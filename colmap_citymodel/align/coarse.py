@@ -11,7 +11,10 @@ searches close that gap before any tie point is assigned:
 - `search_translation`: the translation that puts the most tie points near a model surface,
   within a box that covers the GNSS uncertainty (a few sigma), coarse to fine (kernel radius
   2 m -> 1 m -> 0.4 m), with a mild penalty in units of the GNSS sigma so that a direction the
-  model leaves free stays where GNSS put it.
+  model leaves free stays where GNSS put it. When the GNSS heights carry an unknown offset
+  (`--gnss_height_offset auto`: another height system, heights above take-off) the height is
+  searched over the whole range where the tie points meet the model's heights
+  (`height_search_range`), without penalty: roofs and eaves put the block at its height.
 
 Both use `SurfaceDistance`, the unsigned distance from a point to the model's surfaces that can
 carry tie points (walls, roofs, ...; not ground or closure surfaces), through Open3D's
@@ -97,12 +100,13 @@ class TranslationSearch:
                 "near_share_before": self.share_before, "near_share_after": self.share_after}
 
 
-def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, half_box: np.ndarray,
-                         spacing: float):
-    """Distances on a regular grid around `points` (nearest-cell lookups) for the coarse
-    level: one distance query per cell instead of one per (point, shift)."""
-    lower = points.min(0) - half_box - 2 * spacing
-    upper = points.max(0) + half_box + 2 * spacing
+def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, low: np.ndarray,
+                         high: np.ndarray, spacing: float):
+    """Distances on a regular grid around `points` shifted by `low`..`high` (nearest-cell
+    lookups) for the coarse level: one distance query per cell instead of one per (point,
+    shift)."""
+    lower = points.min(0) + low - 2 * spacing
+    upper = points.max(0) + high + 2 * spacing
     cells = np.prod((upper - lower) / spacing)
     if cells > MAX_GRID_CELLS:
         spacing *= float((cells / MAX_GRID_CELLS) ** (1 / 3))
@@ -121,27 +125,35 @@ def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, half_box:
 
 def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.ndarray,
                        search_sigmas: float = 4.0, candidates: int = 3,
-                       levels=TRANSLATION_LEVELS) -> TranslationSearch:
+                       levels=TRANSLATION_LEVELS, height_range=None) -> TranslationSearch:
     """The shift of `points` that maximises near_share - SHIFT_PENALTY * |shift / sigmas|^2.
 
     `sigmas` (3,) is the uncertainty of the block's position (GNSS sigma per axis); the search
-    covers +- `search_sigmas` of it. The coarse level scores every grid shift with a distance
-    grid; the best `candidates` separate maxima are refined on the finer levels.
+    covers +- `search_sigmas` of it. `height_range` (lowest, highest): the vertical shifts
+    searched instead, without penalty (the GNSS heights' level is unknown). The coarse level
+    scores every grid shift with a distance grid; the best `candidates` separate maxima are
+    refined on the finer levels.
     """
     import time
 
     t0 = time.perf_counter()
     sigmas = np.maximum(np.asarray(sigmas, float), 1e-3)
     pts = subsample(points, MAX_SEARCH_POINTS)
-    half_box = search_sigmas * sigmas
+    high = search_sigmas * sigmas
+    low = -high
+    penalty_sigmas = sigmas.copy()
+    if height_range is not None:
+        low[2], high[2] = float(min(height_range)), float(max(height_range))
+        penalty_sigmas[2] = np.inf
 
     def objective(shares: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-        return shares - SHIFT_PENALTY * np.sum((shifts / sigmas) ** 2, axis=-1)
+        return shares - SHIFT_PENALTY * np.sum((shifts / penalty_sigmas) ** 2, axis=-1)
 
     # Coarse level on a distance grid.
     radius, step = levels[0]
-    lookup = _grid_lookup_builder(pts, surface, half_box, step / 1.5)
-    axes = [np.arange(-np.floor(h / step), np.floor(h / step) + 1) * step for h in half_box]
+    lookup = _grid_lookup_builder(pts, surface, low, high, step / 1.5)
+    axes = [np.arange(np.ceil(lo / step), np.floor(hi / step) + 1) * step
+            for lo, hi in zip(low, high)]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     shares = np.empty(len(shifts))
     for start in range(0, len(shifts), 256):
@@ -162,7 +174,7 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
         offsets = np.arange(-np.floor(reach / step), np.floor(reach / step) + 1) * step
         local = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
         local = centre + local
-        local = local[np.all(np.abs(local) <= half_box + step, axis=1)]
+        local = local[np.all((local >= low - step) & (local <= high + step), axis=1)]
         moved = (pts[None, :, :] + local[:, None, :]).reshape(-1, 3)
         d = surface(moved).reshape(len(local), len(pts))
         u = np.clip(d / radius, 0.0, 1.0)
@@ -183,9 +195,10 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
     result = TranslationSearch(best_shift, best_score, near_share(surface(sample), finest),
                                near_share(surface(sample + best_shift), finest),
                                np.abs(best_shift) / sigmas, time.perf_counter() - t0)
-    logger.info("translation search (+-%s m): shift %s m (%s GNSS sigma), tie points near the "
+    logger.info("translation search (%s m): shift %s m (%s GNSS sigma), tie points near the "
                 "model %.0f %% -> %.0f %%, %.1f s",
-                np.round(half_box, 1).tolist(), np.round(best_shift, 2).tolist(),
+                ", ".join(f"{lo:+.1f}..{hi:+.1f}" for lo, hi in zip(low, high)),
+                np.round(best_shift, 2).tolist(),
                 np.round(result.shift_sigmas, 1).tolist(), 100 * result.share_before,
                 100 * result.share_after, result.seconds)
     return result
@@ -295,6 +308,25 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
     return RollSearch(angle, axis, centre, float(fine_values.max()), score(0.0), len(normals))
 
 
+#: Metres added on both sides of the vertical search range of `height_search_range`.
+HEIGHT_SEARCH_MARGIN = 5.0
+
+
+def height_search_range(points: np.ndarray, store: PlaneStore,
+                        excluded_classes=("GroundSurface", "ClosureSurface")
+                        ) -> tuple[float, float]:
+    """Vertical shifts (lowest, highest) that put some of the tie points (2nd-98th height
+    percentile) within the height range of the model's surfaces: where the block must be when
+    its GNSS heights are in an unknown height system."""
+    faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
+    ids = (np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces])) if faces
+           else np.arange(len(store.vertices)))
+    z_model = store.vertices[ids, 2]
+    z_low, z_high = np.percentile(points[:, 2], [2.0, 98.0])
+    return (float(z_model.min() - z_high - HEIGHT_SEARCH_MARGIN),
+            float(z_model.max() - z_low + HEIGHT_SEARCH_MARGIN))
+
+
 @dataclass
 class CoarseAlignment:
     """The similarity (rotation about the flight line, then a shift) that coarse alignment
@@ -320,12 +352,14 @@ MIN_ROLL_GAIN = 0.05
 
 def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndarray,
                      camera_view: np.ndarray, store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
-                     straight: bool, search_sigmas: float = 4.0) -> CoarseAlignment:
+                     straight: bool, search_sigmas: float = 4.0, free_height: bool = False
+                     ) -> CoarseAlignment:
     """Roll about a straight flight line (when `straight`) and shift of the whole block.
 
     Each roll candidate (none, and the one `search_roll` prefers) gets its own translation
     search; the pair with the best search objective wins, so a roll is kept only when it puts
-    more tie points on the model.
+    more tie points on the model. `free_height`: the GNSS heights' level is unknown, the
+    height is searched over `height_search_range`.
     """
     import pycolmap
 
@@ -353,7 +387,10 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     best = None
     for roll_deg, rotation, offset in candidates:
         moved = points @ rotation.T + offset
-        search = search_translation(moved, surface, sigmas, search_sigmas)
+        height_range = height_search_range(moved, store) if free_height else None
+        search = search_translation(moved, surface, sigmas, search_sigmas,
+                                    candidates=5 if free_height else 3,
+                                    height_range=height_range)
         for entry in found:
             if roll_deg is not None and entry["roll_deg"] == roll_deg:
                 entry["search_value"] = search.value

@@ -47,7 +47,8 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
                          sigma_plane: float, loss_scale: float = 2.0,
                          antennas: np.ndarray | None = None, gnss: np.ndarray | None = None,
                          gnss_sigmas: np.ndarray | None = None, max_iterations: int = 50,
-                         scale_sigma: float | None = None) -> PlaneAlignment:
+                         scale_sigma: float | None = None, gnss_free_axes=None
+                         ) -> PlaneAlignment:
     """The similarity X -> c + s R (X - c) + t that puts `points` on their planes.
 
     Minimises sum rho((n.X' + d) / sigma_plane) with Huber's rho (scale `loss_scale`, the f_dTP
@@ -55,8 +56,11 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
     antenna positions A (current block) against their observations G, plus (log s / scale_sigma)^2
     when `scale_sigma` is given: the scale may change only as far as GNSS determines it (planes
     alone pull a block whose assignments are partly wrong towards a smaller size, where every
-    distance is shorter); the scale is also bounded to +- SCALE_BOUND_SIGMAS of it. Gauss-Newton
-    with iteratively reweighted least squares; analytic Jacobian about the centroid c.
+    distance is shorter); the scale is also bounded to +- SCALE_BOUND_SIGMAS of it. Along
+    `gnss_free_axes` (bool (3,)) a constant offset of all GNSS positions is an unknown as well
+    (GNSSPriors.offset_axes), so GNSS holds only the block's shape there, not its level.
+    Gauss-Newton with iteratively reweighted least squares; analytic Jacobian about the
+    centroid c.
     """
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
@@ -64,6 +68,10 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
     centre = points.mean(0)
     # The similarity accumulated so far: X' = centre + scale * rotation (X - centre) + shift.
     rotation, scale, shift = np.eye(3), 1.0, np.zeros(3)
+    free = (np.zeros(3, bool) if gnss_free_axes is None or gnss is None
+            else np.asarray(gnss_free_axes, bool))
+    num_free = int(free.sum())
+    offset = np.zeros(3)  # the GNSS offset along the free axes (unknowns 7.. of the system)
 
     def apply(x: np.ndarray) -> np.ndarray:
         return centre + scale * (x - centre) @ rotation.T + shift
@@ -85,14 +93,17 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
         jacobian = np.hstack([np.cross(y, normals), normals,
                               np.einsum("ij,ij->i", normals, y)[:, None]]) / sigma_plane
         weights = np.minimum(1.0, loss_scale / np.maximum(np.abs(r), 1e-12))  # Huber IRLS
+        size = 7 + num_free
+        jacobian = np.hstack([jacobian, np.zeros((len(jacobian), num_free))])
         normal_matrix = jacobian.T @ (jacobian * weights[:, None])
         rhs = -jacobian.T @ (weights * r)
         if gnss is not None and len(gnss):
             a = apply(antennas) - centre
-            rg = ((a + centre - gnss) / gnss_sigmas).ravel()
+            rg = ((a + centre - gnss - offset) / gnss_sigmas).ravel()
+            jo = -np.broadcast_to(np.eye(3)[:, free], (len(a), 3, num_free))
             jg = np.concatenate([-_skew(a), np.broadcast_to(np.eye(3), (len(a), 3, 3)),
-                                 a[:, :, None]], axis=2) / gnss_sigmas[:, :, None]
-            jg = jg.reshape(-1, 7)
+                                 a[:, :, None], jo], axis=2) / gnss_sigmas[:, :, None]
+            jg = jg.reshape(-1, size)
             normal_matrix += jg.T @ jg
             rhs -= jg.T @ rg
         if scale_sigma is not None:
@@ -100,8 +111,9 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
             rhs[6] -= np.log(scale) / scale_sigma ** 2
         # A tiny damping keeps directions no plane constrains (e.g. parallel facades) at zero.
         damping = 1e-9 * max(np.trace(normal_matrix), 1.0)
-        step = np.linalg.solve(normal_matrix + damping * np.eye(7), rhs)
+        step = np.linalg.solve(normal_matrix + damping * np.eye(size), rhs)
         omega, dt, ds = step[:3], step[3:6], step[6]
+        offset[free] += step[7:]
         increment = np.asarray(pycolmap.Rotation3d(omega).matrix())
         # Compose: new X' = centre + e^ds * dR (X'_old - centre) + dt.
         if scale_sigma is not None:

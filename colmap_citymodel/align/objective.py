@@ -12,7 +12,8 @@ class BlockObjective:
     """One figure that every start-up move and loop iteration must lower: minus the share of a
     fixed subset of tie points near the model surfaces, plus the mean squared normalised GNSS
     residual weighted as in the translation search (a one-sigma shift of the whole block
-    costs as much as 1 % of the tie points on the model)."""
+    costs as much as 1 % of the tie points on the model; none along the axes where a GNSS
+    offset is estimated, GNSSPriors.normalised_residuals)."""
 
     def __init__(self, surface, priors: GNSSPriors | None, point_ids: np.ndarray,
                  radius: float):
@@ -42,6 +43,6 @@ class BlockObjective:
                 antennas = antennas @ matrix[:, :3].T + matrix[:, 3]
         value = -near_share(self.surface(points), self.radius)
         if antennas is not None:
-            v = (antennas - self.priors.positions) / self.priors.sigmas
+            v = self.priors.normalised_residuals(antennas)
             value += self.penalty * float(np.mean(np.sum(v ** 2, axis=1)))
         return value

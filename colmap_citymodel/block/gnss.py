@@ -10,10 +10,14 @@ float64 and NOT shifted; ``GNSSObservations.to_local(origin)`` gives the store's
 
 Heights. GNSS delivers ellipsoidal heights; city models use physical (orthometric/normal)
 heights, which differ by the geoid undulation N (tens of metres: ~35-50 m in Central and
-Northern Europe). PROJ converts between them only with a geoid grid; this machine has no network
-and ships no grids, so PROJ then falls back to a "ballpark vertical transformation" that leaves
-the height unchanged. We detect that from the operation PROJ actually used and log a warning
-that names the missing grid, so a metres-large vertical bias never goes unnoticed.
+Northern Europe). PROJ converts between them only with the grid of the model's height system;
+without network access and without that grid it falls back to a "ballpark vertical
+transformation" that leaves the height unchanged. We detect that from the operation PROJ
+actually used; the heights are then converted with the worldwide EGM96 geoid
+(`citymodel.crs.fallback_geoid`, Debian's proj-data) and a warning names the grid used, its
+accuracy (metre-level) and the missing national grid. Only without EGM96 do the heights stay
+ellipsoidal (`vertical_applied` False), which refine refuses unless the offset is given or
+estimated (`--gnss_height_offset METRES|auto`).
 """
 
 from __future__ import annotations
@@ -56,6 +60,9 @@ class GNSSObservations:
     # (or in another vertical datum) because PROJ lacked a grid; None: nothing to convert.
     vertical_applied: bool | None = None
     notes: list[str] = field(default_factory=list)
+    # The fallback geoid that converted the heights in place of the model height system's own
+    # grid (citymodel.crs.Geoid.todict() plus the mean undulation and the missing grid), or None.
+    geoid: dict | None = None
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -154,6 +161,34 @@ class _Transform:
     description: str
     vertical_applied: bool | None
     notes: list[str]
+    geoid: dict | None = None  # the fallback geoid used for the heights (see GNSSObservations)
+
+
+def _fallback_heights(xyz: np.ndarray, src_crs, what: str, missing: list[str], target: str
+                      ) -> tuple[np.ndarray, dict, str] | None:
+    """Physical heights from the ellipsoidal heights of `xyz` (x/y in always_xy order of
+    `src_crs`) with the fallback geoid: (heights, geoid record, note), or None without it."""
+    from pyproj.transformer import Transformer
+
+    from ..citymodel.crs import fallback_geoid, geoid_undulation
+
+    geoid = fallback_geoid()
+    if geoid is None:
+        return None
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)
+        to_wgs84 = Transformer.from_crs(src_crs, "EPSG:4979", always_xy=True)
+        lon, lat, h = to_wgs84.transform(xyz[:, 0], xyz[:, 1], xyz[:, 2])
+    undulation = geoid_undulation(lon, lat, geoid)
+    record = {**geoid.todict(), "mean_undulation_m": float(np.mean(undulation)),
+              "missing_grids": missing}
+    note = (f"{what}: ellipsoidal heights converted to {target} with the worldwide geoid "
+            f"{geoid.name} ({geoid.grid}, mean undulation {np.mean(undulation):.2f} m; typically "
+            f"within {geoid.accuracy_m:g} m of a national height system, more in mountains)"
+            + (f" because PROJ lacks {', '.join(missing)}" if missing else "")
+            + ". For centimetres install the national grid (projsync --file NAME, or PROJ_DATA); "
+            "refine --gnss_height_offset auto estimates the remaining offset from the model.")
+    return np.asarray(h, dtype=np.float64) - undulation, record, note
 
 
 def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
@@ -237,6 +272,7 @@ def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
     missing_text = f" (missing PROJ grid: {', '.join(missing)})" if missing else ""
     network = pyproj.network.is_network_enabled()
     vertical_applied: bool | None = None
+    geoid = None
     src_ell, dst_vert = _is_ellipsoidal_3d(src_crs), _has_vertical(dst_crs)
     src_vert = _has_vertical(src_crs)
     if "ballpark geographic offset" in lower:
@@ -246,14 +282,26 @@ def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
         )
     if src_ell and dst_vert:
         if "ballpark vertical" in lower or not group.transformers:
-            vertical_applied = False
-            notes.append(
-                f"{what}: heights stay ELLIPSOIDAL: PROJ could not apply the geoid model to reach "
-                f"the model's height system ({dst_crs.name}){missing_text}; they differ from the "
-                f"model heights by the geoid undulation N ({TYPICAL_UNDULATION}). Install the grid "
-                f"(projsync --file NAME, or PROJ_DATA) {'' if network else '(PROJ network is off) '}"
-                "or give GNSS in the model's height system."
-            )
+            dst_v = ([s for s in dst_crs.sub_crs_list if s.is_vertical] if dst_crs.is_compound
+                     else [dst_crs])
+            fallback = _fallback_heights(xyz, src_crs, what, missing,
+                                         f"{dst_v[0].name if dst_v else dst_crs.name}")
+            if fallback is not None:
+                out[:, 2], geoid, note = fallback
+                vertical_applied = True
+                notes.append(note)
+            else:
+                vertical_applied = False
+                notes.append(
+                    f"{what}: heights stay ELLIPSOIDAL: PROJ could not apply the geoid model to "
+                    f"reach the model's height system ({dst_crs.name}){missing_text}, and the "
+                    "worldwide geoid EGM96 (Debian package proj-data) is not installed either; "
+                    f"they differ from the model heights by the geoid undulation N "
+                    f"({TYPICAL_UNDULATION}). Install the grid (projsync --file NAME, or "
+                    f"PROJ_DATA) {'' if network else '(PROJ network is off) '}or proj-data, "
+                    "give GNSS in the model's height system, or let refine estimate the offset "
+                    "(--gnss_height_offset auto)."
+                )
         else:
             vertical_applied = True
             shift = float(np.mean(xyz[:, 2] - out[:, 2]))
@@ -262,12 +310,21 @@ def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
                 f"(mean geoid undulation {shift:.2f} m) via: {description}"
             )
     elif src_ell and not dst_vert and not dst_crs.is_geocentric:
-        vertical_applied = False
-        notes.append(
-            f"{what}: the model CRS {dst_crs.name} has no vertical datum, so GNSS heights stay "
-            f"ELLIPSOIDAL; if the model's heights are orthometric they differ by the geoid "
-            f"undulation ({TYPICAL_UNDULATION})"
-        )
+        # City models hold physical heights even where their CRS names no height system.
+        fallback = _fallback_heights(xyz, src_crs, what, [],
+                                     "heights above the geoid (the model CRS "
+                                     f"{dst_crs.name} names no height system)")
+        if fallback is not None:
+            out[:, 2], geoid, note = fallback
+            vertical_applied = True
+            notes.append(note)
+        else:
+            vertical_applied = False
+            notes.append(
+                f"{what}: the model CRS {dst_crs.name} has no vertical datum, so GNSS heights "
+                f"stay ELLIPSOIDAL; if the model's heights are orthometric they differ by the "
+                f"geoid undulation ({TYPICAL_UNDULATION})"
+            )
     elif src_vert and dst_vert:
         src_v = [s for s in src_crs.sub_crs_list if s.is_vertical] if src_crs.is_compound else []
         dst_v = [s for s in dst_crs.sub_crs_list if s.is_vertical] if dst_crs.is_compound else []
@@ -281,10 +338,11 @@ def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
         elif not same:
             vertical_applied = True
     for note in notes:
-        alarming = any(k in note for k in ("NOT", "ELLIPSOIDAL", "ballpark", "kept unchanged"))
+        alarming = any(k in note for k in ("NOT", "ELLIPSOIDAL", "ballpark", "kept unchanged",
+                                           "worldwide geoid"))
         logger.log(logging.WARNING if alarming else logging.INFO, note)
     logger.debug("%s: %s -> %s via %s", what, src_crs.name, dst_crs.name, description)
-    return out, _Transform(description, vertical_applied, notes)
+    return out, _Transform(description, vertical_applied, notes, geoid)
 
 
 # --------------------------------------------------------------------------------------------
@@ -365,6 +423,7 @@ def read_gnss_text(
         lever_arm=None if lever_arm is None else np.asarray(lever_arm, dtype=np.float64),
         vertical_applied=report.vertical_applied,
         notes=report.notes,
+        geoid=report.geoid,
     )
 
 
@@ -502,12 +561,12 @@ def read_gnss_exif(
         raise GNSSError(f"none of the {len(files)} images has an EXIF GPS position", image_dir)
     lla = np.array(lla, dtype=np.float64)
     notes: list[str] = []
-    vertical_applied = None
+    vertical_applied = geoid = None
     if altitude == "ellipsoidal":
         positions, report = reproject_with_report(
             lla, "EPSG:4979", target_crs, what="EXIF GPS", path=image_dir
         )
-        vertical_applied, notes = report.vertical_applied, report.notes
+        vertical_applied, notes, geoid = report.vertical_applied, report.notes, report.geoid
     else:
         import pyproj
 
@@ -536,6 +595,7 @@ def read_gnss_exif(
         source="exif",
         vertical_applied=vertical_applied,
         notes=notes,
+        geoid=geoid,
     )
 
 
@@ -637,13 +697,14 @@ def read_gnss_database(
     systems = np.array([rows[n][2] for n in names])
     positions = raw.copy()
     notes: list[str] = []
-    vertical_applied = None
+    vertical_applied = geoid = None
     wgs = systems == "WGS84"
     if np.any(wgs):
         positions[wgs], report = reproject_with_report(
             raw[wgs], "EPSG:4979", target_crs, what="pose priors (WGS84)", path=database_path
         )
         vertical_applied, notes = report.vertical_applied, list(report.notes)
+        geoid = report.geoid
     if np.any(systems == "UNDEFINED"):
         note = (f"{int(np.sum(systems == 'UNDEFINED'))} pose prior(s) have an UNDEFINED "
                 "coordinate system; taken as coordinates in the model CRS")
@@ -661,6 +722,7 @@ def read_gnss_database(
         source="database",
         vertical_applied=vertical_applied,
         notes=notes,
+        geoid=geoid,
     )
 
 

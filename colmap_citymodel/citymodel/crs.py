@@ -21,6 +21,7 @@ detects files that nevertheless write longitude first (a first value outside [-9
 from __future__ import annotations
 
 import re
+from dataclasses import dataclass
 from functools import lru_cache
 from pathlib import Path
 
@@ -275,3 +276,95 @@ def reproject_points(xyz: np.ndarray, src: CRSInfo, dst: CRSInfo, *, swap_lat_lo
     if not np.all(np.isfinite(out)):
         raise CRSError(f"reprojection from {src.label} to {dst.label} failed for some points (outside the CRS area?)")
     return out
+
+
+# -- the fallback geoid ---------------------------------------------------------------------------
+#
+# GNSS gives ellipsoidal heights h; city models use physical heights H = h - N, with N the geoid
+# (or quasigeoid) undulation of the model's height system. PROJ applies N only with the national
+# grid of that system (Germany: de_bkg_gcg2016.tif for DHHN2016), which neither the pyproj wheel
+# nor a PROJ without network access has. EGM96, a worldwide geoid, is always at hand on a machine
+# with Debian's proj-data (egm96_15.gtx, a 15' grid; PROJ's own name us_nga_egm96_15.tif): it is
+# used instead of a missing national grid, and the log and report say so.
+
+#: File names of the EGM96 15' grid: PROJ's current name first, then Debian proj-data's.
+FALLBACK_GEOID_FILES = ("us_nga_egm96_15.tif", "egm96_15.gtx")
+#: Directories searched for it besides PROJ's own (PROJ_DATA, pyproj's data and user dirs).
+FALLBACK_GEOID_DIRS = ("/usr/share/proj", "/usr/local/share/proj")
+#: What EGM96 heights typically differ from a national height system's (m): metre-level where
+#: gravity data are dense (Europe, North America), several metres in mountains and elsewhere.
+FALLBACK_GEOID_ACCURACY = 2.0
+
+
+@dataclass(frozen=True)
+class Geoid:
+    """A geoid grid used to turn ellipsoidal heights into physical heights."""
+
+    name: str  # "EGM96"
+    path: str  # the grid file
+    accuracy_m: float  # how far its heights typically are from the national system's
+
+    @property
+    def grid(self) -> str:
+        return Path(self.path).name
+
+    def todict(self) -> dict:
+        return {"name": self.name, "grid": self.grid, "path": self.path,
+                "accuracy_m": self.accuracy_m}
+
+
+def proj_search_dirs() -> list[Path]:
+    """Where PROJ (as pyproj runs it) and Debian keep grids, in search order."""
+    import os
+
+    dirs: list[str] = []
+    for variable in ("PROJ_DATA", "PROJ_LIB"):
+        dirs += [d for d in os.environ.get(variable, "").split(os.pathsep) if d]
+    try:
+        dirs += [d for d in pyproj.datadir.get_data_dir().split(os.pathsep) if d]
+    except pyproj.exceptions.DataDirError:
+        pass
+    dirs.append(pyproj.datadir.get_user_data_dir())
+    dirs += list(FALLBACK_GEOID_DIRS)
+    out: list[Path] = []
+    for d in dirs:
+        path = Path(d)
+        if path not in out:
+            out.append(path)
+    return out
+
+
+def fallback_geoid() -> Geoid | None:
+    """The worldwide EGM96 grid if this machine has it (None otherwise; `scripts/bootstrap.sh`
+    installs Debian's proj-data, which ships it)."""
+    for directory in proj_search_dirs():
+        for name in FALLBACK_GEOID_FILES:
+            path = directory / name
+            if path.is_file():
+                return Geoid("EGM96", str(path), FALLBACK_GEOID_ACCURACY)
+    return None
+
+
+@lru_cache(maxsize=8)
+def _undulation_transformer(path: str) -> pyproj.Transformer:
+    return pyproj.Transformer.from_pipeline(
+        "+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad "
+        f"+step +proj=vgridshift +grids={path} +multiplier=1 "
+        "+step +proj=unitconvert +xy_in=rad +xy_out=deg")
+
+
+def geoid_undulation(longitude, latitude, geoid: Geoid) -> np.ndarray:
+    """Undulation N (m) of `geoid` at WGS84 longitudes and latitudes (degrees): physical
+    height = ellipsoidal height - N."""
+    lon = np.atleast_1d(np.asarray(longitude, dtype=np.float64))
+    lat = np.atleast_1d(np.asarray(latitude, dtype=np.float64))
+    if " " in geoid.path:
+        raise CRSError(f"the geoid grid path must not contain spaces: {geoid.path!r}")
+    try:
+        _, _, n = _undulation_transformer(geoid.path).transform(lon, lat, np.zeros_like(lon))
+    except pyproj.exceptions.ProjError as error:
+        raise CRSError(f"cannot read the geoid grid {geoid.path}: {error}") from None
+    n = np.asarray(n, dtype=np.float64)
+    if not np.all(np.isfinite(n)):
+        raise CRSError(f"the geoid grid {geoid.grid} has no value at some positions")
+    return n

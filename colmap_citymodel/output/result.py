@@ -51,6 +51,9 @@ class RefineResult:
     refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
     datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
     coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
+    # The estimated constant GNSS offset (--gnss_height_offset auto, --gnss_bias auto) with its
+    # sigma, start value, prior and the geoid the heights came through; None when not estimated.
+    gnss_offset: dict | None = None
 
     @property
     def handed_back(self) -> str:

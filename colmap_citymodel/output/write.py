@@ -109,6 +109,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "observability_before": result.observability_before,
         "datum_cues": result.datum_cues,
         "coarse_alignment": result.coarse_alignment,
+        "gnss_height_offset": result.gnss_offset,
     }
 
 
@@ -141,6 +142,14 @@ def report_markdown(report: dict) -> str:
                   f"{100 * t['near_share_after']:.0f} %"
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
+    offset = report.get("gnss_height_offset")
+    if offset:
+        sigma = f" +- {offset['sigma_m']:.2f}" if offset["sigma_m"] is not None else ""
+        lines += [f"GNSS height offset (model minus GNSS, estimated from the model planes): "
+                  f"{offset['value_m']:+.2f}{sigma} m, relative to {offset['relative_to']}"
+                  + (f"; horizontal bias E, N {offset['bias_enu_m'][0]:+.2f}, "
+                     f"{offset['bias_enu_m'][1]:+.2f} m" if "bias_enu_m" in offset else "")
+                  + ".", ""]
     geo = report["georegistration"]
     if geo["rms_m"] is not None:
         lines.append(f"Georegistration to GNSS: RMS {geo['rms_m']:.2f} m, "

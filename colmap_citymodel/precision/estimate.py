@@ -78,7 +78,7 @@ RANK_TOLERANCE = 1e-12
 POSE_STEP = 1e-6
 #: Observation groups reported only when the problem has them (the generalisation priors,
 #: the baseline priors that hold the scale).
-OPTIONAL_GROUPS = ("gen", "scale")
+OPTIONAL_GROUPS = ("gen", "scale", "offset")
 #: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
 PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
 
@@ -224,6 +224,8 @@ def _layout(problem: HybridProblem) -> _Layout:
         add("plane_generalisation", k, b.generalisation[k])
     for k in range(len(b.vertex_ids)):
         add("vertex", k, b.vertices[k])
+    if problem.gnss_offset is not None:
+        add("gnss_offset", 0, problem.gnss_offset)
     num_c = int(sum(sizes))
     point_ids = []
     for point_id in rec.point3D_ids():

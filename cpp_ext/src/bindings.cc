@@ -10,6 +10,7 @@
 #include "colmap_citymodel/point_plane_distance.h"
 #include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
+#include "colmap_citymodel/projection_center_offset_prior.h"
 #include "colmap_citymodel/projection_center_prior.h"
 #include "colmap_citymodel/scalar_prior.h"
 
@@ -167,6 +168,38 @@ PYBIND11_MODULE(_core, m) {
       "GNSS position prior on a frame, residual = L (R^T (p_in_rig - t) - "
       "P_obs) with L^T L = Sigma^-1.\nParameter block: rig_from_world.params "
       "(7).");
+
+  m.def(
+      "ProjectionCenterOffsetPriorCost",
+      [](const Eigen::Vector3d& observed_xyz, const Eigen::Vector3d& sigma_xyz,
+         const Eigen::Vector3d& position_in_rig,
+         const Eigen::MatrixXd& directions) -> ceres::CostFunction* {
+        CheckFinite(observed_xyz, "observed_xyz");
+        CheckFinite(position_in_rig, "position_in_rig");
+        if (directions.rows() != 3 || !directions.allFinite()) {
+          throw std::invalid_argument("directions must be a finite 3 x k matrix");
+        }
+        const Eigen::Matrix3d sqrt_information = SqrtInformationFromSigma(sigma_xyz);
+        if (directions.cols() == 1) {
+          return ProjectionCenterOffsetPriorCostFunctor<1>::Create(
+              observed_xyz, sqrt_information, position_in_rig, directions);
+        }
+        if (directions.cols() == 3) {
+          return ProjectionCenterOffsetPriorCostFunctor<3>::Create(
+              observed_xyz, sqrt_information, position_in_rig, directions);
+        }
+        throw std::invalid_argument("directions must have 1 or 3 columns, got " +
+                                    std::to_string(directions.cols()));
+      },
+      "observed_xyz"_a,
+      "sigma_xyz"_a,
+      "position_in_rig"_a,
+      "directions"_a,
+      kTake,
+      "GNSS position prior with a constant offset b of the observations, "
+      "residual = (R^T (p_in_rig - t) - (P_obs + D b)) / sigma per axis; D is "
+      "3 x k (k = 1: a height offset along (0, 0, 1); k = 3: a 3D bias).\n"
+      "Parameter blocks: rig_from_world.params (7), b (k).");
 
   m.def(
       "BaselineLengthPriorCost",
