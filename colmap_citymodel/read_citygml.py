@@ -736,8 +736,10 @@ def read_citygml(
     num_without = 0
 
     tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
+    source = None  # closed on every way out (lxml keeps it open until garbage collection)
     try:
-        context = etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True)
+        source = open(path, "rb")
+        context = etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True)
         for _event, el in context:
             parent = el.getparent()
             name = _local(el.tag)
@@ -784,6 +786,9 @@ def read_citygml(
         raise CityGMLError(_xml_error(error), path) from None
     except OSError as error:
         raise InputError(f"cannot read file: {error}", path) from None
+    finally:
+        if source is not None:
+            source.close()
 
     if num_features[0] == 0:
         raise CityGMLError("no buildings in the file", path)
@@ -992,8 +997,10 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
     walker = _Walker(path, lod)
     tags = ["{*}Polygon", "{*}Surface", "{*}CompositeSurface", "{*}MultiSurface", "{*}OrientableSurface",
             "{*}LinearRing", "{*}Ring"] + [f"{{*}}{t}" for t in MEMBER_TAGS]
+    source = None
     try:
-        for _event, el in etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True):
+        source = open(path, "rb")
+        for _event, el in etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True):
             parent = el.getparent()
             if _local(el.tag) in MEMBER_TAGS:
                 if parent is not None and parent.getparent() is None:
@@ -1017,4 +1024,9 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
             surfaces.setdefault(gid, [[p.exterior, *p.holes] for p in walker.polygons])
     except etree.XMLSyntaxError as error:
         raise CityGMLError(_xml_error(error), path) from None
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", path) from None
+    finally:
+        if source is not None:
+            source.close()
     return surfaces, rings
