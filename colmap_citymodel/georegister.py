@@ -343,6 +343,9 @@ def _sim3_from_matrix(matrix: np.ndarray, path) -> "pycolmap.Sim3d":  # noqa: F8
         raise InputError(f"the transform's translation {matrix[:, 3].tolist()} lies beyond "
                          f"{MAX_PROJECTED_COORDINATE:.0e} m, outside any projected CRS", path)
     linear = matrix[:, :3]
+    if np.abs(linear).max() > 1.0 / min_scale:
+        raise InputError(f"the transform's 3x3 part holds {np.abs(linear).max():.6g}, beyond "
+                         f"any scale x rotation (scale at most {1 / min_scale:.0e})", path)
     with np.errstate(over="ignore", invalid="ignore"):
         det = np.linalg.det(linear)
     if not det > 0:
@@ -396,7 +399,11 @@ def read_initial_transform(path) -> "pycolmap.Sim3d":  # noqa: F821
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("'scale' must be positive", path)
         rotation = _as_array(data["rotation"], path, "rotation")
+        if not np.all(np.isfinite(rotation)):
+            raise InputError("'rotation' holds a value that is not finite", path)
         if rotation.shape == (4,):
+            if np.abs(rotation).max() > 0:  # scaled first: the squares of 1e200 overflow
+                rotation = rotation / np.abs(rotation).max()
             norm = np.linalg.norm(rotation)
             if norm < 1e-9:
                 raise InputError("'rotation' quaternion is zero", path)
