@@ -405,19 +405,30 @@ class _Walker:
                     dim = self._dim(d)
                 text = child.text
                 if text:
-                    tokens.extend(text.split())
+                    values = text.split()
+                    if name == "pos" and len(values) != dim:
+                        raise CityGMLError(f"polygon {gid or '(without gml:id)'}: a gml:pos with "
+                                           f"{len(values)} values (srsDimension {dim})", self.path)
+                    tokens.extend(values)
                 if name == "posList":  # one posList holds the whole ring
                     break
             elif name == "coordinates":
                 cs = child.get("cs", ",")
                 ts = child.get("ts", " ")
                 decimal = child.get("decimal", ".")
+                where = f"polygon {gid or '(without gml:id)'}: gml:coordinates"
+                if not cs or not ts or cs == ts or not decimal:
+                    raise CityGMLError(f"{where} with an empty or repeated separator (cs {cs!r}, "
+                                       f"ts {ts!r}, decimal {decimal!r})", self.path)
                 text = child.text or ""
                 if decimal != ".":
                     text = text.replace(decimal, ".")
                 tuples = [t.split(cs) for t in (text.split() if ts.isspace() else text.split(ts)) if t.strip()]
                 if tuples:
                     dim = len(tuples[0])
+                    if dim not in (2, 3) or any(len(t) != dim for t in tuples):
+                        raise CityGMLError(f"{where} tuples of {sorted({len(t) for t in tuples})} "
+                                           "values (2 or 3 each, all alike)", self.path)
                 for t in tuples:
                     tokens.extend(t)
         return dim

@@ -324,3 +324,29 @@ def test_transform_beyond_any_similarity(workspace, tmp_path, capsys, content, e
     code, err = run(refine_argv(workspace, tmp_path / "out", **{
         "--initial_transform": transform, "--gnss": None, "--gnss_crs": None}), capsys)
     assert code == 2 and str(transform) in err and expected in err
+
+
+_ONE_POLYGON = """<?xml version="1.0" encoding="UTF-8"?>
+<CityModel xmlns="http://www.opengis.net/citygml/2.0"
+ xmlns:bldg="http://www.opengis.net/citygml/building/2.0" xmlns:gml="http://www.opengis.net/gml">
+<cityObjectMember><bldg:Building gml:id="b1"><bldg:boundedBy><bldg:WallSurface>
+<bldg:lod2MultiSurface><gml:MultiSurface srsName="EPSG:25832"><gml:surfaceMember>
+<gml:Polygon gml:id="p1"><gml:exterior><gml:LinearRing>{ring}</gml:LinearRing></gml:exterior>
+</gml:Polygon></gml:surfaceMember></gml:MultiSurface></bldg:lod2MultiSurface>
+</bldg:WallSurface></bldg:boundedBy></bldg:Building></cityObjectMember></CityModel>
+"""
+
+
+@pytest.mark.parametrize("ring, expected", [
+    ('<gml:coordinates cs="">691000,5335000,0 691010,5335000,0 691010,5335000,9</gml:coordinates>',
+     "empty or repeated separator"),
+    ("<gml:coordinates>691000,5335000,0 691010,5335000 691010,5335000,9,3</gml:coordinates>",
+     "tuples of [2, 3, 4] values"),
+    ("<gml:pos>691000 5335000 0</gml:pos><gml:pos>691010 5335000</gml:pos>"
+     "<gml:pos>691010 5335000 9</gml:pos>", "a gml:pos with 2 values (srsDimension 3)"),
+])
+def test_citygml_coordinates_that_do_not_line_up(tmp_path, capsys, ring, expected):
+    bad = tmp_path / "one.gml"
+    bad.write_text(_ONE_POLYGON.format(ring=ring))
+    code, err = run(["model-info", bad], capsys)
+    assert code == 2 and str(bad) in err and "polygon p1" in err and expected in err
