@@ -456,7 +456,11 @@ def read_exif_gps(path) -> dict | None:
     one image, or None when it has no usable GPS position."""
     from PIL import ExifTags, Image, UnidentifiedImageError
 
+    limit = Image.MAX_IMAGE_PIXELS
     try:
+        # Only the EXIF is read, never the pixels: no decompression bomb check (it would refuse
+        # the header of a 280 MP aerial camera, or of a damaged one, with an exception)
+        Image.MAX_IMAGE_PIXELS = None
         with warnings.catch_warnings(record=True) as caught:  # Pillow warns about damaged tags
             warnings.simplefilter("always")
             with Image.open(path) as image:
@@ -465,6 +469,8 @@ def read_exif_gps(path) -> dict | None:
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
         logger.warning("%s: cannot read EXIF (%s); skipped", path, error)
         return None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
     if caught:
         logger.warning("%s: damaged EXIF (%s)", path, caught[0].message)
     if not gps:

@@ -313,6 +313,12 @@ ODD_EXIF = ("no_exif", "no_gps", "lat_out_of_range", "zero_denominator", "short_
             "no_altitude", "huge_altitude", "zero_position", "south_west", "bad_refs", "huge_dop")
 
 
+def jpeg_with_size(data: bytes, width: int, height: int) -> bytes:
+    """A JPEG whose frame header (SOF0/SOF2) states another image size."""
+    i = max(data.find(b"\xff\xc0"), data.find(b"\xff\xc2"))
+    return data[:i + 5] + struct.pack(">HH", height, width) + data[i + 9:]
+
+
 def _odd_exif(source: Path, target: Path, variant: str) -> None:
     """A copy of a JPEG whose EXIF lacks GPS or holds odd GPS values."""
     from PIL import ExifTags, Image, TiffImagePlugin
@@ -555,6 +561,12 @@ def make_case(corpus: Corpus, seed: int, index: int, workdir: Path, *, kind: str
             elif r < 0.08:  # not a JPEG under a .jpg name
                 (images / "fake.jpg").write_bytes(rng.choice((b"", b"GIF89a", b"\xff\xd8\xff")))
                 hows.append("fake.jpg")
+            elif r < 0.12:  # a frame header of a huge (or zero) image size
+                p = rng.choice(files)
+                size = rng.choice(((65000, 65000), (0, 0), (1, 65535)))
+                p.unlink()
+                p.write_bytes(jpeg_with_size((corpus.lund / "images" / p.name).read_bytes(), *size))
+                hows.append(f"{p.name}: {size[0]} x {size[1]} pixels")
             else:
                 for p in rng.sample(files, rng.randint(1, 2)):
                     # most EXIF lives in the first few kilobytes

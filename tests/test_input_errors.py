@@ -350,3 +350,32 @@ def test_citygml_coordinates_that_do_not_line_up(tmp_path, capsys, ring, expecte
     bad.write_text(_ONE_POLYGON.format(ring=ring))
     code, err = run(["model-info", bad], capsys)
     assert code == 2 and str(bad) in err and "polygon p1" in err and expected in err
+
+
+LUND = SHARED_DATA / "images" / "lund"
+
+
+@pytest.mark.skipif(not LUND.is_dir(), reason=f"shared Lund photos not found at {LUND}")
+def test_exif_of_a_huge_image_is_read(workspace, tmp_path, capsys):
+    """The frame header of a 65000 x 65000 pixel image (a 4 GP aerial camera, or damage) made
+    Pillow refuse to open it before its EXIF was read."""
+    import pyproj
+
+    from colmap_citymodel.crs import user_crs
+    from colmap_citymodel.read_gnss import read_gnss_exif
+    from fuzz_inputs import _box_citygml, jpeg_with_size
+
+    images = tmp_path / "images"
+    images.mkdir()
+    photos = sorted(LUND.glob("*.jpg"))[:3]
+    for p in photos:
+        shutil.copyfile(p, images / p.name)
+    (images / photos[0].name).write_bytes(jpeg_with_size(photos[0].read_bytes(), 65000, 65000))
+    assert len(read_gnss_exif(images, user_crs("EPSG:3006"))) == 3
+    # through refine: the photos' names are not those of the reconstruction's images
+    to_sweref = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:3006", always_xy=True)
+    boxes = tmp_path / "boxes.gml"
+    boxes.write_text(_box_citygml(to_sweref.transform(13.1935, 55.6975), "EPSG:3006"))
+    code, err = run(refine_argv(workspace, tmp_path / "out", **{
+        "--citymodel": boxes, "--gnss": None, "--gnss_crs": None, "--exif": images}), capsys)
+    assert code == 2 and str(images) in err and "match a registered image" in err
