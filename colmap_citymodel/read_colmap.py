@@ -367,14 +367,14 @@ class _Binary:
         most = (self.size - 8) // min_record
         if n > most:
             raise _Damaged(self.path, f"the file says {n} {what}, but its {self.size} bytes hold "
-                                      f"at most {most} (damaged count, truncated or not a "
-                                      f"{self.path.stem} file)")
+                                      f"at most {most} (damaged count, truncated, or not a "
+                                      f"COLMAP {self.path.stem} file)")
         return n
 
     def end(self, pos: int, n: int, what: str) -> None:
         if pos != self.size:
             raise _Damaged(self.path, f"{self.size - pos} bytes after the last of the {n} {what} "
-                                      "(damaged count or data, or not a "
+                                      "(damaged count or data, or not a COLMAP "
                                       f"{self.path.stem} file)")
 
 
