@@ -264,58 +264,75 @@ def _check_points(model: _Model, ids: np.ndarray, xyz: np.ndarray, where) -> Non
         raise _Damaged(path, f"point {int(uniq[np.argmax(counts > 1)])}: point id given twice")
 
 
-def _check_tracks(model: _Model, chunks: Iterator[tuple[np.ndarray, np.ndarray]]) -> None:
+def _check_tracks(model: _Model, chunks: Iterator[tuple[np.ndarray, np.ndarray, np.ndarray]]
+                  ) -> None:
     """Track elements name existing images and 2D points, and the 2D points name the track's
     point; every 3D point named by an image's 2D point is confirmed by that point's track.
 
-    chunks: (point ids (K,), track elements (K, ...) of _TRACK with an owner index) pairs, see
-    the format walkers."""
+    chunks: (owning point id, image id, 2D point index) arrays of track elements, see the format
+    walkers."""
     path = model.files["points3D"]
-    order = np.argsort(np.asarray(model.image_ids, dtype=np.int64))
-    sorted_ids = np.asarray(model.image_ids, dtype=np.int64)[order]
-    num_2d = np.array([len(r) for r in model.image_refs], dtype=np.int64)
-    confirmed = [np.zeros(len(r), dtype=bool) for r in model.image_refs]
+    images_name = model.files["images"].name
+    ids = np.asarray(model.image_ids, dtype=np.int64)
+    top = int(ids.max()) if len(ids) else 0
+    if top <= 8 * len(ids) + (1 << 20):
+        # row of each image id (-1: no such image), the last slot for all larger ids
+        lut = np.full(top + 2, -1, dtype=np.int64)
+        lut[ids] = np.arange(len(ids))
+        rows_of = lambda images: lut[np.minimum(images, top + 1)]  # noqa: E731
+    else:  # sparse ids: a table would be too large
+        order = np.argsort(ids)
+        sorted_ids = ids[order]
+
+        def rows_of(images):
+            k = np.minimum(np.searchsorted(sorted_ids, images), len(ids) - 1)
+            return np.where(sorted_ids[k] == images, order[k], -1)
+    offsets = np.zeros(len(ids) + 1, dtype=np.int64)
+    np.cumsum([len(r) for r in model.image_refs], out=offsets[1:])
+    num_2d = np.diff(offsets)
+    refs_all = np.concatenate(model.image_refs) if model.image_refs else np.zeros(0, np.uint64)
+    model.image_refs = []
+    confirmed = np.zeros(len(refs_all), dtype=bool)
+
+    def image_of(flat: int) -> int:
+        return int(np.searchsorted(offsets, flat, side="right")) - 1
+
     for owners, images, idx in chunks:
-        k = np.searchsorted(sorted_ids, images)
-        k_clip = np.minimum(k, max(len(sorted_ids) - 1, 0))
-        known = (k < len(sorted_ids)) & (sorted_ids[k_clip] == images) if len(sorted_ids) else \
-            np.zeros(len(images), dtype=bool)
-        if not known.all():
-            e = int(np.argmin(known))
+        row = rows_of(images)
+        if len(row) and row.min() < 0:
+            e = int(np.argmin(row))
             raise _Damaged(path, f"point {int(owners[e])}: its track names image "
-                                 f"{int(images[e])}, which is not in {model.files['images'].name}")
-        row = order[k]
+                                 f"{int(images[e])}, which is not in {images_name}")
         inside = idx < num_2d[row]
         if not inside.all():
             e = int(np.argmin(inside))
             raise _Damaged(path, f"point {int(owners[e])}: its track names 2D point {int(idx[e])} "
                                  f"of image {int(images[e])}, which has {int(num_2d[row[e]])}")
-        for r in np.unique(row):
-            sel = row == r
-            refs = model.image_refs[r][idx[sel]]
-            mine = owners[sel]
-            wrong = (refs != mine) & (refs != INVALID_POINT3D_ID)
-            if wrong.any():
-                e = int(np.argmax(wrong))
-                if not _known_point(model, refs[e]):
-                    raise _Damaged(model.files["images"],
-                                   f"image {model.image_ids[r]} ({model.image_names[r]!r}): 2D "
-                                   f"point {int(idx[sel][e])} names point {int(refs[e])}, which "
-                                   f"is not in {model.files['points3D'].name}")
-                raise _Damaged(path, f"point {int(mine[e])}: its track names 2D point "
-                                     f"{int(idx[sel][e])} of image {model.image_ids[r]}, which "
-                                     f"{model.files['images'].name} gives to point {int(refs[e])}")
-            confirmed[r][idx[sel]] = True
-    for r, refs in enumerate(model.image_refs):
-        dangling = (refs != INVALID_POINT3D_ID) & ~confirmed[r]
-        if dangling.any():
-            e = int(np.argmax(dangling))
-            known = _known_point(model, refs[e])
-            raise _Damaged(model.files["images"],
-                           f"image {model.image_ids[r]} ({model.image_names[r]!r}): 2D point {e} "
-                           f"names point {int(refs[e])}, "
-                           + (f"whose track in {model.files['points3D'].name} does not hold it"
-                              if known else f"which is not in {model.files['points3D'].name}"))
+        flat = offsets[row] + idx
+        refs = refs_all[flat]
+        wrong = (refs != owners) & (refs != INVALID_POINT3D_ID)
+        if wrong.any():
+            e = int(np.argmax(wrong))
+            r = int(row[e])
+            if not _known_point(model, refs[e]):
+                raise _Damaged(model.files["images"],
+                               f"image {model.image_ids[r]} ({model.image_names[r]!r}): 2D "
+                               f"point {int(idx[e])} names point {int(refs[e])}, which "
+                               f"is not in {model.files['points3D'].name}")
+            raise _Damaged(path, f"point {int(owners[e])}: its track names 2D point "
+                                 f"{int(idx[e])} of image {model.image_ids[r]}, which "
+                                 f"{images_name} gives to point {int(refs[e])}")
+        confirmed[flat] = True
+    dangling = (refs_all != INVALID_POINT3D_ID) & ~confirmed
+    if dangling.any():
+        flat = int(np.argmax(dangling))
+        r = image_of(flat)
+        known = _known_point(model, refs_all[flat])
+        raise _Damaged(model.files["images"],
+                       f"image {model.image_ids[r]} ({model.image_names[r]!r}): 2D point "
+                       f"{flat - int(offsets[r])} names point {int(refs_all[flat])}, "
+                       + (f"whose track in {model.files['points3D'].name} does not hold it"
+                          if known else f"which is not in {model.files['points3D'].name}"))
 
 
 def _known_point(model: _Model, point_id) -> bool:
@@ -483,21 +500,27 @@ def _check_binary(model: _Model) -> None:
     with _Binary(files["points3D"]) as f:
         n = f.count(_POINT.size, "points")
         pos = 8
-        ids = np.empty(n, dtype=np.uint64)
-        xyz = np.empty((n, 3))
+        point_ids: list[int] = []
+        xyz_list: list[tuple[float, float, float]] = []
         spans: list[tuple[int, int]] = []
+        unpack, size, data = _POINT.unpack_from, _POINT.size, f.data
         for k in range(n):
-            pid, x, y, z, _r, _g, _b, _err, length = f.unpack(_POINT, pos, f"point {k + 1} of {n}")
-            pos += _POINT.size
+            if pos + size > f.size:
+                f.unpack(_POINT, pos, f"point {k + 1} of {n}")  # raises: truncated
+            pid, x, y, z, _r, _g, _b, _err, length = unpack(data, pos)
+            pos += size
             if length > (f.size - pos) // _TRACK.itemsize:
                 raise _Damaged(f.path, f"truncated or damaged: point {pid} says its track has "
                                        f"{length} elements, the rest of the file holds at most "
                                        f"{(f.size - pos) // _TRACK.itemsize}")
-            ids[k] = pid
-            xyz[k] = (x, y, z)
+            point_ids.append(pid)
+            xyz_list.append((x, y, z))
             spans.append((pos, length))
             pos += length * _TRACK.itemsize
         f.end(pos, n, "points")
+        ids = np.array(point_ids, dtype=np.uint64)
+        xyz = np.array(xyz_list, dtype=np.float64).reshape(-1, 3)
+        del point_ids, xyz_list
         _check_points(model, ids, xyz, lambda k: f"point {int(ids[k])}")
 
         def chunks():
@@ -506,8 +529,7 @@ def _check_binary(model: _Model) -> None:
                 lengths = np.fromiter((t for _, t in part), np.int64, len(part))
                 raw = b"".join(f.data[p:p + t * _TRACK.itemsize] for p, t in part)
                 track = np.frombuffer(raw, dtype=_TRACK)
-                yield (np.repeat(ids[a:a + len(part)], lengths),
-                       track["image"].astype(np.int64), track["idx"].astype(np.int64))
+                yield np.repeat(ids[a:a + len(part)], lengths), track["image"], track["idx"]
 
         _check_tracks(model, chunks())
 
@@ -678,18 +700,18 @@ def _check_text(model: _Model) -> None:
         try:
             if "_" in points_line:
                 raise ValueError
-            xy = np.array([float(v) for v in parts[0::3] + parts[1::3]], dtype=np.float64)
-            signed = [int(v) for v in parts[2::3]]
-        except ValueError:
-            raise _Damaged(path, f"{where} hold a field that is not a number") from None
+            xy = np.array(parts[0::3] + parts[1::3], dtype=np.float64)
+            signed = np.array(parts[2::3], dtype=np.int64)
+        except (ValueError, OverflowError):
+            raise _Damaged(path, f"{where} hold a field that is not a number or an id") from None
         if not np.isfinite(xy).all():
             raise _Damaged(path, f"{where} hold a value that is not finite")
-        if any(v < -1 or v >= INVALID_POINT3D_ID for v in signed):
-            raise _Damaged(path, f"{where} hold a point id outside [-1, {INVALID_POINT3D_ID - 1}]")
-        refs = np.array([INVALID_POINT3D_ID if v == -1 else v for v in signed], dtype=np.uint64)
+        if len(signed) and signed.min() < -1:
+            raise _Damaged(path, f"{where} hold a point id below -1")
+        refs = signed.astype(np.uint64)  # -1 (no point) becomes INVALID_POINT3D_ID
         _add_image(model, image_id, camera_id, name, refs, index, f"{_where(number)}: ")
     path = files["points3D"]
-    ids, xyz, owners, images, idx, line_of = [], [], [], [], [], []
+    ids, xyz, owners, tracks, line_of = [], [], [], [], []
     for number, line in _lines(path):
         t = _Tokens(path, number, line, "POINT3D_ID X Y Z R G B ERROR TRACK[] as "
                                         "(IMAGE_ID POINT2D_IDX)")
@@ -701,14 +723,23 @@ def _check_text(model: _Model) -> None:
         track = t.rest()
         if len(track) % 2:
             raise t.fail("the track is not IMAGE_ID POINT2D_IDX pairs")
-        for _ in range(len(track) // 2):
-            owners.append(pid)
-            images.append(t.int("track image id"))
-            idx.append(t.int("track 2D point index"))
+        try:
+            if "_" in line:
+                raise ValueError
+            pairs = np.array(track, dtype=np.int64).reshape(-1, 2)
+        except (ValueError, OverflowError):
+            pairs = None
+        if pairs is None or (pairs.size and (pairs.min() < 0 or pairs.max() > MAX_ID32)):
+            for _ in range(len(track) // 2):  # field by field, to name the bad one
+                t.int("track image id")
+                t.int("track 2D point index")
+        tracks.append(pairs)
+        owners.append(np.full(len(pairs), pid, dtype=np.uint64))
         ids.append(pid)
         line_of.append(number)
     ids_arr = np.array(ids, dtype=np.uint64)
     _check_points(model, ids_arr, np.array(xyz, dtype=np.float64).reshape(-1, 3),
                   lambda k: f"{_where(line_of[k])}: point {ids[k]}")
-    _check_tracks(model, iter([(np.array(owners, dtype=np.uint64), np.array(images, np.int64),
-                                np.array(idx, np.int64))]))
+    pairs = np.concatenate(tracks) if tracks else np.zeros((0, 2), dtype=np.int64)
+    _check_tracks(model, iter([(np.concatenate(owners) if owners else np.zeros(0, np.uint64),
+                                pairs[:, 0], pairs[:, 1])]))

@@ -316,6 +316,8 @@ ODD_EXIF = ("no_exif", "no_gps", "lat_out_of_range", "zero_denominator", "short_
 def jpeg_with_size(data: bytes, width: int, height: int) -> bytes:
     """A JPEG whose frame header (SOF0/SOF2) states another image size."""
     i = max(data.find(b"\xff\xc0"), data.find(b"\xff\xc2"))
+    if i < 0:
+        return data
     return data[:i + 5] + struct.pack(">HH", height, width) + data[i + 9:]
 
 
@@ -564,8 +566,9 @@ def make_case(corpus: Corpus, seed: int, index: int, workdir: Path, *, kind: str
             elif r < 0.12:  # a frame header of a huge (or zero) image size
                 p = rng.choice(files)
                 size = rng.choice(((65000, 65000), (0, 0), (1, 65535)))
-                p.unlink()
-                p.write_bytes(jpeg_with_size((corpus.lund / "images" / p.name).read_bytes(), *size))
+                data = p.read_bytes()
+                p.unlink()  # a hard link to the corpus
+                p.write_bytes(jpeg_with_size(data, *size))
                 hows.append(f"{p.name}: {size[0]} x {size[1]} pixels")
             else:
                 for p in rng.sample(files, rng.randint(1, 2)):
