@@ -359,11 +359,12 @@ def _odd_exif(source: Path, target: Path, variant: str) -> None:
     small.save(target, "JPEG", quality=80, exif=exif)
 
 
-def build_workspace(ws: Path) -> Path:
+def build_workspace(ws: Path, num_stations: int = 8) -> Path:
     """A small synthetic street as a user has it, in `ws`: sparse/0 (COLMAP binary), text/0
     (the same model as text), model.gml (EPSG:25832), gnss.txt (EPSG:25832), gnss_wgs84.txt
     (EPSG:4979), options.toml (every option), transform.txt / .json / _matrix.json, and check
-    points (checkpoints.txt, checkpoint_obs.txt) for `evaluate`."""
+    points (checkpoints.txt, checkpoint_obs.txt) for `evaluate`. 8 stations (24 images) read
+    fast but are too short a baseline for refine's georegistration; 16 run it through."""
     from colmap_citymodel.crs import user_crs
     from colmap_citymodel.options import RefineOptions
     from colmap_citymodel.synthetic_scene import StreetSceneOptions, make_street_scene
@@ -372,7 +373,7 @@ def build_workspace(ws: Path) -> Path:
 
     (ws / "sparse" / "0").mkdir(parents=True, exist_ok=True)
     (ws / "text" / "0").mkdir(parents=True, exist_ok=True)
-    scene = make_street_scene(StreetSceneOptions(seed=11, num_stations=8, point_spacing=2.0),
+    scene = make_street_scene(StreetSceneOptions(seed=11, num_stations=num_stations, point_spacing=2.0),
                               crs=user_crs("EPSG:25832"))
     scene.sfm.write_binary(str(ws / "sparse" / "0"))
     scene.sfm.write_text(str(ws / "text" / "0"))
@@ -412,7 +413,7 @@ def build_workspace(ws: Path) -> Path:
     return ws
 
 
-def build_corpus(root: Path) -> Corpus:
+def build_corpus(root: Path, num_stations: int = 8) -> Corpus:
     """Write the undamaged inputs under `root`: the list of real city model files (and a
     CityJSONSeq made from one), the synthetic workspace (build_workspace) and a Lund EXIF
     directory (four real photos, odd-EXIF variants) with a box model around it."""
@@ -427,7 +428,7 @@ def build_corpus(root: Path) -> Corpus:
     seq = root / "3dbag_b2.city.jsonl"
     _cityjson_seq(SHARED_DATA / "cityjson" / "3dbag_b2.city.json", seq)
     cityjson.append((seq, []))
-    ws = build_workspace(root / "workspace")
+    ws = build_workspace(root / "workspace", num_stations)
 
     lund = root / "lund"
     (lund / "images").mkdir(parents=True, exist_ok=True)

@@ -379,3 +379,24 @@ def test_exif_of_a_huge_image_is_read(workspace, tmp_path, capsys):
     code, err = run(refine_argv(workspace, tmp_path / "out", **{
         "--citymodel": boxes, "--gnss": None, "--gnss_crs": None, "--exif": images}), capsys)
     assert code == 2 and str(images) in err and "match a registered image" in err
+
+
+@pytest.fixture(scope="module")
+def long_workspace(tmp_path_factory):
+    """16 stations: enough baseline for refine to get past the georegistration."""
+    return build_workspace(tmp_path_factory.mktemp("ws16"), num_stations=16)
+
+
+def test_gnss_with_gross_outliers(long_workspace, tmp_path, capsys):
+    """Two positions 95 km and 5000 km off: the georegistration rejects them, the bundle
+    adjustment with all GNSS positions then eliminated every tie point, and the coarse search
+    failed on an empty array."""
+    lines = (long_workspace / "gnss.txt").read_text().splitlines()
+    for k, northing in ((8, "1e8"), (38, "53090")):
+        parts = lines[k].split()
+        parts[2] = northing
+        lines[k] = " ".join(parts)
+    gnss = tmp_path / "gnss.txt"
+    gnss.write_text("\n".join(lines) + "\n")
+    code, err = run(refine_argv(long_workspace, tmp_path / "out", **{"--gnss": gnss}), capsys)
+    assert code == 2 and "no tie points are left" in err
