@@ -37,6 +37,8 @@ MAX_ID32 = 2**32 - 1
 MAX_COORDINATE = 1e9
 #: Largest image side (pixels) a camera can have.
 MAX_IMAGE_SIDE = 10**6
+#: 2D points lie within this many image sides of the image (keypoints lie inside it).
+MAX_POINT2D_SIDES = 10
 SENSOR_TYPES = {0: "CAMERA", 1: "IMU"}
 _CHUNK = 1 << 16  # points per chunk of track elements
 
@@ -74,7 +76,7 @@ class _Model:
 
     kind: str  # "bin" or "txt"
     files: dict[str, Path]
-    cameras: set[int] = field(default_factory=set)
+    cameras: dict[int, int] = field(default_factory=dict)  # camera -> longer image side
     rigs: dict[int, set[tuple[int, int]]] = field(default_factory=dict)  # rig -> sensors
     image_frame: dict[int, tuple[int, int]] = field(default_factory=dict)  # image -> frame, camera
     has_rigs_or_frames: bool = False
@@ -177,7 +179,7 @@ def _check_camera(model: _Model, camera_id: int, model_id: int, width: int, heig
     if any(params[i] < shortest for i in focal):
         raise _Damaged(path, f"{what}: focal length {min(params[i] for i in focal):.6g} px is "
                              f"not plausible for a {width} x {height} image")
-    model.cameras.add(camera_id)
+    model.cameras[camera_id] = max(width, height)
 
 
 def _add_rig(model: _Model, rig_id: int, sensors: list[tuple[int, int]], where: str) -> None:
@@ -220,9 +222,12 @@ def _add_frame(model: _Model, frame_id: int, rig_id: int, data_ids, frames_seen:
 
 
 def _add_image(model: _Model, image_id: int, camera_id: int, name: str, refs: np.ndarray,
-               image_index: dict[int, int], where: str) -> None:
+               xy: np.ndarray, image_index: dict[int, int], where: str) -> None:
+    """xy: the 2D points' coordinates (any shape), finite and near the image."""
     path = model.files["images"]
     what = f"{where}image {image_id} ({name!r})"
+    if not np.isfinite(xy).all():
+        raise _Damaged(path, f"{what}: a 2D point that is not finite")
     if image_id in image_index:
         raise _Damaged(path, f"{what}: image id given twice")
     if not name:
@@ -238,6 +243,10 @@ def _add_image(model: _Model, image_id: int, camera_id: int, name: str, refs: np
         if frame[1] != camera_id:
             raise _Damaged(path, f"{what}: camera {camera_id}, but frame {frame[0]} holds it "
                                  f"with camera {frame[1]}")
+    side = model.cameras[camera_id]
+    if xy.size and np.abs(xy).max() > MAX_POINT2D_SIDES * side:
+        raise _Damaged(path, f"{what}: a 2D point at {np.abs(xy).max():.6g} px, far outside "
+                             f"the {side} px image")
     image_index[image_id] = len(model.image_ids)
     model.image_ids.append(image_id)
     model.image_names.append(name)
@@ -493,9 +502,8 @@ def _check_binary(model: _Model) -> None:
                                        f"{(f.size - pos) // _P2D.itemsize}")
             points = np.frombuffer(f.data[pos:pos + num_2d * _P2D.itemsize], dtype=_P2D)
             pos += num_2d * _P2D.itemsize
-            if not np.isfinite(points["xy"]).all():
-                raise _Damaged(f.path, f"image {image_id} ({name!r}): a 2D point is not finite")
-            _add_image(model, image_id, camera_id, name, points["id"].copy(), index, "")
+            _add_image(model, image_id, camera_id, name, points["id"].copy(), points["xy"], index,
+                       "")
         f.end(pos, n, "images")
     with _Binary(files["points3D"]) as f:
         n = f.count(_POINT.size, "points")
@@ -704,12 +712,10 @@ def _check_text(model: _Model) -> None:
             signed = np.array(parts[2::3], dtype=np.int64)
         except (ValueError, OverflowError):
             raise _Damaged(path, f"{where} hold a field that is not a number or an id") from None
-        if not np.isfinite(xy).all():
-            raise _Damaged(path, f"{where} hold a value that is not finite")
         if len(signed) and signed.min() < -1:
             raise _Damaged(path, f"{where} hold a point id below -1")
         refs = signed.astype(np.uint64)  # -1 (no point) becomes INVALID_POINT3D_ID
-        _add_image(model, image_id, camera_id, name, refs, index, f"{_where(number)}: ")
+        _add_image(model, image_id, camera_id, name, refs, xy, index, f"{_where(number)}: ")
     path = files["points3D"]
     ids, xyz, owners, tracks, line_of = [], [], [], [], []
     for number, line in _lines(path):

@@ -400,3 +400,15 @@ def test_gnss_with_gross_outliers(long_workspace, tmp_path, capsys):
     gnss.write_text("\n".join(lines) + "\n")
     code, err = run(refine_argv(long_workspace, tmp_path / "out", **{"--gnss": gnss}), capsys)
     assert code == 2 and "no tie points are left" in err
+
+
+def test_2d_point_far_outside_the_image(workspace, tmp_path, capsys):
+    """A finite but absurd keypoint made the adjustment's cost infinite (and refine exit 0)."""
+    model = copy_model(workspace, tmp_path)
+    images = model / "images.bin"
+    data = bytearray(images.read_bytes())
+    first_x = data.index(b"\0", 8 + struct.calcsize("<I7dI")) + 1 + 8
+    data[first_x:first_x + 8] = struct.pack("<d", -7e41)
+    images.write_bytes(bytes(data))
+    code, err = run(refine_argv(workspace, tmp_path / "out", **{"--input_path": model}), capsys)
+    assert code == 2 and str(images) in err and "far outside the 1280 px image" in err
