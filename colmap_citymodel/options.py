@@ -8,6 +8,7 @@ so a typo in an options file is an error, not a silently ignored setting.
 from __future__ import annotations
 
 import dataclasses
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -185,6 +186,66 @@ class AdjustmentOptions:
     further off than 3 of it (heights above take-off, another height system); 0: always free."""
 
 
+#: Largest magnitude of a float option: beyond any setting that means something.
+MAX_OPTION_VALUE = 1e15
+#: Options whose value is a probability, strictly between 0 and 1.
+PROBABILITIES = ("assignment.msac_confidence", "precision.alpha")
+
+
+def _as_float(value, name: str, source) -> float:
+    try:
+        return float(value)
+    except OverflowError:
+        raise InputError(f"option {name}: {value} is too large", source) from None
+
+
+def _as_tuple(value, current: tuple, name: str, source) -> tuple:
+    """A list from the file as a tuple of the default's element type (floats or strings)."""
+    kind = type(current[0]) if current else str
+    if not isinstance(value, (list, tuple)):
+        raise InputError(f"option {name} must be a list, got {value!r}", source)
+    out = []
+    for v in value:
+        if kind is float and isinstance(v, (int, float)) and not isinstance(v, bool):
+            out.append(_as_float(v, name, source))
+        elif isinstance(v, kind) and not isinstance(v, bool):
+            out.append(v)
+        else:
+            raise InputError(f"option {name} must be a list of {kind.__name__}, got {value!r}",
+                             source)
+    if kind is float and len(out) != len(current):
+        raise InputError(f"option {name} needs {len(current)} numbers, got {len(out)}", source)
+    return tuple(out)
+
+
+def _check_number(name: str, value, source) -> None:
+    """Numbers no setting can take: not finite, negative, beyond MAX_OPTION_VALUE or 2**31 - 1;
+    zero for a sigma, scale, radius, distance or factor; a probability outside (0, 1); an angle
+    beyond 180 degrees."""
+    values = value if isinstance(value, tuple) else (value,)
+    key = name.rpartition(".")[2]
+    for v in values:
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            continue
+        if isinstance(v, int):
+            lowest = -1 if key == "num_threads" else 0
+            if not lowest <= v <= 2**31 - 1:
+                raise InputError(f"option {name} must be an integer in [{lowest}, 2147483647], "
+                                 f"got {v}", source)
+            continue
+        if not math.isfinite(v) or abs(v) > MAX_OPTION_VALUE or v < 0:
+            raise InputError(f"option {name} must be a finite number >= 0, got {v}", source)
+        positive = key.startswith("sigma_") or key.endswith(
+            ("_scale", "_radius", "_distance", "_factor"))
+        if positive and v == 0:
+            raise InputError(f"option {name} must be > 0, got {v}", source)
+        if name in PROBABILITIES and not 0 < v < 1:
+            raise InputError(f"option {name} must lie between 0 and 1, got {v}", source)
+        if key.endswith("_angle") and v > 180:
+            raise InputError(f"option {name} is an angle in degrees (at most 180), got {v}",
+                             source)
+
+
 #: Options that take one of a few words.
 CHOICES = {"adjustment.image_loss": ("huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
@@ -284,18 +345,20 @@ class RefineOptions:
                 if key not in known:
                     raise InputError(f"unknown option {section}.{key}", source)
                 current = getattr(target, key)
-                if current is None and isinstance(value, (int, float)) \
-                        and not isinstance(value, bool):
-                    value = float(value)  # optional floats (e.g. sigma_generalisation)
+                number = isinstance(value, (int, float)) and not isinstance(value, bool)
+                if current is None and number:
+                    value = _as_float(value, f"{section}.{key}", source)  # optional floats
                 elif isinstance(current, tuple):
-                    value = tuple(type(current[0])(v) if current else v for v in value)
-                elif isinstance(current, float) and isinstance(value, int):
-                    value = float(value)
-                elif not isinstance(value, type(current)):
+                    value = _as_tuple(value, current, f"{section}.{key}", source)
+                elif isinstance(current, float) and number:
+                    value = _as_float(value, f"{section}.{key}", source)
+                elif not isinstance(value, type(current)) or (
+                        isinstance(value, bool) and not isinstance(current, bool)):
                     raise InputError(
                         f"option {section}.{key} must be {type(current).__name__}, got {value!r}",
                         source,
                     )
+                _check_number(f"{section}.{key}", value, source)
                 choices = CHOICES.get(f"{section}.{key}")
                 if choices is not None and value not in choices:
                     raise InputError(f"option {section}.{key} must be one of "

@@ -363,6 +363,13 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     """
     import pycolmap
 
+    if not len(points):
+        from ..errors import GeoregistrationError
+
+        raise GeoregistrationError(
+            "no tie points are left after the bundle adjustment with the GNSS positions (step "
+            "2) eliminated their observations: are some GNSS positions far off the flight (see "
+            "the outlier warning of the georegistration)?")
     candidates = [(None, np.eye(3), np.zeros(3))]
     found: list[dict] = []
     if straight:

@@ -328,6 +328,10 @@ def sim3_to_local(sim3, origin):
 def _sim3_from_matrix(matrix: np.ndarray, path) -> "pycolmap.Sim3d":  # noqa: F821
     import pycolmap
 
+    from ..citymodel.raw_model import MAX_PROJECTED_COORDINATE
+
+    min_scale = 1e-8  # input frame units per metre: beyond 1e8 either way is a damaged number
+
     matrix = np.asarray(matrix, dtype=np.float64)
     if matrix.shape == (4, 4):
         if not np.allclose(matrix[3], [0, 0, 0, 1], atol=1e-9):
@@ -335,11 +339,21 @@ def _sim3_from_matrix(matrix: np.ndarray, path) -> "pycolmap.Sim3d":  # noqa: F8
         matrix = matrix[:3]
     if matrix.shape != (3, 4) or not np.all(np.isfinite(matrix)):
         raise InputError("the transform must be a finite 4x4 (or 3x4) matrix", path)
+    if np.abs(matrix[:, 3]).max() > MAX_PROJECTED_COORDINATE:
+        raise InputError(f"the transform's translation {matrix[:, 3].tolist()} lies beyond "
+                         f"{MAX_PROJECTED_COORDINATE:.0e} m, outside any projected CRS", path)
     linear = matrix[:, :3]
-    det = np.linalg.det(linear)
-    if det <= 0:
+    if np.abs(linear).max() > 1.0 / min_scale:
+        raise InputError(f"the transform's 3x3 part holds {np.abs(linear).max():.6g}, beyond "
+                         f"any scale x rotation (scale at most {1 / min_scale:.0e})", path)
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = np.linalg.det(linear)
+    if not det > 0:
         raise InputError("the transform's 3x3 part has a non-positive determinant", path)
     scale = det ** (1.0 / 3.0)
+    if not min_scale <= scale <= 1.0 / min_scale:
+        raise InputError(f"the transform's scale {scale:.6g} is not plausible (it must lie "
+                         f"between {min_scale:.0e} and {1 / min_scale:.0e})", path)
     rotation = linear / scale
     if not np.allclose(rotation.T @ rotation, np.eye(3), atol=1e-6):
         raise InputError(
@@ -380,12 +394,16 @@ def read_initial_transform(path) -> "pycolmap.Sim3d":  # noqa: F821
             raise InputError(f"JSON transform lacks {missing}", path)
         try:
             scale = float(data["scale"])
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             raise InputError("'scale' must be a number", path) from None
         if not np.isfinite(scale) or scale <= 0:
             raise InputError("'scale' must be positive", path)
         rotation = _as_array(data["rotation"], path, "rotation")
+        if not np.all(np.isfinite(rotation)):
+            raise InputError("'rotation' holds a value that is not finite", path)
         if rotation.shape == (4,):
+            if np.abs(rotation).max() > 0:  # scaled first: the squares of 1e200 overflow
+                rotation = rotation / np.abs(rotation).max()
             norm = np.linalg.norm(rotation)
             if norm < 1e-9:
                 raise InputError("'rotation' quaternion is zero", path)
@@ -418,5 +436,5 @@ def read_initial_transform(path) -> "pycolmap.Sim3d":  # noqa: F821
 def _as_array(value, path, key) -> np.ndarray:
     try:
         return np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise InputError(f"'{key}' must contain numbers", path) from None

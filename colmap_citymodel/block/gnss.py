@@ -34,13 +34,15 @@ from typing import Iterable, Mapping
 import numpy as np
 import pycolmap
 
-from ..citymodel.raw_model import CRSInfo
+from ..citymodel.raw_model import MAX_PROJECTED_COORDINATE, CRSInfo, coordinate_problem
 from ..errors import CRSError, GNSSError
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_SIGMA = (3.0, 3.0, 5.0)  # metres, X Y Z (method.md section 2, Unger 5.3)
 IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff", ".png", ".webp")
+#: Largest GNSS sigma (m): beyond it a position says nothing, and its square overflows nothing.
+MAX_SIGMA = 1e6
 # Typical magnitude of the geoid undulation, quoted when PROJ lacks the grid to apply it.
 TYPICAL_UNDULATION = "typically 20-50 m in Europe, -106 to +85 m worldwide"
 
@@ -63,6 +65,7 @@ class GNSSObservations:
     # The fallback geoid that converted the heights in place of the model height system's own
     # grid (citymodel.crs.Geoid.todict() plus the mean undulation and the missing grid), or None.
     geoid: dict | None = None
+    path: str | None = None  # the file or directory read (None for other sources)
 
     def __post_init__(self):
         self.positions = np.asarray(self.positions, dtype=np.float64).reshape(-1, 3)
@@ -226,6 +229,8 @@ def reproject_with_report(xyz, src, dst, *, what: str = "GNSS", path=None):
                     "height for EPSG:4979/4326)?",
                     path,
                 )
+    elif not src_crs.is_geocentric:
+        _check_projected_area(xyz, src_crs, dst_crs, what, path)
     notes: list[str] = []
     if src_crs == dst_crs:
         return xyz, _Transform("no transformation (same CRS)", None, notes)
@@ -377,7 +382,7 @@ def read_gnss_text(
     except (OSError, UnicodeDecodeError) as error:
         raise GNSSError(f"cannot read GNSS file: {error}", path) from None
     sigma_default = _parse_sigma(default_sigma)
-    names, xyz, sigmas = [], [], []
+    names, xyz, sigmas, numbers = [], [], [], []
     seen: dict[str, int] = {}
     for number, line in enumerate(text.splitlines(), start=1):
         content = line.split("#", 1)[0].strip()
@@ -403,12 +408,19 @@ def read_gnss_text(
         sigma = values[3:] if len(values) == 6 else sigma_default
         if np.any(np.asarray(sigma) <= 0):
             raise GNSSError(f"line {number}: sigmas must be positive", path)
+        if np.any(np.asarray(sigma) > MAX_SIGMA):
+            raise GNSSError(f"line {number}: a sigma beyond {MAX_SIGMA:.0e} m", path)
+        numbers.append(number)
         names.append(parts[0])
         xyz.append(values[:3])
         sigmas.append(sigma)
     if not names:
         raise GNSSError("no GNSS positions in file", path)
     src = _crs_info(gnss_crs, path)
+    problem = _position_problem(np.array(xyz), src)
+    if problem is not None:
+        row, why = problem
+        raise GNSSError(f"line {numbers[row]}: {why} in {src.label}", path)
     positions, report = reproject_with_report(
         np.array(xyz), src, target_crs, what=f"GNSS {path.name}", path=path
     )
@@ -424,7 +436,55 @@ def read_gnss_text(
         vertical_applied=report.vertical_applied,
         notes=report.notes,
         geoid=report.geoid,
+        path=str(path),
     )
+
+
+def _check_projected_area(xyz: np.ndarray, src_crs, dst_crs, what: str, path) -> None:
+    """Projected positions none of which lies in the area of use of their CRS or of the model's
+    CRS (2 degrees margin) were given in another CRS: a GNSSError says so."""
+    from pyproj import CRS, Transformer
+
+    src2d = src_crs.sub_crs_list[0] if src_crs.is_compound else src_crs
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        to_geo = Transformer.from_crs(src2d, CRS.from_epsg(4326), always_xy=True)
+        lon, lat = to_geo.transform(xyz[:, 0], xyz[:, 1], errcheck=False)
+    lon, lat = np.asarray(lon, dtype=np.float64), np.asarray(lat, dtype=np.float64)
+    margin = 2.0
+    for crs, whose in ((src2d, "the GNSS CRS"), (dst_crs, "the model CRS")):
+        area = crs.area_of_use or (
+            crs.sub_crs_list[0].area_of_use if crs.is_compound else None)
+        if area is None:
+            continue
+        west, east = area.west - margin, area.east + margin
+        in_lon = (lon >= west) & (lon <= east) if west <= east else (lon >= west) | (lon <= east)
+        inside = np.isfinite(lon) & np.isfinite(lat) & in_lon \
+            & (lat >= area.south - margin) & (lat <= area.north + margin)
+        if not np.any(inside):
+            raise GNSSError(
+                f"{what}: no position lies in the area of {whose} {crs.name} ({area.name}); "
+                f"are the positions really in {src_crs.name}? (check --gnss_crs)",
+                path,
+            )
+
+
+def _position_problem(xyz: np.ndarray, crs: CRSInfo) -> tuple[int, str] | None:
+    """The first position no CRS of its kind can hold (raw_model.coordinate_problem; geocentric
+    coordinates only within MAX_PROJECTED_COORDINATE on every axis), or None."""
+    pcrs = _pyproj_crs(crs)
+    horizontal = pcrs.sub_crs_list[0] if pcrs.is_compound else pcrs
+    if horizontal.is_geocentric:
+        bad = np.flatnonzero(np.abs(xyz).max(axis=1) > MAX_PROJECTED_COORDINATE)
+        if len(bad):
+            return int(bad[0]), f"position {xyz[bad[0]].tolist()} lies beyond the Earth"
+        return None
+    problem = coordinate_problem(xyz, geographic=horizontal.is_geographic,
+                                 lat_first=_first_axis_is_north(horizontal))
+    if problem is not None and horizontal.is_geographic and "latitude" in problem[1]:
+        problem = (problem[0], problem[1] + "; columns must follow the CRS axis order (latitude "
+                   "longitude height for EPSG:4979/4326)")
+    return problem
 
 
 # --------------------------------------------------------------------------------------------
@@ -456,13 +516,23 @@ def read_exif_gps(path) -> dict | None:
     one image, or None when it has no usable GPS position."""
     from PIL import ExifTags, Image, UnidentifiedImageError
 
+    limit = Image.MAX_IMAGE_PIXELS
     try:
-        with Image.open(path) as image:
-            exif = image.getexif()
-            gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
+        # Only the EXIF is read, never the pixels: no decompression bomb check (it would refuse
+        # the header of a 280 MP aerial camera, or of a damaged one, with an exception)
+        Image.MAX_IMAGE_PIXELS = None
+        with warnings.catch_warnings(record=True) as caught:  # Pillow warns about damaged tags
+            warnings.simplefilter("always")
+            with Image.open(path) as image:
+                exif = image.getexif()
+                gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
     except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
         logger.warning("%s: cannot read EXIF (%s); skipped", path, error)
         return None
+    finally:
+        Image.MAX_IMAGE_PIXELS = limit
+    if caught:
+        logger.warning("%s: damaged EXIF (%s)", path, caught[0].message)
     if not gps:
         return None
     tags = {ExifTags.GPSTAGS.get(key, key): value for key, value in gps.items()}
@@ -596,6 +666,7 @@ def read_gnss_exif(
         vertical_applied=vertical_applied,
         notes=notes,
         geoid=geoid,
+        path=str(image_dir),
     )
 
 
@@ -723,6 +794,7 @@ def read_gnss_database(
         vertical_applied=vertical_applied,
         notes=notes,
         geoid=geoid,
+        path=str(database_path),
     )
 
 
@@ -825,7 +897,8 @@ def match_to_reconstruction(gnss: GNSSObservations, reconstruction, origin=None,
             f"{what} {len(gnss)} GNSS ({gnss.source}) image name(s) match a registered image of "
             f"the reconstruction (at least {min_positions} needed; {not_in_model} name(s) not in "
             f"the reconstruction, {not_registered} without a pose); GNSS names e.g. "
-            f"{gnss_names}, reconstruction image names e.g. {model_names}"
+            f"{gnss_names}, reconstruction image names e.g. {model_names}",
+            gnss.path,
         )
     keep = np.array(keep, dtype=np.int64)
     return np.array(ids, dtype=np.int64), local[keep], gnss.sigmas[keep]

@@ -32,16 +32,14 @@ def camera_up_and_view(rec: pycolmap.Reconstruction, image_ids=None
 
 def read_reconstruction(path: str | Path) -> pycolmap.Reconstruction:
     from ..errors import InputError
+    from .colmap_files import read_model
 
     path = Path(path)
     if not path.is_dir():
         raise InputError("COLMAP model directory does not exist", path)
     if not any((path / f"cameras.{ext}").exists() for ext in ("bin", "txt")):
         raise InputError("not a COLMAP model directory (no cameras.bin or cameras.txt)", path)
-    try:
-        rec = pycolmap.Reconstruction(str(path))
-    except Exception as error:  # pycolmap raises plain RuntimeErrors for broken files
-        raise InputError(f"cannot read the COLMAP model: {error}", path) from None
+    rec = read_model(path)  # checks the files first: damage gets a message naming the file
     if rec.num_reg_images() < 3:
         raise InputError(f"the model has only {rec.num_reg_images()} registered images", path)
     return rec

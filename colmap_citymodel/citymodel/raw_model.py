@@ -738,3 +738,47 @@ class RawPolygonBuilder:
         )
         self.__init__(self.chunk_points)
         return table
+
+
+#: Largest easting or northing (m) a projected CRS can hold: UTM northings stay below 1e7, false
+#: eastings and national grids far below 1e8. Larger values are damaged numbers, not places.
+MAX_PROJECTED_COORDINATE = 1e8
+#: Largest height (m) above or below any vertical datum a building surface can have.
+MAX_HEIGHT = 1e5
+
+
+def coordinate_problem(xyz, *, geographic: bool = False, lat_first: bool = True
+                       ) -> tuple[int, str] | None:
+    """The first point of (N, 3) coordinates that no CRS can hold and why, or None.
+
+    A value that is not finite, an easting/northing beyond `MAX_PROJECTED_COORDINATE`, a height
+    beyond `MAX_HEIGHT` or, for `geographic` coordinates (latitude first when `lat_first`), a
+    latitude outside [-90, 90] or a longitude outside [-180, 360] is a damaged number."""
+    xyz = np.asarray(xyz, dtype=np.float64).reshape(-1, 3)
+    if not len(xyz):
+        return None
+    with np.errstate(invalid="ignore"):
+        absolute = np.abs(xyz)
+        if geographic:
+            lat, lon = (absolute[:, 0], xyz[:, 1]) if lat_first else (absolute[:, 1], xyz[:, 0])
+            horizontal_bad = (lat > 90.0) | (lon < -180.0) | (lon > 360.0)
+        else:
+            horizontal_bad = (absolute[:, 0] > MAX_PROJECTED_COORDINATE) | \
+                (absolute[:, 1] > MAX_PROJECTED_COORDINATE)
+        bad = ~np.isfinite(xyz).all(axis=1) | horizontal_bad | (absolute[:, 2] > MAX_HEIGHT)
+    if not bad.any():
+        return None
+    i = int(np.argmax(bad))
+    p = xyz[i]
+    text = "(" + ", ".join(f"{v:.10g}" for v in p) + ")"
+    if not np.isfinite(p).all():
+        why = "is not finite"
+    elif geographic and horizontal_bad[i]:
+        why = ("is not a latitude/longitude (latitude outside [-90, 90] or longitude outside "
+               "[-180, 360])")
+    elif horizontal_bad[i]:
+        why = (f"lies beyond {MAX_PROJECTED_COORDINATE:.0e} m from the CRS origin, outside any "
+               "projected CRS")
+    else:
+        why = f"has a height beyond +-{MAX_HEIGHT:.0e} m"
+    return i, f"coordinate {text} {why}"

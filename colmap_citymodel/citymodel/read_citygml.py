@@ -44,7 +44,14 @@ from lxml import etree
 
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
 from . import crs as crs_mod
-from .raw_model import CRSInfo, RawCityModel, RawPolygon, RawPolygonBuilder, RawPolygonTable
+from .raw_model import (
+    CRSInfo,
+    RawCityModel,
+    RawPolygon,
+    RawPolygonBuilder,
+    RawPolygonTable,
+    coordinate_problem,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -403,19 +410,30 @@ class _Walker:
                     dim = self._dim(d)
                 text = child.text
                 if text:
-                    tokens.extend(text.split())
+                    values = text.split()
+                    if name == "pos" and len(values) != dim:
+                        raise CityGMLError(f"polygon {gid or '(without gml:id)'}: a gml:pos with "
+                                           f"{len(values)} values (srsDimension {dim})", self.path)
+                    tokens.extend(values)
                 if name == "posList":  # one posList holds the whole ring
                     break
             elif name == "coordinates":
                 cs = child.get("cs", ",")
                 ts = child.get("ts", " ")
                 decimal = child.get("decimal", ".")
+                where = f"polygon {gid or '(without gml:id)'}: gml:coordinates"
+                if not cs or not ts or cs == ts or not decimal:
+                    raise CityGMLError(f"{where} with an empty or repeated separator (cs {cs!r}, "
+                                       f"ts {ts!r}, decimal {decimal!r})", self.path)
                 text = child.text or ""
                 if decimal != ".":
                     text = text.replace(decimal, ".")
                 tuples = [t.split(cs) for t in (text.split() if ts.isspace() else text.split(ts)) if t.strip()]
                 if tuples:
                     dim = len(tuples[0])
+                    if dim not in (2, 3) or any(len(t) != dim for t in tuples):
+                        raise CityGMLError(f"{where} tuples of {sorted({len(t) for t in tuples})} "
+                                           "values (2 or 3 each, all alike)", self.path)
                 for t in tuples:
                     tokens.extend(t)
         return dim
@@ -489,7 +507,20 @@ class _Walker:
                 flat = vals[s:e].reshape(-1, 2)
                 self.num_2d_rings += 1
                 arrays.append(np.column_stack([flat, np.zeros(len(flat))]))
+        self._check_coordinates(arrays)
         return arrays
+
+    def _check_coordinates(self, arrays: list[np.ndarray]) -> None:
+        """Numbers no CRS can hold (nan, inf, 1e308, ...) fail here, naming the polygon."""
+        xyz = np.concatenate(arrays) if len(arrays) > 1 else arrays[0]
+        problem = coordinate_problem(xyz)
+        if problem is None:
+            return
+        row, why = problem
+        k = int(np.searchsorted(np.cumsum([len(a) for a in arrays]), row, side="right"))
+        gid = self.ring_gid[k]
+        where = f" of building {self.building}" if self.building else ""
+        raise CityGMLError(f"polygon {gid or '(without gml:id)'}{where}: {why}", self.path)
 
     # -- per city object resolution ------------------------------------------------------------
     def resolve_local(self) -> list[_Ref]:
@@ -540,6 +571,14 @@ def merge_reference(target: RawPolygon, ref: _Ref) -> None:
         target.semantic = ref.semantic
 
 
+def _xml_error(error: etree.XMLSyntaxError) -> str:
+    """lxml's message on one line ("malformed XML: ..., line N, column M")."""
+    text = " ".join((error.msg or str(error)).split()).replace(" ,", ",")
+    if error.lineno and f"line {error.lineno}" not in text:
+        text += f", line {error.lineno}"
+    return f"malformed XML: {text}"
+
+
 def detect_version(namespaces) -> str | None:
     """CityGML version ("1.0", "2.0", "3.0") from namespace URIs, None if none is CityGML."""
     found = []
@@ -555,10 +594,11 @@ def detect_version(namespaces) -> str | None:
 def _read_root(path: Path):
     """Tag and namespaces of the root element (parses only the first start tag)."""
     try:
-        for _event, el in etree.iterparse(str(path), events=("start",), huge_tree=True):
-            return el.tag, dict(el.nsmap)
+        with open(path, "rb") as source:
+            for _event, el in etree.iterparse(source, events=("start",), huge_tree=True):
+                return el.tag, dict(el.nsmap)
     except etree.XMLSyntaxError as error:
-        raise CityGMLError(f"malformed XML: {error}", path) from None
+        raise CityGMLError(_xml_error(error), path) from None
     except OSError as error:
         raise InputError(f"cannot read file: {error}", path) from None
     raise CityGMLError("empty XML document", path)
@@ -641,7 +681,12 @@ class _CRSState:
         return self._reproject
 
     def reproject(self, xyz: np.ndarray) -> np.ndarray:
-        return crs_mod.reproject_points(xyz, self.source, self.output())
+        try:
+            return crs_mod.reproject_points(xyz, self.source, self.output())
+        except CRSError as error:
+            if error.path is not None:
+                raise
+            raise CRSError(error.message, self.path) from None
 
 
 def _as_bbox(bbox_crs) -> np.ndarray | None:
@@ -707,8 +752,10 @@ def read_citygml(
     num_without = 0
 
     tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
+    source = None  # closed on every way out (lxml keeps it open until garbage collection)
     try:
-        context = etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True)
+        source = open(path, "rb")
+        context = etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True)
         for _event, el in context:
             parent = el.getparent()
             name = _local(el.tag)
@@ -752,9 +799,12 @@ def read_citygml(
                 del parent[0]
         del context
     except etree.XMLSyntaxError as error:
-        raise CityGMLError(f"malformed XML: {error}", path) from None
+        raise CityGMLError(_xml_error(error), path) from None
     except OSError as error:
         raise InputError(f"cannot read file: {error}", path) from None
+    finally:
+        if source is not None:
+            source.close()
 
     if num_features[0] == 0:
         raise CityGMLError("no buildings in the file", path)
@@ -798,7 +848,19 @@ def _place(walker: _Walker, state: _CRSState, bbox: np.ndarray | None) -> bool:
     if state.needs_reprojection():
         arrays = [a for p in polys for a in (p.exterior, *p.holes)]
         if arrays:
-            xyz = state.reproject(np.concatenate(arrays))
+            xyz = np.concatenate(arrays)
+            src = state.source
+            if not src.is_projected:
+                problem = coordinate_problem(xyz, geographic=True,
+                                             lat_first=crs_mod.lat_first(xyz, src))
+                if problem is not None:
+                    row, why = problem
+                    ends = np.cumsum([sum(len(a) for a in (p.exterior, *p.holes)) for p in polys])
+                    p = polys[int(np.searchsorted(ends, row, side="right"))]
+                    raise CityGMLError(
+                        f"polygon {p.gml_id or '(without gml:id)'} of building {p.building_id}: "
+                        f"{why} in {src.label}", state.path)
+            xyz = state.reproject(xyz)
             k = 0
             for p in polys:
                 n = len(p.exterior)
@@ -951,8 +1013,10 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
     walker = _Walker(path, lod)
     tags = ["{*}Polygon", "{*}Surface", "{*}CompositeSurface", "{*}MultiSurface", "{*}OrientableSurface",
             "{*}LinearRing", "{*}Ring"] + [f"{{*}}{t}" for t in MEMBER_TAGS]
+    source = None
     try:
-        for _event, el in etree.iterparse(str(path), events=("end",), tag=tags, huge_tree=True, remove_comments=True):
+        source = open(path, "rb")
+        for _event, el in etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True):
             parent = el.getparent()
             if _local(el.tag) in MEMBER_TAGS:
                 if parent is not None and parent.getparent() is None:
@@ -975,5 +1039,10 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
                 raise CityGMLError(f"xlink:href to '{gid}' leads to further references (not supported)", path)
             surfaces.setdefault(gid, [[p.exterior, *p.holes] for p in walker.polygons])
     except etree.XMLSyntaxError as error:
-        raise CityGMLError(f"malformed XML: {error}", path) from None
+        raise CityGMLError(_xml_error(error), path) from None
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", path) from None
+    finally:
+        if source is not None:
+            source.close()
     return surfaces, rings

@@ -26,8 +26,14 @@ from typing import Any
 import numpy as np
 
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
-from .crs import output_crs, reproject_points, resolve_crs, user_crs
-from .raw_model import CRSInfo, RawCityModel, RawPolygonBuilder, RawPolygonTable
+from .crs import lat_first, output_crs, reproject_points, resolve_crs, user_crs
+from .raw_model import (
+    CRSInfo,
+    RawCityModel,
+    RawPolygonBuilder,
+    RawPolygonTable,
+    coordinate_problem,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -79,20 +85,50 @@ def _vertices(doc: dict, transform: dict | None, path: Path) -> np.ndarray:
     raw = doc.get("vertices", [])
     try:
         V = np.asarray(raw, dtype=np.float64).reshape(-1, 3)
-    except (ValueError, TypeError) as error:
-        raise InputError(f"malformed 'vertices' array: {error}", path) from error
+    except (ValueError, TypeError, OverflowError) as error:
+        raise InputError(f"malformed 'vertices' array: {error}", path) from None
     if transform:
-        V = V * np.asarray(transform.get("scale", [1, 1, 1]), np.float64) + np.asarray(
-            transform.get("translate", [0, 0, 0]), np.float64
-        )
+        try:
+            scale = np.asarray(transform.get("scale", [1, 1, 1]), np.float64).reshape(3)
+            translate = np.asarray(transform.get("translate", [0, 0, 0]), np.float64).reshape(3)
+        except (AttributeError, ValueError, TypeError, OverflowError):
+            raise InputError("malformed 'transform': 'scale' and 'translate' must be three "
+                             "numbers each", path) from None
+        with np.errstate(over="ignore", invalid="ignore"):
+            V = V * scale + translate
     return V
+
+
+def _check_vertices(V: np.ndarray, objects: dict, crs: CRSInfo, path: Path) -> None:
+    """Vertices no CRS can hold (nan, inf, 1e308, latitude 95, ...) fail, naming the vertex and
+    the first CityObject that uses it."""
+    geographic = not crs.is_projected
+    problem = coordinate_problem(V, geographic=geographic,
+                                 lat_first=geographic and lat_first(V, crs))
+    if problem is None:
+        return
+    row, why = problem
+    user = next((oid for oid, obj in objects.items() if isinstance(obj, dict)
+                 and _uses_vertex(obj.get("geometry"), row)), None)
+    where = f" (used by CityObject {user!r})" if user is not None else ""
+    raise InputError(f"vertex {row}{where}: {why}", path)
+
+
+def _uses_vertex(boundaries, row: int) -> bool:
+    """Whether nested lists of geometries or boundaries hold vertex index `row`."""
+    if isinstance(boundaries, dict):
+        return _uses_vertex(boundaries.get("boundaries"), row)
+    if isinstance(boundaries, list):
+        return any(_uses_vertex(b, row) for b in boundaries)
+    return isinstance(boundaries, int) and not isinstance(boundaries, bool) and boundaries == row
 
 
 def _lod_value(lod: Any) -> float | None:
     try:
-        return float(lod)
-    except (TypeError, ValueError):
+        value = float(lod)
+    except (TypeError, ValueError, OverflowError):
         return None
+    return value if 0.0 <= value < 10.0 else None
 
 
 def _root_building(obj_id: str, objects: dict) -> str:
@@ -101,7 +137,7 @@ def _root_building(obj_id: str, objects: dict) -> str:
     cur = obj_id
     while objects.get(cur, {}).get("type") == "BuildingPart":
         parents = objects[cur].get("parents") or []
-        if not parents or parents[0] in seen:
+        if not parents or not isinstance(parents[0], str) or parents[0] in seen:
             break
         cur = parents[0]
         seen.add(cur)
@@ -146,59 +182,84 @@ def _read_objects(
     polygons: RawPolygonBuilder,
 ) -> None:
     """Append the building polygons of one CityObjects dictionary to `polygons`."""
+    if not isinstance(objects, dict):
+        raise InputError("'CityObjects' is not a JSON object", path)
     skipped_templates = 0
-    for obj_id, obj in objects.items():
-        if obj.get("type") not in BUILDING_TYPES:
-            continue
-        geoms = obj.get("geometry") or []
-        for g in geoms:
-            v = _lod_value(g.get("lod"))
-            if v is not None:
-                found_lods.add(g.get("lod"))
-        chosen = [
-            g for g in geoms
-            if g.get("type") != "GeometryInstance"
-            and _lod_value(g.get("lod")) is not None
-            and int(_lod_value(g.get("lod"))) == lod
-        ]
-        skipped_templates += sum(
-            1 for g in geoms
-            if g.get("type") == "GeometryInstance" and int(_lod_value(g.get("lod")) or -1) == lod
-        )
-        if not chosen:
-            continue
-        best = max(_lod_value(g["lod"]) for g in chosen)
-        chosen = [g for g in chosen if _lod_value(g["lod"]) == best]
-        is_part = obj["type"] == "BuildingPart"
-        building = _root_building(obj_id, objects) if is_part else obj_id
-        for g in chosen:
-            gtype = g.get("type")
-            if gtype not in SOLID_TYPES + SURFACE_TYPES:
-                warnings.append(f"{obj_id}: geometry type {gtype!r} ignored")
+    obj_id = None
+    try:
+        for obj_id, obj in objects.items():
+            if obj.get("type") not in BUILDING_TYPES:
                 continue
-            sem_surfaces = (g.get("semantics") or {}).get("surfaces") or []
-            for surf, sv in _surfaces(g):
-                if not surf:
+            geoms = obj.get("geometry") or []
+            for g in geoms:
+                v = _lod_value(g.get("lod"))
+                if v is not None:
+                    found_lods.add(g.get("lod"))
+            chosen = [
+                g for g in geoms
+                if g.get("type") != "GeometryInstance"
+                and _lod_value(g.get("lod")) is not None
+                and int(_lod_value(g.get("lod"))) == lod
+            ]
+            skipped_templates += sum(
+                1 for g in geoms
+                if g.get("type") == "GeometryInstance" and int(_lod_value(g.get("lod")) or -1) == lod
+            )
+            if not chosen:
+                continue
+            best = max(_lod_value(g["lod"]) for g in chosen)
+            chosen = [g for g in chosen if _lod_value(g["lod"]) == best]
+            is_part = obj["type"] == "BuildingPart"
+            building = _root_building(obj_id, objects) if is_part else obj_id
+            for g in chosen:
+                gtype = g.get("type")
+                if gtype not in SOLID_TYPES + SURFACE_TYPES:
+                    warnings.append(f"{obj_id}: geometry type {gtype!r} ignored")
                     continue
-                semantic = "Unknown"
-                if isinstance(sv, int) and 0 <= sv < len(sem_surfaces):
-                    semantic = sem_surfaces[sv].get("type", "Unknown")
-                try:
-                    rings = [V[np.asarray(r, dtype=np.int64)] for r in surf]
-                except (IndexError, ValueError, TypeError) as error:
-                    raise InputError(
-                        f"CityObject {obj_id!r}: bad vertex index in {gtype} ({error})", path
-                    ) from error
-                polygons.add(
-                    rings[0], rings[1:], semantic, building, obj_id if is_part else "", "", lod,
-                    gtype in SOLID_TYPES,
-                )
+                sem_surfaces = (g.get("semantics") or {}).get("surfaces") or []
+                for surf, sv in _surfaces(g):
+                    if not surf:
+                        continue
+                    semantic = "Unknown"
+                    if isinstance(sv, int) and 0 <= sv < len(sem_surfaces):
+                        semantic = sem_surfaces[sv].get("type", "Unknown")
+                        if not isinstance(semantic, str):
+                            semantic = "Unknown"
+                    rings = [V[_ring_indices(r, len(V), obj_id, gtype, path)] for r in surf]
+                    polygons.add(
+                        rings[0], rings[1:], semantic, building, obj_id if is_part else "", "", lod,
+                        gtype in SOLID_TYPES,
+                    )
+    except (AttributeError, TypeError, KeyError) as error:
+        # JSON of the wrong shape (a number where a list belongs, ...)
+        raise InputError(f"CityObject {obj_id!r} is malformed ({type(error).__name__}: "
+                         f"{error})", path) from None
+
     if skipped_templates:
         warnings.append(f"{skipped_templates} template geometries (GeometryInstance) ignored")
 
 
+def _ring_indices(ring, num_vertices: int, obj_id: str, gtype, path: Path) -> np.ndarray:
+    """A ring's vertex indices as int64; anything but integers in [0, num_vertices) fails."""
+    try:
+        idx = np.asarray(ring)
+    except (ValueError, TypeError, OverflowError):
+        idx = None
+    if idx is None or idx.ndim != 1 or (idx.size and idx.dtype.kind not in "iu"):
+        raise InputError(f"CityObject {obj_id!r}: bad vertex index in its {gtype}: a ring is "
+                         f"not a list of vertex indices: {str(ring)[:80]}", path)
+    idx = idx.astype(np.int64, copy=False)
+    if idx.size and (idx.min() < 0 or idx.max() >= num_vertices):
+        bad = int(idx[(idx < 0) | (idx >= num_vertices)][0])
+        raise InputError(f"CityObject {obj_id!r}: bad vertex index {bad} in its {gtype} (the "
+                         f"file has {num_vertices} vertices)", path)
+    return idx
+
+
 def _file_crs(doc: dict, path: Path) -> CRSInfo | None:
     meta = doc.get("metadata") or {}
+    if not isinstance(meta, dict):
+        raise InputError("'metadata' is not a JSON object", path)
     ref = meta.get("referenceSystem") or meta.get("referencesystem")
     if not ref:
         return None
@@ -261,6 +322,14 @@ def read_cityjson(
     documents = [doc] if not features else features
     for d in documents:
         V = _vertices(d, transform, path)
+        objects = d.get("CityObjects")
+        try:
+            _check_vertices(V, objects if isinstance(objects, dict) else {}, src, path)
+        except InputError as error:
+            if d is doc:
+                raise
+            raise InputError(f"CityJSONFeature {str(d.get('id'))[:80]!r}: {error.message}",
+                             path) from None
         _read_objects(d.get("CityObjects") or {}, V, lod, found_lods, warnings, path, builder)
     polygons = builder.finish()
     if not len(polygons):
@@ -274,7 +343,10 @@ def read_cityjson(
         dst = user_crs(target_crs)
         if not dst.is_projected:
             raise CRSError(f"target CRS {target_crs} is not projected", path)
-        polygons.coords = reproject_points(polygons.coords, src, dst)
+        try:
+            polygons.coords = reproject_points(polygons.coords, src, dst)
+        except CRSError as error:
+            raise CRSError(error.message, path) from None
         out_crs = output_crs(src, dst)
     elif not src.is_projected:
         raise CRSError(

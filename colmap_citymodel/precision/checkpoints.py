@@ -679,16 +679,13 @@ def read_checkpoint_precision(path) -> tuple[list[str], dict[str, np.ndarray], d
 
 
 def _read_reconstruction(path: Path):
-    import pycolmap
+    from ..block.colmap_files import read_model
 
     if not path.is_dir():
         raise InputError("COLMAP model directory does not exist", path)
     if not any((path / f"cameras.{ext}").is_file() for ext in ("bin", "txt")):
         raise InputError("not a COLMAP model directory (no cameras.bin or cameras.txt)", path)
-    try:
-        return pycolmap.Reconstruction(str(path))
-    except Exception as error:  # pycolmap raises plain runtime errors
-        raise InputError(f"cannot read COLMAP model: {error}", path) from None
+    return read_model(path)  # checks the files first: damage gets a message naming the file
 
 
 def _read_origin(path: Path) -> tuple[np.ndarray, str | None]:
