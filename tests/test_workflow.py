@@ -249,3 +249,15 @@ def test_gnss_only_at_the_start_the_model_carries_the_rest(scene):
     assert centre_errors(rec, scene.truth).max() > 2.0  # the far end, before refine
     result = refine(scene.sfm, scene.store, start_only, RefineOptions(), progress=False)
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_gnss_positions_rejected_as_gross_errors_are_not_priors(scene):
+    """Three GNSS positions 200 m off: the georegistration rejects them, and the adjustment
+    must not use them either (they would tear the block apart)."""
+    gnss = scene.gnss()
+    gnss.positions = np.array(gnss.positions, float)
+    gnss.positions[[2, 9, 15]] += [200.0, -150.0, 80.0]
+    result = refine(scene.sfm, scene.store, gnss, RefineOptions(), progress=False)
+    assert len(result.gnss_priors) == len(gnss.positions) - 3
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+    assert result.quality.verdict != "failed"

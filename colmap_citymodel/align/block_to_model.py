@@ -3,6 +3,7 @@ and keep the part of the model that it overlaps."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -79,6 +80,15 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
         sim3, rms, cues = result.sim3, result.rms, result.cues
         logger.info("georegistration to %d GNSS positions: scale %.4f, RMS %.2f m, %d inliers",
                     len(priors), sim3.scale, rms, int(np.count_nonzero(result.inlier_mask)))
+        if not np.all(result.inlier_mask):
+            # Positions the similarity rejected as gross errors would tear the block apart in
+            # every later adjustment: they are not priors.
+            keep = np.isin(priors.image_ids, result.image_ids[result.inlier_mask])
+            priors = dataclasses.replace(priors, image_ids=priors.image_ids[keep],
+                                         positions=priors.positions[keep],
+                                         sigmas=priors.sigmas[keep])
+            logger.warning("%d GNSS position(s) of %s left out of the adjustment as outliers",
+                           int(np.count_nonzero(~keep)), getattr(gnss, "path", None) or gnss.source)
     else:
         raise GeoregistrationError(
             "no GNSS positions and no initial transform: give --database/--gnss/--exif or "
