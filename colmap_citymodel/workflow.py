@@ -309,9 +309,9 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
                                 bbox_crs=bbox)
     except NoOverlapError as error:
         raise NoOverlapError(
-            f"the city model does not overlap the GNSS positions ({observations.source}, "
-            f"{GNSS_READ_MARGIN:.0f} m margin): {error.message}; check the GNSS CRS and the "
-            "model tiles", error.path) from None
+            "the city model does not overlap the GNSS positions "
+            f"({observations.path or observations.source}, {GNSS_READ_MARGIN:.0f} m margin): "
+            f"{error.message}; check the GNSS CRS and the model tiles", error.path) from None
     if observations is None and crs is None:
         observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
                                  target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)

@@ -8,6 +8,7 @@ fuzz_inputs.build_workspace.
 
 from __future__ import annotations
 
+import json
 import re
 import shutil
 import struct
@@ -388,9 +389,8 @@ def long_workspace(tmp_path_factory):
 
 
 def test_gnss_with_gross_outliers(long_workspace, tmp_path, capsys):
-    """Two positions 95 km and 5000 km off: the georegistration rejects them, the bundle
-    adjustment with all GNSS positions then eliminated every tie point, and the coarse search
-    failed on an empty array."""
+    """Two positions 95 km and 5000 km off: the georegistration rejects them, and so does the
+    adjustment (with them, it eliminated every tie point). Refine runs to its verdict."""
     lines = (long_workspace / "gnss.txt").read_text().splitlines()
     for k, northing in ((8, "1e8"), (38, "53090")):
         parts = lines[k].split()
@@ -399,7 +399,9 @@ def test_gnss_with_gross_outliers(long_workspace, tmp_path, capsys):
     gnss = tmp_path / "gnss.txt"
     gnss.write_text("\n".join(lines) + "\n")
     code, err = run(refine_argv(long_workspace, tmp_path / "out", **{"--gnss": gnss}), capsys)
-    assert code == 2 and "no tie points are left" in err
+    assert code in (0, 3), err
+    report = json.loads((tmp_path / "out" / "report.json").read_text())
+    assert report["quality"]["verdict"] in ("ok", "weak", "failed")
 
 
 def test_2d_point_far_outside_the_image(workspace, tmp_path, capsys):

@@ -58,9 +58,10 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
         axes = np.array(OFFSET_AXES[gnss_offset], bool)
         if getattr(gnss, "vertical_applied", None) is False and not axes[2]:
             raise GNSSError(
-                f"the GNSS heights ({gnss.source}) could not be converted to the model's height "
-                f"system {store.crs.label} (PROJ lacks the geoid grid and the worldwide EGM96 "
-                "grid of Debian's proj-data is not installed; see the warning above): let refine "
+                f"the GNSS heights ({gnss.path or gnss.source}) could not be converted to the "
+                f"model's height system {store.crs.label} (PROJ lacks the geoid grid and the "
+                "worldwide EGM96 grid of Debian's proj-data is not installed; see the warning "
+                "above): let refine "
                 "estimate the offset from the model (--gnss_height_offset auto), install "
                 "proj-data or the national grid, give the heights already converted, or "
                 "--gnss_height_offset METRES (model height minus GNSS height, e.g. about -47 "
@@ -88,7 +89,7 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
                                          positions=priors.positions[keep],
                                          sigmas=priors.sigmas[keep])
             logger.warning("%d GNSS position(s) of %s left out of the adjustment as outliers",
-                           int(np.count_nonzero(~keep)), getattr(gnss, "path", None) or gnss.source)
+                           int(np.count_nonzero(~keep)), gnss.path or gnss.source)
     else:
         raise GeoregistrationError(
             "no GNSS positions and no initial transform: give --database/--gnss/--exif or "
