@@ -67,13 +67,10 @@ def fit_plane(points: np.ndarray, weights: np.ndarray | None = None) -> tuple[np
     return normal, float(-normal @ centre)
 
 
-def _cell_ranges(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """For nondecreasing `keys`: first and one-past-last position of each element's run."""
-    change = np.flatnonzero(np.diff(keys)) + 1
-    starts = np.r_[0, change]
-    ends = np.r_[change, len(keys)]
-    run = np.repeat(np.arange(len(starts)), ends - starts)
-    return starts[run], ends[run]
+def _runs(keys: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """For nondecreasing `keys`: first and one-past-last position of each run of equal keys."""
+    starts = np.r_[0, np.flatnonzero(np.diff(keys)) + 1]
+    return starts, np.r_[starts[1:], len(keys)]
 
 
 class _Sampler:
@@ -83,19 +80,26 @@ class _Sampler:
     def __init__(self, n: int, rng: np.random.Generator, weights: np.ndarray | None,
                  cell_keys: np.ndarray | None):
         self.n, self.rng = n, rng
-        w = np.ones(n) if weights is None else np.maximum(np.asarray(weights, float), 0.0)
-        if not w.sum() > 0:
-            w = np.ones(n)
-        self.cumulative = np.cumsum(w)
+        # cumulative weights; None for uniform draws (the cumulative sum of ones, 1, 2, ..., n,
+        # is then implicit: no O(n) array per MSAC run)
+        self.cumulative = None
+        if weights is not None:
+            w = np.maximum(np.asarray(weights, float), 0.0)
+            if w.sum() > 0:
+                self.cumulative = np.cumsum(w)
         self.local = None
         if cell_keys is not None:
-            start, end = _cell_ranges(cell_keys)
-            if np.any(end - start >= 3):
-                self.local = (start, end)
+            starts, ends = _runs(cell_keys)
+            if np.any(ends - starts >= 3):
+                self.local = (starts, ends)
 
     def _draw(self, low: np.ndarray, high: np.ndarray) -> np.ndarray:
         """Indices drawn in [low, high) with probability proportional to the weights."""
         c = self.cumulative
+        if c is None:  # the weighted draw below with c = 1, 2, ..., n, in the same arithmetic
+            below = low.astype(np.float64)
+            u = below + self.rng.random(len(low)) * (high - below)
+            return np.minimum(np.floor(u).astype(np.int64), high - 1)
         below = np.where(low > 0, c[np.maximum(low - 1, 0)], 0.0)
         u = below + self.rng.random(len(low)) * (c[high - 1] - below)
         return np.minimum(np.searchsorted(c, u, side="right"), high - 1)
@@ -107,7 +111,8 @@ class _Sampler:
         half = k // 2
         glob = np.stack([self._draw(zeros[:half], full[:half]) for _ in range(3)], 1)
         first = self._draw(zeros[half:], full[half:])
-        lo, hi = self.local[0][first], self.local[1][first]
+        run = np.searchsorted(self.local[0], first, side="right") - 1
+        lo, hi = self.local[0][run], self.local[1][run]
         loc = np.stack([first, self._draw(lo, hi), self._draw(lo, hi)], 1)
         return np.vstack([glob, loc])
 
@@ -146,8 +151,9 @@ def inliers_of(points: np.ndarray, normal: np.ndarray, offset: float, inlier_dis
                point_normals: np.ndarray | None = None, min_cos: float = 0.0) -> np.ndarray:
     """Inlier mask of one plane (distance, and with `point_normals` the normal angle)."""
     inside = np.abs(points @ normal + offset) < inlier_distance
-    if point_normals is not None:
-        inside &= np.abs(point_normals @ normal) >= min_cos
+    if point_normals is not None:  # the normal test only where the distance test passed
+        near = np.flatnonzero(inside)
+        inside[near] = np.abs(point_normals[near] @ normal) >= min_cos
     return inside
 
 
