@@ -59,11 +59,49 @@ class ExtractedPlane:
     centroid: np.ndarray
 
 
+#: The last extraction with the default generator: (points, weights, options, planes). Refine
+#: assigns the same tie points again when it undoes an iteration (with another threshold, which
+#: the extraction does not depend on): then they are the points of the last call moved by a
+#: similarity and back, equal to ~1e-13 m, and that extraction's planes are returned again.
+_last_extraction: tuple | None = None
+#: Points no farther (m, per coordinate) from the last call's count as the same points.
+_SAME_POINTS = 1e-9
+
+
+def _same_input(points: np.ndarray, weights: np.ndarray | None,
+                options: AssignmentOptions) -> bool:
+    if _last_extraction is None:
+        return False
+    last_points, last_weights, last_options, _ = _last_extraction
+    return (points.shape == last_points.shape and repr(options) == last_options
+            and (weights is None) == (last_weights is None)
+            and (weights is None or np.array_equal(weights, last_weights))
+            and bool(np.all(np.abs(points - last_points) <= _SAME_POINTS)))
+
+
 def extract_planes(points: np.ndarray, options: AssignmentOptions,
                    weights: np.ndarray | None = None,
                    rng: np.random.Generator | None = None) -> list[ExtractedPlane]:
-    """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1)."""
-    rng = rng or np.random.default_rng(options.random_seed)
+    """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1).
+    Without `rng` (the generator seeded by `options.random_seed`) the result depends on the
+    points, weights and options only: a call with the last call's points (to `_SAME_POINTS`),
+    weights and options returns its planes again."""
+    global _last_extraction
+    points = np.asarray(points, dtype=np.float64)
+    if rng is not None:
+        return _extract_planes(points, options, weights, rng)
+    if _same_input(points, weights, options):
+        logger.debug("extraction reused: the same %d points as the last call", len(points))
+        return list(_last_extraction[3])
+    planes = _extract_planes(points, options, weights, np.random.default_rng(options.random_seed))
+    _last_extraction = (points.copy(), None if weights is None else np.array(weights, float),
+                        repr(options), planes)
+    return list(planes)
+
+
+def _extract_planes(points: np.ndarray, options: AssignmentOptions,
+                    weights: np.ndarray | None, rng: np.random.Generator
+                    ) -> list[ExtractedPlane]:
     threshold, min_points = options.msac_inlier_distance, options.min_points_per_plane
     if len(points) < max(min_points, 3):
         return []

@@ -60,6 +60,25 @@ def test_extraction_recovers_planes_with_outliers():
         assert len(members & set(range(1200, 1320))) < 5  # hardly any random outlier
 
 
+def test_extraction_of_the_same_points_is_reused():
+    rng = np.random.default_rng(3)
+    points = np.vstack([plane_patch(rng, 300, [5, 0, 5], [1, 0, 0], [0, 0, 1], (10, 8), 0.02),
+                        plane_patch(rng, 300, [20, 5, 5], [0, 1, 0], [0, 0, 1], (10, 8), 0.02)])
+    options = AssignmentOptions()
+    first = extract_planes(points, options)
+    again = extract_planes(points + 1e-12, options)  # a similarity and back: ~1e-13 m
+    assert len(first) == 2 and all(a is b for a, b in zip(first, again))
+    moved = points.copy()
+    moved[0, 2] += 1e-6
+    recomputed = extract_planes(moved, options)
+    assert not any(a is b for a, b in zip(first, recomputed))
+    # an explicit generator is never served from the last extraction
+    fresh = extract_planes(points, options, rng=np.random.default_rng(options.random_seed))
+    assert not any(a is b for a, b in zip(first, fresh))
+    for a, b in zip(first, fresh):
+        np.testing.assert_array_equal(a.members, b.members)
+
+
 def test_matching_rejects_rotated_distant_and_outside_planes():
     store = box_store()
     wall = face_with_normal(store, [0, -1, 0])
