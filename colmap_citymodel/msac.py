@@ -265,7 +265,7 @@ def plane_coordinates(points: np.ndarray, normal: np.ndarray) -> np.ndarray:
     u = np.cross(normal, helper)
     u /= np.linalg.norm(u)
     v = np.cross(normal, u)
-    return np.column_stack([points @ u, points @ v])
+    return points @ np.column_stack([u, v])  # one product for both coordinates
 
 
 def _cell_link(cell: float, link: float, di: np.ndarray, dj: np.ndarray) -> np.ndarray:
