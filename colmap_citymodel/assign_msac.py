@@ -113,9 +113,10 @@ def _extract_planes(points: np.ndarray, options: AssignmentOptions,
                if options.msac_point_normal_angle < 90.0 else None)
     # the points not yet in a plane, kept sorted by cell and compacted after each plane
     remaining = order
-    pts, cell_keys = points[order], keys[order]
+    # (take: row gathers several times faster than fancy or boolean indexing)
+    pts, cell_keys = points.take(order, 0), keys[order]
     w = None if weights is None else weights[order]
-    pts_normals = None if normals is None else normals[order]
+    pts_normals = None if normals is None else normals.take(order, 0)
     planes: list[ExtractedPlane] = []
     failures = 0
     while len(planes) < options.msac_max_planes and len(remaining) >= min_points:
@@ -127,7 +128,8 @@ def _extract_planes(points: np.ndarray, options: AssignmentOptions,
         inliers = np.flatnonzero(inlier_mask)
         if len(inliers) < min_points:
             break
-        labels = alpha_components(plane_coordinates(pts[inliers], normal), options.alpha_radius)
+        labels = alpha_components(plane_coordinates(pts.take(inliers, 0), normal),
+                                  options.alpha_radius)
         sizes = np.bincount(labels)
         if sizes.max() < min_points:
             failures += 1
@@ -136,8 +138,9 @@ def _extract_planes(points: np.ndarray, options: AssignmentOptions,
             continue
         failures = 0
         component = inliers[labels == int(np.argmax(sizes))]
-        normal, offset = fit_plane(pts[component], None if w is None else w[component])
-        uv = plane_coordinates(pts[component], normal)
+        component_points = pts.take(component, 0)
+        normal, offset = fit_plane(component_points, None if w is None else w[component])
+        uv = plane_coordinates(component_points, normal)
         centre_uv = boundary_centroid(uv, options.alpha_radius)
         # back to 3D: the point on the plane with those in-plane coordinates
         basis = plane_coordinates(np.eye(3), normal)  # rows: e_k -> (u_k, v_k)
@@ -145,9 +148,10 @@ def _extract_planes(points: np.ndarray, options: AssignmentOptions,
         planes.append(ExtractedPlane(normal, offset, remaining[component], centroid))
         keep = np.ones(len(remaining), bool)
         keep[component] = False
-        remaining, pts, cell_keys = remaining[keep], pts[keep], cell_keys[keep]
-        w = None if w is None else w[keep]
-        pts_normals = None if pts_normals is None else pts_normals[keep]
+        kept = np.flatnonzero(keep)
+        remaining, pts, cell_keys = remaining[kept], pts.take(kept, 0), cell_keys[kept]
+        w = None if w is None else w[kept]
+        pts_normals = None if pts_normals is None else pts_normals.take(kept, 0)
     logger.debug("extracted %d planes holding %d of %d points", len(planes),
                  len(points) - len(remaining), len(points))
     return planes

@@ -155,7 +155,7 @@ def inliers_of(points: np.ndarray, normal: np.ndarray, offset: float, inlier_dis
     inside = np.abs(points @ normal + offset) < inlier_distance
     if point_normals is not None:  # the normal test only where the distance test passed
         near = np.flatnonzero(inside)
-        inside[near] = np.abs(point_normals[near] @ normal) >= min_cos
+        inside[near] = np.abs(point_normals.take(near, 0) @ normal) >= min_cos
     return inside
 
 
@@ -191,10 +191,11 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     # without replacement costs a permutation of all points
     subset = (rng.integers(0, n, options.msac_sample_points)
               if n > options.msac_sample_points else np.arange(n))
+    # (take: a row gather several times faster than fancy indexing, the same rows)
+    sub_points = points.take(subset, 0)
+    sub_normals = None if normals_of_points is None else normals_of_points.take(subset, 0)
     # the subset in single precision about its centre: half the memory traffic, and 1e-7
     # relative to tens of metres is far below any inlier distance
-    sub_points = points[subset]
-    sub_normals = None if normals_of_points is None else normals_of_points[subset]
     centre = sub_points.mean(0)
     scored = (sub_points - centre).astype(np.float32)
     scored_normals = None if sub_normals is None else sub_normals.astype(np.float32)
@@ -232,11 +233,15 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     top = np.argsort(np.concatenate(kept_costs))[:_RESCORED]
     normals, offsets = normals[top], offsets[top]
     if len(subset) < n:  # the best few again, on a larger subsample
-        again = (rng.integers(0, n, _RESCORE_FACTOR * len(subset))
-                 if n > _RESCORE_FACTOR * len(subset) else slice(None))
-        best = int(np.argmin(_msac_cost(points[again], normals, offsets, inlier_distance,
-                                        None if normals_of_points is None
-                                        else normals_of_points[again], point_cos)))
+        if n > _RESCORE_FACTOR * len(subset):
+            again = rng.integers(0, n, _RESCORE_FACTOR * len(subset))
+            again_points = points.take(again, 0)
+            again_normals = (None if normals_of_points is None
+                             else normals_of_points.take(again, 0))
+        else:
+            again_points, again_normals = points, normals_of_points
+        best = int(np.argmin(_msac_cost(again_points, normals, offsets, inlier_distance,
+                                        again_normals, point_cos)))
     else:
         best = 0
     normal, offset = normals[best], float(offsets[best])
@@ -244,8 +249,9 @@ def msac_plane(points: np.ndarray, inlier_distance: float, options: AssignmentOp
     for _ in range(2):  # local optimisation: least squares on the inliers
         if np.count_nonzero(inliers) < 3:
             break
-        refit, refit_offset = fit_plane(points[inliers],
-                                        None if weights is None else weights[inliers])
+        members = np.flatnonzero(inliers)
+        refit, refit_offset = fit_plane(points.take(members, 0),
+                                        None if weights is None else weights[members])
         if reference is not None and abs(refit @ reference) < min_cos:
             break
         normal, offset = refit, refit_offset
