@@ -395,11 +395,11 @@ def boundary_centroid(uv: np.ndarray, radius: float) -> np.ndarray:
     area2 = np.abs((b - a)[:, 0] * (c - a)[:, 1] - (b - a)[:, 1] * (c - a)[:, 0])
     with np.errstate(divide="ignore", invalid="ignore"):
         circumradius = la * lb * lc / (2.0 * area2)
-    simplices = tri.simplices[circumradius <= radius]
-    if len(simplices) == 0:
+    alpha = circumradius <= radius
+    if not alpha.any():
         return points[np.unique(tri.convex_hull)].mean(0)
-    edges = np.sort(np.vstack([simplices[:, [0, 1]], simplices[:, [1, 2]],
-                               simplices[:, [2, 0]]]), axis=1)
-    unique, counts = np.unique(edges[:, 0] * len(points) + edges[:, 1], return_counts=True)
-    boundary = unique[counts == 1]
-    return points[np.unique(np.r_[boundary // len(points), boundary % len(points)])].mean(0)
+    # an edge of an alpha triangle is on the boundary when the triangle across it (opposite
+    # vertex k) is not one or there is none: the edges of exactly one alpha triangle
+    triangle, k = np.nonzero(alpha[:, None] & ~np.r_[alpha, False][tri.neighbors])
+    ends = np.r_[tri.simplices[triangle, (k + 1) % 3], tri.simplices[triangle, (k + 2) % 3]]
+    return points[np.unique(ends)].mean(0)
