@@ -19,12 +19,15 @@ Prints the figures and, last, the lines `plain_solve_s`, `hybrid_solve_s`, `hybr
 
 Then one refine per assignment method (direct, and `--methods`, default msac roi_msac auto),
 each printing `assignment_fraction_<method>` (target <= 0.10): refine's own assignment seconds
-(`result.seconds["assignment"]`, which leaves out the assignments inside the initial alignment
-rounds) over the refine's wall time. Also per method: the seconds of every `assign` call of the
-refine (alignment rounds included, `all_assign_fraction`), the final assignment's points and
-planes, camera centre and check point RMS (3D, m) and the verdict; `--results FILE` writes them
-as a markdown table. `--assignment_only` skips the plain/hybrid solve figures. The machine's
-load moves every second; compare fractions, and runs against a baseline of the same run.
+(`result.seconds["assignment"]`: reading the tie points, the threshold and the assign calls of
+each iteration, not those inside the initial alignment rounds) over the refine's wall time.
+Also per method: the seconds of every `assign` call of the refine (alignment rounds included,
+`all_assign_fraction`), the final assignment's points and planes, camera centre and check
+point RMS (3D, m), the verdict, and the process CPU seconds of the assign calls and of the
+refine (all threads; steadier than wall time on a loaded machine). `--results FILE` writes
+them as a markdown table; `--assignment_only` skips the plain/hybrid solve figures. The
+machine's load moves every figure: compare fractions, and runs against a baseline measured
+alongside.
 
     .venv/bin/python benchmarks/bench_refine.py [--quick | --scenario long_scn3] [--workspace DIR]
         [--methods msac roi_msac auto] [--assignment_only] [--results FILE]
@@ -86,20 +89,23 @@ def code_version() -> str:
 
 
 class AssignTimer:
-    """Wraps workflow.assign: the wall seconds of every call (the alignment rounds' included)."""
+    """Wraps workflow.assign: the wall and the process CPU seconds of every call (the alignment
+    rounds' included)."""
 
     def __init__(self):
         from colmap_citymodel import workflow
 
-        self.workflow, self.inner, self.seconds = workflow, workflow.assign, 0.0
+        self.workflow, self.inner = workflow, workflow.assign
+        self.seconds = self.cpu_seconds = 0.0
         workflow.assign = self
 
     def __call__(self, *args, **kwargs):
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         try:
             return self.inner(*args, **kwargs)
         finally:
             self.seconds += time.perf_counter() - t
+            self.cpu_seconds += time.process_time() - c
 
 
 def checkpoint_rms(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> float:
@@ -126,9 +132,9 @@ def timed_refine(method: str, sfm, store, gnss, truth, workspace: Path) -> dict:
     options.assignment.method = method
     timer = AssignTimer()
     try:
-        t = time.perf_counter()
+        t, c = time.perf_counter(), time.process_time()
         result = refine(sfm, store, gnss, options, progress=False)
-        seconds = time.perf_counter() - t
+        seconds, cpu_seconds = time.perf_counter() - t, time.process_time() - c
     finally:
         timer.workflow.assign = timer.inner
     rec = result.reconstruction_in_crs()
@@ -137,6 +143,8 @@ def timed_refine(method: str, sfm, store, gnss, truth, workspace: Path) -> dict:
         "all_assign_s": timer.seconds, "iterations": len(result.iterations),
         "fraction": result.seconds["assignment"] / seconds,
         "all_assign_fraction": timer.seconds / seconds,
+        # CPU seconds of the process (all its threads): less sensitive to the machine's load
+        "all_assign_cpu_s": timer.cpu_seconds, "refine_cpu_s": cpu_seconds,
         "points": result.assignment.num_assigned, "planes": result.assignment.num_faces,
         "camera_rms": float(np.sqrt(np.mean(centre_errors(rec, truth) ** 2))),
         "checkpoint_rms": checkpoint_rms(result.reconstruction, workspace, result.origin),
@@ -149,20 +157,22 @@ def method_line(r: dict) -> str:
     return (f"assignment_fraction_{r['method']} {r['fraction']:.4f} "
             f"(refine {r['refine_s']:.1f} s, {r['iterations']} iterations, assignment "
             f"{r['assignment_s']:.1f} s, all assign calls {r['all_assign_s']:.1f} s = "
-            f"{r['all_assign_fraction']:.4f}, {r['points']} points on {r['planes']} planes, "
+            f"{r['all_assign_fraction']:.4f}, CPU {r['all_assign_cpu_s']:.1f} of "
+            f"{r['refine_cpu_s']:.1f} s, {r['points']} points on {r['planes']} planes, "
             f"camera centres {r['camera_rms']:.3f} m, check points {r['checkpoint_rms']:.3f} m, "
             f"verdict {r['verdict']})")
 
 
 def results_table(rows: list[dict]) -> str:
     lines = ["| method | assignment s | all assign calls s | refine s | fraction | "
-             "all-calls fraction | iterations | assigned points | planes | camera centre RMS m "
-             "| check point RMS m | verdict |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "all-calls fraction | all assign calls CPU s | refine CPU s | iterations | "
+             "assigned points | planes | camera centre RMS m | check point RMS m | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['method']} | {r['assignment_s']:.1f} | {r['all_assign_s']:.1f} | "
                      f"{r['refine_s']:.1f} | {r['fraction']:.3f} | "
-                     f"{r['all_assign_fraction']:.3f} | {r['iterations']} | {r['points']} | "
+                     f"{r['all_assign_fraction']:.3f} | {r['all_assign_cpu_s']:.1f} | "
+                     f"{r['refine_cpu_s']:.1f} | {r['iterations']} | {r['points']} | "
                      f"{r['planes']} | {r['camera_rms']:.3f} | {r['checkpoint_rms']:.3f} | "
                      f"{r['verdict']} |")
     return "\n".join(lines) + "\n"
