@@ -288,11 +288,13 @@ _BLOCK_LINKS: dict[tuple[float, float], list[tuple[int, int, np.ndarray]]] = {}
 
 
 def _block_links(cell: float, link: float) -> list[tuple[int, int, np.ndarray]]:
+    """The block offsets (one of each pair +-) at which some cell pair is linked, with their
+    tables (`_BLOCK_LINKS`); computed once per cell size and link length."""
     key = (cell, link)
     if key not in _BLOCK_LINKS:
         r, c = np.divmod(np.arange(16), 4)
-        reach = int(math.ceil(link / cell)) + 1  # cells; the blocks' below
-        block_reach = (reach + 3) // 4 + 1
+        reach = int(math.ceil(link / cell)) + 1  # the farthest linked cells, in cells
+        block_reach = (reach + 3) // 4 + 1  # ... in blocks, with a margin
         tables = []
         for bi in range(0, block_reach + 1):
             for bj in range(-block_reach, block_reach + 1):
@@ -347,11 +349,19 @@ def alpha_components(uv: np.ndarray, radius: float) -> np.ndarray:
     keys = block_key[first]
     block_of_cell = np.cumsum(np.r_[False, block_key[1:] != block_key[:-1]])
     masks = np.bitwise_or.reduceat(np.left_shift(1, cells & 15), first).astype(np.int64)
-    lookup = np.full(int(keys[-1]) + block_reach * stride + block_reach + 1, -1, np.int64)
-    lookup[keys] = np.arange(len(keys))
+    size = int(keys[-1]) + block_reach * stride + block_reach + 1
+    lookup = None
+    if size <= 16_000_000:  # a dense table of block ids: gathers, no search
+        lookup = np.full(size, -1, np.int64)
+        lookup[keys] = np.arange(len(keys))
     rows, cols = [], []
     for di, dj, table in tables:
-        neighbour = lookup[keys + (di * stride + dj)]
+        target = keys + (di * stride + dj)
+        if lookup is not None:
+            neighbour = lookup[target]
+        else:
+            neighbour = np.minimum(np.searchsorted(keys, target), len(keys) - 1)
+            neighbour[keys[neighbour] != target] = -1
         a = np.flatnonzero(neighbour >= 0)
         b = neighbour[a]
         linked = (table[masks[a]] & masks[b]) != 0
