@@ -17,13 +17,27 @@ is a lower bound no adjustment that has to move the block can reach.
 Prints the figures and, last, the lines `plain_solve_s`, `hybrid_solve_s`, `hybrid_solve_ratio`,
 `assignment_fraction`, `refine_ratio` (targets: <= 1.2, <= 0.10, <= 4).
 
-    .venv/bin/python benchmarks/bench_refine.py [--quick] [--workspace DIR]
+Then one refine per assignment method (direct, and `--methods`, default msac roi_msac auto),
+each printing `assignment_fraction_<method>` (target <= 0.10): refine's own assignment seconds
+(`result.seconds["assignment"]`: reading the tie points, the threshold and the assign calls of
+each iteration, not those inside the initial alignment rounds) over the refine's wall time.
+Also per method: the seconds of every `assign` call of the refine (alignment rounds included,
+`all_assign_fraction`), the final assignment's points and planes, camera centre and check
+point RMS (3D, m), the verdict, and the process CPU seconds of the assign calls and of the
+refine (all threads; steadier than wall time on a loaded machine). `--results FILE` writes
+them as a markdown table; `--assignment_only` skips the plain/hybrid solve figures. The
+machine's load moves every figure: compare fractions, and runs against a baseline measured
+alongside.
+
+    .venv/bin/python benchmarks/bench_refine.py [--quick | --scenario long_scn3] [--workspace DIR]
+        [--methods msac roi_msac auto] [--assignment_only] [--results FILE]
 """
 
 from __future__ import annotations
 
 import argparse
 import logging
+import subprocess
 import time
 from pathlib import Path
 
@@ -41,37 +55,141 @@ from colmap_citymodel.simulate.synthetic import centre_errors
 from colmap_citymodel.workflow import refine
 
 
-def workspace_for(sequence: str) -> Path:
+def workspace_for(scenario: str) -> Path:
+    """The simulated workspace of `workspaces/<scenario>.toml` (e.g. long_scn3), built into
+    workspaces/generated/<sequence>/<ScnN> (sequence mapped once, in generated/cache) if
+    missing."""
     from colmap_citymodel.simulate import sequence as simulate
 
     root = Path(__file__).resolve().parents[1] / "workspaces"
-    out = root / "generated" / sequence / "Scn3"
+    sequence, scn = scenario.split("_")
+    out = root / "generated" / sequence / scn.capitalize()
     if not (out / "sparse" / "0").is_dir():
-        simulate.main(root / f"{sequence}_scn3.toml", out,
+        simulate.main(root / f"{scenario}.toml", out,
                       cache_path=root / "generated" / "cache", overwrite=out.exists())
     return out
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__)
-    parser.add_argument("--quick", action="store_true", help="the short sequence (~4x smaller)")
-    parser.add_argument("--workspace", type=Path, help="a simulated workspace to use instead")
-    parser.add_argument("--methods", nargs="*", default=["msac", "roi_msac", "auto"],
-                        help="assignment methods to time besides direct, each in a full refine "
-                             "(assignment_fraction_<method>)")
-    args = parser.parse_args()
-    logger.setLevel(logging.WARNING)
-    workspace = args.workspace or workspace_for("short" if args.quick else "long")
-    from colmap_citymodel.block.gnss import read_gnss
-    from colmap_citymodel.block.reconstruction import read_reconstruction
-    from colmap_citymodel.citymodel.read import read_city_model
+def code_version() -> str:
+    """HEAD of the checkout the package is imported from, "+ uncommitted changes" if its
+    sources or this benchmark differ from it."""
+    import colmap_citymodel
 
-    store = read_city_model(workspace / "given_model.gml")
-    gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)
-    sfm = read_reconstruction(workspace / "sparse" / "0")
-    print(f"workspace {workspace}: {sfm.num_reg_images()} images, {sfm.num_points3D()} tie "
-          f"points, {sfm.compute_num_observations()} image observations, "
-          f"{len(store.faces)} model faces")
+    package = Path(colmap_citymodel.__file__).resolve().parent
+
+    def git(*args: str) -> str:
+        return subprocess.run(["git", "-C", str(package), *args], capture_output=True, text=True,
+                              check=True).stdout.strip()
+
+    try:
+        commit = git("rev-parse", "--short", "HEAD")
+        dirty = git("status", "--porcelain", "--untracked-files=no", "--", ".", "../cpp_ext",
+                    "../benchmarks/bench_refine.py")
+    except (OSError, subprocess.CalledProcessError):
+        return f"package at {package} (not a git checkout)"
+    return commit + (" + uncommitted changes" if dirty else "")
+
+
+class AssignTimer:
+    """Wraps `assign` where the refine loop and the alignment rounds call it: the wall and the
+    process CPU seconds of every call."""
+
+    def __init__(self):
+        from colmap_citymodel.adjust import loop, steps
+
+        self.modules, self.inner = (loop, steps), loop.assign
+        self.seconds = self.cpu_seconds = 0.0
+        for module in self.modules:
+            module.assign = self
+
+    def restore(self) -> None:
+        for module in self.modules:
+            module.assign = self.inner
+
+    def __call__(self, *args, **kwargs):
+        t, c = time.perf_counter(), time.process_time()
+        try:
+            return self.inner(*args, **kwargs)
+        finally:
+            self.seconds += time.perf_counter() - t
+            self.cpu_seconds += time.process_time() - c
+
+
+def checkpoint_rms(rec: pycolmap.Reconstruction, workspace: Path, origin: np.ndarray) -> float:
+    """RMS 3D (m) of the simulated check points triangulated in `rec` (local frame)."""
+    from colmap_citymodel.precision.checkpoints import (
+        evaluate_checkpoints,
+        read_checkpoint_observations,
+        read_checkpoints,
+    )
+
+    if not (workspace / "checkpoints.txt").exists():
+        return float("nan")
+    try:
+        return float(evaluate_checkpoints(
+            rec, read_checkpoints(workspace / "checkpoints.txt"),
+            read_checkpoint_observations(workspace / "checkpoint_observations.txt"),
+            origin, frame="local").rms_3d)
+    except Exception as error:  # too few triangulated check points is a result too
+        print(f"check points: {type(error).__name__}: {error}")
+        return float("nan")
+
+
+def timed_refine(method: str, sfm, store, gnss, truth, workspace: Path) -> dict:
+    """One refine with assignment `method` (covariances off): its figures."""
+    options = RefineOptions()
+    options.precision.covariances = "off"  # timed separately (precision.py)
+    options.assignment.method = method
+    timer = AssignTimer()
+    try:
+        t, c = time.perf_counter(), time.process_time()
+        result = refine(sfm, store, gnss, options, progress=False)
+        seconds, cpu_seconds = time.perf_counter() - t, time.process_time() - c
+    finally:
+        timer.restore()
+    rec = result.reconstruction_in_crs()
+    return {
+        "method": method, "refine_s": seconds, "assignment_s": result.seconds["assignment"],
+        "all_assign_s": timer.seconds, "iterations": len(result.iterations),
+        "fraction": result.seconds["assignment"] / seconds,
+        "all_assign_fraction": timer.seconds / seconds,
+        # CPU seconds of the process (all its threads): less sensitive to the machine's load
+        "all_assign_cpu_s": timer.cpu_seconds, "refine_cpu_s": cpu_seconds,
+        "points": result.assignment.num_assigned, "planes": result.assignment.num_faces,
+        "camera_rms": float(np.sqrt(np.mean(centre_errors(rec, truth) ** 2))),
+        "checkpoint_rms": checkpoint_rms(result.reconstruction, workspace, result.origin),
+        "verdict": result.quality.verdict if result.quality is not None else "n/a",
+        "seconds": result.seconds,
+    }
+
+
+def method_line(r: dict) -> str:
+    return (f"assignment_fraction_{r['method']} {r['fraction']:.4f} "
+            f"(refine {r['refine_s']:.1f} s, {r['iterations']} iterations, assignment "
+            f"{r['assignment_s']:.1f} s, all assign calls {r['all_assign_s']:.1f} s = "
+            f"{r['all_assign_fraction']:.4f}, CPU {r['all_assign_cpu_s']:.1f} of "
+            f"{r['refine_cpu_s']:.1f} s, {r['points']} points on {r['planes']} planes, "
+            f"camera centres {r['camera_rms']:.3f} m, check points {r['checkpoint_rms']:.3f} m, "
+            f"verdict {r['verdict']})")
+
+
+def results_table(rows: list[dict]) -> str:
+    lines = ["| method | assignment s | all assign calls s | refine s | fraction | "
+             "all-calls fraction | all assign calls CPU s | refine CPU s | iterations | "
+             "assigned points | planes | camera centre RMS m | check point RMS m | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        lines.append(f"| {r['method']} | {r['assignment_s']:.1f} | {r['all_assign_s']:.1f} | "
+                     f"{r['refine_s']:.1f} | {r['fraction']:.3f} | "
+                     f"{r['all_assign_fraction']:.3f} | {r['all_assign_cpu_s']:.1f} | "
+                     f"{r['refine_cpu_s']:.1f} | {r['iterations']} | {r['points']} | "
+                     f"{r['planes']} | {r['camera_rms']:.3f} | {r['checkpoint_rms']:.3f} | "
+                     f"{r['verdict']} |")
+    return "\n".join(lines) + "\n"
+
+
+def solve_figures(sfm, store, gnss, truth, workspace: Path) -> dict:
+    """The plain and hybrid solve figures and refine with direct assignment (its row)."""
     refine_options = RefineOptions()
     refine_options.precision.covariances = "off"  # timed separately (precision.py)
 
@@ -106,15 +224,8 @@ def main() -> None:
     hybrid_report = hybrid.solve()
     hybrid_s = time.perf_counter() - t
 
-    t = time.perf_counter()
-    result = refine(sfm, store, gnss, refine_options, progress=False)
-    refine_s = time.perf_counter() - t
-    iterations = len(result.iterations)
-    # Compare in model CRS: truth/ is local to the sequence's origin, the result to the store's.
-    truth = pycolmap.Reconstruction(str(workspace / "truth"))
-    truth_origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")
-    truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), truth_origin))
-    error = float(np.sqrt(np.mean(centre_errors(result.reconstruction_in_crs(), truth) ** 2)))
+    direct = timed_refine("direct", sfm, store, gnss, truth, workspace)
+    refine_s, iterations, error = direct["refine_s"], direct["iterations"], direct["camera_rms"]
 
     print(f"plain COLMAP bundle adjustment (defaults): "
           f"{', '.join(f'{v:.2f}' for v in plain_seconds)} s")
@@ -126,30 +237,71 @@ def main() -> None:
           f"{assignment.num_assigned} points on {assignment.num_faces} planes "
           f"(assignment {first_assignment_s:.3f} s)")
     print(f"refine: {iterations} iterations, {refine_s:.1f} s "
-          f"({', '.join(f'{k} {v:.1f}' for k, v in result.seconds.items())}), "
+          f"({', '.join(f'{k} {v:.1f}' for k, v in direct['seconds'].items())}), "
           f"camera centre RMS vs truth {error:.3f} m")
-    print(f"assignment_s_per_iteration {result.seconds['assignment'] / iterations:.3f}")
+    print(f"assignment_s_per_iteration {direct['assignment_s'] / iterations:.3f}")
     print(f"plain_gnss_solve_s {gnss_report.seconds:.3f}")
     print(f"refine_ratio_vs_plain_gnss_solve {refine_s / gnss_report.seconds:.3f}")
     print(f"plain_solve_s {plain_s:.3f}")
     print(f"hybrid_solve_s {hybrid_s:.3f}")
     print(f"hybrid_solve_ratio {hybrid_s / plain_s:.3f}")
-    print(f"assignment_fraction {result.seconds['assignment'] / refine_s:.4f}")
+    print(f"assignment_fraction {direct['fraction']:.4f}")
     print(f"refine_ratio {refine_s / plain_s:.3f}")
-    print(f"assignment_fraction_direct {result.seconds['assignment'] / refine_s:.4f} "
-          f"(camera centres {error:.3f} m)")
+    return direct
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__)
+    parser.add_argument("--quick", action="store_true",
+                        help="short_scn3: the short sequence (~4x smaller)")
+    parser.add_argument("--scenario", default="long_scn3",
+                        help="workspaces/<scenario>.toml (default long_scn3, the full size)")
+    parser.add_argument("--workspace", type=Path, help="a simulated workspace to use instead")
+    parser.add_argument("--methods", nargs="*", default=["msac", "roi_msac", "auto"],
+                        help="assignment methods to time besides direct, each in a full refine "
+                             "(assignment_fraction_<method>)")
+    parser.add_argument("--assignment_only", action="store_true",
+                        help="only the refines per assignment method (no plain/hybrid solves)")
+    parser.add_argument("--results", type=Path,
+                        help="write the per-method figures to this markdown file")
+    args = parser.parse_args()
+    logger.setLevel(logging.WARNING)
+    scenario = "short_scn3" if args.quick else args.scenario
+    workspace = args.workspace or workspace_for(scenario)
+    from colmap_citymodel.block.gnss import read_gnss
+    from colmap_citymodel.block.reconstruction import read_reconstruction
+    from colmap_citymodel.citymodel.read import read_city_model
+
+    store = read_city_model(workspace / "given_model.gml")
+    gnss = read_gnss(database=workspace / "database.db", target_crs=store.crs)
+    sfm = read_reconstruction(workspace / "sparse" / "0")
+    print(f"workspace {workspace}: {sfm.num_reg_images()} images, {sfm.num_points3D()} tie "
+          f"points, {sfm.compute_num_observations()} image observations, "
+          f"{len(store.faces)} model faces")
+    # Compare in model CRS: truth/ is local to the sequence's origin, the result to the store's.
+    truth = pycolmap.Reconstruction(str(workspace / "truth"))
+    truth_origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")
+    truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), truth_origin))
+    version = code_version()
+    print(f"code {version}")
+    rows = []
+    if not args.assignment_only:
+        rows.append(solve_figures(sfm, store, gnss, truth, workspace))
+        print(method_line(rows[0]))
+    else:
+        rows.append(timed_refine("direct", sfm, store, gnss, truth, workspace))
+        print(method_line(rows[0]))
     for method in args.methods:
-        options = RefineOptions()
-        options.precision.covariances = "off"
-        options.assignment.method = method
-        t = time.perf_counter()
-        other = refine(sfm, store, gnss, options, progress=False)
-        seconds = time.perf_counter() - t
-        other_error = float(np.sqrt(np.mean(
-            centre_errors(other.reconstruction_in_crs(), truth) ** 2)))
-        print(f"assignment_fraction_{method} {other.seconds['assignment'] / seconds:.4f} "
-              f"(refine {seconds:.1f} s, assignment {other.seconds['assignment']:.1f} s, "
-              f"camera centres {other_error:.3f} m, verdict {other.quality.verdict})")
+        rows.append(timed_refine(method, sfm, store, gnss, truth, workspace))
+        print(method_line(rows[-1]))
+    table = results_table(rows)
+    print(table)
+    if args.results is not None:
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text(
+            f"workspace `{workspace}` ({sfm.num_reg_images()} images, {sfm.num_points3D()} tie "
+            f"points), code {version}\n\n" + table)
+        print(f"wrote {args.results}")
 
 
 if __name__ == "__main__":

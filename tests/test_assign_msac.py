@@ -57,6 +57,25 @@ def test_extraction_recovers_planes_with_outliers():
         assert len(members & set(range(1200, 1320))) < 5  # hardly any random outlier
 
 
+def test_extraction_of_the_same_points_is_reused():
+    rng = np.random.default_rng(3)
+    points = np.vstack([plane_patch(rng, 300, [5, 0, 5], [1, 0, 0], [0, 0, 1], (10, 8), 0.02),
+                        plane_patch(rng, 300, [20, 5, 5], [0, 1, 0], [0, 0, 1], (10, 8), 0.02)])
+    options = AssignmentOptions()
+    first = extract_planes(points, options)
+    again = extract_planes(points + 1e-12, options)  # a similarity and back: ~1e-13 m
+    assert len(first) == 2 and all(a is b for a, b in zip(first, again))
+    moved = points.copy()
+    moved[0, 2] += 1e-6
+    recomputed = extract_planes(moved, options)
+    assert not any(a is b for a, b in zip(first, recomputed))
+    # an explicit generator is never served from the last extraction
+    fresh = extract_planes(points, options, rng=np.random.default_rng(options.random_seed))
+    assert not any(a is b for a, b in zip(first, fresh))
+    for a, b in zip(first, fresh):
+        np.testing.assert_array_equal(a.members, b.members)
+
+
 def test_matching_rejects_rotated_distant_and_outside_planes():
     store = box_store()
     wall = face_with_normal(store, [0, -1, 0])
@@ -129,6 +148,38 @@ def test_alpha_components_split_coplanar_facades_and_bridge_windows():
     # a sparse pair 1.9 m apart is one component, 3 m apart two (radius 1 m: link 2 m)
     assert len(np.unique(alpha_components(np.array([[0, 0], [1.9, 0.0]]), 1.0))) == 1
     assert len(np.unique(alpha_components(np.array([[0, 0], [3.0, 0.0]]), 1.0))) == 2
+
+
+def cell_graph_components(uv, radius):
+    """alpha_components' definition, directly: cells of side r/4, two occupied cells linked when
+    their closest distance is at most 2r (all pairs compared), components numbered in the order
+    of their first cell by row, then column."""
+    from scipy.sparse.csgraph import connected_components
+
+    cell = radius / 4.0
+    ij = np.floor((uv - uv.min(0)) / cell).astype(np.int64)
+    cells, inverse = np.unique(ij, axis=0, return_inverse=True)  # rows sorted by (i, j)
+    d = np.abs(cells[:, None, :] - cells[None, :, :])
+    gap = cell * np.hypot(np.maximum(d[..., 0] - 1, 0), np.maximum(d[..., 1] - 1, 0))
+    _, labels = connected_components(gap <= 2.0 * radius, directed=False)
+    return labels[inverse.ravel()]
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_alpha_components_equal_the_cell_graph_definition(seed):
+    # clusters, strips and sparse points at several radii: the block-wise computation gives the
+    # components (and their numbering) of the cell graph
+    rng = np.random.default_rng(seed)
+    for _ in range(40):
+        n = int(rng.integers(1, 300))
+        centres = rng.uniform(0, rng.choice([2.0, 10.0, 40.0]), (int(rng.integers(1, 6)), 2))
+        uv = centres[rng.integers(0, len(centres), n)] \
+            + rng.normal(0, rng.choice([0.1, 0.6, 1.5]), (n, 2)) * rng.uniform(0.2, 1.0, 2)
+        if rng.random() < 0.3:
+            uv = np.round(uv * 8) / 8  # on cell borders
+        radius = float(rng.choice([1.0, 0.3, 0.7, 2.5]))
+        np.testing.assert_array_equal(alpha_components(uv, radius),
+                                      cell_graph_components(uv, radius))
 
 
 def test_extraction_separates_coplanar_facades_five_metres_apart():

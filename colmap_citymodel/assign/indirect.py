@@ -58,11 +58,49 @@ class ExtractedPlane:
     centroid: np.ndarray
 
 
+#: The last extraction with the default generator: (points, weights, options, planes). Refine
+#: assigns the same tie points again when it undoes an iteration (with another threshold, which
+#: the extraction does not depend on): then they are the points of the last call moved by a
+#: similarity and back, equal to ~1e-13 m, and that extraction's planes are returned again.
+_last_extraction: tuple | None = None
+#: Points no farther (m, per coordinate) from the last call's count as the same points.
+_SAME_POINTS = 1e-9
+
+
+def _same_input(points: np.ndarray, weights: np.ndarray | None,
+                options: AssignmentOptions) -> bool:
+    if _last_extraction is None:
+        return False
+    last_points, last_weights, last_options, _ = _last_extraction
+    return (points.shape == last_points.shape and repr(options) == last_options
+            and (weights is None) == (last_weights is None)
+            and (weights is None or np.array_equal(weights, last_weights))
+            and bool(np.all(np.abs(points - last_points) <= _SAME_POINTS)))
+
+
 def extract_planes(points: np.ndarray, options: AssignmentOptions,
                    weights: np.ndarray | None = None,
                    rng: np.random.Generator | None = None) -> list[ExtractedPlane]:
-    """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1)."""
-    rng = rng or np.random.default_rng(options.random_seed)
+    """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1).
+    Without `rng` (the generator seeded by `options.random_seed`) the result depends on the
+    points, weights and options only: a call with the last call's points (to `_SAME_POINTS`),
+    weights and options returns its planes again."""
+    global _last_extraction
+    points = np.asarray(points, dtype=np.float64)
+    if rng is not None:
+        return _extract_planes(points, options, weights, rng)
+    if _same_input(points, weights, options):
+        logger.debug("extraction reused: the same %d points as the last call", len(points))
+        return list(_last_extraction[3])
+    planes = _extract_planes(points, options, weights, np.random.default_rng(options.random_seed))
+    _last_extraction = (points.copy(), None if weights is None else np.array(weights, float),
+                        repr(options), planes)
+    return list(planes)
+
+
+def _extract_planes(points: np.ndarray, options: AssignmentOptions,
+                    weights: np.ndarray | None, rng: np.random.Generator
+                    ) -> list[ExtractedPlane]:
     threshold, min_points = options.msac_inlier_distance, options.min_points_per_plane
     if len(points) < max(min_points, 3):
         return []
@@ -74,9 +112,10 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
                if options.msac_point_normal_angle < 90.0 else None)
     # the points not yet in a plane, kept sorted by cell and compacted after each plane
     remaining = order
-    pts, cell_keys = points[order], keys[order]
+    # (take: row gathers several times faster than fancy or boolean indexing)
+    pts, cell_keys = points.take(order, 0), keys[order]
     w = None if weights is None else weights[order]
-    pts_normals = None if normals is None else normals[order]
+    pts_normals = None if normals is None else normals.take(order, 0)
     planes: list[ExtractedPlane] = []
     failures = 0
     while len(planes) < options.msac_max_planes and len(remaining) >= min_points:
@@ -88,7 +127,8 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
         inliers = np.flatnonzero(inlier_mask)
         if len(inliers) < min_points:
             break
-        labels = alpha_components(plane_coordinates(pts[inliers], normal), options.alpha_radius)
+        labels = alpha_components(plane_coordinates(pts.take(inliers, 0), normal),
+                                  options.alpha_radius)
         sizes = np.bincount(labels)
         if sizes.max() < min_points:
             failures += 1
@@ -97,8 +137,9 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
             continue
         failures = 0
         component = inliers[labels == int(np.argmax(sizes))]
-        normal, offset = fit_plane(pts[component], None if w is None else w[component])
-        uv = plane_coordinates(pts[component], normal)
+        component_points = pts.take(component, 0)
+        normal, offset = fit_plane(component_points, None if w is None else w[component])
+        uv = plane_coordinates(component_points, normal)
         centre_uv = boundary_centroid(uv, options.alpha_radius)
         # back to 3D: the point on the plane with those in-plane coordinates
         basis = plane_coordinates(np.eye(3), normal)  # rows: e_k -> (u_k, v_k)
@@ -106,9 +147,10 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
         planes.append(ExtractedPlane(normal, offset, remaining[component], centroid))
         keep = np.ones(len(remaining), bool)
         keep[component] = False
-        remaining, pts, cell_keys = remaining[keep], pts[keep], cell_keys[keep]
-        w = None if w is None else w[keep]
-        pts_normals = None if pts_normals is None else pts_normals[keep]
+        kept = np.flatnonzero(keep)
+        remaining, pts, cell_keys = remaining[kept], pts.take(kept, 0), cell_keys[kept]
+        w = None if w is None else w[kept]
+        pts_normals = None if pts_normals is None else pts_normals.take(kept, 0)
     logger.debug("extracted %d planes holding %d of %d points", len(planes),
                  len(points) - len(remaining), len(points))
     return planes
