@@ -141,6 +141,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         rec, sim3 = gnss_only, gnss_only_sim3
     else:
         precision = precision_after_refine(last, options.precision, checkpoint_observations)
+    correction = None
+    if last.blocks.correction is not None:
+        correction = _model_correction(store, current, last, precision, options, warnings,
+                                       handed_back=quality.verdict == "failed"
+                                       and gnss_only is not None)
     if checkpoints is not None and checkpoint_observations is not None:
         from .precision.checkpoints import evaluate_with_precision
 
@@ -159,7 +164,37 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         quality=quality, observability=observability,
         observability_before=loop.observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
-        coarse_alignment=coarse.todict() if coarse is not None else None)
+        coarse_alignment=coarse.todict() if coarse is not None else None,
+        model_correction=correction)
+
+
+def _model_correction(store: PlaneStore, current: PlaneStore, last, precision, options,
+                      warnings: list[str], *, handed_back: bool):
+    """The record of what the images corrected in the model (adjust.model_correction), with
+    each corrected vertex's sigma from the precision stage; None when the GNSS-only result is
+    handed back (a block the model could not help does not correct the model either)."""
+    from .adjust.model_correction import summarise_correction
+    from .precision.estimate import vertex_covariances
+
+    if handed_back:
+        warnings.append("the model is not corrected: the quality gate failed")
+        return None
+    ids = cov = None
+    note = "no covariances"
+    try:
+        ids, cov, note = vertex_covariances(last, precision)
+    except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
+        logger.warning("model correction: vertex covariances failed (%s); shifts without "
+                       "sigmas", error)
+        note = f"covariances failed: {error}"
+    correction = summarise_correction(store, current, last.blocks.correction, ids, cov,
+                                      options.adjustment.correction_significance, note)
+    summary = correction.todict()
+    logger.info("model correction: %d faces corrected, %d vertices moved (RMS %.3f m), %d of "
+                "them significantly (> %.1f sigma)", summary["num_corrected_faces"],
+                summary["num_corrected_vertices"], summary["shift_rms_m"] or 0.0,
+                summary["num_significant_vertices"], correction.threshold)
+    return correction
 
 
 # -- CLI entry: read inputs, refine, write outputs ------------------------------------------------

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
+from ..adjust.model_correction import ModelCorrection
 from ..adjust.problem import SolveReport
 from ..adjust.record import IterationRecord
 from ..assign.assignment import Assignment
@@ -51,6 +52,8 @@ class RefineResult:
     refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
     datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
     coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
+    # What the images corrected in the model (AdjustmentOptions.correct_model), else None.
+    model_correction: ModelCorrection | None = None
 
     @property
     def handed_back(self) -> str:
