@@ -208,10 +208,11 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
          progress=True, precision=None, gnss_height_offset=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None, assignment=None) -> RefineResult:
+         variance_components=None, assignment=None, write_model=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
-    are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
+    are evaluated at the end (Delta, sigma; report.json `checkpoints`). `write_model`: correct
+    the model and write it back in its own format (default: with the correct_model preset)."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -228,6 +229,10 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.precision.variance_components = bool(variance_components)
     if assignment is not None:  # --assignment overrides the options file
         options.assignment.method = assignment
+    if write_model:  # writing the corrected model back means correcting it
+        options.adjustment.correct_model = True
+    if write_model is None:
+        write_model = options.adjustment.correct_model
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError
@@ -283,7 +288,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}
     write_refined(result, output_path, output_type=output_type, output_frame=output_frame,
-                  inputs=inputs)
+                  inputs=inputs, write_model=bool(write_model), model_lod=lod,
+                  model_crs=model_crs)
     last = result.iterations[-1]
     # s0 of the final solve: the variance-component re-solve when there was one.
     s0 = (result.precision.variance.sigma0 if result.precision is not None
@@ -301,6 +307,12 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     print(result.quality.line())
     if result.observability:
         print(f"datum fixed by: {datum_line(result.observability)}")
+    if result.model_correction is not None:
+        summary = result.model_correction.todict()
+        print(f"model correction: {summary['num_corrected_faces']} faces corrected, "
+              f"{summary['num_corrected_vertices']} vertices moved, "
+              f"{summary['num_significant_vertices']} significantly; model_changes.csv"
+              + (", corrected_model" if write_model else ""))
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
     return result

@@ -157,6 +157,7 @@ class ModelCorrection:
     threshold: float  # the test's critical value of |shift| / sigma
     covariance_note: str = ""
     num_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per face
+    not_corrected: dict[str, int] = field(default_factory=dict)  # reason -> assigned faces
 
     @property
     def shift(self) -> np.ndarray:
@@ -230,6 +231,7 @@ class ModelCorrection:
             "median_sigma_m": float(np.median(sigma[finite])) if finite.any() else None,
             "covariances": self.covariance is not None,
             "covariance_note": self.covariance_note,
+            "assigned_faces_not_corrected": dict(self.not_corrected),
         }
 
 
@@ -251,4 +253,5 @@ def summarise_correction(given: PlaneStore, adjusted: PlaneStore, selection: Cor
         faces=np.asarray(selection.faces, np.int64), held_faces=np.asarray(selection.held),
         vertex_ids=released, given=given.vertices[released].copy(),
         corrected=adjusted.vertices[released].copy(), covariance=cov, threshold=threshold,
-        covariance_note=note, num_points=np.asarray(selection.num_points, np.int64))
+        covariance_note=note, num_points=np.asarray(selection.num_points, np.int64),
+        not_corrected=dict(selection.not_corrected))
