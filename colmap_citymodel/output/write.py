@@ -181,9 +181,13 @@ def write_model_correction(result: RefineResult, directory: Path, *, write_model
     was read in (output.corrected_model); returns the report's `model_correction` entry."""
     correction = result.model_correction
     if correction is None:
-        note = ("The model was not corrected: the quality gate failed and the GNSS-only "
-                "result was handed back." if result.options.adjustment.correct_model
-                else "Model correction was not asked for (--preset correct_model).")
+        if not result.options.adjustment.correct_model:
+            note = "Model correction was not asked for (--preset correct_model)."
+        elif result.handed_back == "gnss_only":
+            note = ("The model was not corrected: the quality gate failed and the GNSS-only "
+                    "result was handed back.")
+        else:
+            note = "The model was not corrected: the correction was undone (see the warnings)."
         return {"note": note}
     from .corrected_model import write_corrected_model
     from .model_changes import write_changes_csv, write_changes_ply
