@@ -126,7 +126,13 @@ def _add_refine(subparsers) -> None:
                       help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
     p.add_argument("--preset", default="generalised",
                    choices=["generalised", "detailed", "correct_model"],
-                   help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane)")
+                   help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane; "
+                        "correct_model: the images correct the model, see --write_model)")
+    p.add_argument("--write_model", action="store_true", default=None,
+                   help="correct the city model where the images see it well and write it back "
+                        "in its own format and version (corrected_model.gml / .city.json, "
+                        "tiles into corrected_model/) with model_changes.csv/.ply; on by "
+                        "default with --preset correct_model")
     p.add_argument("--options", dest="options_file", help="TOML file overriding options")
     p.add_argument("--assignment", choices=["direct", "msac", "roi_msac", "auto"], default=None,
                    help="tie point to plane assignment: direct (a, default), msac (b: planes "
@@ -168,7 +174,8 @@ def _add_refine(subparsers) -> None:
              lever_arm=args.lever_arm, checkpoints=args.checkpoints,
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,
-             variance_components=args.variance_components, assignment=args.assignment)
+             variance_components=args.variance_components, assignment=args.assignment,
+             write_model=args.write_model)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 

@@ -124,7 +124,42 @@ class AdjustmentOptions:
     sigma_dvt: float = 0.01
     """Fictitious distance vertex -> each plane it belongs to (m)."""
     sigma_vt: float = 0.01
-    """Direct observation of each model vertex (m); 0.5 to correct the model."""
+    """Direct observation of each model vertex (m): the model is "almost fixed" (Unger 3.2.3).
+    With `correct_model` it stays so for every vertex the images do not correct."""
+    correct_model: bool = False
+    """Model correction (Unger 5.2.2, 6.7.3): after the assign/adjust loop, the vertices of
+    the faces the images see well (`correction_min_points`, `correction_min_coverage`) are
+    observed with `sigma_vt_corrected` only, so their planes follow the tie points; the other
+    vertices keep sigma_vt, a corrected vertex stays on the given plane of every face that is
+    not corrected (that face keeps its plane), and f_dVT keeps every face planar
+    (adjust.model_correction). Preset "correct_model"."""
+    sigma_vt_corrected: float = 0.5
+    """Direct observation (m) of the vertices of corrected faces: Unger's 0.5 m "to correct the
+    model" (5.3)."""
+    sigma_correction_datum: float = 0.05
+    """The corrected model keeps the given one's datum: the similarity (shift, rotation,
+    scale) that the corrected planes' moves imply is observed as zero with this sigma (m;
+    rotation and scale as the displacement they cause), so the images change the model's
+    shape more than its georeference (adjust.model_correction.datum_condition). 0.05 m: a
+    LOD2 model's per-plane error (~0.2 m, Unger 5.2.2) averaged over a dozen planes. 0.01
+    held it too firmly (short Scn3: corrected planes 0.12 m off the truth instead of 0.09,
+    tilted by 0.87 deg RMS instead of 0.47); without it the block drifted with the planes
+    when the images saw few planes fixing it."""
+    correction_min_points: int = 50
+    """A face is corrected only with at least this many assigned tie points (three times the
+    assignment's minimum: a plane from few points moves with their generalisation effects)."""
+    correction_min_coverage: float = 0.5
+    """...and only if its tie points spread over this share of the face in both directions of
+    its plane (5-95 % range of the points over the range of the face's vertices): a plane
+    seen on one strip would be tilted by extrapolation (short Scn3 with 0.3: five more walls
+    whose points cover a third of them were corrected, and the block went 0.47 m off the
+    check points with them instead of 0.16 m)."""
+    correction_iterations: int = 5
+    """At most this many assign + correction solves after the loop (the planes move, so the
+    tie points are assigned again to the corrected model)."""
+    correction_significance: float = 3.0
+    """A vertex shift counts as significant when |shift| / sigma (sigma of the corrected
+    vertex along the shift, scaled by s0) exceeds this."""
     image_loss: str = "huber"
     """Robust loss on image observations in step 2: "huber" or "cauchy" (method.md allows
     either). Huber is convex: from COLMAP's output it converged in 15 Ceres iterations where
@@ -318,7 +353,8 @@ class RefineOptions:
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":
-        """`generalised` (default, LOD2 as published) or `detailed` (LOD3 / detailed LOD2)."""
+        """`generalised` (default, LOD2 as published), `detailed` (LOD3 / detailed LOD2) or
+        `correct_model` (generalised, then the faces the images see are corrected)."""
         options = cls()
         if name in ("generalised", "generalized", "default"):
             return options
@@ -327,7 +363,7 @@ class RefineOptions:
             options.assignment.min_points_per_plane = 5
             return options
         if name == "correct_model":
-            options.adjustment.sigma_vt = 0.5
+            options.adjustment.correct_model = True
             return options
         raise InputError(f"unknown preset {name!r}; use generalised, detailed or correct_model")
 

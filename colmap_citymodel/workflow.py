@@ -154,6 +154,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         rec, sim3 = gnss_only, gnss_only_sim3
     else:
         precision = precision_after_refine(last, options.precision, checkpoint_observations)
+    correction = None
+    if last.blocks.correction is not None:
+        correction = _model_correction(store, current, last, precision, options, warnings,
+                                       handed_back=quality.verdict == "failed"
+                                       and gnss_only is not None)
     if checkpoints is not None and checkpoint_observations is not None:
         from .precision.checkpoints import evaluate_with_precision
 
@@ -173,7 +178,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         observability_before=loop.observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
         coarse_alignment=coarse.todict() if coarse is not None else None,
-        gnss_offset=gnss_offset)
+        gnss_offset=gnss_offset, model_correction=correction)
 
 
 def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
@@ -234,6 +239,35 @@ def offset_line(report: dict) -> str:
     return line
 
 
+def _model_correction(store: PlaneStore, current: PlaneStore, last, precision, options,
+                      warnings: list[str], *, handed_back: bool):
+    """The record of what the images corrected in the model (adjust.model_correction), with
+    each corrected vertex's sigma from the precision stage; None when the GNSS-only result is
+    handed back (a block the model could not help does not correct the model either)."""
+    from .adjust.model_correction import summarise_correction
+    from .precision.estimate import vertex_covariances
+
+    if handed_back:
+        warnings.append("the model is not corrected: the quality gate failed")
+        return None
+    ids = cov = None
+    note = "no covariances"
+    try:
+        ids, cov, note = vertex_covariances(last, precision)
+    except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
+        logger.warning("model correction: vertex covariances failed (%s); shifts without "
+                       "sigmas", error)
+        note = f"covariances failed: {error}"
+    correction = summarise_correction(store, current, last.blocks.correction, ids, cov,
+                                      options.adjustment.correction_significance, note)
+    summary = correction.todict()
+    logger.info("model correction: %d faces corrected, %d vertices moved (RMS %.3f m), %d of "
+                "them significantly (> %.1f sigma)", summary["num_corrected_faces"],
+                summary["num_corrected_vertices"], summary["shift_rms_m"] or 0.0,
+                summary["num_significant_vertices"], correction.threshold)
+    return correction
+
+
 # -- CLI entry: read inputs, refine, write outputs ------------------------------------------------
 
 #: Metres around the GNSS positions in which city model buildings are read.
@@ -245,12 +279,14 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
          progress=True, precision=None, gnss_height_offset=None, gnss_bias=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None, assignment=None) -> RefineResult:
+         variance_components=None, assignment=None, write_model=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`).
     `gnss_height_offset`: metres added to the GNSS heights, or "auto" (estimated from the
-    model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all")."""
+    model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all").
+    `write_model`: correct the model and write it back in its own format (default: with the
+    correct_model preset)."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -277,6 +313,10 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         if options.adjustment.gnss_offset == "none":
             options.adjustment.gnss_offset = "height"
         gnss_height_offset = None
+    if write_model:  # writing the corrected model back means correcting it
+        options.adjustment.correct_model = True
+    if write_model is None:
+        write_model = options.adjustment.correct_model
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError
@@ -332,7 +372,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}
     write_refined(result, output_path, output_type=output_type, output_frame=output_frame,
-                  inputs=inputs)
+                  inputs=inputs, write_model=bool(write_model), model_lod=lod,
+                  model_crs=model_crs)
     last = result.iterations[-1]
     # s0 of the final solve: the variance-component re-solve when there was one.
     s0 = (result.precision.variance.sigma0 if result.precision is not None
@@ -352,6 +393,12 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         print(offset_line(result.gnss_offset))
     if result.observability:
         print(f"datum fixed by: {datum_line(result.observability)}")
+    if result.model_correction is not None:
+        summary = result.model_correction.todict()
+        print(f"model correction: {summary['num_corrected_faces']} faces corrected, "
+              f"{summary['num_corrected_vertices']} vertices moved, "
+              f"{summary['num_significant_vertices']} significantly; model_changes.csv"
+              + (", corrected_model" if write_model else ""))
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
     return result

@@ -341,3 +341,40 @@ def test_query_speed_1e5_points_1e4_faces():
     elapsed = time.perf_counter() - t
     assert np.count_nonzero(face >= 0) > 30_000
     assert elapsed < 1.0, f"{elapsed:.2f} s"
+
+
+def test_provenance_maps_every_read_coordinate_to_its_merged_vertex():
+    # the second cube's shared corners are 0.9 mm off: merged, yet both values are known
+    rng = np.random.default_rng(2)
+    jitter = 0.0009 * rng.normal(size=(8, 3)) / np.sqrt(3)
+    v2 = CUBE_V + [1, 0, 0] + jitter
+    polygons = cube() + [v2[f] for f in CUBE_F]
+    store = store_from_polygons(polygons, origin=np.zeros(3))
+    prov = store.provenance
+    assert prov is not None and len(prov) == 16  # 8 + 8 distinct coordinates, 12 vertices
+    for ring in polygons:
+        found = prov.vertex_of(ring)
+        assert (found >= 0).all()
+        # the vertex a coordinate maps to is the merged vertex within the tolerance
+        assert np.linalg.norm(store.vertices[found] - ring, axis=1).max() < 0.001
+    # both values of a merged corner name one vertex; an unknown value names none
+    shared = np.array([[1.0, 0, 0], v2[0]])
+    assert prov.vertex_of(shared).tolist() == [prov.vertex_of(shared)[0]] * 2
+    assert prov.vertex_of(np.array([[1.0, 0, 0.0005], [1.0, 0, 0], [1.0, 0, 0]])).tolist() \
+        == [-1] + [prov.vertex_of(shared)[0]] * 2
+    # -0.0 is the value 0.0
+    assert prov.vertex_of(np.array([[-0.0, -0.0, -0.0]]))[0] >= 0
+    # cropping renumbers the vertices and forgets the coordinates of dropped ones
+    sub = store.subset_bbox([1.5, -1], [3, 2])
+    kept = sub.provenance.vertex_of(v2[CUBE_F[1]])
+    assert (kept >= 0).all()
+    np.testing.assert_allclose(sub.vertices[kept], v2[CUBE_F[1]], atol=0.001)
+    assert (sub.provenance.vertex_of(CUBE_V[[0, 3]]) == -1).all()
+    # moving vertices keeps where they came from
+    assert store.with_vertices(store.vertices + 1).provenance is prov
+
+
+def test_provenance_is_optional():
+    raw = RawCityModel("<cube>", "synthetic", "", CRSInfo(None, None, None, "", True),
+                       [RawPolygon(exterior=r) for r in cube()], ["b"], [])
+    assert build_store(raw, keep_provenance=False).provenance is None

@@ -445,3 +445,28 @@ def test_baseline_length_prior_closed_form_and_jacobians(core):
             np.testing.assert_allclose(analytic, numeric, rtol=1e-5, atol=1e-5)
     with pytest.raises(ValueError):
         core.BaselineLengthPriorCost(1.0, 0.0)
+
+
+# ---------------------------------------------------------------- linear conditions on points
+
+
+def test_linear_points_condition_closed_form_and_jacobians(core):
+    rng = np.random.default_rng(5)
+    matrix = rng.normal(size=(7, 9))
+    reference = rng.normal(size=9)
+    points = [rng.normal(size=3) for _ in range(3)]
+    cost = core.LinearPointsConditionCost(matrix, reference)
+    residuals, jacobians = evaluate(cost, *points)
+    np.testing.assert_allclose(residuals, matrix @ (np.concatenate(points) - reference),
+                               atol=1e-12)
+    for k, (analytic, numeric) in enumerate(zip(jacobians, numeric_jacobians(cost, points))):
+        np.testing.assert_allclose(analytic, matrix[:, 3 * k:3 * k + 3], atol=1e-12)
+        np.testing.assert_allclose(analytic, numeric, atol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(0, 6), (3, 5), (3, 0)])
+def test_linear_points_condition_rejects_bad_shapes(core, shape):
+    with pytest.raises(ValueError):
+        core.LinearPointsConditionCost(np.ones(shape), np.zeros(shape[1]))
+    with pytest.raises(ValueError):
+        core.LinearPointsConditionCost(np.ones((2, 6)), np.zeros(5))

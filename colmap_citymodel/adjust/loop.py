@@ -11,6 +11,7 @@ solve that moves the block away from the model ends the loop at the best iterate
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -27,6 +28,7 @@ from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import RefineOptions
+from .correction_loop import correction_loop
 from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
 from .problem import HybridProblem
@@ -61,8 +63,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     scale_sigma: float | None = None, progress: bool = True) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
-    `scale_sigma` let the loop hold the block's scale where the planes cannot give it."""
-    o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
+    `scale_sigma` let the loop hold the block's scale where the planes cannot give it. With
+    `options.adjustment.correct_model` the loop keeps the model as given and the model
+    correction (adjust.correction_loop) follows it."""
+    o_a, o_w = options.assignment, options.workflow
+    # The loop adjusts the block to the model as given; a model correction follows it.
+    o_adj = dataclasses.replace(options.adjustment, correct_model=False)
     current = store
     threshold = initial_threshold(o_a)
     weights = None
@@ -201,6 +207,17 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         _, _, rec, assignment, current, offset = best
         _restore_offset(priors, offset)
         last = None
+    if options.adjustment.correct_model and assignment is not None and assignment.num_assigned:
+        correction = correction_loop(rec, store, current, priors, options, objective, threshold,
+                                     exclude_point_ids=exclude_point_ids, baselines=baselines,
+                                     weights=weights, first_iteration=len(iterations))
+        iterations += correction.iterations
+        if correction.last is not None:
+            rec, current, assignment, last = (correction.reconstruction, correction.current,
+                                              correction.assignment, correction.last)
+        else:  # undone: the loop's block, solved again below
+            rec, current, last = correction.reconstruction, correction.current, None
+            warnings.append(f"model correction undone: {correction.undone}")
     if last is None:  # back to the best iterate, or the last iteration was undone
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                              robust_planes=False, current=current, baselines=baselines)

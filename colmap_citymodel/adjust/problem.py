@@ -10,6 +10,9 @@ registered images), to which this module adds, through the C++ extension's cost 
 - f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
 - f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
 - f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed");
+  with AdjustmentOptions.correct_model the vertices of the faces the images see well get
+  sigma_vt_corrected (0.5 m) and keep f_dVT to the given planes of their other faces, which
+  enter as constant blocks (adjust.model_correction);
 - optionally (generalisation_offsets=True and sigma_generalisation set) a generalisation
   offset o_p per plane in f_dTP, (n.X + d + o_p) / sigma_dTP, with the prior
   o_p ~ N(0, sigma_generalisation^2) (group "gen"). Experimental: see AdjustmentOptions.
@@ -43,6 +46,7 @@ from ..block.priors import GNSSPriors
 from ..block.reconstruction import position_in_rig
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
+from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
 
@@ -121,6 +125,12 @@ class PlaneBlocks:
     # Per face (3): the constant point on the plane (the face's vertex centroid) that its
     # offset refers to: the plane is n.(X - reference) + offset = 0 (see offset_array).
     references: list[np.ndarray] = field(default_factory=list)
+    # Model correction (AdjustmentOptions.correct_model): which faces the solve corrects and
+    # which vertices it releases; the given planes of the faces that keep them (constant
+    # blocks, one normal and offset each, in the order of `correction.held`).
+    correction: CorrectionSelection | None = None
+    held_normals: list[np.ndarray] = field(default_factory=list)
+    held_offsets: list[np.ndarray] = field(default_factory=list)
 
     @property
     def normal_array(self) -> np.ndarray:
@@ -345,7 +355,31 @@ class HybridProblem:
         indptr, indices = store.vertex_faces
         vertex_costs = [core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image, r)
                         for r in blocks.references]
-        sigma_vt = np.full(3, o.sigma_vt / o.sigma_image)
+        # Model correction: the vertices of the faces the images see well are released; a
+        # released vertex stays on the given plane of each of its faces that is not corrected.
+        released: set[int] = set()
+        held_slot: dict[int, int] = {}
+        held_costs = []
+        if o.correct_model:
+            points = np.full((len(assignment.point_ids), 3), np.nan)
+            points[assigned] = [rec.point3D(int(i)).xyz for i in self.point_ids]
+            selection = select_corrected_faces(current, assignment, points, o)
+            blocks.correction = selection
+            released = set(selection.released.tolist())
+            for k, f in enumerate(selection.held):
+                held_slot[int(f)] = k
+                reference = store.vertices[store.face_vertex_ids(f)].mean(axis=0)
+                normal = np.array(store.normals[f], dtype=np.float64)
+                blocks.held_normals.append(normal)
+                blocks.held_offsets.append(np.array([store.offsets[f] + normal @ reference],
+                                                    dtype=np.float64))
+                problem.add_parameter_block(blocks.held_normals[-1], 3)
+                problem.add_parameter_block(blocks.held_offsets[-1], 1)
+                problem.set_parameter_block_constant(blocks.held_normals[-1])
+                problem.set_parameter_block_constant(blocks.held_offsets[-1])
+                held_costs.append(core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image,
+                                                              reference))
+        corrected = set() if blocks.correction is None else set(blocks.correction.faces.tolist())
         n_dvt = 0
         for v in vertex_ids:
             blocks.vertices.append(np.array(current.vertices[v], dtype=np.float64))
@@ -356,12 +390,30 @@ class HybridProblem:
                                                [blocks.vertices[-1], blocks.normals[k],
                                                 blocks.offsets[k]])
                     n_dvt += 1
+                if int(v) in released and int(f) not in corrected:
+                    h = held_slot[int(f)]
+                    problem.add_residual_block(held_costs[h], None,
+                                               [blocks.vertices[-1], blocks.held_normals[h],
+                                                blocks.held_offsets[h]])
+                    n_dvt += 1
         self.counts["dVT"] = n_dvt
+        sigma_vt = np.full(3, o.sigma_vt / o.sigma_image)
+        sigma_released = np.full(3, o.sigma_vt_corrected / o.sigma_image)
         for v, vertex in zip(vertex_ids, blocks.vertices):
             problem.add_residual_block(
                 core.PointPositionPriorCost(np.array(store.vertices[v], dtype=np.float64),
-                                            sigma_vt), None, [vertex])
+                                            sigma_released if int(v) in released else sigma_vt),
+                None, [vertex])
         self.counts["VT"] = 3 * len(vertex_ids)
+        if released:
+            # The corrected model keeps the given model's datum (one condition of up to 7 rows).
+            ids, matrix, reference = datum_condition(store, blocks.correction,
+                                                     o.sigma_correction_datum / o.sigma_image)
+            if len(matrix):
+                slots = np.searchsorted(vertex_ids, ids)
+                problem.add_residual_block(core.LinearPointsConditionCost(matrix, reference),
+                                           None, [blocks.vertices[k] for k in slots])
+                self.counts["VT"] += len(matrix)
         # Group "gen" last: the priors of the generalisation offsets.
         if with_offsets:
             prior = core.ScalarPriorCost(0.0, o.sigma_generalisation / o.sigma_image)

@@ -18,6 +18,8 @@ class IterationRecord:
     robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
     final: SolveReport
     relative_change: float
+    phase: str = "loop"  # "loop": steps 3-4; "correction": with the model corrected
+
 
     def todict(self) -> dict:
         return {
@@ -27,6 +29,7 @@ class IterationRecord:
             "robust_solve": self.robust.todict() if self.robust else None,
             "solve": self.final.todict(),
             "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
+            "phase": self.phase,
         }
 
 

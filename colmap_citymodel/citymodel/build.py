@@ -17,7 +17,7 @@ from scipy.spatial import cKDTree
 
 from .faces import FaceList, compress_rows, compute_planes, gather_segments, offsets_from_counts, segment_gather
 from .raw_model import CodedStrings, CRSInfo, PackedStrings, RawCityModel, RawPolygon, RawPolygonTable
-from .store import DEFAULT_TOLERANCES, PlaneStore, Tolerances
+from .store import DEFAULT_TOLERANCES, PlaneStore, Tolerances, VertexProvenance
 
 logger = logging.getLogger(__name__)
 
@@ -146,12 +146,17 @@ def merge_vertices(
     return _merge_vertices([points], tolerance, slack)
 
 
-def _merge_vertices(owned: list, tolerance: float, slack: float):
+def _merge_vertices(owned: list, tolerance: float, slack: float,
+                    provenance: list | None = None):
     """merge_vertices on [points] handed over in a list: the points are dropped from it (and
-    freed, when the caller kept no reference) as soon as the exact duplicates are known."""
+    freed, when the caller kept no reference) as soon as the exact duplicates are known.
+    `provenance`, when given a list, receives (distinct points (U,3) in lexicographic order,
+    their cluster (U,)): which merged vertex each distinct input coordinate became."""
     owned[0] = np.ascontiguousarray(owned[0], dtype=np.float64)
     N = len(owned[0])
     if N == 0:
+        if provenance is not None:
+            provenance.append((np.zeros((0, 3)), np.zeros(0, np.int64)))
         return np.zeros((0, 3)), np.zeros(0, np.int64), 0.0
     # exact duplicates first (most points are corners shared by several rings); the points are
     # released in there as soon as the distinct ones are known
@@ -187,6 +192,8 @@ def _merge_vertices(owned: list, tolerance: float, slack: float):
         wide = counts > 1
         extent = float(np.linalg.norm(hi[wide] - lo[wide], axis=1).max())
     cluster = cluster.astype(np.int64, copy=False)
+    if provenance is not None:
+        provenance.append((uniq, cluster))
     for a in range(0, N, 1 << 16):  # index = cluster[inverse], in place, in chunks
         inverse[a:a + (1 << 16)] = cluster[inverse[a:a + (1 << 16)]]
     return merged, inverse, extent
@@ -309,13 +316,17 @@ def build_store(
     nonplanar_tolerance: float = DEFAULT_TOLERANCES.nonplanar,
     tolerances: Tolerances | None = None,
     release_raw: bool = False,
+    keep_provenance: bool = True,
 ) -> PlaneStore:
     """Turn reader output into a PlaneStore: local frame, merged vertices, de-duplicated faces,
     planes; degenerate faces dropped (counted), non-planar faces flagged (counted).
 
     Vectorised over all polygons (a 250k-polygon city in about a second), straight from the
     flat RawPolygonTable. release_raw: the caller hands the raw model over; its coordinates are
-    released as soon as they are copied into the local frame (raw.polygons is unusable after)."""
+    released as soon as they are copied into the local frame (raw.polygons is unusable after).
+    keep_provenance: the store keeps, for every distinct coordinate read, the vertex it was
+    merged into (`PlaneStore.provenance`: what a corrected model is written back through;
+    32 bytes per distinct coordinate)."""
     tol = replace(
         tolerances or DEFAULT_TOLERANCES, merge=merge_tolerance, nonplanar=nonplanar_tolerance
     )
@@ -345,7 +356,8 @@ def build_store(
     large = len(owned[0]) >= 1 << 17  # worth returning freed memory between the phases
     if large:
         release_free_memory()  # the parser's and the raw coordinates' memory
-    merged, index, extent = _merge_vertices(owned, tol.merge, tol.merge_slack)
+    merged_from: list | None = [] if keep_provenance else None
+    merged, index, extent = _merge_vertices(owned, tol.merge, tol.merge_slack, merged_from)
     if large:
         release_free_memory()
     if extent > tol.chain_warning:
@@ -473,6 +485,11 @@ def build_store(
     rv = faces.ring_vertex
     for a in range(0, len(rv), 1 << 16):  # rv = remap[rv], in place, in chunks
         rv[a:a + (1 << 16)] = remap[rv[a:a + (1 << 16)]]
+    provenance = None
+    if merged_from:
+        points, cluster = merged_from.pop()
+        provenance = VertexProvenance(points, np.where(used[cluster], remap[cluster], -1))
+        del points, cluster
     del remap, rv
     vertices = compress_rows(merged, used)  # in place
     del merged, used
@@ -503,6 +520,7 @@ def build_store(
         num_dropped_degenerate=dropped,
         warnings=warnings,
         tolerances=tol,
+        provenance=provenance,
     )
     logger.debug(
         "store: %d faces, %d vertices, %d dropped, %d non-planar",

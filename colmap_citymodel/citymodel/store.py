@@ -80,6 +80,52 @@ THEMATIC_CLASSES = (
 
 
 @dataclass
+class VertexProvenance:
+    """Which coordinates of the files each store vertex was merged from.
+
+    Every distinct coordinate triple the reader returned (file CRS, or the target CRS after a
+    reprojection, minus the store's origin: bit for bit what build_store merged), in
+    lexicographic order, and the store vertex it became (-1: only in faces that were dropped,
+    or outside a cropped store). A writer finds a file coordinate's vertex by its value
+    (`vertex_of`), so every raw coordinate of a merged vertex (up to the merge tolerance apart)
+    can be moved by that vertex's shift: the file stays consistent where it was before."""
+
+    points: np.ndarray  # (U, 3) float64, lexicographic order
+    vertex: np.ndarray  # (U,) int64
+
+    def __len__(self) -> int:
+        return len(self.vertex)
+
+    def vertex_of(self, points_local: np.ndarray) -> np.ndarray:
+        """(N,) the store vertex of each point, found by exact value; -1 for a point the
+        store was not built from (or whose faces it dropped)."""
+        q = np.asarray(points_local, dtype=np.float64).reshape(-1, 3) + 0.0  # -0.0 == 0.0
+        out = np.full(len(q), -1, dtype=np.int64)
+        if not len(q) or not len(self.vertex):
+            return out
+        n = len(self.points)
+        both = np.concatenate([self.points + 0.0, q])
+        # among equal values the store's own row (there is at most one) sorts first
+        source = np.concatenate([np.zeros(n, np.int8), np.ones(len(q), np.int8)])
+        order = np.lexsort((source, both[:, 2], both[:, 1], both[:, 0]))
+        b = both[order]
+        starts = np.r_[True, np.any(b[1:] != b[:-1], axis=1)]
+        group = np.cumsum(starts) - 1
+        first = order[starts]  # the first row of each group of equal values
+        group_vertex = np.where(first < n, self.vertex[np.minimum(first, max(n - 1, 0))], -1)
+        queries = order >= n
+        out[order[queries] - n] = group_vertex[group[queries]]
+        return out
+
+    def remapped(self, remap: np.ndarray) -> VertexProvenance:
+        """The provenance after the vertices were renumbered by `remap` (old -> new, -1:
+        gone); rows of gone vertices are dropped."""
+        new = np.where(self.vertex >= 0, remap[np.maximum(self.vertex, 0)], -1)
+        keep = new >= 0
+        return VertexProvenance(self.points[keep], new[keep])
+
+
+@dataclass
 class PlaneStore:
     origin: np.ndarray
     crs: CRSInfo
@@ -98,6 +144,9 @@ class PlaneStore:
     num_dropped_degenerate: int = 0
     warnings: list[str] = field(default_factory=list)
     tolerances: Tolerances = DEFAULT_TOLERANCES
+    provenance: VertexProvenance | None = field(default=None, repr=False, compare=False)
+    """Where the vertices came from in the files (build_store); None for stores made
+    otherwise. Kept by with_vertices (same vertices), renumbered by subset_bbox."""
     _cache: dict = field(default_factory=dict, repr=False, compare=False)
 
     def __post_init__(self) -> None:
@@ -412,6 +461,7 @@ class PlaneStore:
             num_buildings=len(buildings),
             num_parts=len(parts),
             warnings=list(self.warnings),
+            provenance=None if self.provenance is None else self.provenance.remapped(remap),
             _cache={},
         )
 

@@ -8,6 +8,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import pycolmap
 
+from ..adjust.model_correction import ModelCorrection
 from ..adjust.problem import SolveReport
 from ..adjust.record import IterationRecord
 from ..assign.assignment import Assignment
@@ -54,6 +55,8 @@ class RefineResult:
     # The estimated constant GNSS offset (--gnss_height_offset auto, --gnss_bias auto) with its
     # sigma, start value, prior and the geoid the heights came through; None when not estimated.
     gnss_offset: dict | None = None
+    # What the images corrected in the model (AdjustmentOptions.correct_model), else None.
+    model_correction: ModelCorrection | None = None
 
     @property
     def handed_back(self) -> str:

@@ -165,8 +165,10 @@ def report_markdown(report: dict) -> str:
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for it in report["iterations"]:
         rms = it["solve"]["rms"]
+        label = f"{it['iteration']} (model correction)" \
+            if it.get("phase") == "correction" else it["iteration"]
         lines.append(
-            f"| {it['iteration']} | {it['threshold']:.3f} | {it['num_assigned_points']} | "
+            f"| {label} | {it['threshold']:.3f} | {it['num_assigned_points']} | "
             f"{it['num_planes']} | {it['num_eliminated_dTP']} | " + " | ".join(
                 f"{rms[g]:.4f}" for g in ("image", "gnss", "dTP", "dVT", "VT"))
             + f" | {it['solve']['sigma0']:.4f} | {it['relative_change']:.2e} |")
@@ -182,9 +184,45 @@ def report_markdown(report: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def write_model_correction(result: RefineResult, directory: Path, *, write_model: bool,
+                           lod: int = 2, model_crs: str | None = None) -> dict:
+    """model_changes.csv / .ply and, with `write_model`, the corrected model in the format it
+    was read in (output.corrected_model); returns the report's `model_correction` entry."""
+    correction = result.model_correction
+    if correction is None:
+        if not result.options.adjustment.correct_model:
+            note = "Model correction was not asked for (--preset correct_model)."
+        elif result.handed_back == "gnss_only":
+            note = ("The model was not corrected: the quality gate failed and the GNSS-only "
+                    "result was handed back.")
+        else:
+            note = "The model was not corrected: the correction was undone (see the warnings)."
+        return {"note": note}
+    from .corrected_model import write_corrected_model
+    from .model_changes import write_changes_csv, write_changes_ply
+
+    summary = correction.todict()
+    summary["num_csv_rows"] = write_changes_csv(correction, result.store,
+                                                directory / "model_changes.csv")
+    write_changes_ply(correction, result.store, directory / "model_changes.ply")
+    summary["written"] = []
+    if write_model:
+        written, warnings = write_corrected_model(correction, result.store, directory, lod=lod,
+                                                  model_crs=model_crs)
+        summary["written"] = written
+        summary["warnings"] = warnings
+        for w in warnings:
+            logger.warning("corrected model: %s", w)
+    return summary
+
+
 def write_refined(result: RefineResult, output_path: str | Path, *, output_type: str = "bin",
-                  output_frame: str = "crs", inputs: dict | None = None) -> Path:
-    """Write the refined model and its report into the new directory `output_path`."""
+                  output_frame: str = "crs", inputs: dict | None = None,
+                  write_model: bool = False, model_lod: int = 2,
+                  model_crs: str | None = None) -> Path:
+    """Write the refined model and its report into the new directory `output_path`;
+    `write_model`: also the corrected city model (corrected_model.gml / .city.json, or a
+    directory of tiles) read with `model_lod` and `model_crs`."""
     if output_type not in ("bin", "txt"):
         raise InputError(f"unknown output type {output_type!r}; use bin or txt")
     if output_frame not in ("crs", "local"):
@@ -207,9 +245,15 @@ def write_refined(result: RefineResult, output_path: str | Path, *, output_type:
         except ImportError:  # pragma: no cover - mesh export is optional for the result
             logger.warning("model mesh not written: the mesh export is unavailable")
         report = report_dict(result, inputs)
+        report["model_correction"] = write_model_correction(
+            result, tmp, write_model=write_model, lod=model_lod, model_crs=model_crs)
         # Adds sigma0_by_group, global_test, precision to `report`; CSV, PLY, plots.
         precision_md, plots = write_precision_outputs(result, tmp, report, offset)
-        summary = report_markdown(report) + precision_md
+        from .model_changes import correction_section
+
+        correction_md = (correction_section(report["model_correction"])
+                         if result.options.adjustment.correct_model else "")
+        summary = report_markdown(report) + correction_md + precision_md
         (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
         (tmp / "report.md").write_text(summary)
         (tmp / "report.html").write_text(html_page("colmap-citymodel refine report", plots,

@@ -226,6 +226,9 @@ def _layout(problem: HybridProblem) -> _Layout:
         add("vertex", k, b.vertices[k])
     if problem.gnss_offset is not None:
         add("gnss_offset", 0, problem.gnss_offset)
+    for k in range(len(b.held_normals)):  # constant: the given planes that model correction keeps
+        add("held_normal", k, b.held_normals[k])
+        add("held_offset", k, b.held_offsets[k])
     num_c = int(sum(sizes))
     point_ids = []
     for point_id in rec.point3D_ids():
@@ -303,11 +306,13 @@ def _inverse(s: np.ndarray) -> tuple[np.ndarray, int]:
         return q, defect
 
 
-def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: bool = False
-              ) -> Cofactors:
+def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: bool = False,
+              points: bool = True) -> Cofactors:
     """Q_cc, marginal and conditional point cofactors and (optionally) the redundancy numbers
     summed per observation group, all by Schur elimination of the tie points. `keep_system`
-    keeps the Jacobian's camera and point columns and W^-1 E for `generalisation_effects`."""
+    keeps the Jacobian's camera and point columns and W^-1 E for `generalisation_effects`.
+    `points=False` (with redundancy=False): Q_cc without the points' marginal cofactors
+    (`q_points` then holds the conditional ones)."""
     start = time.perf_counter()
     jacobian, layout = whitened_jacobian(problem)
     nc = layout.num_c
@@ -339,9 +344,9 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
             with_points[g] = ((jp_g.T @ jc_g).tocsr(), _block_diagonal_3x3(jp_g.T @ jp_g,
                                                                           num_points))
 
-    q_points = np.empty((num_points, 3, 3))
+    q_points = np.zeros((num_points, 3, 3))
     chunk = max(1, CHUNK_ROWS // 3)
-    for lo in range(0, num_points, chunk):
+    for lo in range(0, num_points if points or with_points else 0, chunk):
         hi = min(num_points, lo + chunk)
         b_chunk = b[3 * lo:3 * hi]
         m = np.asarray(b_chunk @ q_cc)  # = -Q_pc for these points
@@ -660,6 +665,10 @@ class PrecisionResult:
     """(P, 3, 3) covariance with every other unknown held fixed (pycolmap's get_point_cov x s0^2)."""
     plane_faces: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
     plane_offset_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    vertex_ids: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    """Store indices of the model vertices that were unknowns of the solve."""
+    vertex_cov: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    """(V, 3, 3) marginal covariance of each vertex (local frame), scaled by s0^2."""
     seconds: dict[str, float] = field(default_factory=dict)
     plane_generalisation: np.ndarray = field(default_factory=lambda: np.zeros(0))
     """(F,) estimated generalisation offsets o_p (m) per plane; empty in the classical model."""
@@ -682,6 +691,7 @@ class PrecisionResult:
     image_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 6, 6)))
     point_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     checkpoint_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
+    vertex_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
 
     def aware(self, covariance: str) -> np.ndarray:
         """`covariance` ("image_cov", "point_cov", "checkpoint_cov") under the
@@ -862,6 +872,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         columns = layout.columns("plane_offset", k)
         plane_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
                            if columns is not None else np.nan)
+    vertex_cov, vertex_cov_generalisation = _vertex_blocks(problem, cof, s0sq, effects)
     generalisation_sigma = []
     for k in range(len(problem.blocks.generalisation)):
         columns = layout.columns("plane_generalisation", k)
@@ -885,6 +896,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
             "plane_faces": effects.faces.tolist(), "plane_num_points": effects.num_points.tolist(),
             "plane_mean_residual_m": effects.mean_residuals.tolist()}
         extra["image_cov_generalisation"] = np.array(image_cov_generalisation).reshape(-1, 6, 6)
+        extra["vertex_cov_generalisation"] = vertex_cov_generalisation
         extra["point_cov_generalisation"] = effects.points_cov
         if checkpoints is not None and checkpoints.b is not None:
             d = checkpoints.b @ effects.camera  # (3N, F): check points follow the poses
@@ -907,6 +919,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         point_ids=layout.point_ids, points=points, point_cov=s0sq * cof.q_points,
         point_cov_conditional=s0sq * cof.q_points_conditional,
         plane_faces=np.asarray(problem.blocks.faces), plane_offset_sigma=np.array(plane_sigma),
+        vertex_ids=np.asarray(problem.blocks.vertex_ids, np.int64), vertex_cov=vertex_cov,
         seconds=seconds,
         plane_generalisation=problem.blocks.generalisation_array,
         plane_generalisation_sigma=np.array(generalisation_sigma),
@@ -914,6 +927,50 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
             "checkpoint_ids": checkpoints.ids, "checkpoint_points": checkpoints.points,
             "checkpoint_cov": s0sq * checkpoints.q,
             "checkpoint_cov_conditional": s0sq * checkpoints.q_conditional}), **extra)
+
+
+def _vertex_blocks(problem: HybridProblem, cof: Cofactors, s0sq: float,
+                   effects: GeneralisationEffects | None) -> tuple[np.ndarray, np.ndarray]:
+    """(V, 3, 3) s0^2-scaled marginal covariances of the vertex blocks (nan for a constant
+    one) and, with `effects`, what the generalisation offsets add (not scaled)."""
+    num = len(problem.blocks.vertex_ids)
+    cov = np.full((num, 3, 3), np.nan)
+    added = np.full((num, 3, 3), np.nan) if effects is not None else np.zeros((0, 3, 3))
+    for k in range(num):
+        columns = cof.layout.columns("vertex", k)
+        if columns is None:
+            continue
+        cov[k] = s0sq * cof.q_cc[columns, columns]
+        if effects is not None:
+            d = effects.camera[columns]
+            added[k] = effects.sigma ** 2 * d @ d.T
+    return cov, added
+
+
+def vertex_covariances(problem: HybridProblem, precision: PrecisionResult | None
+                       ) -> tuple[np.ndarray, np.ndarray, str]:
+    """(vertex ids, (V, 3, 3) covariances, how they were obtained) of the model vertices of
+    a solved problem: those of `precision` when it computed covariances, else from the
+    cofactors of the camera-side unknowns alone (poses, planes, vertices; the tie points are
+    eliminated but their covariances not formed), scaled by s0^2 of `precision` (or of the
+    solve). Generalisation-aware ones when `precision` has them."""
+    ids = np.asarray(problem.blocks.vertex_ids, np.int64)
+    if precision is not None and len(precision.vertex_ids) == len(ids) and len(ids):
+        note = "marginal covariance of the vertex block, scaled by s0^2"
+        if precision.generalisation == "consider" and len(precision.vertex_cov_generalisation):
+            return (ids, precision.vertex_cov + precision.vertex_cov_generalisation,
+                    note + ", plus the planes' generalisation offsets (consider parameters)")
+        return ids, precision.vertex_cov, note
+    start = time.perf_counter()
+    if precision is not None:
+        s0sq = precision.variance.sigma0_squared
+    else:
+        s0sq = variance_factors(problem.group_residuals(), problem.num_unknowns()).sigma0_squared
+    cof = cofactors(problem, redundancy=False, points=False)
+    cov, _ = _vertex_blocks(problem, cof, s0sq, None)
+    logger.info("precision: covariances of %d model vertices (%.1f s)", len(ids),
+                time.perf_counter() - start)
+    return ids, cov, "marginal covariance of the vertex block, scaled by s0^2"
 
 
 def wants_covariances(options, num_images: int) -> bool:

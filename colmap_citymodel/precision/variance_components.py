@@ -106,9 +106,12 @@ def _scaled_options(options, factors: dict[str, float]):
     generalisation = options.sigma_generalisation
     if generalisation is not None:
         generalisation = generalisation * factors.get("gen", 1.0)
+    vt = factors.get("VT", 1.0)
     return dataclasses.replace(options, sigma_dtp=options.sigma_dtp * factors.get("dTP", 1.0),
                                sigma_dvt=options.sigma_dvt * factors.get("dVT", 1.0),
-                               sigma_vt=options.sigma_vt * factors.get("VT", 1.0),
+                               sigma_vt=options.sigma_vt * vt,
+                               sigma_vt_corrected=options.sigma_vt_corrected * vt,
+                               sigma_correction_datum=options.sigma_correction_datum * vt,
                                sigma_generalisation=generalisation)
 
 

@@ -7,6 +7,7 @@
 // cost (take_ownership); pyceres wraps it in a non-owning CostFunctionWrapper
 // and keeps the Python object alive as long as the pyceres.Problem object.
 #include "colmap_citymodel/baseline_length_prior.h"
+#include "colmap_citymodel/linear_points_condition.h"
 #include "colmap_citymodel/point_plane_distance.h"
 #include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
@@ -219,6 +220,28 @@ PYBIND11_MODULE(_core, m) {
       "Prior on the distance of two positions fixed in two rigs, residual = "
       "(|P_a - P_b| - length) / sigma with P = R^T (p_in_rig - t).\nParameter "
       "blocks: rig_from_world.params of a and of b (7 each).");
+
+  m.def(
+      "LinearPointsConditionCost",
+      [](const Eigen::MatrixXd& matrix,
+         const Eigen::VectorXd& reference) -> ceres::CostFunction* {
+        if (matrix.rows() < 1 || matrix.cols() < 3 || matrix.cols() % 3 != 0) {
+          throw std::invalid_argument(
+              "matrix must have at least one row and 3K columns (K >= 1)");
+        }
+        if (reference.size() != matrix.cols()) {
+          throw std::invalid_argument("reference must have 3K values, one per column");
+        }
+        if (!matrix.allFinite() || !reference.allFinite()) {
+          throw std::invalid_argument("matrix and reference must be finite");
+        }
+        return LinearPointsConditionCost::Create(matrix, reference);
+      },
+      "matrix"_a,
+      "reference"_a,
+      kTake,
+      "Linear conditions on K points observed as zero, residual = A (X - X_0) "
+      "with X the stacked points.\nParameter blocks: K points (3 each).");
 
   m.attr("__ceres_version__") = CERES_VERSION_STRING;
   m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;

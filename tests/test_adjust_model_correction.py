@@ -1,0 +1,185 @@
+"""adjust.model_correction: which faces the images correct, the datum the corrected model
+keeps, and a hybrid solve that moves a wrongly placed facade back to its true plane while the
+faces the images do not correct keep their planes."""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_citymodel.adjust.model_correction import (
+    datum_condition,
+    face_coverage,
+    select_corrected_faces,
+    summarise_correction,
+)
+from colmap_citymodel.adjust.problem import HybridProblem
+from colmap_citymodel.adjust.steps import model_after_solve
+from colmap_citymodel.assign.assignment import Assignment
+from colmap_citymodel.assign.schedule import assign
+from colmap_citymodel.block.priors import GNSSPriors
+from colmap_citymodel.block.reconstruction import tie_points
+from colmap_citymodel.options import AdjustmentOptions, AssignmentOptions
+from colmap_citymodel.precision.estimate import cofactors, vertex_covariances
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
+
+from conftest import box_store
+
+A = 10.0  # the box's size
+
+
+def _assignment(points: np.ndarray, faces: np.ndarray) -> Assignment:
+    return Assignment(np.arange(len(points)), np.asarray(faces, np.int64),
+                      np.zeros(len(points)), 0.5)
+
+
+def _grid_on_wall(u_range, v_range, n=12):
+    """Points on the y = 0 wall of the box (x along u, z along v)."""
+    u, v = np.meshgrid(np.linspace(*u_range, n), np.linspace(*v_range, n))
+    return np.column_stack([u.ravel(), np.zeros(u.size), v.ravel()])
+
+
+def test_selection_needs_enough_points_spread_over_the_face():
+    store = box_store()
+    wall = _grid_on_wall((0.5, 9.5), (0.5, 9.5))  # face 0, covers it
+    strip = np.column_stack([np.full(144, A), np.linspace(0.5, 9.5, 144),
+                             np.linspace(4.5, 5.5, 144)])  # face 1, one metre high
+    roof = np.column_stack([np.linspace(1, 9, 20), np.linspace(1, 9, 20), np.full(20, A)])
+    points = np.vstack([wall, strip, roof])
+    faces = np.r_[np.zeros(len(wall)), np.ones(len(strip)), np.full(len(roof), 4)]
+    options = AdjustmentOptions(correction_min_points=50, correction_min_coverage=0.5)
+    selection = select_corrected_faces(store, _assignment(points, faces), points, options)
+    assert selection.faces.tolist() == [0]
+    assert selection.not_corrected == {"points_cover_too_little": 1, "too_few_points": 1}
+    np.testing.assert_allclose(face_coverage(store, 0, wall), [0.9, 0.9], atol=0.02)
+    assert np.min(face_coverage(store, 1, strip)) < 0.15
+    # the wall's four corners are released; the walls beside it and the roof keep their planes
+    np.testing.assert_allclose(np.sort(store.vertices[selection.released][:, [0, 2]], axis=0),
+                               [[0, 0], [0, 0], [A, A], [A, A]])
+    assert selection.held.tolist() == [1, 3, 4]
+
+
+def test_datum_condition_sees_plane_moves_not_slides():
+    store = box_store()
+    faces = np.zeros(144)
+    wall = _grid_on_wall((0.5, 9.5), (0.5, 9.5))
+    selection = select_corrected_faces(store, _assignment(wall, faces), wall,
+                                       AdjustmentOptions(correction_min_points=10))
+    ids, matrix, reference = datum_condition(store, selection, 0.05)
+    assert len(ids) == 4 and matrix.shape[1] == 12
+    # one wall fixes its shift along its normal and its two tilts, nothing within its plane
+    assert matrix.shape[0] == 3
+
+    def residual(moves):
+        return matrix @ (reference + np.asarray(moves, float).ravel() - reference)
+
+    slide = np.zeros((4, 3))
+    slide[:, 0] = 0.3  # along the wall
+    slide[1, 2] = -0.2
+    assert np.abs(residual(slide)).max() < 1e-12
+    shift = np.tile([0.0, 0.1, 0.0], (4, 1))  # the whole wall 0.1 m along its normal
+    assert np.linalg.norm(residual(shift)) == pytest.approx(0.1 / 0.05, rel=1e-6)
+    one_corner = np.zeros((4, 3))
+    one_corner[0, 1] = 0.1  # a tilt
+    assert np.linalg.norm(residual(one_corner)) > 0.5
+
+
+# -- a hybrid solve on the synthetic street ---------------------------------------------------
+
+SHIFTED_FACE = 7  # a street facade with 60 tie points spread over it (seed 3)
+SHIFT = 0.3
+
+
+@pytest.fixture(scope="module")
+def corrected():
+    scene = make_street_scene(StreetSceneOptions(num_stations=6, point_spacing=1.2, seed=3))
+    truth = scene.store
+    # the given model: the facade 0.3 m in front of its true plane; its corners move with it,
+    # so the faces that share them change as well (as in Unger's "original" model)
+    vertices = truth.vertices.copy()
+    moved = truth.face_vertex_ids(SHIFTED_FACE)
+    vertices[moved] += SHIFT * truth.normals[SHIFTED_FACE]
+    given = truth.with_vertices(vertices)
+    rec = pycolmap.Reconstruction(scene.truth)
+    ids = np.array(rec.reg_image_ids())
+    centres = np.array([rec.image(i).projection_center() for i in ids])
+    priors = GNSSPriors(ids, centres, np.full((len(ids), 3), 0.5))
+    point_ids, xyz = tie_points(rec)
+    assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
+    options = AdjustmentOptions(correct_model=True, correction_min_points=30,
+                                sigma_dtp=0.05)
+    problem = HybridProblem(rec, given, assignment, priors, options, robust_images=False,
+                            robust_planes=False)
+    problem.solve()
+    return truth, given, model_after_solve(given, problem), problem
+
+
+def _offset_at(store, face: int, point: np.ndarray) -> float:
+    return float(store.normals[face] @ point + store.offsets[face])
+
+
+def test_the_images_move_a_shifted_facade_back(corrected):
+    truth, given, adjusted, problem = corrected
+    selection = problem.blocks.correction
+    assert SHIFTED_FACE in selection.faces
+    centre = truth.centroids[SHIFTED_FACE]
+    assert abs(_offset_at(given, SHIFTED_FACE, centre)) == pytest.approx(SHIFT)
+    assert abs(_offset_at(adjusted, SHIFTED_FACE, centre)) < 0.1  # from 0.3
+    # topology unchanged, every corrected face planar
+    assert adjusted.faces.ring_vertex.tolist() == given.faces.ring_vertex.tolist()
+    assert adjusted.rms_out_of_plane[selection.faces].max() < 0.005
+
+
+def test_faces_not_corrected_keep_their_planes(corrected):
+    truth, given, adjusted, problem = corrected
+    selection = problem.blocks.correction
+    kept = np.setdiff1d(np.arange(given.num_faces), selection.faces)
+    assert len(selection.held) and np.isin(selection.held, kept).all()
+    for f in kept:
+        points = adjusted.vertices[adjusted.face_vertex_ids(f)]
+        # every vertex of the face, moved or not, is on the face's given plane
+        np.testing.assert_allclose(points @ given.normals[f] + given.offsets[f], 0,
+                                   atol=max(0.003, 2 * given.rms_out_of_plane[f]))
+    untouched = np.setdiff1d(kept, selection.held)
+    np.testing.assert_allclose(adjusted.vertices[np.unique(np.concatenate(
+        [given.face_vertex_ids(f) for f in untouched]))], given.vertices[np.unique(
+            np.concatenate([given.face_vertex_ids(f) for f in untouched]))], atol=0.003)
+
+
+def test_corrected_vertices_get_sigmas_and_a_significance_test(corrected):
+    truth, given, adjusted, problem = corrected
+    # held planes are constant blocks the precision stage knows (no unknown block left over)
+    cof = cofactors(problem, redundancy=False, points=False)
+    assert cof.datum_defect == 0
+    ids, cov, note = vertex_covariances(problem, None)
+    assert ids.tolist() == problem.blocks.vertex_ids.tolist() and "s0" in note
+    correction = summarise_correction(given, adjusted, problem.blocks.correction, ids, cov, 3.0)
+    assert np.isfinite(correction.sigma).all() and (correction.sigma > 0).all()
+    # the sigma of a corrected vertex: far below the 0.5 m of its observation
+    assert np.median(correction.sigma) < 0.1
+    moved = np.isin(correction.vertex_ids, given.face_vertex_ids(SHIFTED_FACE))
+    assert correction.significant[moved].all()
+    assert (correction.shift_length[moved] > SHIFT / 2).all()
+    summary = correction.todict()
+    assert summary["num_corrected_vertices"] == len(correction.vertex_ids)
+    assert summary["num_significant_vertices"] >= int(moved.sum())
+    # what is written back: the given model with only the corrected vertices moved
+    written = correction.corrected_store(given)
+    same = np.setdiff1d(np.arange(len(given.vertices)), correction.vertex_ids)
+    np.testing.assert_array_equal(written.vertices[same], given.vertices[same])
+
+
+def test_without_correction_every_vertex_keeps_its_weight(corrected):
+    truth, given, adjusted, problem = corrected
+    plain = dataclasses.replace(problem.options, correct_model=False)
+    rec = pycolmap.Reconstruction(problem.reconstruction)
+    point_ids, xyz = tie_points(rec)
+    assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
+    fixed = HybridProblem(rec, given, assignment, None, plain, robust_images=False,
+                          robust_planes=False)
+    assert fixed.blocks.correction is None and not fixed.blocks.held_normals
+    assert fixed.counts["VT"] == 3 * len(fixed.blocks.vertex_ids)
+    assert problem.counts["VT"] > 3 * len(problem.blocks.vertex_ids)  # the datum condition
