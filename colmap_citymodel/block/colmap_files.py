@@ -567,7 +567,7 @@ def _all_lines(path: Path) -> Iterator[tuple[int, str]]:
         raise _Damaged(path, f"cannot read the file: {error}") from None
 
 
-class _Tokens:
+class _LineFields:
     """The fields of one text line, read in order with a message naming the line."""
 
     def __init__(self, path: Path, number: int, line: str, layout: str):
@@ -641,7 +641,7 @@ def _check_text(model: _Model) -> None:
     path = files["cameras"]
     names = {name: code for code, (name, _, _) in camera_models().items()}
     for number, line in _lines(path):
-        t = _Tokens(path, number, line, "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
+        t = _LineFields(path, number, line, "CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]")
         camera_id = t.int("camera id")
         name = t.word("camera model")
         if name not in names:
@@ -653,7 +653,7 @@ def _check_text(model: _Model) -> None:
     if "rigs" in files:
         path = files["rigs"]
         for number, line in _lines(path):
-            t = _Tokens(path, number, line,
+            t = _LineFields(path, number, line,
                         "RIG_ID NUM_SENSORS REF_SENSOR_TYPE REF_SENSOR_ID SENSORS[] as "
                         "(TYPE ID HAS_POSE [QW QX QY QZ TX TY TZ])")
             rig_id, num_sensors = t.int("rig id"), t.int("number of sensors")
@@ -672,7 +672,7 @@ def _check_text(model: _Model) -> None:
         path = files["frames"]
         seen: set[int] = set()
         for number, line in _lines(path):
-            t = _Tokens(path, number, line, "FRAME_ID RIG_ID QW QX QY QZ TX TY TZ NUM_DATA_IDS "
+            t = _LineFields(path, number, line, "FRAME_ID RIG_ID QW QX QY QZ TX TY TZ NUM_DATA_IDS "
                                             "DATA_IDS[] as (SENSOR_TYPE SENSOR_ID DATA_ID)")
             frame_id, rig_id = t.int("frame id"), t.int("rig id")
             _finite_pose([t.float(f) for f in _POSE_FIELDS], path,
@@ -689,7 +689,7 @@ def _check_text(model: _Model) -> None:
     for number, line in lines:
         if not line or line.startswith("#"):
             continue
-        t = _Tokens(path, number, line, layout)
+        t = _LineFields(path, number, line, layout)
         image_id = t.int("image id")
         pose = [t.float(f) for f in _POSE_FIELDS]
         camera_id = t.int("camera id")
@@ -719,7 +719,7 @@ def _check_text(model: _Model) -> None:
     path = files["points3D"]
     ids, xyz, owners, tracks, line_of = [], [], [], [], []
     for number, line in _lines(path):
-        t = _Tokens(path, number, line, "POINT3D_ID X Y Z R G B ERROR TRACK[] as "
+        t = _LineFields(path, number, line, "POINT3D_ID X Y Z R G B ERROR TRACK[] as "
                                         "(IMAGE_ID POINT2D_IDX)")
         pid = t.int("point id", 2**64 - 1)
         xyz.append((t.float("X"), t.float("Y"), t.float("Z")))

@@ -161,7 +161,7 @@ def _dimension(el) -> int:
 
 # -- numbers --------------------------------------------------------------------------------------
 
-class _Tokens:
+class _CoordinateText:
     """The numbers of a coordinate element with the text between them, so that single numbers
     can be replaced and everything else stays as written."""
 
@@ -244,7 +244,7 @@ def update_citygml(source: str | Path, target: str | Path, moves: Moves, *, lod:
         if building_id not in buildings:
             continue
         for prop in _read_geometry(building, lod):
-            elements.extend(_Tokens(el) for el in _coordinate_elements(prop))
+            elements.extend(_CoordinateText(el) for el in _coordinate_elements(prop))
     most = max((t.decimals() for t in elements), default=0)
     decimals = None if most >= FULL_PRECISION_DECIMALS else max(
         most, MIN_DECIMALS_METRES if src_crs.is_projected else MIN_DECIMALS_DEGREES)
