@@ -14,7 +14,10 @@ turned by less than 1 deg; topology unchanged). Here the release is selective:
   the images do not correct keep their planes; a vertex they share with a corrected face slides
   within them;
 - f_dVT ties each vertex to every plane of the problem it belongs to: shared vertices stay
-  shared, faces stay planar, no face or vertex is added or removed.
+  shared, faces stay planar, no face or vertex is added or removed;
+- the corrected model keeps the given model's datum (`datum_condition`): the similarity that
+  the corrected planes' moves imply is observed as zero (`sigma_correction_datum`), so that
+  the block and the planes cannot move together where few planes fix the block.
 
 adjust.correction_loop runs the correction after refine's assign/adjust loop (the block is
 first brought onto the model as given, like Unger's "globalOnly" variant, which gave the lower
