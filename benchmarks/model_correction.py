@@ -171,7 +171,7 @@ def main() -> None:
     parser.add_argument("--presets", nargs="+", default=["generalised", "correct_model"],
                         help="runs; correct_model must be among them")
     args = parser.parse_args()
-    workspace = args.workspace.resolve()
+    workspace = args.workspace.absolute()
     runs = {}
     for preset in args.presets:
         report, seconds = run_refine(workspace, CACHE / args.name / preset, preset)
