@@ -123,7 +123,7 @@ class PlaneBlocks:
     # Per face (3): the constant point on the plane (the face's vertex centroid) that its
     # offset refers to: the plane is n.(X - reference) + offset = 0 (see offset_array).
     references: list[np.ndarray] = field(default_factory=list)
-    # Model correction (AdjustmentOptions.correct_model): which faces the solve corrects and
+    # Model correction (a problem with `releases_model`): which faces the solve corrects and
     # which vertices it releases; the given planes of the faces that keep them (constant
     # blocks, one normal and offset each, in the order of `correction.held`).
     correction: CorrectionSelection | None = None
