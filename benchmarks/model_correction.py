@@ -166,11 +166,15 @@ def table(result: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--workspace", type=Path, default=DEFAULT_WORKSPACE)
+    parser.add_argument("--name", default="model_correction",
+                        help="results file name (benchmarks/results/NAME.md and .json)")
+    parser.add_argument("--presets", nargs="+", default=["generalised", "correct_model"],
+                        help="runs; correct_model must be among them")
     args = parser.parse_args()
-    workspace = args.workspace.resolve()
+    workspace = args.workspace.absolute()
     runs = {}
-    for preset in ("generalised", "correct_model"):
-        report, seconds = run_refine(workspace, CACHE / preset, preset)
+    for preset in args.presets:
+        report, seconds = run_refine(workspace, CACHE / args.name / preset, preset)
         cp = report.get("checkpoints") or {}
         runs[preset] = {"seconds": seconds, "quality": report["quality"]["verdict"],
                         "checkpoints": {k: cp.get(k) for k in ("rms_x", "rms_y", "rms_z",
@@ -181,22 +185,23 @@ def main() -> None:
         print(f"{preset}: check points RMS 3D {cp.get('rms_3d'):.3f} m, {seconds:.0f} s")
     result = {"workspace": str(workspace.relative_to(ROOT)) if workspace.is_relative_to(ROOT)
               else str(workspace), "runs": runs,
-              "planes": evaluate(workspace, CACHE / "correct_model"),
+              "planes": evaluate(workspace, CACHE / args.name / "correct_model"),
               "commands": {p: " ".join(refine_command(
                   Path(str(workspace.relative_to(ROOT)) if workspace.is_relative_to(ROOT)
                        else workspace), Path(f"out_{p}"), p)) for p in runs}}
     RESULTS.mkdir(parents=True, exist_ok=True)
-    (RESULTS / "model_correction.json").write_text(json.dumps(result, indent=2))
+    (RESULTS / f"{args.name}.json").write_text(json.dumps(result, indent=2))
     cps = {p: r["checkpoints"] for p, r in runs.items()}
     mc = runs["correct_model"]["model_correction"]
     planes = result["planes"]
     text = [
         "# Model correction", "",
-        f"Workspace `{result['workspace']}` (simulated short sequence, Scn3: the original LOD2 "
-        "model with systematic plane errors, GNSS for every key frame). Commands:", "",
-        "    " + result["commands"]["generalised"],
-        "    " + result["commands"]["correct_model"],
-        "    python benchmarks/model_correction.py", "",
+        f"Workspace `{result['workspace']}` (simulated, the original LOD2 model with "
+        "systematic plane errors, GNSS for every key frame). Commands:", "",
+        *["    " + command for command in result["commands"].values()],
+        "    python benchmarks/model_correction.py " + " ".join(sys.argv[1:]), "",
+        "Model correction with the block held as the adjustment left it (the default: "
+        "adjust.correction_loop); the check points are then those of the plain refine.", "",
         "Planes of the given model and of the written `corrected_model.gml` against the true "
         "planes (`models/corrected.gml`: same faces, the true scene's main planes; 'vs "
         "detailed': against the area-weighted offset of the `models/detailed.gml` polygons on "
@@ -218,7 +223,7 @@ def main() -> None:
         c = cps[preset]
         text.append(f"| {preset} | {c['rms_x']:.3f} | {c['rms_y']:.3f} | {c['rms_z']:.3f} | "
                     f"{c['rms_3d']:.3f} | {r['quality']} | {r['seconds']:.0f} |")
-    (RESULTS / "model_correction.md").write_text("\n".join(text) + "\n")
+    (RESULTS / f"{args.name}.md").write_text("\n".join(text) + "\n")
     print("\n".join(text))
 
 

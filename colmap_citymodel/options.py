@@ -132,19 +132,27 @@ class AdjustmentOptions:
     observed with `sigma_vt_corrected` only, so their planes follow the tie points; the other
     vertices keep sigma_vt, a corrected vertex stays on the given plane of every face that is
     not corrected (that face keeps its plane), and f_dVT keeps every face planar
-    (adjust.model_correction). Preset "correct_model"."""
+    (adjust.model_correction, adjust.correction_loop). Preset "correct_model"."""
+    correction_moves_block: bool = False
+    """False: the block stays as the adjustment left it and the planes are fitted to its tie
+    points (Unger's own model correction used a block's tie points as control points). True:
+    block and model are estimated together; where the images have systematic errors the block
+    bends back and the planes follow it (simulated long sequence: check points 0.161 -> 0.564
+    m, corrected planes 0.199 -> 0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089
+    m). See adjust.correction_loop."""
     sigma_vt_corrected: float = 0.5
     """Direct observation (m) of the vertices of corrected faces: Unger's 0.5 m "to correct the
     model" (5.3)."""
-    sigma_correction_datum: float = 0.05
-    """The corrected model keeps the given one's datum: the similarity (shift, rotation,
-    scale) that the corrected planes' moves imply is observed as zero with this sigma (m;
-    rotation and scale as the displacement they cause), so the images change the model's
-    shape more than its georeference (adjust.model_correction.datum_condition). 0.05 m: a
-    LOD2 model's per-plane error (~0.2 m, Unger 5.2.2) averaged over a dozen planes. 0.01
-    held it too firmly (short Scn3: corrected planes 0.12 m off the truth instead of 0.09,
-    tilted by 0.87 deg RMS instead of 0.47); without it the block drifted with the planes
-    when the images saw few planes fixing it."""
+    sigma_correction_datum: float | None = 0.05
+    """Where block and model are estimated together (`correction_moves_block`, and the
+    problem the corrected vertices' sigmas come from), the corrected model keeps the given
+    one's datum: the similarity (shift, rotation, scale) that the corrected planes' moves imply
+    is observed as zero with this sigma (m; rotation and scale as the displacement they cause;
+    adjust.model_correction.datum_condition). 0.05 m: a LOD2 model's per-plane error (~0.2 m,
+    Unger 5.2.2) averaged over a dozen planes. Moving the block on short Scn3, 0.01 held it too
+    firmly (corrected planes 0.12 m off the truth instead of 0.09, tilted by 0.87 deg RMS
+    instead of 0.47); without it block and planes drifted together (1.2 m) where few planes
+    fixed the block. None: no condition."""
     correction_min_points: int = 50
     """A face is corrected only with at least this many assigned tie points (three times the
     assignment's minimum: a plane from few points moves with their generalisation effects)."""

@@ -137,6 +137,26 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         current = model_after_solve(current, last)
     if estimate_offset:  # the last solve's priors (a re-weighted copy after VCE) hold it
         priors.offset = np.array(last.gnss.offset if last.gnss is not None else priors.offset)
+    corrected = None
+    if options.adjustment.correct_model and last.blocks.faces.size:
+        from .adjust.correction_loop import correction_loop
+
+        t_correction = time.perf_counter()
+        corrected = correction_loop(rec, store, current, priors, options, loop.threshold,
+                                    exclude_point_ids=exclude_point_ids,
+                                    baselines=loop.baselines, weights=loop.weights,
+                                    objective=objective, first_iteration=len(loop.iterations))
+        loop.iterations += corrected.iterations
+        timer["model_correction"] = time.perf_counter() - t_correction
+        if corrected.undone is not None:
+            warnings.append(f"model correction undone: {corrected.undone}")
+            rec = corrected.reconstruction
+            corrected = None
+        else:
+            current = corrected.current
+            if corrected.last is not None:  # the block moved with the model
+                rec, last, assignment = corrected.reconstruction, corrected.last, \
+                    corrected.assignment
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options)
     gnss_offset = (offset_report(priors, observability, offset_start, gnss)
@@ -155,9 +175,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     else:
         precision = precision_after_refine(last, options.precision, checkpoint_observations)
     correction = None
-    if last.blocks.correction is not None:
-        correction = _model_correction(store, current, last, precision, options, warnings,
-                                       handed_back=quality.verdict == "failed"
+    if corrected is not None and corrected.selection is not None:
+        correction = _model_correction(store, current, corrected, last, precision, options,
+                                       warnings, handed_back=quality.verdict == "failed"
                                        and gnss_only is not None)
     if checkpoints is not None and checkpoint_observations is not None:
         from .precision.checkpoints import evaluate_with_precision
@@ -239,8 +259,8 @@ def offset_line(report: dict) -> str:
     return line
 
 
-def _model_correction(store: PlaneStore, current: PlaneStore, last, precision, options,
-                      warnings: list[str], *, handed_back: bool):
+def _model_correction(store: PlaneStore, current: PlaneStore, corrected, last, precision,
+                      options, warnings: list[str], *, handed_back: bool):
     """The record of what the images corrected in the model (adjust.model_correction), with
     each corrected vertex's sigma from the precision stage; None when the GNSS-only result is
     handed back (a block the model could not help does not correct the model either)."""
@@ -252,13 +272,14 @@ def _model_correction(store: PlaneStore, current: PlaneStore, last, precision, o
         return None
     ids = cov = None
     note = "no covariances"
+    problem = corrected.covariance_problem
     try:
-        ids, cov, note = vertex_covariances(last, precision)
+        ids, cov, note = vertex_covariances(problem, precision if problem is last else None)
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("model correction: vertex covariances failed (%s); shifts without "
                        "sigmas", error)
         note = f"covariances failed: {error}"
-    correction = summarise_correction(store, current, last.blocks.correction, ids, cov,
+    correction = summarise_correction(store, current, corrected.selection, ids, cov,
                                       options.adjustment.correction_significance, note)
     summary = correction.todict()
     logger.info("model correction: %d faces corrected, %d vertices moved (RMS %.3f m), %d of "

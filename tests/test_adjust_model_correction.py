@@ -16,6 +16,7 @@ from colmap_citymodel.adjust.model_correction import (
     select_corrected_faces,
     summarise_correction,
 )
+from colmap_citymodel.adjust.correction_loop import CorrectionProblem
 from colmap_citymodel.adjust.problem import HybridProblem
 from colmap_citymodel.adjust.steps import model_after_solve
 from colmap_citymodel.assign.assignment import Assignment
@@ -111,8 +112,8 @@ def corrected():
     assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
     options = AdjustmentOptions(correct_model=True, correction_min_points=30,
                                 sigma_dtp=0.05)
-    problem = HybridProblem(rec, given, assignment, priors, options, robust_images=False,
-                            robust_planes=False)
+    problem = CorrectionProblem(rec, given, assignment, priors, options, robust_images=False,
+                                robust_planes=False)
     problem.solve()
     return truth, given, model_after_solve(given, problem), problem
 
@@ -172,14 +173,29 @@ def test_corrected_vertices_get_sigmas_and_a_significance_test(corrected):
     np.testing.assert_array_equal(written.vertices[same], given.vertices[same])
 
 
-def test_without_correction_every_vertex_keeps_its_weight(corrected):
+def test_a_plain_problem_releases_nothing_and_a_held_block_does_not_move(corrected):
     truth, given, adjusted, problem = corrected
-    plain = dataclasses.replace(problem.options, correct_model=False)
     rec = pycolmap.Reconstruction(problem.reconstruction)
     point_ids, xyz = tie_points(rec)
     assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
-    fixed = HybridProblem(rec, given, assignment, None, plain, robust_images=False,
+    plain = HybridProblem(rec, given, assignment, None, problem.options, robust_images=False,
                           robust_planes=False)
-    assert fixed.blocks.correction is None and not fixed.blocks.held_normals
-    assert fixed.counts["VT"] == 3 * len(fixed.blocks.vertex_ids)
+    assert plain.blocks.correction is None and not plain.blocks.held_normals
+    assert plain.counts["VT"] == 3 * len(plain.blocks.vertex_ids)
     assert problem.counts["VT"] > 3 * len(problem.blocks.vertex_ids)  # the datum condition
+    # without the datum condition, block held: only the model moves
+    options = dataclasses.replace(problem.options, sigma_correction_datum=None)
+    held = CorrectionProblem(rec, given, assignment, None, options, robust_images=False,
+                             robust_planes=False)
+    assert held.counts["VT"] == 3 * len(held.blocks.vertex_ids)
+    held.hold_block()
+    centres = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    points = {i: rec.point3D(i).xyz.copy() for i in list(rec.point3D_ids())[:50]}
+    held.solve()
+    for i, centre in centres.items():
+        np.testing.assert_array_equal(rec.image(i).projection_center(), centre)
+    for i, xyz in points.items():
+        np.testing.assert_array_equal(rec.point3D(i).xyz, xyz)
+    moved = model_after_solve(given, held)
+    face = list(given.faces.gml_id).index(given.faces.gml_id[SHIFTED_FACE])
+    assert abs(_offset_at(moved, face, truth.centroids[SHIFTED_FACE])) < 0.1

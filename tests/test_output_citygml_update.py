@@ -204,3 +204,36 @@ def test_cityjson_sequence_round_trip(tmp_path):
     assert len(lines) == 2 and json.loads(lines[0]) == header
     _same_store(store, read_city_model(target, crs="EPSG:7415"),
                 float(np.max(doc["transform"]["scale"])) / 2 + 1e-9, moved=moves.vertex_ids)
+
+
+# -- tiles in, tiles out --------------------------------------------------------------------------
+
+@needs_data
+def test_tiles_in_tiles_out(tmp_path):
+    from colmap_citymodel.adjust.model_correction import ModelCorrection
+    from colmap_citymodel.output.corrected_model import write_corrected_model
+
+    names = ["tum2twin/DEBY_LOD2_4959321.gml", "tum2twin/DEBY_LOD2_4959322.gml"]
+    store = read_city_model([CITYGML / n for n in names])
+    ids = np.arange(len(store.vertices))
+    correction = ModelCorrection(
+        faces=np.arange(store.num_faces), held_faces=np.zeros(0, np.int64), vertex_ids=ids,
+        given=store.vertices[ids], corrected=store.vertices[ids] + SHIFT, covariance=None,
+        threshold=3.0)
+    written, warnings = write_corrected_model(correction, store, tmp_path)
+    assert not warnings
+    assert [w["target"] for w in written] == [f"corrected_model/{Path(n).name}" for n in names]
+    assert sum(w["num_vertices_moved"] for w in written) >= len(store.vertices)
+    for n in names:  # each tile reads back as itself, moved
+        before = read_city_model(CITYGML / n)
+        after = read_city_model(tmp_path / "corrected_model" / Path(n).name)
+        _same_store(before, after, 0.5e-3 + 1e-9, moved=np.arange(len(before.vertices)))
+    # one file in, one file out, named after its format
+    single = read_city_model(CITYJSON / "3dbag_b2.city.json")
+    none_moved = ModelCorrection(np.zeros(0, np.int64), np.zeros(0, np.int64),
+                                 np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)),
+                                 None, 3.0)
+    written, _ = write_corrected_model(none_moved, single, tmp_path / "one")
+    assert [w["target"] for w in written] == ["corrected_model.city.json"]
+    assert json.loads((tmp_path / "one" / "corrected_model.city.json").read_text()) == \
+        json.loads((CITYJSON / "3dbag_b2.city.json").read_text())

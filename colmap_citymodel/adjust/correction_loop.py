@@ -1,19 +1,31 @@
-"""Model correction after the assign/adjust loop (AdjustmentOptions.correct_model).
+"""Model correction after refine's adjustment (AdjustmentOptions.correct_model).
 
-The loop brings the block onto the model as given (sigma_VT 0.01 m everywhere); then the
-faces the images see well are corrected (adjust.model_correction): assign the tie points to
-the current (corrected) model at the loop's last threshold, solve with their vertices released
-(robust on f_dTP, eliminate, solve again with the original weights), repeat until the RMS of
-the normalised residuals settles or `correction_iterations` are done. Correcting only after
-the loop follows Unger 6.7.3: releasing sigma_VT for the global adjustment only ("globalOnly")
-gave lower check point errors than releasing it from the start, where model errors, drift and
-block deformation mix. A correction that moves the block away from the model (block objective
-worse, against the corrected model, by more than `divergence_tolerance` than the loop's
-block against the given one) is undone.
+The loop brings the block onto the model as given (sigma_VT 0.01 m everywhere). Then the
+images correct the faces they see well (adjust.model_correction): assign the tie points to the
+current model at the loop's last threshold, solve a `CorrectionProblem` (the corrected faces'
+vertices released), eliminate f_dTP beyond 3 sigma and solve again with the original weights,
+repeat until the RMS of the normalised residuals settles or `correction_iterations` are done.
+
+By default the block stays as the adjustment left it (poses, tie points and intrinsics
+constant in these solves): its tie points are the control the planes are fitted to, as Unger
+corrected the generalised model with a reference block's tie points as control points (5.2.2).
+The block was adjusted to all planes of the given model at once, so one face's error moves it
+little. `correction_moves_block` estimates block and model together instead (Unger 6.7.3:
+sigma_VT released in the global adjustment); where the images have systematic errors the
+block then bends back and the corrected planes follow it. Simulated (benchmarks/results/
+model_correction.md): moving the block, short Scn3 check points 0.252 -> 0.162 m and corrected
+planes 0.232 -> 0.089 m, but on the long sequence the check points went from 0.161 to 0.564 m
+and the corrected planes from 0.199 to 0.315 m; with the block held, corrected planes short
+0.225 -> 0.091 m, long 0.197 -> 0.128 m, check points unchanged.
+
+The sigmas of the corrected vertices come from the joint problem (block and model unknown,
+the model's datum held by the datum condition) at the final state: how well the images and
+the rest of the model determine each corrected vertex, the block's own uncertainty included.
 """
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from dataclasses import dataclass, field
 
@@ -28,6 +40,7 @@ from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
+from .model_correction import CorrectionSelection
 from .problem import BaselinePriors, HybridProblem
 from .record import IterationRecord
 from .steps import model_after_solve
@@ -35,27 +48,63 @@ from .steps import model_after_solve
 logger = logging.getLogger(__name__)
 
 
+class CorrectionProblem(HybridProblem):
+    """A hybrid problem in which the images correct the faces they see well
+    (adjust.model_correction); `hold_block()` makes the block's unknowns constant."""
+
+    releases_model = True
+    block_held = False
+
+    def hold_block(self) -> None:
+        """Poses, tie points and intrinsics constant: only the model moves."""
+        rec, ceres = self.reconstruction, self.problem
+        blocks = [rec.frame(f).rig_from_world.params
+                  for f in {rec.image(i).frame_id for i in rec.reg_image_ids()}]
+        blocks += [camera.params for camera in rec.cameras.values()]
+        blocks += [rec.point3D(i).xyz for i in rec.point3D_ids()]
+        for rig in rec.rigs.values():
+            blocks += [sensor.params for sensor in rig.non_ref_sensors.values()]
+        for block in blocks:
+            if ceres.has_parameter_block(block):
+                ceres.set_parameter_block_constant(block)
+        self.block_held = True
+
+    def num_unknowns(self) -> int:
+        if not self.block_held:
+            return super().num_unknowns()
+        return 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
+
+
 @dataclass
 class CorrectionResult:
-    reconstruction: pycolmap.Reconstruction
-    current: PlaneStore
-    assignment: Assignment
-    last: HybridProblem | None  # None: the correction was undone (the loop's state stands)
+    reconstruction: pycolmap.Reconstruction  # the block (the input object if it was held)
+    current: PlaneStore  # the corrected model state
+    assignment: Assignment | None
+    selection: CorrectionSelection | None  # what the last solve corrected
+    covariance_problem: HybridProblem | None  # the joint problem for the vertices' sigmas
+    last: HybridProblem | None = None  # the last solve when it moved the block, else None
     iterations: list[IterationRecord] = field(default_factory=list)
     undone: str | None = None  # why the correction was undone
 
 
 def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: PlaneStore,
-                    priors: GNSSPriors | None, options: RefineOptions, objective: BlockObjective,
-                    threshold: float, *, exclude_point_ids: set[int] | None = None,
+                    priors: GNSSPriors | None, options: RefineOptions, threshold: float, *,
+                    exclude_point_ids: set[int] | None = None,
                     baselines: BaselinePriors | None = None, weights: np.ndarray | None = None,
+                    objective: BlockObjective | None = None,
                     first_iteration: int = 0) -> CorrectionResult:
-    """Correct the model from the block `rec` (modified in place unless undone; the result's
-    reconstruction is the one to use). `store`: the model as given (f_VT observes it);
-    `current`: the loop's model state; `threshold`: the loop's last assignment threshold."""
+    """Correct the model from the block `rec`. `store`: the model as given (f_VT observes
+    it); `current`: the model state after the adjustment; `threshold`: its last assignment
+    threshold. With `correction_moves_block`, `rec` is adjusted in place (a correction whose
+    block objective, against the corrected model, is worse than `objective`'s against the
+    given one by more than `divergence_tolerance` is undone: the result then holds a copy of
+    the block as it was)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
-    saved = (pycolmap.Reconstruction(rec), current)
-    before = objective(rec)
+    moves_block = o_adj.correction_moves_block
+    # With the block held the model's datum comes from the block: no datum condition.
+    o_solve = o_adj if moves_block else dataclasses.replace(o_adj, sigma_correction_datum=None)
+    saved = (pycolmap.Reconstruction(rec), current) if moves_block else None
+    before = objective(rec) if moves_block and objective is not None else None
     records: list[IterationRecord] = []
     previous_rms = None
     last = assignment = None
@@ -65,8 +114,10 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         if not assignment.num_assigned:
             break
         rejected = dict(assignment.rejected_faces)
-        robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                               robust_planes=True, current=current, baselines=baselines)
+        robust = CorrectionProblem(rec, store, assignment, priors, o_solve, robust_images=False,
+                                   robust_planes=True, current=current, baselines=baselines)
+        if not moves_block:
+            robust.hold_block()
         robust_report = robust.solve()
         outliers = robust.point_ids[np.abs(robust.residuals["dTP"])
                                     > o_adj.elimination_threshold]
@@ -74,9 +125,11 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
         assignment.distance[assignment.face_index < 0] = np.nan
         assignment.rejected_faces = rejected
-        last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                             robust_planes=False, current=model_after_solve(current, robust),
-                             baselines=baselines)
+        last = CorrectionProblem(rec, store, assignment, priors, o_solve, robust_images=False,
+                                 robust_planes=False, current=model_after_solve(current, robust),
+                                 baselines=baselines)
+        if not moves_block:
+            last.hold_block()
         report = last.solve()
         current = model_after_solve(current, last)
         rms = report.rms_total
@@ -94,15 +147,25 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         if change < o_w.convergence_rms_change:
             break
     if last is None:
-        return CorrectionResult(saved[0], saved[1], assignment, None, records,
-                                "no tie point could be assigned")
-    # The block objective against the corrected model: the tie points near the model they
-    # were adjusted to, and GNSS.
-    after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes), objective.priors,
-                           objective.ids, objective.radius)(rec)
-    if after > before + o_w.divergence_tolerance:
-        reason = (f"the corrected model moved the block away from it (objective {before:.3f} "
-                  f"-> {after:.3f})")
-        logger.warning("model correction undone: %s", reason)
-        return CorrectionResult(saved[0], saved[1], assignment, None, records, reason)
-    return CorrectionResult(rec, current, assignment, last, records)
+        return CorrectionResult(rec if saved is None else saved[0],
+                                current if saved is None else saved[1], assignment, None, None,
+                                iterations=records, undone="no tie point could be assigned")
+    if moves_block:
+        if before is not None:
+            # The block objective against the corrected model: the tie points near the model
+            # they were adjusted to, and GNSS.
+            after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes),
+                                   objective.priors, objective.ids, objective.radius)(rec)
+            if after > before + o_w.divergence_tolerance:
+                reason = (f"the corrected model moved the block away from it (objective "
+                          f"{before:.3f} -> {after:.3f})")
+                logger.warning("model correction undone: %s", reason)
+                return CorrectionResult(saved[0], saved[1], assignment, None, None,
+                                        iterations=records, undone=reason)
+        return CorrectionResult(rec, current, assignment, last.blocks.correction, last, last,
+                                records)
+    # The sigmas: the joint problem at the final state (not solved again).
+    joint = CorrectionProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+                              robust_planes=False, current=current, baselines=baselines)
+    return CorrectionResult(rec, current, assignment, last.blocks.correction, joint, None,
+                            records)

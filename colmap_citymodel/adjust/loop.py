@@ -11,7 +11,6 @@ solve that moves the block away from the model ends the loop at the best iterate
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from dataclasses import dataclass, field
@@ -28,10 +27,9 @@ from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import RefineOptions
-from .correction_loop import correction_loop
 from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
-from .problem import HybridProblem
+from .problem import BaselinePriors, HybridProblem
 from .record import IterationRecord
 from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
 from .steps import align_block_to_planes, model_after_solve
@@ -54,6 +52,11 @@ class LoopResult:
     diverged: str | None  # why the loop stopped early, if the objective worsened
     warnings: list[str] = field(default_factory=list)
     seconds: dict[str, float] = field(default_factory=dict)
+    # What a model correction after the loop continues with: the last assignment threshold,
+    # the baseline priors that hold the scale (if any), the tie points' sampling weights.
+    threshold: float = 0.0
+    baselines: BaselinePriors | None = None
+    weights: np.ndarray | None = None
 
 
 def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
@@ -63,12 +66,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     scale_sigma: float | None = None, progress: bool = True) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
-    `scale_sigma` let the loop hold the block's scale where the planes cannot give it. With
-    `options.adjustment.correct_model` the loop keeps the model as given and the model
-    correction (adjust.correction_loop) follows it."""
-    o_a, o_w = options.assignment, options.workflow
-    # The loop adjusts the block to the model as given; a model correction follows it.
-    o_adj = dataclasses.replace(options.adjustment, correct_model=False)
+    `scale_sigma` let the loop hold the block's scale where the planes cannot give it."""
+    o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     current = store
     threshold = initial_threshold(o_a)
     weights = None
@@ -207,17 +206,6 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         _, _, rec, assignment, current, offset = best
         _restore_offset(priors, offset)
         last = None
-    if options.adjustment.correct_model and assignment is not None and assignment.num_assigned:
-        correction = correction_loop(rec, store, current, priors, options, objective, threshold,
-                                     exclude_point_ids=exclude_point_ids, baselines=baselines,
-                                     weights=weights, first_iteration=len(iterations))
-        iterations += correction.iterations
-        if correction.last is not None:
-            rec, current, assignment, last = (correction.reconstruction, correction.current,
-                                              correction.assignment, correction.last)
-        else:  # undone: the loop's block, solved again below
-            rec, current, last = correction.reconstruction, correction.current, None
-            warnings.append(f"model correction undone: {correction.undone}")
     if last is None:  # back to the best iterate, or the last iteration was undone
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                              robust_planes=False, current=current, baselines=baselines)
@@ -231,7 +219,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     return LoopResult(reconstruction=rec, current=current, assignment=assignment, last=last,
                       iterations=iterations, move=total_move,
                       observability_before=observability_before, diverged=diverged,
-                      warnings=warnings, seconds=seconds)
+                      warnings=warnings, seconds=seconds, threshold=threshold,
+                      baselines=baselines, weights=weights)
 
 
 def offset_name(priors: GNSSPriors) -> str:

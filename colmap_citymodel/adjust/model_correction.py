@@ -14,11 +14,14 @@ turned by less than 1 deg; topology unchanged). Here the release is selective:
   the images do not correct keep their planes; a vertex they share with a corrected face slides
   within them;
 - f_dVT ties each vertex to every plane of the problem it belongs to: shared vertices stay
-  shared, faces stay planar, no face or vertex is added or removed.
+  shared, faces stay planar, no face or vertex is added or removed;
+- where block and model are unknowns together, the corrected model keeps the given model's
+  datum (`datum_condition`): the similarity that the corrected planes' moves imply is observed
+  as zero (`sigma_correction_datum`), so that block and planes cannot move together where few
+  planes fix the block.
 
-adjust.correction_loop runs the correction after refine's assign/adjust loop (the block is
-first brought onto the model as given, like Unger's "globalOnly" variant, which gave the lower
-check point errors): assign to the corrected model, solve with the release, repeat.
+adjust.correction_loop runs the correction after refine's adjustment, by default with the
+block held as the adjustment left it (its tie points are the control the planes are fitted to).
 
 `summarise_correction` turns the solve's vertex covariances (precision stage) into the record
 of what moved: per corrected vertex its shift, its sigma along the shift (s0-scaled marginal
@@ -118,10 +121,10 @@ def datum_condition(store: PlaneStore, selection: CorrectionSelection, sigma: fl
     displacement they cause at the vertices' RMS radius). Only the moves along the normals
     count: a vertex sliding within a plane moves no plane. Directions no corrected plane
     fixes (all normals parallel, say) get no condition; the faces that keep their planes
-    hold them. Without it the block and the corrected planes can move together where few
-    planes fix the block (simulated short Scn3 with 17 faces corrected: 1.2 m off along the
-    street; with the condition at 0.05 m the check points end 0.16 m off with 12 faces, better
-    than the 0.25 m with the model as given)."""
+    hold them. Without it, with the block moving too, block and corrected planes moved
+    together where few planes fixed the block (simulated short Scn3 with 17 faces corrected:
+    1.2 m off along the street; with the condition at 0.05 m and 12 faces the check points
+    ended 0.16 m off, better than the 0.25 m with the model as given)."""
     ids = np.asarray(selection.released, np.int64)
     column = {int(v): k for k, v in enumerate(ids)}
     x0 = store.vertices[ids]

@@ -10,9 +10,10 @@ registered images), to which this module adds, through the C++ extension's cost 
 - f_dTP: distance tie point -> assigned plane = 0 (sigma_dTP 0.2 m, robust in step 4);
 - f_dVT: distance vertex -> each plane in the problem it belongs to = 0 (0.01 m);
 - f_VT: direct observation of each vertex of those planes (0.01 m: the model is "almost fixed");
-  with AdjustmentOptions.correct_model the vertices of the faces the images see well get
-  sigma_vt_corrected (0.5 m) and keep f_dVT to the given planes of their other faces, which
-  enter as constant blocks (adjust.model_correction);
+  in a problem that releases the model (`releases_model`, adjust.correction_loop's
+  CorrectionProblem) the vertices of the faces the images see well get sigma_vt_corrected
+  (0.5 m) and keep f_dVT to the given planes of their other faces, which enter as constant
+  blocks (adjust.model_correction);
 - optionally (generalisation_offsets=True and sigma_generalisation set) a generalisation
   offset o_p per plane in f_dTP, (n.X + d + o_p) / sigma_dTP, with the prior
   o_p ~ N(0, sigma_generalisation^2) (group "gen"). Experimental: see AdjustmentOptions.
@@ -125,7 +126,7 @@ class PlaneBlocks:
     # Per face (3): the constant point on the plane (the face's vertex centroid) that its
     # offset refers to: the plane is n.(X - reference) + offset = 0 (see offset_array).
     references: list[np.ndarray] = field(default_factory=list)
-    # Model correction (AdjustmentOptions.correct_model): which faces the solve corrects and
+    # Model correction (a problem with `releases_model`): which faces the solve corrects and
     # which vertices it releases; the given planes of the faces that keep them (constant
     # blocks, one normal and offset each, in the order of `correction.held`).
     correction: CorrectionSelection | None = None
@@ -188,6 +189,10 @@ class HybridProblem:
     `reconstruction` is modified by solve(): poses, tie points (and intrinsics if enabled).
     The model unknowns are read back from `blocks`.
     """
+
+    #: True in a problem that lets the images correct the faces they see well
+    #: (adjust.correction_loop.CorrectionProblem); False: every vertex at sigma_VT.
+    releases_model: bool = False
 
     def __init__(self, reconstruction: pycolmap.Reconstruction, store: PlaneStore | None,
                  assignment: Assignment | None, gnss: GNSSPriors | None,
@@ -360,7 +365,7 @@ class HybridProblem:
         released: set[int] = set()
         held_slot: dict[int, int] = {}
         held_costs = []
-        if o.correct_model:
+        if self.releases_model:
             points = np.full((len(assignment.point_ids), 3), np.nan)
             points[assigned] = [rec.point3D(int(i)).xyz for i in self.point_ids]
             selection = select_corrected_faces(current, assignment, points, o)
@@ -405,7 +410,7 @@ class HybridProblem:
                                             sigma_released if int(v) in released else sigma_vt),
                 None, [vertex])
         self.counts["VT"] = 3 * len(vertex_ids)
-        if released:
+        if released and o.sigma_correction_datum is not None:
             # The corrected model keeps the given model's datum (one condition of up to 7 rows).
             ids, matrix, reference = datum_condition(store, blocks.correction,
                                                      o.sigma_correction_datum / o.sigma_image)
