@@ -173,7 +173,7 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
          progress=True, precision=None, gnss_height_offset=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None, assignment=None) -> RefineResult:
+         variance_components=None, assignment=None, num_threads=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`)."""
@@ -193,6 +193,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.precision.variance_components = bool(variance_components)
     if assignment is not None:  # --assignment overrides the options file
         options.assignment.method = assignment
+    if num_threads is not None:  # threads of each Ceres solve (a batch worker uses one)
+        options.adjustment.num_threads = int(num_threads)
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError
