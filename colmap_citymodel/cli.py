@@ -222,7 +222,8 @@ def _add_batch(subparsers) -> None:
                         "a workspace's GNSS are read)")
     p.add_argument("--output_path", required=True, help="directory for the results")
     p.add_argument("--workers", type=int, default=None,
-                   help="worker processes (default: the number of cores)")
+                   help="worker processes of the local pool or of --scheduler local "
+                        "(default: the number of cores)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on Dask: 'local' starts a LocalCluster of --workers processes, "
                         "tcp://HOST:PORT uses a running scheduler (default: a local process "

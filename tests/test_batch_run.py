@@ -173,8 +173,10 @@ def test_ctrl_c_leaves_no_half_written_output(inputs, tmp_path):
                "--citymodel", str(inputs / "tiles"), "--output_path", str(out),
                "--gnss_crs", "EPSG:25832", "--precision", "off", "--options",
                str(inputs / "fast.toml"), "--workers", "2", "--no_progress"]
+    # its own process group, with Ctrl-C handled even where this test runs with it ignored
     process = subprocess.Popen(command, stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                               text=True, start_new_session=True)
+                               text=True, start_new_session=True,
+                               preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 240
     try:
         while time.monotonic() < deadline and process.poll() is None:
