@@ -12,7 +12,9 @@ Both take the same task function and task records and yield `(task, row)` as tas
 - `run_dask`: `dask.distributed`; `scheduler="local"` starts a LocalCluster of `workers`
   processes with one thread each (its nannies set the thread variables to 1 themselves), any
   other value is the address of a running scheduler (`tcp://host:8786`). Every worker must
-  see the workspaces, the city model and the output directory under the same paths.
+  see the workspaces, the city model and the output directory under the same paths, and the
+  scheduler as well as the workers must import colmap_citymodel (Dask unpickles the tasks
+  on the scheduler too).
 """
 
 from __future__ import annotations

@@ -84,14 +84,14 @@ def cell(row: dict, key: str) -> str:
         return f"{value:.2f}"
     if key == "seconds":
         return f"{value:.1f}"
-    return str(value)
+    return " ".join(str(value).split())  # one line (some errors span several)
 
 
 def status_line(row: dict) -> str:
     """One console line for a finished workspace."""
     name = row["workspace"]
     if row.get("status") == "error":
-        return f"{name}: error: {row.get('error')}"
+        return f"{name}: error: {cell(row, 'error')}"
     parts = [f"{row.get('images')} images"]
     if row.get("s0") is not None:
         parts.append(f"s0 {row['s0']:.3f}")
