@@ -233,8 +233,74 @@ def _add_precision(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_batch(subparsers) -> None:
+    p = subparsers.add_parser(
+        "batch", help="refine many COLMAP workspaces against a city model (process pool or "
+                      "Dask cluster)",
+        epilog="each workspace is refined into OUTPUT_PATH/<workspace>/ (log: "
+               "<workspace>.log); summary.csv/.json/.html list them all. A rerun skips the "
+               "finished ones. Exit status: 0 every workspace has a result, 1 some failed "
+               "(see the summary), 2 bad input")
+    p.add_argument("--workspaces", required=True, nargs="+",
+                   help="workspace directories (sparse/<n>/ plus database.db, gnss.txt or "
+                        "images/), directories to search for them, or text files listing "
+                        "them one a line")
+    p.add_argument("--citymodel", required=True, nargs="+",
+                   help="CityGML/CityJSON files or directories of tiles (only the tiles near "
+                        "a workspace's GNSS are read)")
+    p.add_argument("--output_path", required=True, help="directory for the results")
+    p.add_argument("--workers", type=int, default=None,
+                   help="worker processes of the local pool or of --scheduler local "
+                        "(default: the number of cores)")
+    p.add_argument("--scheduler", default=None, metavar="ADDRESS",
+                   help="run on Dask: 'local' starts a LocalCluster of --workers processes, "
+                        "tcp://HOST:PORT uses a running scheduler (default: a local process "
+                        "pool)")
+    p.add_argument("--force", action="store_true",
+                   help="refine the workspaces finished by an earlier run again")
+    p.add_argument("--no_progress", action="store_true", help="no progress bar")
+    p.add_argument("--gnss_crs", help="CRS of the workspaces' gnss.txt files, e.g. EPSG:4979")
+    p.add_argument("--gnss_height_offset", type=_offset_value, default=None,
+                   help="metres added to GNSS heights, or auto (as refine)")
+    p.add_argument("--gnss_bias", choices=["auto"], default=None,
+                   help="estimate a constant 3D GNSS bias (as refine)")
+    p.add_argument("--lever_arm", type=float, nargs=3, metavar=("X", "Y", "Z"),
+                   help="GNSS antenna in the camera frame, metres (as refine)")
+    p.add_argument("--preset", default=None, choices=["generalised", "detailed", "correct_model"],
+                   help="stochastic model preset (as refine)")
+    p.add_argument("--options", dest="options_file", help="TOML file overriding options")
+    p.add_argument("--assignment", choices=["direct", "msac", "roi_msac", "auto"], default=None)
+    p.add_argument("--lod", type=int, default=None, help="level of detail of the model to use")
+    p.add_argument("--crs", dest="model_crs", help="CRS of model files that name none")
+    p.add_argument("--target_crs", help="projected CRS to reproject geographic tiles to")
+    p.add_argument("--output_type", choices=["bin", "txt"], default=None)
+    p.add_argument("--output_frame", choices=["crs", "local"], default=None)
+    p.add_argument("--precision", choices=["auto", "on", "off"], default=None)
+    p.add_argument("--sigma_generalisation", type=float, default=None, metavar="M")
+    p.add_argument("--variance_components", action="store_true", default=None)
+    p.add_argument("--write_model", action="store_true", default=None,
+                   help="correct the model and write it into each workspace's output (as refine)")
+
+    def run(args):
+        from .batch.run import main
+
+        rows = main(args.workspaces, args.citymodel, args.output_path, workers=args.workers,
+                    scheduler=args.scheduler, force=args.force, gnss_crs=args.gnss_crs,
+                    progress=not args.no_progress, preset=args.preset,
+                    options_file=args.options_file, assignment=args.assignment, lod=args.lod,
+                    model_crs=args.model_crs, target_crs=args.target_crs,
+                    output_type=args.output_type, output_frame=args.output_frame,
+                    precision=args.precision, sigma_generalisation=args.sigma_generalisation,
+                    variance_components=args.variance_components,
+                    gnss_height_offset=args.gnss_height_offset, gnss_bias=args.gnss_bias,
+                    lever_arm=args.lever_arm, write_model=args.write_model)
+        return 1 if any(r.get("status") == "error" for r in rows) else 0
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision]
+               _add_precision, _add_batch]
 
 
 def build_parser() -> argparse.ArgumentParser:

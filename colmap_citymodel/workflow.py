@@ -300,7 +300,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
          progress=True, precision=None, gnss_height_offset=None, gnss_bias=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None, assignment=None, write_model=None) -> RefineResult:
+         variance_components=None, assignment=None, write_model=None,
+         num_threads=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`).
@@ -338,6 +339,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.adjustment.correct_model = True
     if write_model is None:
         write_model = options.adjustment.correct_model
+    if num_threads is not None:  # threads of each Ceres solve (a batch worker uses one)
+        options.adjustment.num_threads = int(num_threads)
     cp_known = cp_observations = None
     if (checkpoints is None) != (checkpoint_observations is None):
         from .errors import InputError
@@ -365,6 +368,11 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     if observations is not None:
         bbox = np.array([observations.positions.min(0) - GNSS_READ_MARGIN,
                          observations.positions.max(0) + GNSS_READ_MARGIN])
+    if bbox is not None:  # of a directory of tiles, only those near the block are read
+        from .citymodel.tiles import files_near
+
+        citymodel = files_near(citymodel, bbox, crs,
+                               assumed=user_crs(model_crs) if model_crs else None)
     try:
         store = read_city_model(citymodel, lod=lod, crs=model_crs, target_crs=target_crs,
                                 bbox_crs=bbox)

@@ -13,12 +13,13 @@ NAME = "colmap_citymodel"
 
 #: The order of the stages. A module may import modules of its own rank or a lower one:
 #: shared foundations first, then the pipeline read -> store -> georegister -> assign ->
-#: adjust -> precision -> write, then what drives it (workflow, CLI, simulation, demo).
+#: adjust -> precision -> write, then what drives it (workflow, batch, CLI, simulation, demo).
 RANKS = {
     "errors": 0, "options": 0, "files": 0, "_ext": 0,
     "citymodel": 1, "block": 2, "align": 3, "assign": 4, "adjust": 5, "precision": 6,
-    "output": 7, "workflow": 8, "simulate": 9, "demo": 10, "cli": 11, "__main__": 12,
-    NAME: 13,  # the package's face: re-exports the public API
+    "output": 7, "workflow": 8, "batch": 9, "simulate": 10, "demo": 11, "cli": 12,
+    "__main__": 13,
+    NAME: 14,  # the package's face: re-exports the public API
 }
 
 
