@@ -299,8 +299,38 @@ def _add_batch(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_import_eo(subparsers) -> None:
+    p = subparsers.add_parser(
+        "import-eo", help="GNSS/IMU exterior orientations of a multi-head camera into a COLMAP "
+                          "database (rig, frames, pose priors) and a known-pose model",
+        epilog="attitude conventions, frames and files: README 'Oblique aerial blocks'")
+    p.add_argument("--database", required=True, help="COLMAP database (changed in place)")
+    p.add_argument("--eo", required=True,
+                   help="text file: exposure X Y Z A1 A2 A3 [sX sY sZ], angles in degrees")
+    p.add_argument("--rig", required=True,
+                   help="rig JSON: heads with image_name template, lever_arm, boresight, camera")
+    p.add_argument("--eo_crs", required=True, help="CRS of the EO positions, e.g. EPSG:25832")
+    p.add_argument("--model_crs", default=None,
+                   help="projected CRS of the city model (default: --eo_crs)")
+    p.add_argument("--attitude", choices=["opk", "rpy"], default="opk",
+                   help="opk: photogrammetric omega, phi, kappa of the body's camera axes; "
+                        "rpy: roll, pitch, yaw (heading) of an IMU body x forward, y right, "
+                        "z down")
+    p.add_argument("--output_path", required=True,
+                   help="new directory: sparse/ (the known-pose model), origin.json, gnss.txt")
+
+    def run(args):
+        from .block.import_eo import main
+
+        result = main(args.database, args.eo, args.rig, args.eo_crs, args.output_path,
+                      model_crs=args.model_crs, attitude=args.attitude)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch]
+               _add_precision, _add_batch, _add_import_eo]
 
 
 def build_parser() -> argparse.ArgumentParser:
