@@ -329,8 +329,46 @@ def _add_import_eo(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_pairs(subparsers) -> None:
+    p = subparsers.add_parser(
+        "pairs", help="image pairs to match in a known-pose block, from overlapping footprints "
+                      "on the city model and terrain",
+        epilog="the output is a pair list for `colmap matches_importer --match_type pairs`")
+    p.add_argument("--input_path", required=True,
+                   help="COLMAP model with poses (import-eo's OUTPUT/sparse)")
+    p.add_argument("--output", required=True, help="pair list to write (image_name1 image_name2)")
+    p.add_argument("--citymodel", nargs="+", default=None,
+                   help="CityGML/CityJSON file(s) or a directory of tiles: rays stop on it")
+    p.add_argument("--terrain_height", type=float, default=None, metavar="H",
+                   help="terrain height in the model CRS (default with --citymodel: its lowest "
+                        "vertex)")
+    p.add_argument("--database", default=None,
+                   help="COLMAP database whose images the pairs must name (checked)")
+    p.add_argument("--origin_file", default=None,
+                   help="origin.json of the model's local frame (default: beside --input_path)")
+    p.add_argument("--min_overlap", type=float, default=None,
+                   help="smallest overlap, share of the smaller footprint (default 0.2)")
+    p.add_argument("--lod", type=int, default=2, help="level of detail of the city model")
+    p.add_argument("--crs", dest="model_crs", default=None,
+                   help="CRS of a city model file that names none")
+
+    def run(args):
+        from .block.pairs import PairOptions, main
+
+        options = PairOptions()
+        if args.min_overlap is not None:
+            options.min_overlap = args.min_overlap
+        result = main(args.input_path, args.output, citymodel=args.citymodel,
+                      terrain_height=args.terrain_height, database=args.database,
+                      origin_file=args.origin_file, lod=args.lod, model_crs=args.model_crs,
+                      options=options)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch, _add_import_eo]
+               _add_precision, _add_batch, _add_import_eo, _add_pairs]
 
 
 def build_parser() -> argparse.ArgumentParser:
