@@ -367,8 +367,54 @@ def _add_pairs(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_dense_quality(subparsers) -> None:
+    p = subparsers.add_parser(
+        "dense-quality", help="sigma of every dense point from the refined cameras' "
+                              "covariances (PLY scalar fields); weighted vs unweighted planes")
+    p.add_argument("--input_path", required=True,
+                   help="refined COLMAP model (poses and tie points; the PLY's frame)")
+    p.add_argument("--ply", required=True, help="dense point cloud (e.g. COLMAP's fused.ply)")
+    p.add_argument("--image_covariance", required=True,
+                   help="refine's image_covariance.csv (full 6x6) or image_precision.csv "
+                        "(sigmas only)")
+    p.add_argument("--output", required=True, help="PLY to write with the sigma fields")
+    p.add_argument("--tie_point_precision", default=None,
+                   help="refine's point_precision.ply: adds sigma_3d_count (Mulder's "
+                        "polynomial of the tie point sigma per number of views)")
+    p.add_argument("--sigma_image", type=float, default=None,
+                   help="pixels, a dense point's matching noise (default 1.0; 0: cameras only)")
+    p.add_argument("--visibility_radius", type=float, default=None,
+                   help="tie points within this distance decide who sees a point (default 5)")
+    p.add_argument("--planes", action="store_true",
+                   help="also extract planes with and without the sigmas as weights "
+                        "(fields plane_weighted, plane_unweighted)")
+    p.add_argument("--inlier_distance", type=float, default=None,
+                   help="plane inlier distance with --planes (default 0.1)")
+
+    def run(args):
+        from .precision.dense import DenseOptions, PlaneOptions, main
+
+        options = DenseOptions()
+        if args.sigma_image is not None:
+            options.sigma_image = args.sigma_image
+        if args.visibility_radius is not None:
+            options.visibility_radius = args.visibility_radius
+        planes = None
+        if args.planes:
+            planes = PlaneOptions()
+            if args.inlier_distance is not None:
+                planes.inlier_distance = args.inlier_distance
+        result = main(args.input_path, args.ply, args.image_covariance, args.output,
+                      tie_point_precision=args.tie_point_precision, options=options,
+                      planes=planes)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch, _add_import_eo, _add_pairs]
+               _add_precision, _add_batch, _add_import_eo, _add_pairs,
+               _add_dense_quality]
 
 
 def build_parser() -> argparse.ArgumentParser:
