@@ -412,9 +412,74 @@ def _add_dense_quality(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_triangulate(subparsers) -> None:
+    p = subparsers.add_parser(
+        "triangulate", help="tie points of a known-pose block from the database's verified "
+                            "matches (COLMAP's point triangulator, poses held)")
+    p.add_argument("--database", required=True, help="COLMAP database with verified matches")
+    p.add_argument("--input_path", required=True,
+                   help="COLMAP model with the poses (import-eo's OUTPUT/sparse)")
+    p.add_argument("--output_path", required=True, help="directory for the triangulated model")
+
+    def run(args):
+        from .block.triangulate import main
+
+        print(main(args.database, args.input_path, args.output_path).summary())
+
+    p.set_defaults(func=run)
+
+
+def _add_simulate_oblique(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate-oblique", help="simulate a five-head oblique aerial block over a city model "
+                                 "(database with keypoints, eo.txt, rig.json, truth)")
+    p.add_argument("--citymodel", required=True, help="CityGML/CityJSON file of the buildings")
+    p.add_argument("--output_path", required=True, help="workspace directory to create")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--strips", type=int, default=None, help="parallel strips (default 3)")
+    p.add_argument("--strip_length", type=float, default=None, help="metres (default 600)")
+    p.add_argument("--centre", type=float, nargs=2, default=None, metavar=("X", "Y"),
+                   help="block centre in the model CRS (default: the model's bbox centre)")
+
+    def run(args):
+        from .simulate.oblique import ObliqueOptions, simulate_oblique_block
+
+        options = ObliqueOptions(citymodel=args.citymodel, seed=args.seed,
+                                 centre=None if args.centre is None else tuple(args.centre))
+        if args.strips is not None:
+            options.strips = args.strips
+        if args.strip_length is not None:
+            options.strip_length = args.strip_length
+        stats = simulate_oblique_block(options, args.output_path)
+        print(f"simulate-oblique: {stats['exposures']} exposures x {stats['heads']} heads, "
+              f"{stats['observations']} observations; workspace {args.output_path}")
+
+    p.set_defaults(func=run)
+
+
+def _add_simulate_matching(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate-matching", help="in a simulate-oblique workspace: matches of the listed "
+                                  "pairs from the truth, then COLMAP's geometric verification")
+    p.add_argument("--workspace", required=True, help="simulate-oblique workspace")
+    p.add_argument("--pairs", required=True, help="pair list (image_name1 image_name2)")
+    p.add_argument("--database", default=None, help="database (default WORKSPACE/database.db)")
+
+    def run(args):
+        from .simulate.oblique import simulate_matching
+
+        r = simulate_matching(args.workspace, args.pairs, args.database)
+        print(f"simulate-matching: {r.matched_pairs} of {r.pairs} pairs matched "
+              f"({r.matches} matches); COLMAP verified {r.verified_pairs} pairs, "
+              f"{r.inlier_matches} inlier matches in {r.seconds_verification:.1f} s")
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
                _add_precision, _add_batch, _add_import_eo, _add_pairs,
-               _add_dense_quality]
+               _add_triangulate, _add_dense_quality, _add_simulate_oblique,
+               _add_simulate_matching]
 
 
 def build_parser() -> argparse.ArgumentParser:
