@@ -125,6 +125,29 @@ def rig_dict(camera: dict | None = None) -> dict:
     return {"heads": heads, "gnss_lever_arm": list(GNSS_LEVER_ARM)}
 
 
+def true_scene(options: ObliqueOptions, store, centre: np.ndarray):
+    """The true scene under the block (local frame of `store`): the buildings with
+    generalisation effects and terrain wherever the heads look; deterministic for a seed."""
+    ground = GroundModel(store)
+    step = 40.0
+    half = np.r_[options.strip_length / 2, (options.strips - 1) / 2 * options.strip_spacing]
+    reach = options.flying_height * 1.6
+    gx, gy = np.meshgrid(np.arange(-half[0] - reach, half[0] + reach + step, step),
+                         np.arange(-half[1] - reach, half[1] + reach + step, step))
+    roi = np.c_[gx.ravel() + centre[0], gy.ravel() + centre[1]]
+    roi = np.c_[roi, ground(roi)]
+    return build_true_scene(store, DetailOptions(tree_spacing=0.0, car_spacing=0.0),
+                            options.seed, roi_centres=roi, roi_radius=step, ground=ground)
+
+
+def block_centre(options: ObliqueOptions, store) -> np.ndarray:
+    """The block centre in the store's local frame (z = 0)."""
+    if options.centre is not None:
+        return np.r_[np.asarray(options.centre, float) - store.origin[:2], 0.0]
+    lo, hi = store.vertices.min(0), store.vertices.max(0)
+    return np.r_[(lo[:2] + hi[:2]) / 2, 0.0]
+
+
 def simulate_oblique_block(options: ObliqueOptions, output_path, *, progress: bool = False
                            ) -> dict:
     """Build the workspace described in the module docstring; returns its statistics."""
@@ -139,10 +162,8 @@ def simulate_oblique_block(options: ObliqueOptions, output_path, *, progress: bo
     rng = np.random.default_rng([options.seed, 1])
     store = read_city_model(options.citymodel)
     origin = store.origin
-    lo, hi = store.vertices.min(0), store.vertices.max(0)
-    centre = (np.r_[options.centre, 0.0] - origin if options.centre is not None
-              else np.r_[(lo[:2] + hi[:2]) / 2, 0.0])
-    z = lo[2] + options.flying_height
+    centre = block_centre(options, store)
+    z = store.vertices[:, 2].min() + options.flying_height
     ids, body_origin, body_rot = _exposures(options, centre, z, rng)
     rig = rig_spec()
     # true antenna positions: body origin + R a
@@ -155,17 +176,7 @@ def simulate_oblique_block(options: ObliqueOptions, output_path, *, progress: bo
     flight = Flight(names, centres, rotations, np.arange(len(names), dtype=float),
                     options.width, options.height, options.focal)
 
-    ground = GroundModel(store)
-    # the true scene: buildings with generalisation effects and terrain where the heads look
-    step = 40.0
-    half = np.r_[options.strip_length / 2, (options.strips - 1) / 2 * options.strip_spacing]
-    reach = options.flying_height * 1.6
-    gx, gy = np.meshgrid(np.arange(-half[0] - reach, half[0] + reach + step, step),
-                         np.arange(-half[1] - reach, half[1] + reach + step, step))
-    roi = np.c_[gx.ravel() + centre[0], gy.ravel() + centre[1]]
-    roi = np.c_[roi, ground(roi)]
-    scene = build_true_scene(store, DetailOptions(tree_spacing=0.0, car_spacing=0.0),
-                             options.seed, roi_centres=roi, roi_radius=step, ground=ground)
+    scene = true_scene(options, store, centre)
     raycaster = scene.raycasting_scene()
     obs_opt = ObservationOptions(points_per_m2=options.points_per_m2,
                                  max_distance=options.max_distance,
@@ -278,6 +289,7 @@ class MatchingResult:
     matched_pairs: int
     matches: int
     verified_pairs: int
+    """Pairs with inlier matches after COLMAP's verification."""
     inlier_matches: int
     seconds_verification: float
 
@@ -326,7 +338,9 @@ def simulate_matching(workspace, pairs_file, database=None, *,
     seconds = time.perf_counter() - t0
     db = pycolmap.Database.open(str(database))
     try:
-        verified, inliers = int(db.num_verified_image_pairs()), int(db.num_inlier_matches())
+        _, counts = db.read_two_view_geometry_num_inliers()
+        counts = np.asarray(counts, np.int64)
+        verified, inliers = int(np.count_nonzero(counts > 0)), int(counts.sum())
     finally:
         db.close()
     return MatchingResult(len(pairs), matched, total, verified, inliers, seconds)
