@@ -299,8 +299,187 @@ def _add_batch(subparsers) -> None:
     p.set_defaults(func=run)
 
 
+def _add_import_eo(subparsers) -> None:
+    p = subparsers.add_parser(
+        "import-eo", help="GNSS/IMU exterior orientations of a multi-head camera into a COLMAP "
+                          "database (rig, frames, pose priors) and a known-pose model",
+        epilog="attitude conventions, frames and files: README 'Oblique aerial blocks'")
+    p.add_argument("--database", required=True, help="COLMAP database (changed in place)")
+    p.add_argument("--eo", required=True,
+                   help="text file: exposure X Y Z A1 A2 A3 [sX sY sZ], angles in degrees")
+    p.add_argument("--rig", required=True,
+                   help="rig JSON: heads with image_name template, lever_arm, boresight, camera")
+    p.add_argument("--eo_crs", required=True, help="CRS of the EO positions, e.g. EPSG:25832")
+    p.add_argument("--model_crs", default=None,
+                   help="projected CRS of the city model (default: --eo_crs)")
+    p.add_argument("--attitude", choices=["opk", "rpy"], default="opk",
+                   help="opk: photogrammetric omega, phi, kappa of the body's camera axes; "
+                        "rpy: roll, pitch, yaw (heading) of an IMU body x forward, y right, "
+                        "z down")
+    p.add_argument("--output_path", required=True,
+                   help="new directory: sparse/ (the known-pose model), origin.json, gnss.txt")
+
+    def run(args):
+        from .block.import_eo import main
+
+        result = main(args.database, args.eo, args.rig, args.eo_crs, args.output_path,
+                      model_crs=args.model_crs, attitude=args.attitude)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
+def _add_pairs(subparsers) -> None:
+    p = subparsers.add_parser(
+        "pairs", help="image pairs to match in a known-pose block, from overlapping footprints "
+                      "on the city model and terrain",
+        epilog="the output is a pair list for `colmap matches_importer --match_type pairs`")
+    p.add_argument("--input_path", required=True,
+                   help="COLMAP model with poses (import-eo's OUTPUT/sparse)")
+    p.add_argument("--output", required=True, help="pair list to write (image_name1 image_name2)")
+    p.add_argument("--citymodel", nargs="+", default=None,
+                   help="CityGML/CityJSON file(s) or a directory of tiles: rays stop on it")
+    p.add_argument("--terrain_height", type=float, default=None, metavar="H",
+                   help="terrain height in the model CRS (default with --citymodel: its lowest "
+                        "vertex)")
+    p.add_argument("--database", default=None,
+                   help="COLMAP database whose images the pairs must name (checked)")
+    p.add_argument("--origin_file", default=None,
+                   help="origin.json of the model's local frame (default: beside --input_path)")
+    p.add_argument("--min_overlap", type=float, default=None,
+                   help="smallest overlap, share of the smaller footprint (default 0.2)")
+    p.add_argument("--lod", type=int, default=2, help="level of detail of the city model")
+    p.add_argument("--crs", dest="model_crs", default=None,
+                   help="CRS of a city model file that names none")
+
+    def run(args):
+        from .block.pairs import PairOptions, main
+
+        options = PairOptions()
+        if args.min_overlap is not None:
+            options.min_overlap = args.min_overlap
+        result = main(args.input_path, args.output, citymodel=args.citymodel,
+                      terrain_height=args.terrain_height, database=args.database,
+                      origin_file=args.origin_file, lod=args.lod, model_crs=args.model_crs,
+                      options=options)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
+def _add_dense_quality(subparsers) -> None:
+    p = subparsers.add_parser(
+        "dense-quality", help="sigma of every dense point from the refined cameras' "
+                              "covariances (PLY scalar fields); weighted vs unweighted planes")
+    p.add_argument("--input_path", required=True,
+                   help="refined COLMAP model (poses and tie points; the PLY's frame)")
+    p.add_argument("--ply", required=True, help="dense point cloud (e.g. COLMAP's fused.ply)")
+    p.add_argument("--image_covariance", required=True,
+                   help="refine's image_covariance.csv (full 6x6) or image_precision.csv "
+                        "(sigmas only)")
+    p.add_argument("--output", required=True, help="PLY to write with the sigma fields")
+    p.add_argument("--tie_point_precision", default=None,
+                   help="refine's point_precision.ply: adds sigma_3d_count (Mulder's "
+                        "polynomial of the tie point sigma per number of views)")
+    p.add_argument("--sigma_image", type=float, default=None,
+                   help="pixels, a dense point's matching noise (default 1.0; 0: cameras only)")
+    p.add_argument("--visibility_radius", type=float, default=None,
+                   help="tie points within this distance decide who sees a point (default 5)")
+    p.add_argument("--planes", action="store_true",
+                   help="also extract planes with and without the sigmas as weights "
+                        "(fields plane_weighted, plane_unweighted)")
+    p.add_argument("--inlier_distance", type=float, default=None,
+                   help="plane inlier distance with --planes (default 0.1)")
+
+    def run(args):
+        from .precision.dense import DenseOptions, PlaneOptions, main
+
+        options = DenseOptions()
+        if args.sigma_image is not None:
+            options.sigma_image = args.sigma_image
+        if args.visibility_radius is not None:
+            options.visibility_radius = args.visibility_radius
+        planes = None
+        if args.planes:
+            planes = PlaneOptions()
+            if args.inlier_distance is not None:
+                planes.inlier_distance = args.inlier_distance
+        result = main(args.input_path, args.ply, args.image_covariance, args.output,
+                      tie_point_precision=args.tie_point_precision, options=options,
+                      planes=planes)
+        print(result.summary())
+
+    p.set_defaults(func=run)
+
+
+def _add_triangulate(subparsers) -> None:
+    p = subparsers.add_parser(
+        "triangulate", help="tie points of a known-pose block from the database's verified "
+                            "matches (COLMAP's point triangulator, poses held)")
+    p.add_argument("--database", required=True, help="COLMAP database with verified matches")
+    p.add_argument("--input_path", required=True,
+                   help="COLMAP model with the poses (import-eo's OUTPUT/sparse)")
+    p.add_argument("--output_path", required=True, help="directory for the triangulated model")
+
+    def run(args):
+        from .block.triangulate import main
+
+        print(main(args.database, args.input_path, args.output_path).summary())
+
+    p.set_defaults(func=run)
+
+
+def _add_simulate_oblique(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate-oblique", help="simulate a five-head oblique aerial block over a city model "
+                                 "(database with keypoints, eo.txt, rig.json, truth)")
+    p.add_argument("--citymodel", required=True, help="CityGML/CityJSON file of the buildings")
+    p.add_argument("--output_path", required=True, help="workspace directory to create")
+    p.add_argument("--seed", type=int, default=1)
+    p.add_argument("--strips", type=int, default=None, help="parallel strips (default 3)")
+    p.add_argument("--strip_length", type=float, default=None, help="metres (default 600)")
+    p.add_argument("--centre", type=float, nargs=2, default=None, metavar=("X", "Y"),
+                   help="block centre in the model CRS (default: the model's bbox centre)")
+
+    def run(args):
+        from .simulate.oblique import ObliqueOptions, simulate_oblique_block
+
+        options = ObliqueOptions(citymodel=args.citymodel, seed=args.seed,
+                                 centre=None if args.centre is None else tuple(args.centre))
+        if args.strips is not None:
+            options.strips = args.strips
+        if args.strip_length is not None:
+            options.strip_length = args.strip_length
+        stats = simulate_oblique_block(options, args.output_path)
+        print(f"simulate-oblique: {stats['exposures']} exposures x {stats['heads']} heads, "
+              f"{stats['observations']} observations; workspace {args.output_path}")
+
+    p.set_defaults(func=run)
+
+
+def _add_simulate_matching(subparsers) -> None:
+    p = subparsers.add_parser(
+        "simulate-matching", help="in a simulate-oblique workspace: matches of the listed "
+                                  "pairs from the truth, then COLMAP's geometric verification")
+    p.add_argument("--workspace", required=True, help="simulate-oblique workspace")
+    p.add_argument("--pairs", required=True, help="pair list (image_name1 image_name2)")
+    p.add_argument("--database", default=None, help="database (default WORKSPACE/database.db)")
+
+    def run(args):
+        from .simulate.oblique import simulate_matching
+
+        r = simulate_matching(args.workspace, args.pairs, args.database)
+        print(f"simulate-matching: {r.matched_pairs} of {r.pairs} pairs matched "
+              f"({r.matches} matches); COLMAP verified {r.verified_pairs} pairs, "
+              f"{r.inlier_matches} inlier matches in {r.seconds_verification:.1f} s")
+
+    p.set_defaults(func=run)
+
+
 SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch]
+               _add_precision, _add_batch, _add_import_eo, _add_pairs,
+               _add_triangulate, _add_dense_quality, _add_simulate_oblique,
+               _add_simulate_matching]
 
 
 def build_parser() -> argparse.ArgumentParser:

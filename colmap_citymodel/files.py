@@ -1,7 +1,9 @@
-"""Output directories that appear whole or not at all, and the PLY writer."""
+"""Output directories that appear whole or not at all, the PLY writer, and COLMAP's log sent to
+a file."""
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import tempfile
@@ -57,3 +59,26 @@ def check_new_directory(path) -> None:
     with atomic_directory(path):
         pass
     Path(path).rmdir()
+
+
+@contextlib.contextmanager
+def quiet_colmap(log_path: Path):
+    """Send COLMAP's glog output (and anything else on fds 1/2) to `log_path`."""
+    import sys
+
+    sys.stdout.flush()
+    sys.stderr.flush()
+    log_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(log_path, "ab") as log:
+        saved = os.dup(1), os.dup(2)
+        try:
+            os.dup2(log.fileno(), 1)
+            os.dup2(log.fileno(), 2)
+            yield
+        finally:
+            sys.stdout.flush()
+            sys.stderr.flush()
+            os.dup2(saved[0], 1)
+            os.dup2(saved[1], 2)
+            os.close(saved[0])
+            os.close(saved[1])

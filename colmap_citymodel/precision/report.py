@@ -3,6 +3,8 @@ and a self-contained HTML report next to `report.json`.
 
 - `image_precision.csv`: per image X0, Y0, Z0 (CRS or local, as the model output) and omega,
   phi, kappa with their a posteriori sigmas (scaled by s0^2);
+- `image_covariance.csv`: per image the full 6 x 6 covariance of X0, Y0, Z0 (m) and omega, phi,
+  kappa (rad), its 21 upper-triangle entries c00 c01 ... c55 (read by `dense-quality`);
 - `point_precision.ply`: tie points coloured by their 3D sigma, scalar fields sigma_x/y/z
   (marginal) and sigma_x/y/z_conditional (poses, planes, vertices held fixed), num_images;
 - `report.html` with embedded PNGs (also written to `plots/`): residual histograms per plane
@@ -63,6 +65,16 @@ def write_image_csv(path: Path, precision: PrecisionResult, offset: np.ndarray) 
                             + [f"{v:.6f}" for v in sigma[k, 3:]]
                             + [int(precision.image_num_observations[k])]
                             + ([f"{v:.5f}" for v in aware[k]] if aware is not None else []))
+
+
+def write_image_covariance_csv(path: Path, precision: PrecisionResult) -> None:
+    upper = np.triu_indices(6)
+    with open(path, "w", newline="") as f:
+        writer = csv.writer(f)
+        writer.writerow(["image_id", "name"] + [f"c{i}{j}" for i, j in zip(*upper)])
+        for k, image_id in enumerate(precision.image_ids):
+            writer.writerow([int(image_id), precision.image_names[k]]
+                            + [f"{v:.6e}" for v in precision.image_cov[k][upper]])
 
 
 def sigma_colours(values: np.ndarray) -> np.ndarray:
@@ -334,6 +346,7 @@ def write_precision_outputs(result, directory: Path, report: dict, offset: np.nd
         report.update(precision_report_dict(precision))
         if precision.has_covariances:
             write_image_csv(directory / "image_precision.csv", precision, offset)
+            write_image_covariance_csv(directory / "image_covariance.csv", precision)
             rec = result.reconstruction
             num_images = np.array([rec.point3D(int(i)).track.length()
                                    for i in precision.point_ids])

@@ -3,9 +3,7 @@ incremental mapping, and the true reconstruction to compare with."""
 
 from __future__ import annotations
 
-import contextlib
 import logging
-import os
 import shutil
 import time
 from pathlib import Path
@@ -14,34 +12,13 @@ from typing import Any
 import numpy as np
 
 from ..errors import InputError
+from ..files import quiet_colmap  # noqa: F401 (simulate callers import it from here too)
 from .flight import Flight
 from .observations import Observations
 from .scenario import MappingOptions
 
+
 logger = logging.getLogger(__name__)
-
-
-@contextlib.contextmanager
-def quiet_colmap(log_path: Path):
-    """Send COLMAP's glog output (and anything else on fds 1/2) to `log_path`."""
-    import sys
-
-    sys.stdout.flush()
-    sys.stderr.flush()
-    log_path.parent.mkdir(parents=True, exist_ok=True)
-    with open(log_path, "ab") as log:
-        saved = os.dup(1), os.dup(2)
-        try:
-            os.dup2(log.fileno(), 1)
-            os.dup2(log.fileno(), 2)
-            yield
-        finally:
-            sys.stdout.flush()
-            sys.stderr.flush()
-            os.dup2(saved[0], 1)
-            os.dup2(saved[1], 2)
-            os.close(saved[0])
-            os.close(saved[1])
 
 
 def make_camera(flight: Flight, true: bool = False):
