@@ -93,6 +93,29 @@ def detailed_offsets(truth, detailed) -> dict[str, float]:
     return out
 
 
+def read_assignments(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """assignments.ply: (P, 3) CRS coordinates of the refined block's tie points, (P,) the
+    store index of the face each is assigned to (-1: none)."""
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    kinds = {"double": "<f8", "float": "<f4", "uchar": "u1", "int": "<i4", "uint": "<u4"}
+    fields = [(line.split()[2], kinds[line.split()[1]])
+              for line in data[:end].decode().splitlines() if line.startswith("property")]
+    rows = np.frombuffer(data[end:], dtype=np.dtype(fields))
+    return (np.column_stack([rows["x"], rows["y"], rows["z"]]).astype(np.float64),
+            rows["face"].astype(np.int64))
+
+
+def tie_point_offset(truth_planes, gid: str, points: np.ndarray) -> float | None:
+    """Median signed distance (m) of a face's assigned tie points (CRS) from its true plane:
+    the refined block's own error normal to the face, which a plane fitted to these tie points
+    inherits. None below 10 points."""
+    if len(points) < 10:
+        return None
+    normal, offset = truth_planes[gid][0], truth_planes[gid][1]
+    return float(np.median(points @ normal + offset))
+
+
 def face_errors(model, truth, gid: str, detailed_offset: float | None) -> dict:
     n_t, d_t, _, c_t = truth[gid]
     n, d, vertices, _ = model[gid]
@@ -124,6 +147,9 @@ def evaluate(workspace: Path, corrected_run: Path) -> dict:
         for row in csv.DictReader(f):
             rows.setdefault(row["face_id"], set()).add(row["role"])
     seen = {p["gml_id"] for p in report["planes"]}
+    gid_of_index = {p["face"]: p["gml_id"] for p in report["planes"]}
+    xyz, point_face = read_assignments(corrected_run / "assignments.ply")
+    face_table = {row["face_id"]: row for row in report["model_correction"].get("faces", [])}
     corrected = {g for g, roles in rows.items() if "corrected" in roles}
     held = {g for g, roles in rows.items() if roles == {"kept_plane"}}
     G, W, T = planes_by_id(given), planes_by_id(written), planes_by_id(truth)
@@ -131,8 +157,18 @@ def evaluate(workspace: Path, corrected_run: Path) -> dict:
               "seen_not_corrected": sorted(seen - corrected),
               "kept_plane_beside_corrected": sorted(held - seen),
               "unseen": sorted(set(T) - seen - held)}
+    tie_plane = {gid: tie_point_offset(T, gid, xyz[point_face == f])
+                 for f, gid in gid_of_index.items()}
     out = {"num_faces": len(T), "detailed_vs_true_offset_rms_m": rms(list(det.values())),
-           "num_faces_with_detailed": len(det), "groups": {}}
+           "num_faces_with_detailed": len(det), "groups": {},
+           "faces": {g: {"num_points": next(p["num_points"] for p in report["planes"]
+                                            if p["gml_id"] == g),
+                         "plane_sigma_m": face_table.get(g, {}).get("plane_sigma_m"),
+                         "corrected": g in corrected,
+                         "offset_given": face_errors(G, T, g, None)["offset"],
+                         "offset_corrected": face_errors(W, T, g, None)["offset"],
+                         "offset_tie_point_plane": tie_plane.get(g)}
+                     for g in sorted(seen)}}
     for name, ids in groups.items():
         before = [face_errors(G, T, g, det.get(g)) for g in ids]
         after = [face_errors(W, T, g, det.get(g)) for g in ids]
@@ -142,24 +178,47 @@ def evaluate(workspace: Path, corrected_run: Path) -> dict:
             **{f"{key}_rms_{when}": rms([e[key] for e in errors])
                for key in ("offset", "offset_detailed", "vertex_rms", "angle_deg")
                for when, errors in (("given", before), ("corrected", after))},
+            "offset_tie_point_plane_rms": rms([tie_plane.get(g) for g in ids]),
             "max_plane_change_m": max((float(np.max(np.abs(W[g][2] @ G[g][0] + G[g][1])))
                                        for g in ids), default=0.0)}
     return out
 
 
 def table(result: dict) -> str:
-    lines = ["| faces | n | changed | offset RMS given | corrected | vs detailed: given | "
-             "corrected | vertex RMS given | corrected | angle RMS given | corrected |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| faces | n | changed | offset RMS given | corrected | tie points off true plane | "
+             "vs detailed: given | corrected | vertex RMS given | corrected | angle RMS given | "
+             "corrected |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for name, g in result["planes"]["groups"].items():
         def f(key, digits=3):
-            value = g[key]
+            value = g.get(key)
             return "-" if value is None else f"{value:.{digits}f}"
         lines.append(f"| {name.replace('_', ' ')} | {g['num_faces']} | {g['num_changed']} | "
                      f"{f('offset_rms_given')} | {f('offset_rms_corrected')} | "
+                     f"{f('offset_tie_point_plane_rms')} | "
                      f"{f('offset_detailed_rms_given')} | {f('offset_detailed_rms_corrected')} | "
                      f"{f('vertex_rms_rms_given')} | {f('vertex_rms_rms_corrected')} | "
                      f"{f('angle_deg_rms_given', 2)} | {f('angle_deg_rms_corrected', 2)} |")
+    return "\n".join(lines)
+
+
+def not_corrected_table(result: dict) -> str:
+    """The seen faces that were not corrected, by their tie points and plane sigma."""
+    faces = [f for f in result["planes"]["faces"].values() if not f["corrected"]]
+    bins = [("fewer than 50 tie points", lambda f: f["num_points"] < 50),
+            ("50-199 tie points", lambda f: 50 <= f["num_points"] < 200),
+            ("200 or more tie points", lambda f: f["num_points"] >= 200)]
+    lines = ["| seen, not corrected | n | plane sigma median (m) | offset RMS given | "
+             "tie points off true plane |", "|---|---|---|---|---|"]
+    for label, test in bins:
+        chosen = [f for f in faces if test(f)]
+        sigmas = [f["plane_sigma_m"] for f in chosen if f["plane_sigma_m"] is not None]
+        given = rms([f["offset_given"] for f in chosen])
+        fitted = rms([f["offset_tie_point_plane"] for f in chosen])
+        lines.append(f"| {label} | {len(chosen)} | "
+                     + (f"{np.median(sigmas):.3f}" if sigmas else "-") + " | "
+                     + ("-" if given is None else f"{given:.3f}") + " | "
+                     + ("-" if fitted is None else f"{fitted:.3f}") + " |")
     return "\n".join(lines)
 
 
@@ -177,6 +236,8 @@ def main() -> None:
         report, seconds = run_refine(workspace, CACHE / args.name / preset, preset)
         cp = report.get("checkpoints") or {}
         runs[preset] = {"seconds": seconds, "quality": report["quality"]["verdict"],
+                        "observability": {k: v.get("sigma") for k, v in
+                                          report.get("observability", {}).items()},
                         "checkpoints": {k: cp.get(k) for k in ("rms_x", "rms_y", "rms_z",
                                                               "rms_3d")},
                         "model_correction": {k: v for k, v in
@@ -200,8 +261,12 @@ def main() -> None:
         "systematic plane errors, GNSS for every key frame). Commands:", "",
         *["    " + command for command in result["commands"].values()],
         "    python benchmarks/model_correction.py " + " ".join(sys.argv[1:]), "",
-        "Model correction with the block held as the adjustment left it (the default: "
-        "adjust.correction_loop); the check points are then those of the plain refine.", "",
+        "Model correction with the block's poses held as the adjustment left them (the "
+        "default: adjust.correction_loop; the assigned tie points are re-estimated with the "
+        "corrected planes on a copy, the refined block is handed back unchanged); the check "
+        "points are then those of the plain refine. A face is corrected where its tie points "
+        "determine its plane to `correction_max_sigma` "
+        f"({mc.get('max_plane_sigma_m')} m) a posteriori sigma at every vertex.", "",
         "Planes of the given model and of the written `corrected_model.gml` against the true "
         "planes (`models/corrected.gml`: same faces, the true scene's main planes; 'vs "
         "detailed': against the area-weighted offset of the `models/detailed.gml` polygons on "
@@ -210,8 +275,12 @@ def main() -> None:
         "the true face's centroid; vertex RMS: its vertices' distances from the true plane; "
         "angle: between the normals. 'seen': faces with tie points in the last solve; 'kept "
         "plane': faces without tie points that share a vertex with a corrected face (the vertex "
-        "slides within them).", "",
+        "slides within them). 'tie points off true plane': RMS over the faces of the median "
+        "distance of their assigned tie points in the refined block (`assignments.ply`) from "
+        "the true plane, the block's own error normal to the face, which a plane fitted to "
+        "these tie points inherits.", "",
         table(result), "",
+        not_corrected_table(result), "",
         f"{mc.get('num_corrected_faces')} faces corrected, {mc.get('num_corrected_vertices')} "
         f"vertices moved (RMS {mc.get('shift_rms_m', 0):.3f} m, largest "
         f"{mc.get('shift_max_m', 0):.3f} m), {mc.get('num_significant_vertices')} of them "

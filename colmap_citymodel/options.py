@@ -128,18 +128,19 @@ class AdjustmentOptions:
     With `correct_model` it stays so for every vertex the images do not correct."""
     correct_model: bool = False
     """Model correction (Unger 5.2.2, 6.7.3): after the assign/adjust loop, the vertices of
-    the faces the images see well (`correction_min_points`, `correction_min_coverage`) are
+    the faces the images see well (`correction_max_sigma`) are
     observed with `sigma_vt_corrected` only, so their planes follow the tie points; the other
     vertices keep sigma_vt, a corrected vertex stays on the given plane of every face that is
     not corrected (that face keeps its plane), and f_dVT keeps every face planar
     (adjust.model_correction, adjust.correction_loop). Preset "correct_model"."""
     correction_moves_block: bool = False
-    """False: the block stays as the adjustment left it and the planes are fitted to its tie
-    points (Unger's own model correction used a block's tie points as control points). True:
-    block and model are estimated together; where the images have systematic errors the block
-    bends back and the planes follow it (simulated long sequence: check points 0.161 -> 0.564
-    m, corrected planes 0.199 -> 0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089
-    m). See adjust.correction_loop."""
+    """False: the block's poses stay as the adjustment left them and the planes are fitted to
+    its tie points (Unger's own model correction used a block's tie points as control points).
+    True: block and model are estimated together; where the images have systematic errors the
+    block bends back and the planes follow it (simulated, with faces chosen by >= 50 tie points
+    over half the face: long sequence check points 0.161 -> 0.564 m, corrected planes 0.199 ->
+    0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089 m). See
+    adjust.correction_loop."""
     sigma_vt_corrected: float = 0.5
     """Direct observation (m) of the vertices of corrected faces: Unger's 0.5 m "to correct the
     model" (5.3)."""
@@ -153,15 +154,18 @@ class AdjustmentOptions:
     firmly (corrected planes 0.12 m off the truth instead of 0.09, tilted by 0.87 deg RMS
     instead of 0.47); without it block and planes drifted together (1.2 m) where few planes
     fixed the block. None: no condition."""
-    correction_min_points: int = 50
-    """A face is corrected only with at least this many assigned tie points (three times the
-    assignment's minimum: a plane from few points moves with their generalisation effects)."""
-    correction_min_coverage: float = 0.5
-    """...and only if its tie points spread over this share of the face in both directions of
-    its plane (5-95 % range of the points over the range of the face's vertices): a plane
-    seen on one strip would be tilted by extrapolation (short Scn3 with 0.3: five more walls
-    whose points cover a third of them were corrected, and the block went 0.47 m off the
-    check points with them instead of 0.16 m)."""
+    correction_max_sigma: float = 0.02
+    """A face is corrected only where its assigned tie points determine its plane to this
+    (m) at every vertex: the a posteriori sigma of a plane fitted to them
+    (adjust.model_correction.plane_fit_sigma: offset and two tilts from the normal equations,
+    scaled by the points' own scatter about the plane). It grows with few points, with points
+    bunched on part of the face (the plane extrapolated to the far vertices) and with points of
+    another surface among them. 0.02 m: a tenth of a LOD2 model's typical plane error (~0.2 m,
+    Unger 5.2.2). The sigma treats the points as independent and so leaves out the block's own
+    error normal to the face, which the corrected plane inherits; a larger threshold lets in
+    faces whose tie points scatter or lie off the true plane (simulated long Scn3, corrected
+    faces against the true planes: 0.01 m 37 faces, 0.184 -> 0.066 m; 0.02 m 50 faces, 0.198
+    -> 0.080 m; 0.03 m 57 faces, 0.200 -> 0.108 m; 0.05 m 59 faces, 0.198 -> 0.123 m)."""
     correction_iterations: int = 5
     """At most this many assign + correction solves after the loop (the planes move, so the
     tie points are assigned again to the corrected model)."""

@@ -280,7 +280,8 @@ def _model_correction(store: PlaneStore, current: PlaneStore, corrected, last, p
                        "sigmas", error)
         note = f"covariances failed: {error}"
     correction = summarise_correction(store, current, corrected.selection, ids, cov,
-                                      options.adjustment.correction_significance, note)
+                                      options.adjustment.correction_significance, note,
+                                      options.adjustment.correction_max_sigma)
     summary = correction.todict()
     logger.info("model correction: %d faces corrected, %d vertices moved (RMS %.3f m), %d of "
                 "them significantly (> %.1f sigma)", summary["num_corrected_faces"],

@@ -12,7 +12,7 @@ import pytest
 
 from colmap_citymodel.adjust.model_correction import (
     datum_condition,
-    face_coverage,
+    plane_fit_sigma,
     select_corrected_faces,
     summarise_correction,
 )
@@ -43,20 +43,36 @@ def _grid_on_wall(u_range, v_range, n=12):
     return np.column_stack([u.ravel(), np.zeros(u.size), v.ravel()])
 
 
-def test_selection_needs_enough_points_spread_over_the_face():
+def test_selection_needs_a_plane_the_points_determine_at_every_vertex():
     store = box_store()
+    rng = np.random.default_rng(0)
     wall = _grid_on_wall((0.5, 9.5), (0.5, 9.5))  # face 0, covers it
+    wall[:, 1] += rng.normal(0, 0.05, len(wall))
     strip = np.column_stack([np.full(144, A), np.linspace(0.5, 9.5, 144),
                              np.linspace(4.5, 5.5, 144)])  # face 1, one metre high
-    roof = np.column_stack([np.linspace(1, 9, 20), np.linspace(1, 9, 20), np.full(20, A)])
-    points = np.vstack([wall, strip, roof])
-    faces = np.r_[np.zeros(len(wall)), np.ones(len(strip)), np.full(len(roof), 4)]
-    options = AdjustmentOptions(correction_min_points=50, correction_min_coverage=0.5)
+    strip[:, 0] += rng.normal(0, 0.05, len(strip))
+    roof = np.column_stack([rng.uniform(1, 9, 20), rng.uniform(1, 9, 20), np.full(20, A)])
+    roof[:, 2] += rng.normal(0, 0.05, len(roof))  # face 4: 20 points over all of it
+    scattered = _grid_on_wall((0.5, 9.5), (0.5, 9.5))[:, [1, 0, 2]]  # face 3 (x = 0)
+    scattered[:, 0] += rng.normal(0, 0.4, len(scattered))  # another surface's points among them
+    points = np.vstack([wall, strip, roof, scattered])
+    faces = np.r_[np.zeros(len(wall)), np.ones(len(strip)), np.full(len(roof), 4),
+                  np.full(len(scattered), 3)]
+    options = AdjustmentOptions(correction_max_sigma=0.02)
     selection = select_corrected_faces(store, _assignment(points, faces), points, options)
     assert selection.faces.tolist() == [0]
-    assert selection.not_corrected == {"points_cover_too_little": 1, "too_few_points": 1}
-    np.testing.assert_allclose(face_coverage(store, 0, wall), [0.9, 0.9], atol=0.02)
-    assert np.min(face_coverage(store, 1, strip)) < 0.15
+    assert selection.not_corrected == {"plane_sigma_too_large": 3}
+    # the wall: sigma of the plane at its corners about 0.05 * sqrt(4 / 144) (offset and tilts)
+    s0, sigma = plane_fit_sigma(store, 0, wall)
+    assert s0 == pytest.approx(0.05, rel=0.15)
+    assert 0.005 < sigma < 0.02
+    assert selection.plane_sigma[0] == pytest.approx(sigma)
+    # the strip: as many points, as little scatter, but the plane is extrapolated 4.5 m up
+    # and down; the roof: few points; face 3: points that scatter by 0.4 m
+    assert plane_fit_sigma(store, 1, strip)[1] > 3 * sigma
+    assert plane_fit_sigma(store, 4, roof)[1] > 0.02
+    assert plane_fit_sigma(store, 3, scattered)[0] > 0.3
+    assert plane_fit_sigma(store, 4, roof[:3])[1] == np.inf
     # the wall's four corners are released; the walls beside it and the roof keep their planes
     np.testing.assert_allclose(np.sort(store.vertices[selection.released][:, [0, 2]], axis=0),
                                [[0, 0], [0, 0], [A, A], [A, A]])
@@ -68,7 +84,7 @@ def test_datum_condition_sees_plane_moves_not_slides():
     faces = np.zeros(144)
     wall = _grid_on_wall((0.5, 9.5), (0.5, 9.5))
     selection = select_corrected_faces(store, _assignment(wall, faces), wall,
-                                       AdjustmentOptions(correction_min_points=10))
+                                       AdjustmentOptions())
     ids, matrix, reference = datum_condition(store, selection, 0.05)
     assert len(ids) == 4 and matrix.shape[1] == 12
     # one wall fixes its shift along its normal and its two tilts, nothing within its plane
@@ -110,8 +126,9 @@ def corrected():
     priors = GNSSPriors(ids, centres, np.full((len(ids), 3), 0.5))
     point_ids, xyz = tie_points(rec)
     assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
-    options = AdjustmentOptions(correct_model=True, correction_min_points=30,
-                                sigma_dtp=0.05)
+    # the facade's plane sigma is 0.0557 m (its points have 0.09 m of relief): corrected with
+    # the faces whose planes are better determined
+    options = AdjustmentOptions(correct_model=True, sigma_dtp=0.05, correction_max_sigma=0.056)
     problem = CorrectionProblem(rec, given, assignment, priors, options, robust_images=False,
                                 robust_planes=False)
     problem.solve()
@@ -195,6 +212,32 @@ def test_a_plain_problem_releases_nothing_and_a_held_block_does_not_move(correct
     for i, centre in centres.items():
         np.testing.assert_array_equal(rec.image(i).projection_center(), centre)
     for i, xyz in points.items():
+        np.testing.assert_array_equal(rec.point3D(i).xyz, xyz)
+    moved = model_after_solve(given, held)
+    face = list(given.faces.gml_id).index(given.faces.gml_id[SHIFTED_FACE])
+    assert abs(_offset_at(moved, face, truth.centroids[SHIFTED_FACE])) < 0.1
+
+
+def test_a_held_block_with_free_tie_points_keeps_its_poses(corrected):
+    truth, given, adjusted, problem = corrected
+    rec = pycolmap.Reconstruction(problem.reconstruction)
+    point_ids, xyz = tie_points(rec)
+    assignment = assign(xyz, point_ids, truth, 0.5, AssignmentOptions(min_points_per_plane=5))
+    options = dataclasses.replace(problem.options, sigma_correction_datum=None)
+    held = CorrectionProblem(rec, given, assignment, None, options, robust_images=False,
+                             robust_planes=False)
+    held.hold_block(free_assigned_points=True)
+    assert held.points_free == assignment.num_assigned
+    assert held.num_unknowns() == 3 * (len(held.blocks.faces) + len(held.blocks.vertex_ids)
+                                       + assignment.num_assigned)
+    centres = {i: rec.image(i).projection_center() for i in rec.reg_image_ids()}
+    free = set(held.point_ids.tolist())
+    other = [i for i in rec.point3D_ids() if i not in free][:50]
+    before = {i: rec.point3D(i).xyz.copy() for i in other}
+    held.solve()
+    for i, centre in centres.items():
+        np.testing.assert_array_equal(rec.image(i).projection_center(), centre)
+    for i, xyz in before.items():
         np.testing.assert_array_equal(rec.point3D(i).xyz, xyz)
     moved = model_after_solve(given, held)
     face = list(given.faces.gml_id).index(given.faces.gml_id[SHIFTED_FACE])

@@ -6,17 +6,20 @@ current model at the loop's last threshold, solve a `CorrectionProblem` (the cor
 vertices released), eliminate f_dTP beyond 3 sigma and solve again with the original weights,
 repeat until the RMS of the normalised residuals settles or `correction_iterations` are done.
 
-By default the block stays as the adjustment left it (poses, tie points and intrinsics
-constant in these solves): its tie points are the control the planes are fitted to, as Unger
-corrected the generalised model with a reference block's tie points as control points (5.2.2).
-The block was adjusted to all planes of the given model at once, so one face's error moves it
-little. `correction_moves_block` estimates block and model together instead (Unger 6.7.3:
-sigma_VT released in the global adjustment); where the images have systematic errors the
-block then bends back and the corrected planes follow it. Simulated (benchmarks/results/
-model_correction.md): moving the block, short Scn3 check points 0.252 -> 0.162 m and corrected
+By default the block's poses and intrinsics stay as the adjustment left them; the tie points
+assigned to a plane are re-estimated with the corrected planes (their image observations and
+f_dTP) on a copy of the block, so that they are not held where the adjustment to the given
+planes pulled them, and the refined block is handed back unchanged. The tie points are the
+control the planes are fitted to, as Unger corrected the generalised model with a reference
+block's tie points as control points (5.2.2); a corrected plane is then as good as they are
+(simulated, benchmarks/results/model_correction*.md: corrected faces short Scn3 0.216 -> 0.105
+m, their tie points 0.103 m off the true planes; long 0.198 -> 0.080 m, tie points 0.067 m;
+check points unchanged). `correction_moves_block` estimates block and model together instead
+(Unger 6.7.3: sigma_VT released in the global adjustment); where the images have systematic
+errors the block then bends back and the corrected planes follow it (with faces chosen by
+>= 50 tie points over half the face: short Scn3 check points 0.252 -> 0.162 m and corrected
 planes 0.232 -> 0.089 m, but on the long sequence the check points went from 0.161 to 0.564 m
-and the corrected planes from 0.199 to 0.315 m; with the block held, corrected planes short
-0.225 -> 0.091 m, long 0.197 -> 0.128 m, check points unchanged.
+and the corrected planes from 0.199 to 0.315 m).
 
 The sigmas of the corrected vertices come from the joint problem (block and model unknown,
 the model's datum held by the datum condition) at the final state: how well the images and
@@ -54,25 +57,32 @@ class CorrectionProblem(HybridProblem):
 
     releases_model = True
     block_held = False
+    points_free = 0  # tie points left unknown in a held block
 
-    def hold_block(self) -> None:
-        """Poses, tie points and intrinsics constant: only the model moves."""
+    def hold_block(self, free_assigned_points: bool = False) -> None:
+        """Poses, intrinsics and tie points constant: only the model moves. With
+        `free_assigned_points` the tie points assigned to a plane stay unknowns (each with its
+        image observations and its f_dTP): the poses still fix the block, but the points are
+        no longer held where the adjustment to the given planes pulled them."""
         rec, ceres = self.reconstruction, self.problem
         blocks = [rec.frame(f).rig_from_world.params
                   for f in {rec.image(i).frame_id for i in rec.reg_image_ids()}]
         blocks += [camera.params for camera in rec.cameras.values()]
-        blocks += [rec.point3D(i).xyz for i in rec.point3D_ids()]
+        free = set(self.point_ids.tolist()) if free_assigned_points else set()
+        blocks += [rec.point3D(i).xyz for i in rec.point3D_ids() if i not in free]
         for rig in rec.rigs.values():
             blocks += [sensor.params for sensor in rig.non_ref_sensors.values()]
         for block in blocks:
             if ceres.has_parameter_block(block):
                 ceres.set_parameter_block_constant(block)
         self.block_held = True
+        self.points_free = len(free)
 
     def num_unknowns(self) -> int:
         if not self.block_held:
             return super().num_unknowns()
-        return 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
+        return 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids) \
+            + 3 * self.points_free
 
 
 @dataclass
@@ -105,19 +115,22 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
     o_solve = o_adj if moves_block else dataclasses.replace(o_adj, sigma_correction_datum=None)
     saved = (pycolmap.Reconstruction(rec), current) if moves_block else None
     before = objective(rec) if moves_block and objective is not None else None
+    # A held block is solved on a copy: the poses stay, the assigned tie points move with the
+    # corrected planes there, and the refined block handed back is the adjustment's own.
+    work = rec if moves_block else pycolmap.Reconstruction(rec)
     records: list[IterationRecord] = []
     previous_rms = None
     last = assignment = None
     for k in range(o_adj.correction_iterations):
-        point_ids, points = tie_points(rec, exclude_point_ids)
+        point_ids, points = tie_points(work, exclude_point_ids)
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
         if not assignment.num_assigned:
             break
         rejected = dict(assignment.rejected_faces)
-        robust = CorrectionProblem(rec, store, assignment, priors, o_solve, robust_images=False,
+        robust = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,
                                    robust_planes=True, current=current, baselines=baselines)
         if not moves_block:
-            robust.hold_block()
+            robust.hold_block(free_assigned_points=True)
         robust_report = robust.solve()
         outliers = robust.point_ids[np.abs(robust.residuals["dTP"])
                                     > o_adj.elimination_threshold]
@@ -125,11 +138,11 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
         assignment.distance[assignment.face_index < 0] = np.nan
         assignment.rejected_faces = rejected
-        last = CorrectionProblem(rec, store, assignment, priors, o_solve, robust_images=False,
+        last = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,
                                  robust_planes=False, current=model_after_solve(current, robust),
                                  baselines=baselines)
         if not moves_block:
-            last.hold_block()
+            last.hold_block(free_assigned_points=True)
         report = last.solve()
         current = model_after_solve(current, last)
         rms = report.rms_total
@@ -165,7 +178,7 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         return CorrectionResult(rec, current, assignment, last.blocks.correction, last, last,
                                 records)
     # The sigmas: the joint problem at the final state (not solved again).
-    joint = CorrectionProblem(rec, store, assignment, priors, o_adj, robust_images=False,
+    joint = CorrectionProblem(work, store, assignment, priors, o_adj, robust_images=False,
                               robust_planes=False, current=current, baselines=baselines)
     return CorrectionResult(rec, current, assignment, last.blocks.correction, joint, None,
                             records)

@@ -6,9 +6,11 @@ that the block moves to the model. Released to 0.5 m they let the planes follow 
 (Unger 5.2.2 corrected the generalised model that way: shifts of decimetres per plane, normals
 turned by less than 1 deg; topology unchanged). Here the release is selective:
 
-- corrected faces: assigned faces with at least `correction_min_points` tie points spread over
-  at least `correction_min_coverage` of the face in both directions of its plane
-  (`select_corrected_faces`); their vertices are observed with `sigma_vt_corrected`;
+- corrected faces: assigned faces whose tie points determine the face's plane to
+  `correction_max_sigma` at each of its vertices (the a posteriori sigma of a plane fitted to
+  them, `plane_fit_sigma`: it grows with few points, with points bunched on part of the face
+  and with points that scatter about one plane); their vertices are observed with
+  `sigma_vt_corrected`;
 - every other vertex keeps sigma_VT, and a corrected vertex keeps f_dVT (0.01 m) to the given
   plane of each face of it that is not corrected (a constant plane in the problem), so faces
   the images do not correct keep their planes; a vertex they share with a corrected face slides
@@ -41,9 +43,6 @@ from ..options import AdjustmentOptions
 
 logger = logging.getLogger(__name__)
 
-#: Share of a face's tie points trimmed at each end when their spread is measured.
-COVERAGE_TRIM = 0.05
-
 
 @dataclass
 class CorrectionSelection:
@@ -51,10 +50,14 @@ class CorrectionSelection:
 
     faces: np.ndarray  # (C,) corrected faces, sorted
     num_points: np.ndarray  # (C,) their assigned tie points
-    coverage: np.ndarray  # (C, 2) spread of the points over the face along its two axes
+    plane_sigma: np.ndarray  # (C,) a posteriori sigma (m) of their fitted planes at the vertices
     released: np.ndarray  # (V,) sorted vertex ids of the corrected faces
     held: np.ndarray  # (H,) faces not corrected that share a released vertex (planes kept)
     not_corrected: dict[str, int] = field(default_factory=dict)  # reason -> assigned faces
+    # every assigned face (A,): its tie points and its plane's sigma (inf: none could be fitted)
+    assigned: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    assigned_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    assigned_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     def todict(self) -> dict:
         return {"num_faces": int(len(self.faces)), "num_vertices": int(len(self.released)),
@@ -62,39 +65,51 @@ class CorrectionSelection:
                 "assigned_faces_not_corrected": dict(self.not_corrected)}
 
 
-def face_coverage(store: PlaneStore, face: int, points: np.ndarray) -> np.ndarray:
-    """(2,) the spread of `points` (5-95 % range) over the range of the face's vertices along
-    the face's two in-plane axes (1: the points span the face)."""
-    axes = store.rotations[face][:, :2]
+def plane_fit_sigma(store: PlaneStore, face: int, points: np.ndarray) -> tuple[float, float]:
+    """(s0, sigma) of the plane fitted to `points` (P, 3) by least squares: s0 the RMS of
+    their residuals (n - 3 degrees of freedom), sigma the largest a posteriori standard
+    deviation of the fitted plane's distance at the face's vertices, s0 sqrt(j^T N^-1 j) with
+    N = J^T J of the rows j = (1, u, v) (offset and two tilts; u, v along the face's plane
+    from its centroid). Few points, points bunched in a corner (the plane extrapolated to the
+    far vertices) and points that scatter about the plane (another surface's points among
+    them) all make it large. inf below 4 points or for collinear points."""
+    points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(points) < 4:
+        return float("inf"), float("inf")
+    rotation = store.rotations[face]
     centroid = store.centroids[face]
-    uv_face = (store.vertices[store.face_vertex_ids(face)] - centroid) @ axes
-    uv = (np.asarray(points).reshape(-1, 3) - centroid) @ axes
-    if len(uv) < 2:
-        return np.zeros(2)
-    lo, hi = np.quantile(uv, [COVERAGE_TRIM, 1.0 - COVERAGE_TRIM], axis=0)
-    extent = np.ptp(uv_face, axis=0)
-    return np.where(extent > 0, (hi - lo) / np.maximum(extent, 1e-12), 0.0)
+    local = (points - centroid) @ rotation
+    design = np.column_stack([np.ones(len(points)), local[:, :2]])
+    normal_matrix = design.T @ design
+    if np.linalg.cond(normal_matrix) > 1e12:
+        return float("inf"), float("inf")
+    solution = np.linalg.solve(normal_matrix, design.T @ local[:, 2])
+    residuals = local[:, 2] - design @ solution
+    s0 = float(np.sqrt(residuals @ residuals / (len(points) - 3)))
+    corners = (store.vertices[store.face_vertex_ids(face)] - centroid) @ rotation[:, :2]
+    rows = np.column_stack([np.ones(len(corners)), corners])
+    q = np.einsum("ij,jk,ik->i", rows, np.linalg.inv(normal_matrix), rows)
+    return s0, float(s0 * np.sqrt(max(float(q.max()), 0.0)))
 
 
 def select_corrected_faces(store: PlaneStore, assignment: Assignment, points: np.ndarray,
                            options: AdjustmentOptions) -> CorrectionSelection:
-    """The faces whose vertices the images correct: assigned faces with enough tie points
-    spread over the face. `points` (P, 3): current coordinates of `assignment.point_ids`."""
+    """The faces whose vertices the images correct: assigned faces whose tie points determine
+    the plane to `correction_max_sigma` at every vertex (`plane_fit_sigma`). `points` (P, 3):
+    current coordinates of `assignment.point_ids`."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     faces, counts = np.unique(assignment.face_index[assignment.assigned], return_counts=True)
-    chosen, num_points, coverage = [], [], []
+    chosen, num_points, sigmas, all_sigmas = [], [], [], []
     reasons: dict[str, int] = {}
     for face, count in zip(faces.tolist(), counts.tolist()):
-        if count < options.correction_min_points:
-            reasons["too_few_points"] = reasons.get("too_few_points", 0) + 1
-            continue
-        spread = face_coverage(store, face, points[assignment.face_index == face])
-        if np.min(spread) < options.correction_min_coverage:
-            reasons["points_cover_too_little"] = reasons.get("points_cover_too_little", 0) + 1
+        _, sigma = plane_fit_sigma(store, face, points[assignment.face_index == face])
+        all_sigmas.append(sigma)
+        if not sigma <= options.correction_max_sigma:
+            reasons["plane_sigma_too_large"] = reasons.get("plane_sigma_too_large", 0) + 1
             continue
         chosen.append(face)
         num_points.append(count)
-        coverage.append(spread)
+        sigmas.append(sigma)
     chosen_arr = np.array(chosen, dtype=np.int64)
     if len(chosen_arr):
         released = np.unique(np.concatenate([store.face_vertex_ids(f) for f in chosen_arr]))
@@ -105,8 +120,9 @@ def select_corrected_faces(store: PlaneStore, assignment: Assignment, points: np
         released = np.zeros(0, np.int64)
         held = np.zeros(0, np.int64)
     return CorrectionSelection(chosen_arr, np.array(num_points, np.int64),
-                               np.array(coverage, np.float64).reshape(-1, 2), released,
-                               held.astype(np.int64), reasons)
+                               np.array(sigmas, np.float64), released,
+                               held.astype(np.int64), reasons, faces.astype(np.int64),
+                               counts.astype(np.int64), np.array(all_sigmas, np.float64))
 
 
 def datum_condition(store: PlaneStore, selection: CorrectionSelection, sigma: float
@@ -161,6 +177,11 @@ class ModelCorrection:
     covariance_note: str = ""
     num_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))  # per face
     not_corrected: dict[str, int] = field(default_factory=dict)  # reason -> assigned faces
+    max_plane_sigma: float | None = None  # the selection's threshold (m)
+    # every face with tie points in the last solve (A,): points, plane sigma (m)
+    assigned: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    assigned_points: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    assigned_sigma: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def shift(self) -> np.ndarray:
@@ -235,12 +256,25 @@ class ModelCorrection:
             "covariances": self.covariance is not None,
             "covariance_note": self.covariance_note,
             "assigned_faces_not_corrected": dict(self.not_corrected),
+            "max_plane_sigma_m": self.max_plane_sigma,
         }
+
+    def face_rows(self, store: PlaneStore) -> list[dict]:
+        """Per face with tie points in the last solve: its gml:id, building, tie points, the
+        a posteriori sigma of the plane they determine (m; None: none) and whether it was
+        corrected."""
+        corrected = set(self.faces.tolist())
+        return [{"face_id": store.faces[f].gml_id, "building_id": store.faces[f].building_id,
+                 "num_points": int(n), "plane_sigma_m": float(s) if np.isfinite(s) else None,
+                 "corrected": f in corrected}
+                for f, n, s in zip(self.assigned.tolist(), self.assigned_points.tolist(),
+                                   self.assigned_sigma.tolist())]
 
 
 def summarise_correction(given: PlaneStore, adjusted: PlaneStore, selection: CorrectionSelection,
                          vertex_ids: np.ndarray | None, covariance: np.ndarray | None,
-                         threshold: float, note: str = "") -> ModelCorrection:
+                         threshold: float, note: str = "",
+                         max_plane_sigma: float | None = None) -> ModelCorrection:
     """The record of a correction: `given` and `adjusted` share the topology; `selection` is
     the last solve's; `vertex_ids` / `covariance` ((K,), (K, 3, 3)) the vertex blocks'
     covariances from the precision stage (None: not computed)."""
@@ -257,4 +291,7 @@ def summarise_correction(given: PlaneStore, adjusted: PlaneStore, selection: Cor
         vertex_ids=released, given=given.vertices[released].copy(),
         corrected=adjusted.vertices[released].copy(), covariance=cov, threshold=threshold,
         covariance_note=note, num_points=np.asarray(selection.num_points, np.int64),
-        not_corrected=dict(selection.not_corrected))
+        not_corrected=dict(selection.not_corrected), max_plane_sigma=max_plane_sigma,
+        assigned=np.asarray(selection.assigned, np.int64),
+        assigned_points=np.asarray(selection.assigned_points, np.int64),
+        assigned_sigma=np.asarray(selection.assigned_sigma, np.float64))

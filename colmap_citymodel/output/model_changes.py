@@ -116,8 +116,9 @@ def correction_section(summary: dict) -> str:
     if summary.get("written") is None and summary.get("num_corrected_faces") is None:
         return "\n".join(lines + [summary.get("note", "The model was not corrected."), ""])
     lines += [
-        f"{summary['num_corrected_faces']} faces corrected (each with enough tie points spread "
-        f"over it), {summary['num_held_faces']} faces beside them kept their planes; "
+        f"{summary['num_corrected_faces']} faces corrected (each with its plane determined by "
+        f"its tie points to {summary.get('max_plane_sigma_m') or 0:g} m a posteriori sigma at "
+        f"every vertex), {summary['num_held_faces']} faces beside them kept their planes; "
         f"{summary['num_corrected_vertices']} vertices moved, "
         f"{summary['num_significant_vertices']} of them significantly "
         f"(|shift| / sigma > {summary['significance_threshold']:g}).", ""]

@@ -202,6 +202,7 @@ def write_model_correction(result: RefineResult, directory: Path, *, write_model
     from .model_changes import write_changes_csv, write_changes_ply
 
     summary = correction.todict()
+    summary["faces"] = correction.face_rows(result.store)
     summary["num_csv_rows"] = write_changes_csv(correction, result.store,
                                                 directory / "model_changes.csv")
     write_changes_ply(correction, result.store, directory / "model_changes.ply")
