@@ -152,3 +152,31 @@ def test_refine_with_the_sliding_window_ends_with_the_global_adjustment(sequence
     assert len(errors) == 120 and rms(errors) < 0.03
     assert result.quality.verdict in ("ok", "weak")
     assert "sliding_window" in result.seconds
+
+
+def test_cli_passes_the_workflow_on(monkeypatch):
+    import types
+
+    import colmap_citymodel.workflow as workflow
+    from colmap_citymodel import cli
+
+    seen = {}
+
+    def fake_main(*args, **kwargs):
+        seen.update(kwargs)
+        return types.SimpleNamespace(quality=types.SimpleNamespace(verdict="ok"))
+
+    monkeypatch.setattr(workflow, "main", fake_main)
+    assert cli.main(["refine", "--input_path", "in", "--citymodel", "m.gml", "--output_path",
+                     "out", "--workflow", "sliding_window"]) == 0
+    assert seen["workflow"] == "sliding_window"
+
+
+def test_an_unknown_workflow_is_an_input_error(tmp_path):
+    from colmap_citymodel.workflow import main
+
+    with pytest.raises(InputError, match="workflow.mode"):
+        main(tmp_path / "in", tmp_path / "m.gml", tmp_path / "out", workflow="windowed")
+    options = RefineOptions().mergedict({"workflow": {"mode": "sliding_window",
+                                                      "window_size": 60, "window_new": 20}})
+    assert (options.workflow.mode, options.workflow.window_size) == ("sliding_window", 60)
