@@ -315,9 +315,11 @@ class WorkflowOptions:
     """N_new: images each window adds; the N_ws - N_new most recent adjusted ones are kept
     (Unger 5.3: 33)."""
     window_held_images: int = 3
-    """The oldest this many of the kept images enter the next window with pose priors at their
-    adjusted poses (Unger 3.3.2: the poses of at least three of the oldest images, as direct
-    observations; the other kept images are estimated again)."""
+    """The oldest kept images at this many camera stations (distinct projection centres; all
+    cameras of a station) enter the next window with pose priors at their adjusted poses
+    (Unger 3.3.2: the poses of at least three of the oldest images, as direct observations;
+    the other kept images are estimated again). Stations, not images: three cameras at one
+    spot would leave the window's scale free."""
     sigma_window_position: float = 0.05
     """A priori sigma (m) of a held image's position in the next window. Unger takes the
     previous window's estimated covariances; a fixed sigma of the size of a window's a

@@ -72,6 +72,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     from .align.coarse import SurfaceDistance, coarse_alignment
 
     options = options or RefineOptions()
+    if options.workflow.mode == "sliding_window":  # bad window sizes before any work
+        from .adjust.sliding_window import check_window_options
+
+        check_window_options(options)
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     details: dict = {}

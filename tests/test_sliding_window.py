@@ -138,7 +138,6 @@ def test_windows_alone_move_along_the_sequence_onto_the_truth(sequence):
 
 
 @pytest.mark.slow
-@pytest.mark.ci
 def test_refine_with_the_sliding_window_ends_with_the_global_adjustment(sequence):
     scene, gnss = sequence
     result = refine(scene.sfm, scene.store, gnss, window_options(), progress=False)
@@ -180,3 +179,24 @@ def test_an_unknown_workflow_is_an_input_error(tmp_path):
     options = RefineOptions().mergedict({"workflow": {"mode": "sliding_window",
                                                       "window_size": 60, "window_new": 20}})
     assert (options.workflow.mode, options.workflow.window_size) == ("sliding_window", 60)
+
+
+def test_pose_priors_of_three_stations_hold_the_datum(sequence):
+    from colmap_citymodel.adjust.problem import HybridProblem, PosePriors
+
+    scene, _ = sequence
+    truth = scene.truth
+    order = capture_order(truth)
+    sub = window_reconstruction(truth, order[:18])
+    held = held_stations(truth, order[:18], 3)
+    priors = PosePriors(
+        np.array([next(iter(truth.frame(f).image_ids)).id for f in held]),
+        [pycolmap.Rigid3d(np.asarray(truth.frame(f).rig_from_world.matrix())) for f in held],
+        0.01, np.radians(0.01))
+    sub.transform(pycolmap.Sim3d(1.02, pycolmap.Rotation3d(np.array([0.0, 0.0, 0.01])),
+                                 [0.5, -0.3, 0.2]))
+    problem = HybridProblem(sub, None, None, None, RefineOptions().adjustment,
+                            robust_images=False, robust_planes=False, pose_priors=priors)
+    assert not problem.gauge_fixed and problem.counts["pose"] == 9 * len(held)
+    problem.solve()
+    assert rms(centre_errors(sub, truth)) < 0.01

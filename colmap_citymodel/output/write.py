@@ -115,6 +115,10 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
     }
 
 
+def _number(value, fmt: str = "{:.4f}") -> str:
+    return "-" if value is None else fmt.format(value)
+
+
 def report_markdown(report: dict) -> str:
     lines = ["# colmap-citymodel refine report", ""]
     quality = report.get("quality")
@@ -157,15 +161,15 @@ def report_markdown(report: dict) -> str:
         lines += ["## Sliding window", "",
                   f"{windows['num_windows']} windows of {windows['window_size']} images in "
                   f"{windows['order']} order, {windows['window_new']} new per window, the "
-                  f"oldest {windows['window_held_images']} kept ones held by pose priors; then "
-                  "the global adjustment below.", "",
+                  f"oldest kept images at {windows['window_held_images']} camera stations held "
+                  "by pose priors; then the global adjustment below.", "",
                   "| window | images | first | last | new | held | GNSS | points | planes | "
                   "RMS | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
         for w in windows["windows"]:
             lines.append(f"| {w['index']} | {w['num_images']} | {w['first_image']} | "
                          f"{w['last_image']} | {w['num_new']} | {w['num_held']} | "
                          f"{w['num_gnss']} | {w['num_assigned']} | {w['num_planes']} | "
-                         f"{w['rms']:.4f} | {w['seconds']:.1f} |"
+                         f"{_number(w['rms'])} | {w['seconds']:.1f} |"
                          + (f" {w['note']}" if w["note"] else ""))
         lines.append("")
     geo = report["georegistration"]
