@@ -8,6 +8,9 @@ the same `sparse/0` and is evaluated on the simulated check points:
 - refine_a:  colmap-citymodel refine (global workflow, direct assignment (a));
 - refine_b, refine_c, refine_auto: the same with assignment (b) "msac", (c) "roi_msac" and
              "auto";
+- sliding_window: refine with `--workflow sliding_window` (windows of 100 images moved on by
+             33, then the global adjustment; direct assignment); long sequence only (the short
+             one is a single window);
 - gnss_ba:   7-parameter fit to GNSS + bundle adjustment with GNSS priors (COLMAP's pose-prior BA);
 - gnss_sim3: 7-parameter fit to GNSS only (what `colmap model_aligner` does);
 - icp:       gnss_sim3, then rigid point-to-plane ICP of the tie points to the model (open3d), the
@@ -51,7 +54,10 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 GENERATED = ROOT / "workspaces" / "generated"
 SCENARIOS = ("Scn1", "Scn2", "Scn3", "Scn4", "Scn5", "Scn6")
-METHODS = ("refine_a", "refine_b", "refine_c", "refine_auto", "gnss_ba", "gnss_sim3", "icp")
+METHODS = ("refine_a", "refine_b", "refine_c", "refine_auto", "sliding_window", "gnss_ba",
+           "gnss_sim3", "icp")
+#: Methods that only run on these sequences.
+ONLY_ON = {"sliding_window": ("long",)}
 # Unger chapter 6 (method.md 8): RMS 3D of check points, m.
 UNGER = {"short": {"Scn1": 0.10, "Scn2": 0.19, "Scn3": 0.25, "Scn5": "< 1"},
          "long": {"Scn2": 0.12, "Scn4": 0.31, "Scn5": "metres", "Scn6": "~5"}}
@@ -122,7 +128,7 @@ def inputs(workspace: Path, model: str | None = None):
     return read_reconstruction(workspace / "sparse" / "0"), store, gnss
 
 
-def run_refine(workspace: Path, assignment: str = "direct"):
+def run_refine(workspace: Path, assignment: str = "direct", workflow: str = "global"):
     from colmap_citymodel.options import RefineOptions
     from colmap_citymodel.workflow import refine
 
@@ -132,6 +138,7 @@ def run_refine(workspace: Path, assignment: str = "direct"):
         "detailed" if model_variant(workspace) == "detailed" else "generalised")
     options.precision.covariances = "off"
     options.assignment.method = assignment
+    options.workflow.mode = workflow
     result = refine(rec, store, gnss, options, progress=False)
     return result.reconstruction, store
 
@@ -518,6 +525,7 @@ def run_robustness(cases: list[str], json_path: Path, methods: list[str] = (),
 RUNNERS = {"refine_a": run_refine, "refine_b": lambda w: run_refine(w, "msac"),
            "refine_c": lambda w: run_refine(w, "roi_msac"),
            "refine_auto": lambda w: run_refine(w, "auto"),
+           "sliding_window": lambda w: run_refine(w, workflow="sliding_window"),
            "gnss_ba": lambda w: run_gnss(w, True), "gnss_sim3": lambda w: run_gnss(w, False),
            "icp": run_icp}
 
@@ -583,7 +591,10 @@ def main() -> None:
                   flush=True)
             model = has_model(workspace)
             for method in args.methods or METHODS:
-                if not model and (method.startswith("refine") or method == "icp"):
+                if not model and (method.startswith("refine") or method in (
+                        "icp", "sliding_window")):
+                    continue
+                if sequence not in ONLY_ON.get(method, (sequence,)):
                     continue
                 start = time.perf_counter()
                 try:

@@ -138,6 +138,10 @@ def _add_refine(subparsers) -> None:
                    help="tie point to plane assignment: direct (a, default), msac (b: planes "
                         "extracted from the cloud), roi_msac (c: one plane searched near each "
                         "model plane), auto (indirect while the threshold is above 1 m)")
+    p.add_argument("--workflow", choices=["global", "sliding_window"], default=None,
+                   help="global (default): the whole block at once; sliding_window: windows "
+                        "of 100 images in name order moved on by 33, each adjusted with the "
+                        "model, then the global adjustment ([workflow] options)")
     p.add_argument("--lod", type=int, default=2, help="level of detail of the model to use")
     p.add_argument("--crs", dest="model_crs", help="CRS of a model file that names none")
     p.add_argument("--target_crs", help="projected CRS to reproject a geographic model to")
@@ -175,7 +179,7 @@ def _add_refine(subparsers) -> None:
              checkpoint_observations=args.checkpoint_observations,
              sigma_generalisation=args.sigma_generalisation,
              variance_components=args.variance_components, assignment=args.assignment,
-             write_model=args.write_model)
+             write_model=args.write_model, workflow=args.workflow)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 

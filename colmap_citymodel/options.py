@@ -297,12 +297,40 @@ def _check_number(name: str, value, source) -> None:
 CHOICES = {"adjustment.image_loss": ("huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
-           "assignment.auto_indirect_method": ("msac", "roi_msac")}
+           "assignment.auto_indirect_method": ("msac", "roi_msac"),
+           "workflow.mode": ("global", "sliding_window")}
 
 
 @dataclass
 class WorkflowOptions:
-    """Global workflow (Unger Table 3): steps 3-4 repeated until convergence."""
+    """The workflow: global (Unger Table 3: steps 3-4 repeated until convergence) or a sliding
+    window along the sequence followed by the global adjustment (Unger 3.3.2, Tables 4-5;
+    adjust.sliding_window)."""
+
+    mode: str = "global"
+    """"global": assignment and hybrid adjustment of the whole block at once; "sliding_window":
+    first windows of `window_size` images in capture order (image name order), each adjusted
+    with the model, the window moved on by `window_new` images; then the global adjustment of
+    everything, starting from the windows' result (Unger's final global hybrid adjustment)."""
+    window_size: int = 100
+    """N_ws: images per window (Unger Table 4 / 5.3: 100 key frames; windows of fewer than
+    about 50 key frames were found fragile: too few planes to hold them)."""
+    window_new: int = 33
+    """N_new: images each window adds; the N_ws - N_new most recent adjusted ones are kept
+    (Unger 5.3: 33)."""
+    window_held_images: int = 3
+    """The oldest kept images at this many camera stations (distinct projection centres; all
+    cameras of a station) enter the next window with pose priors at their adjusted poses
+    (Unger 3.3.2: the poses of at least three of the oldest images, as direct observations;
+    the other kept images are estimated again). Stations, not images: three cameras at one
+    spot would leave the window's scale free."""
+    sigma_window_position: float = 0.05
+    """A priori sigma (m) of a held image's position in the next window. Unger takes the
+    previous window's estimated covariances; a fixed sigma of the size of a window's a
+    posteriori position sigma (a few centimetres with the model) avoids a covariance
+    computation per window."""
+    sigma_window_rotation: float = 0.05
+    """A priori sigma (degrees) of a held image's rotation in the next window."""
 
     max_iterations: int = 10
     """At most this many assign + hybrid BA iterations."""

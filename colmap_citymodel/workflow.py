@@ -1,5 +1,7 @@
 """The refine step (`colmap_citymodel.refine`): global workflow of Unger Table 3 with any
-assignment method (direct (a) by default; (b), (c), auto).
+assignment method (direct (a) by default; (b), (c), auto), or the sliding-window workflow
+(`[workflow] mode = "sliding_window"`, Unger Table 5; adjust.sliding_window) whose windows
+run between the coarse alignment and the final global adjustment below.
 
 1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform;
    along a straight line the cameras' upright orientation fixes the roll);
@@ -70,6 +72,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     from .align.coarse import SurfaceDistance, coarse_alignment
 
     options = options or RefineOptions()
+    if options.workflow.mode == "sliding_window":  # bad window sizes before any work
+        from .adjust.sliding_window import check_window_options
+
+        check_window_options(options)
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     details: dict = {}
@@ -118,6 +124,16 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             logger.info("coarse alignment kept the GNSS-only position (no better objective)")
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
     offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
+    windows = None
+    if o_w.mode == "sliding_window":
+        # Windows along the sequence, each on the model; the loop below is then the final
+        # global hybrid adjustment of all images, starting from where the windows left them.
+        from .adjust.sliding_window import sliding_window
+
+        windows = sliding_window(rec, store, priors, options, surface,
+                                 exclude_point_ids=exclude_point_ids, progress=progress)
+        warnings += windows.warnings
+        timer["sliding_window"] = windows.seconds
 
     loop = adjustment_loop(rec, store, priors, options, objective, all_ids,
                            exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
@@ -198,7 +214,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         observability_before=loop.observability_before, refined=refined,
         datum_cues=details.get("cues", {}),
         coarse_alignment=coarse.todict() if coarse is not None else None,
-        gnss_offset=gnss_offset, model_correction=correction)
+        gnss_offset=gnss_offset, model_correction=correction,
+        sliding_window=windows.todict(options) if windows is not None else None)
 
 
 def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
@@ -302,14 +319,15 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
          progress=True, precision=None, gnss_height_offset=None, gnss_bias=None, lever_arm=None,
          checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
          variance_components=None, assignment=None, write_model=None,
-         num_threads=None) -> RefineResult:
+         num_threads=None, workflow=None) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
     are evaluated at the end (Delta, sigma; report.json `checkpoints`).
     `gnss_height_offset`: metres added to the GNSS heights, or "auto" (estimated from the
     model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all").
     `write_model`: correct the model and write it back in its own format (default: with the
-    correct_model preset)."""
+    correct_model preset). `workflow`: "global" or "sliding_window" (overrides the options
+    file's `[workflow] mode`)."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -326,6 +344,8 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         options.precision.variance_components = bool(variance_components)
     if assignment is not None:  # --assignment overrides the options file
         options.assignment.method = assignment
+    if workflow is not None:  # --workflow overrides the options file
+        options.mergedict({"workflow": {"mode": workflow}}, source="--workflow")
     if gnss_bias == "auto":
         options.adjustment.gnss_offset = "all"
     elif gnss_bias is not None:

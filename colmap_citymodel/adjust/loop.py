@@ -29,7 +29,7 @@ from ..errors import DatumError
 from ..options import RefineOptions
 from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
-from .problem import BaselinePriors, HybridProblem
+from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord
 from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
 from .steps import align_block_to_planes, model_after_solve
@@ -63,10 +63,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     options: RefineOptions, objective: BlockObjective, all_ids: np.ndarray, *,
                     exclude_point_ids: set[int] | None = None,
                     gnss_only: pycolmap.Reconstruction | None = None,
-                    scale_sigma: float | None = None, progress: bool = True) -> LoopResult:
+                    scale_sigma: float | None = None, progress: bool = True,
+                    pose_priors: PosePriors | None = None) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
-    `scale_sigma` let the loop hold the block's scale where the planes cannot give it."""
+    `scale_sigma` let the loop hold the block's scale where the planes cannot give it.
+    `pose_priors`: frames held near given poses in every solve (a sliding window's images
+    kept from the window before)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     current = store
     threshold = initial_threshold(o_a)
@@ -121,7 +124,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             if gnss_only is not None and scale_sigma and \
                     observability_before.get("scale", {}).get("source") not in ("planes", "both"):
                 baselines = baseline_priors(gnss_only, priors, scale_sigma)
-        elif assignment.num_assigned == 0 and priors is None:
+        elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
 
@@ -137,7 +140,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=current, baselines=baselines)
+                                  robust_planes=False, current=current, baselines=baselines,
+                             pose_priors=pose_priors)
             final_report = final.solve()
             normalised = final.residuals["dTP"]
             needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
@@ -145,7 +149,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             needs_robust = True
         if needs_robust:
             robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                   robust_planes=True, current=current, baselines=baselines)
+                                   robust_planes=True, current=current, baselines=baselines,
+                                   pose_priors=pose_priors)
             robust_report = robust.solve()
             normalised = robust.residuals["dTP"]
             outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
@@ -155,7 +160,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             assignment.rejected_faces = rejected
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                                   robust_planes=False, current=model_after_solve(current, robust),
-                                  baselines=baselines)
+                                  baselines=baselines, pose_priors=pose_priors)
             final_report = final.solve()
         seconds["hybrid_solves"] += time.perf_counter() - t1
         current = model_after_solve(current, final)
@@ -208,7 +213,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         last = None
     if last is None:  # back to the best iterate, or the last iteration was undone
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                             robust_planes=False, current=current, baselines=baselines)
+                             robust_planes=False, current=current, baselines=baselines,
+                             pose_priors=pose_priors)
         report = last.solve()
         current = model_after_solve(current, last)
         if not iterations:

@@ -56,7 +56,9 @@ logger = logging.getLogger(__name__)
 #: AdjustmentOptions.sigma_generalisation; otherwise empty). "scale": baseline lengths that
 #: hold the block's scale where the planes do not determine it (BaselinePriors; else empty).
 #: "offset": the prior of the GNSS offset (GNSSPriors.offset_prior_sigma; else empty).
-GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale", "offset")
+#: "pose": the poses of images held from the previous window of a sliding-window adjustment
+#: (PosePriors; else empty).
+GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale", "offset", "pose")
 
 
 @dataclass
@@ -70,6 +72,29 @@ class BaselinePriors:
 
     def __len__(self) -> int:
         return len(self.lengths)
+
+
+@dataclass
+class PosePriors:
+    """Poses of frames held near given values (a sliding window's images kept from the window
+    before, adjust.sliding_window): each pose is observed through three points fixed to its
+    rig, the projection centre and the points `lever` metres along the rig's x and y axes,
+    each with the prior sigma `sigma_position`; `lever` = sigma_position / sigma_rotation
+    makes a rotation of sigma_rotation (radians) move the axis points by one sigma. (The
+    three points share the translation, so the position is held to about sigma_position /
+    sqrt(3).)"""
+
+    image_ids: np.ndarray  # (K,) one image of each held frame
+    rig_from_world: list  # (K,) pycolmap.Rigid3d: the held poses
+    sigma_position: float  # metres
+    sigma_rotation: float  # radians
+
+    def __len__(self) -> int:
+        return len(self.image_ids)
+
+    @property
+    def lever(self) -> float:
+        return self.sigma_position / self.sigma_rotation
 
 
 @dataclass
@@ -198,11 +223,13 @@ class HybridProblem:
                  assignment: Assignment | None, gnss: GNSSPriors | None,
                  options: AdjustmentOptions, *, robust_images: bool, robust_planes: bool,
                  current: PlaneStore | None = None, generalisation_offsets: bool = False,
-                 baselines: BaselinePriors | None = None):
+                 baselines: BaselinePriors | None = None, pose_priors: PosePriors | None = None):
         """`store` is the model as observed (f_VT observes its vertices); `current` (same
         topology, default `store`) holds the current estimate used as initial values.
         `generalisation_offsets`: estimate a per-plane offset with the prior
-        N(0, options.sigma_generalisation^2) (only if that is set; see AdjustmentOptions)."""
+        N(0, options.sigma_generalisation^2) (only if that is set; see AdjustmentOptions).
+        `pose_priors`: frames held near given poses (a sliding window's datum from the window
+        before)."""
         core = load_core()
         self.reconstruction = reconstruction
         self.options = options
@@ -212,7 +239,8 @@ class HybridProblem:
         # GNSS and the model planes give the datum (checked before solving). With neither
         # (step 2 after an initial transform), fix it COLMAP's way to keep the problem regular.
         with_model = store is not None and assignment is not None and assignment.num_assigned
-        self.gauge_fixed = gnss is None and not with_model
+        held = pose_priors is not None and len(pose_priors) > 0
+        self.gauge_fixed = gnss is None and not with_model and not held
         if self.gauge_fixed:
             config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
         self.adjuster = pycolmap.create_default_ceres_bundle_adjuster(
@@ -236,6 +264,32 @@ class HybridProblem:
             self.counts.update(dTP=0, dVT=0, VT=0, gen=0)
         self._add_baselines(core, baselines)
         self._add_offset_prior(core, gnss)
+        self._add_pose_priors(core, pose_priors)
+
+    def _add_pose_priors(self, core, priors: PosePriors | None) -> None:
+        """Group "pose" (last): three rig points of each held frame at their held positions."""
+        self.counts["pose"] = 0
+        if priors is None:
+            return
+        rec = self.reconstruction
+        sigma = np.full(3, priors.sigma_position / self.options.sigma_image)
+        done: set[int] = set()
+        for image_id, pose in zip(priors.image_ids, priors.rig_from_world):
+            image = rec.image(int(image_id))
+            block = rec.frame(image.frame_id).rig_from_world.params
+            if image.frame_id in done or not self.problem.has_parameter_block(block):
+                continue
+            done.add(image.frame_id)
+            centre = position_in_rig(rec, image)
+            world_from_rig = pose.inverse()
+            for axis in (None, 0, 1):
+                in_rig = centre.copy()
+                if axis is not None:
+                    in_rig[axis] += priors.lever
+                cost = core.ProjectionCenterPriorCost(np.asarray(world_from_rig * in_rig, float),
+                                                      sigma, in_rig)
+                self.problem.add_residual_block(cost, None, [block])
+                self.counts["pose"] += 3
 
     def _add_baselines(self, core, baselines: BaselinePriors | None) -> None:
         self.counts["scale"] = 0

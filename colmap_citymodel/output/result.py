@@ -57,6 +57,8 @@ class RefineResult:
     gnss_offset: dict | None = None
     # What the images corrected in the model (AdjustmentOptions.correct_model), else None.
     model_correction: ModelCorrection | None = None
+    # The windows of the sliding-window workflow (adjust.sliding_window), else None.
+    sliding_window: dict | None = None
 
     @property
     def handed_back(self) -> str:

@@ -110,7 +110,13 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "datum_cues": result.datum_cues,
         "coarse_alignment": result.coarse_alignment,
         "gnss_height_offset": result.gnss_offset,
+        "workflow": result.options.workflow.mode,
+        "sliding_window": result.sliding_window,
     }
+
+
+def _number(value, fmt: str = "{:.4f}") -> str:
+    return "-" if value is None else fmt.format(value)
 
 
 def report_markdown(report: dict) -> str:
@@ -150,6 +156,22 @@ def report_markdown(report: dict) -> str:
                   + (f"; horizontal bias E, N {offset['bias_enu_m'][0]:+.2f}, "
                      f"{offset['bias_enu_m'][1]:+.2f} m" if "bias_enu_m" in offset else "")
                   + ".", ""]
+    windows = report.get("sliding_window")
+    if windows:
+        lines += ["## Sliding window", "",
+                  f"{windows['num_windows']} windows of {windows['window_size']} images in "
+                  f"{windows['order']} order, {windows['window_new']} new per window, the "
+                  f"oldest kept images at {windows['window_held_images']} camera stations held "
+                  "by pose priors; then the global adjustment below.", "",
+                  "| window | images | first | last | new | held | GNSS | points | planes | "
+                  "RMS | s |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+        for w in windows["windows"]:
+            lines.append(f"| {w['index']} | {w['num_images']} | {w['first_image']} | "
+                         f"{w['last_image']} | {w['num_new']} | {w['num_held']} | "
+                         f"{w['num_gnss']} | {w['num_assigned']} | {w['num_planes']} | "
+                         f"{_number(w['rms'])} | {w['seconds']:.1f} |"
+                         + (f" {w['note']}" if w["note"] else ""))
+        lines.append("")
     geo = report["georegistration"]
     if geo["rms_m"] is not None:
         lines.append(f"Georegistration to GNSS: RMS {geo['rms_m']:.2f} m, "

@@ -78,7 +78,7 @@ RANK_TOLERANCE = 1e-12
 POSE_STEP = 1e-6
 #: Observation groups reported only when the problem has them (the generalisation priors,
 #: the baseline priors that hold the scale).
-OPTIONAL_GROUPS = ("gen", "scale", "offset")
+OPTIONAL_GROUPS = ("gen", "scale", "offset", "pose")
 #: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
 PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
 
