@@ -413,17 +413,11 @@ def files_near(paths, box_xy, crs: CRSInfo, *, assumed: CRSInfo | None = None) -
     if len(files) < 2:
         return files
     index = build_tile_index(files)
-    query = np.asarray(box_xy, dtype=np.float64).reshape(2, -1)[:, :2]
-    near, unplaced = [], []
-    for tile in index.tiles:
-        box = index.box_in(tile, crs, assumed)
-        if box is None:
-            if tile.error or (tile.bbox is not None and index.tile_crs(tile, assumed) is None):
-                unplaced.append(tile.path)
-        elif np.all(box[0] <= query[1]) and np.all(box[1] >= query[0]):
-            near.append(tile.path)
+    near = [t.path for t in index.select(box_xy, crs, assumed=assumed)]
     if not near:
         return files
+    unplaced = [t.path for t in index.tiles if t.error or (
+        t.bbox is not None and index.tile_crs(t, assumed) is None)]
     chosen = set(near) | set(unplaced)
     logger.info("%d of %d city model file(s) lie near the GNSS positions", len(near), len(files))
     return [f for f in files if f in chosen]
