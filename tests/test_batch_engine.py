@@ -38,7 +38,8 @@ def probe_threads(task: Probe) -> dict:
     if task.threads:
         limit_threads(task.threads)
     return {"workspace": task.name, "status": "done", "environment": started_with,
-            "open3d": open3d.utility.get_max_threads(), "pid": os.getpid()}
+            "open3d": open3d.utility.get_max_threads(), "pid": os.getpid(),
+            "malloc_trim": os.environ.get("MALLOC_TRIM_THRESHOLD_")}
 
 
 def probe_order(task: Probe) -> dict:
@@ -58,7 +59,9 @@ def test_the_pool_workers_start_with_the_threads_of_a_task(threads):
 
 
 def test_the_dask_workers_start_with_the_threads_of_a_task():
-    """Two threads, not the one thread per variable a Dask nanny sets by itself."""
+    """Two threads, not the one thread per variable a Dask nanny sets by itself, and glibc's
+    memory trimming as in the pool, not the nanny's."""
+    before = dict(os.environ)
     tasks = [Probe(f"w{k}", 2) for k in range(2)]
     rows = [row for _, row in run_dask(probe_threads, tasks, workers=2, scheduler="local",
                                        threads=2)]
@@ -66,6 +69,8 @@ def test_the_dask_workers_start_with_the_threads_of_a_task():
     for row in rows:
         assert row["environment"] == {name: "2" for name in THREAD_VARIABLES}
         assert row["open3d"] == 2
+        assert row["malloc_trim"] == before.get("MALLOC_TRIM_THRESHOLD_")
+    assert dict(os.environ) == before  # the nannies left the batch's environment alone
 
 
 def test_refines_share_the_cores(monkeypatch):
