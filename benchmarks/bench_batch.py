@@ -334,6 +334,20 @@ def report(runs: list[dict], sizes: dict) -> tuple[str, dict]:
              f"{_autogroup()}): while other sessions keep the cores busy, the processes of "
              "one session share that session's part, so a second worker gets nothing the "
              "first does not lose.", "",
+             "Threads: up to round 6 one worker refined with the libraries' default threads "
+             "and two workers with one thread each, except Open3D's pool (two threads in "
+             "each worker). From round 7 on each refine runs on the cores over the workers "
+             "(one worker: 2 threads, two workers: 1 each, Open3D included), the largest "
+             "workspaces start first, and the LocalCluster's workers run without Dask's "
+             "profiler and with glibc's default memory trimming. `1_worker_1_thread` (round "
+             "7 on) is one worker held to one thread: `threads_speedup_1_worker` is what the "
+             "threads of one refine gain, and `speedup_2_workers_over_1_thread` what two "
+             "workers gain over refines run one after the other single-threaded; on 2 free "
+             "cores `speedup_2_workers` can at best reach 2 / `threads_speedup_1_worker`. "
+             "Round 7 ran on the workspaces built again from the same scenarios in a "
+             "directory of its own (`--cache`); their figures differ from round 6's in the "
+             "third digit.",
+             "",
              "| figure | median over rounds | " + " | ".join(per_round) + " |",
              "|---|---|" + "---|" * len(per_round)]
     for key in keys:
