@@ -14,14 +14,15 @@ COLMAP; scenario files in benchmarks/cache/batch/scenarios/): UAV loops along th
 2/2/3 m and a constant bias of 3 m. The batch refines each from its database's pose priors.
 
 A round runs the whole batch from scratch with each engine in turn (1 worker, 2 workers, Dask
-LocalCluster of 2) into benchmarks/cache/batch/runs/ (the wall time of batch.run.main, pool or
-cluster start included); the tile index is cached before the first run. Speedups are taken
+LocalCluster of 2; each refine on the cores over the workers as threads, the batch's default;
+`--engines ... 1t` adds one worker held to one thread) into benchmarks/cache/batch/runs/ (the
+wall time of batch.run.main, pool or cluster start included); the tile index is cached before the first run. Speedups are taken
 within a round, whose runs follow each other under similar load. The machine is shared: the
 tables give the load average and the CPU time the batch got (its processes' user + system
 seconds over the wall time = the cores it had on average).
 
-    .venv/bin/python benchmarks/bench_batch.py [--repeat N] [--engines 1 2 dask2]
-        [--build-only] [--report-only] [--fresh]
+    .venv/bin/python benchmarks/bench_batch.py [--repeat N] [--engines 1 2 dask2 1t]
+        [--build-only] [--report-only] [--fresh] [--cache DIR]
 
 Adds its rounds to benchmarks/results/batch.json and writes benchmarks/results/batch.md from
 all recorded rounds.
@@ -47,6 +48,14 @@ BERLIN = ROOT.parent / "shared" / "data" / "citygml" / "berlin"
 CACHE = ROOT / "benchmarks" / "cache" / "batch"
 TILES, WORKSPACES, SCENARIOS, RUNS = (CACHE / d for d in ("tiles", "workspaces", "scenarios",
                                                           "runs"))
+
+
+def use_cache(directory: Path) -> None:
+    """Build and run in `directory` instead of benchmarks/cache/batch."""
+    global CACHE, TILES, WORKSPACES, SCENARIOS, RUNS
+    CACHE = Path(directory).resolve()
+    TILES, WORKSPACES, SCENARIOS, RUNS = (CACHE / d for d in ("tiles", "workspaces",
+                                                              "scenarios", "runs"))
 RESULT = ROOT / "benchmarks" / "results" / "batch.md"
 RUNS_JSON = RESULT.with_suffix(".json")
 COLUMN = 250.0  # m, width of the columns 3910_5819 is split into
@@ -89,8 +98,12 @@ SITES = {
                     {"mode": "orbit", "centre": [392072, 5820245], "radius": 50.0,
                      "num_key_frames": 40, "observations": {"points_per_m2": 2.0}}),
 }
-ENGINES = {"1": ("seconds_1_worker", 1, None), "2": ("seconds_2_workers", 2, None),
-           "dask2": ("seconds_dask_2_workers", 2, "local")}
+#: engine -> (figure, workers, scheduler, threads per refine: None = the batch's default,
+#: the cores over the workers). "1t" is one worker held to one thread: the refines one after
+#: the other as single-threaded code, what two workers can at best halve.
+ENGINES = {"1": ("seconds_1_worker", 1, None, None), "2": ("seconds_2_workers", 2, None, None),
+           "dask2": ("seconds_dask_2_workers", 2, "local", None),
+           "1t": ("seconds_1_worker_1_thread", 1, None, 1)}
 
 
 # -- inputs -----------------------------------------------------------------------------------
@@ -232,14 +245,14 @@ def children_cpu() -> float:
 def run(engine: str, label: str, round_id: str) -> dict:
     from colmap_citymodel.batch.run import main as batch_main
 
-    key, workers, scheduler = ENGINES[engine]
+    key, workers, scheduler, threads = ENGINES[engine]
     out = RUNS / label
     shutil.rmtree(out, ignore_errors=True)
     load_before = os.getloadavg()[0]
     cpu_before = children_cpu()
     started = time.perf_counter()
-    rows = batch_main(WORKSPACES, TILES, out, workers=workers, scheduler=scheduler,
-                      progress=False)
+    rows = batch_main(WORKSPACES, TILES, out, workers=workers, threads=threads,
+                      scheduler=scheduler, progress=False)
     seconds = time.perf_counter() - started
     cpu = children_cpu() - cpu_before
     load_after = os.getloadavg()[0]
@@ -261,6 +274,10 @@ def round_figures(runs: list[dict]) -> dict:
         figures["speedup_dask_2_workers"] = s["1"] / s["dask2"]
     if "2" in s and "dask2" in s:
         figures["dask_overhead_vs_pool"] = s["dask2"] / s["2"] - 1.0
+    if "1t" in s and "1" in s:
+        figures["threads_speedup_1_worker"] = s["1t"] / s["1"]
+    if "1t" in s and "2" in s:
+        figures["speedup_2_workers_over_1_thread"] = s["1t"] / s["2"]
     control = [r for r in runs if "control_1" in r]
     if control:
         figures["control_speedup_2_processes"] = (control[0]["control_1"]
@@ -285,8 +302,10 @@ def report(runs: list[dict], sizes: dict) -> tuple[str, dict]:
         rounds.setdefault(r["round"], []).append(r)
     per_round = {k: round_figures(v) for k, v in rounds.items()}
     keys = [k for k in ("seconds_1_worker", "seconds_2_workers", "seconds_dask_2_workers",
-                        "speedup_2_workers", "speedup_dask_2_workers", "dask_overhead_vs_pool",
-                        "control_speedup_2_processes", "speedup_2_workers_of_control")
+                        "seconds_1_worker_1_thread", "speedup_2_workers",
+                        "speedup_dask_2_workers", "dask_overhead_vs_pool",
+                        "control_speedup_2_processes", "speedup_2_workers_of_control",
+                        "threads_speedup_1_worker", "speedup_2_workers_over_1_thread")
             if any(k in f for f in per_round.values())]
     figures = {k: statistics.median(f[k] for f in per_round.values() if k in f) for k in keys}
     n_tiles = len(list(TILES.glob("*.gml")))
@@ -315,6 +334,20 @@ def report(runs: list[dict], sizes: dict) -> tuple[str, dict]:
              f"{_autogroup()}): while other sessions keep the cores busy, the processes of "
              "one session share that session's part, so a second worker gets nothing the "
              "first does not lose.", "",
+             "Threads: up to round 6 one worker refined with the libraries' default threads "
+             "and two workers with one thread each, except Open3D's pool (two threads in "
+             "each worker). From round 7 on each refine runs on the cores over the workers "
+             "(one worker: 2 threads, two workers: 1 each, Open3D included), the largest "
+             "workspaces start first, and the LocalCluster's workers run without Dask's "
+             "profiler and with glibc's default memory trimming. `1_worker_1_thread` (round "
+             "7 on) is one worker held to one thread: `threads_speedup_1_worker` is what the "
+             "threads of one refine gain, and `speedup_2_workers_over_1_thread` what two "
+             "workers gain over refines run one after the other single-threaded; on 2 free "
+             "cores `speedup_2_workers` can at best reach 2 / `threads_speedup_1_worker`. "
+             "Round 7 ran on the workspaces built again from the same scenarios in a "
+             "directory of its own (`--cache`); their figures differ from round 6's in the "
+             "third digit.",
+             "",
              "| figure | median over rounds | " + " | ".join(per_round) + " |",
              "|---|---|" + "---|" * len(per_round)]
     for key in keys:
@@ -362,7 +395,11 @@ def main() -> None:
     parser.add_argument("--report-only", action="store_true",
                         help="rewrite batch.md from batch.json")
     parser.add_argument("--fresh", action="store_true", help="forget the recorded rounds")
+    parser.add_argument("--cache", type=Path, default=CACHE,
+                        help="where the tiles, workspaces and runs are built (default: "
+                             "benchmarks/cache/batch)")
     args = parser.parse_args()
+    use_cache(args.cache)
     from colmap_citymodel import logger
 
     logger.setLevel(logging.WARNING)

@@ -254,8 +254,13 @@ def _add_batch(subparsers) -> None:
                         "a workspace's GNSS are read)")
     p.add_argument("--output_path", required=True, help="directory for the results")
     p.add_argument("--workers", type=int, default=None,
-                   help="worker processes of the local pool or of --scheduler local "
-                        "(default: the number of cores)")
+                   help="workspaces refined at once: worker processes of the local pool or "
+                        "of --scheduler local (default: the number of cores)")
+    p.add_argument("--threads", type=int, default=None,
+                   help="threads of each refine (Ceres, OpenMP/OpenBLAS, Open3D; default: "
+                        "the cores over --workers, so that the workers do not oversubscribe "
+                        "the cores: on 2 cores 1 worker runs 2 threads, 2 workers 1 each; "
+                        "1 on a remote --scheduler)")
     p.add_argument("--scheduler", default=None, metavar="ADDRESS",
                    help="run on Dask: 'local' starts a LocalCluster of --workers processes, "
                         "tcp://HOST:PORT uses a running scheduler (default: a local process "
@@ -289,7 +294,8 @@ def _add_batch(subparsers) -> None:
         from .batch.run import main
 
         rows = main(args.workspaces, args.citymodel, args.output_path, workers=args.workers,
-                    scheduler=args.scheduler, force=args.force, gnss_crs=args.gnss_crs,
+                    threads=args.threads, scheduler=args.scheduler, force=args.force,
+                    gnss_crs=args.gnss_crs,
                     progress=not args.no_progress, preset=args.preset,
                     options_file=args.options_file, assignment=args.assignment, lod=args.lod,
                     model_crs=args.model_crs, target_crs=args.target_crs,

@@ -7,7 +7,9 @@ GUI, on this machine's cores or a Dask cluster.
 2. skip the workspaces finished by an earlier run (`OUT/<workspace>/report.json` exists)
    unless `force`;
 3. run one task per workspace (batch.task) on a local process pool or a Dask cluster
-   (batch.engine): each reads the tiles near its GNSS and writes `OUT/<workspace>/`
+   (batch.engine), the largest workspaces first (most image observations: the longest
+   refines, so that the last ones to finish are short), each on the cores over the workers
+   (`task_threads`): each reads the tiles near its GNSS and writes `OUT/<workspace>/`
    atomically and `OUT/<workspace>.log`;
 4. after every finished workspace, rewrite `OUT/summary.csv`, `summary.json` and
    `summary.html` (batch.summary); a status line per workspace and a progress bar on the
@@ -46,6 +48,26 @@ def default_workers() -> int:
         return os.cpu_count() or 1
 
 
+def task_threads(workers: int, scheduler: str | None) -> int:
+    """Threads of each refine: this machine's cores shared by the local workers, so that
+    they do not oversubscribe them; one on a remote Dask cluster (one task per worker
+    thread)."""
+    if scheduler not in (None, "local"):
+        return 1
+    return max(1, default_workers() // workers)
+
+
+def workspace_size(model: Path) -> int:
+    """Bytes of the model's images file: its image observations, which the refine's time
+    grows with."""
+    for name in ("images.bin", "images.txt"):
+        try:
+            return (model / name).stat().st_size
+        except OSError:
+            pass
+    return 0
+
+
 def _remove_stale(output: Path, name: str) -> None:
     """What an interrupted or killed refine of `name` can leave behind: its temporary
     directories, and an empty output directory (its check that the output is free)."""
@@ -60,11 +82,12 @@ def _remove_stale(output: Path, name: str) -> None:
 
 
 def main(workspaces, citymodel, output_path, *, workers: int | None = None,
-         scheduler: str | None = None, force: bool = False, gnss_crs: str | None = None,
-         progress: bool = True, **refine) -> list[dict]:
+         threads: int | None = None, scheduler: str | None = None, force: bool = False,
+         gnss_crs: str | None = None, progress: bool = True, **refine) -> list[dict]:
     """Refine every workspace named by `workspaces` into `output_path/<workspace>/`; the
     summary rows (also written to `output_path/summary.*`). `workers`: processes of the local
-    pool or of a Dask LocalCluster (default: the cores); `scheduler`: None (local pool),
+    pool or of a Dask LocalCluster (default: the cores); `threads`: threads of each refine
+    (default: `task_threads`, the cores over the workers); `scheduler`: None (local pool),
     "local" (a Dask LocalCluster) or a Dask scheduler's address; `refine`: the options of
     REFINE_OPTIONS, as workflow.main() takes them."""
     from ..citymodel.tiles import build_tile_index
@@ -82,6 +105,8 @@ def main(workspaces, citymodel, output_path, *, workers: int | None = None,
     workers = int(workers) if workers else default_workers()
     if workers < 1:
         raise InputError(f"--workers must be at least 1, not {workers}")
+    if threads is not None and int(threads) < 1:
+        raise InputError(f"--threads must be at least 1, not {threads}")
     output = Path(output_path).resolve()
     if output.exists() and not output.is_dir():
         raise InputError("output path is a file; give a directory", output)
@@ -103,7 +128,7 @@ def main(workspaces, citymodel, output_path, *, workers: int | None = None,
     previous = read_summary(output)
     rows: dict[str, dict] = {}
     tasks: list[Task] = []
-    single_thread = scheduler is not None or workers > 1
+    threads = int(threads) if threads else task_threads(workers, scheduler)
     for ws in found:
         target = output / ws.name
         row = {"workspace": ws.name, "gnss": ws.gnss_source}
@@ -124,14 +149,16 @@ def main(workspaces, citymodel, output_path, *, workers: int | None = None,
                 log=str(output / f"{ws.name}.log"), citymodel=citymodel,
                 cache_dir=str(cache_dir), database=str(ws.database) if ws.database else None,
                 gnss=str(ws.gnss) if ws.gnss else None, exif=str(ws.exif) if ws.exif else None,
-                gnss_crs=gnss_crs, replace=force, single_thread=single_thread, refine=refine))
+                gnss_crs=gnss_crs, replace=force, threads=threads, refine=refine))
         rows[ws.name] = row
 
+    tasks.sort(key=lambda t: -workspace_size(Path(t.model)))  # the longest refines first
     engine = ("a process pool" if scheduler is None else "a Dask LocalCluster"
               if scheduler == "local" else f"the Dask scheduler at {scheduler}")
     print(f"batch: {len(found)} workspace(s), {len(tasks)} to refine on {engine}"
           + (f" of {workers} worker(s)" if scheduler in (None, "local") else "")
-          + f"; {len(index.tiles)} city model tile(s); output {output}")
+          + f", {threads} thread(s) per workspace; {len(index.tiles)} city model tile(s); "
+          f"output {output}")
     from tqdm import tqdm
 
     bar = tqdm(total=len(tasks), unit="workspace", desc="batch", disable=not progress)
@@ -141,8 +168,8 @@ def main(workspaces, citymodel, output_path, *, workers: int | None = None,
             say(status_line(row))
     write_summary(output, list(rows.values()))
     try:
-        finished = (run_local(refine_workspace, tasks, workers) if scheduler is None
-                    else run_dask(refine_workspace, tasks, workers, scheduler))
+        finished = (run_local(refine_workspace, tasks, workers, threads) if scheduler is None
+                    else run_dask(refine_workspace, tasks, workers, scheduler, threads))
         try:
             for task, row in finished if tasks else ():
                 rows[task.name] = {**rows[task.name], **row}

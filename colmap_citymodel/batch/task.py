@@ -24,7 +24,8 @@ from .summary import read_report_row
 
 logger = logging.getLogger(__name__)
 
-#: Thread pools of the numeric libraries, held to one thread per worker.
+#: The variables the numeric libraries (OpenMP, OpenBLAS, MKL, ...) size their thread pools
+#: by when they are loaded; a worker process gets them before it imports anything.
 THREAD_VARIABLES = ("OMP_NUM_THREADS", "MKL_NUM_THREADS", "OPENBLAS_NUM_THREADS",
                     "VECLIB_MAXIMUM_THREADS", "NUMEXPR_NUM_THREADS")
 
@@ -44,7 +45,7 @@ class Task:
     exif: str | None = None
     gnss_crs: str | None = None
     replace: bool = False  # an earlier result at `output` is replaced (--force)
-    single_thread: bool = False  # one thread per numeric library and Ceres solve
+    threads: int | None = None  # threads of this refine (None: the libraries' defaults)
     refine: dict = field(default_factory=dict)  # keyword arguments of workflow.main()
 
 
@@ -88,9 +89,15 @@ def select_tiles(task: Task) -> list[Path]:
     return [t.path for t in found[0][1]]
 
 
-def limit_threads() -> None:
+def limit_threads(threads: int) -> None:
+    """At most `threads` threads in this process: the thread variables (for the libraries
+    loaded from now on) and Open3D's TBB pool, which reads no variable. Ceres gets its
+    threads per solve (workflow.main's num_threads)."""
     for name in THREAD_VARIABLES:
-        os.environ[name] = "1"
+        os.environ[name] = str(threads)
+    import open3d
+
+    open3d.utility.set_max_threads(threads)
 
 
 @contextlib.contextmanager
@@ -130,8 +137,8 @@ def refine_workspace(task: Task) -> dict:
     row: dict = {"workspace": task.name, "status": "error",
                  "gnss": ("database" if task.database else "gnss.txt" if task.gnss
                           else "exif" if task.exif else None)}
-    if task.single_thread:
-        limit_threads()
+    if task.threads:
+        limit_threads(task.threads)
     output = Path(task.output)
     with captured(Path(task.log)) as log:
         try:
@@ -148,7 +155,7 @@ def refine_workspace(task: Task) -> dict:
                 shutil.rmtree(target, ignore_errors=True)
             refine_main(task.model, [str(p) for p in tiles], target, database=task.database,
                         gnss=task.gnss, gnss_crs=task.gnss_crs, exif=task.exif,
-                        progress=False, num_threads=1 if task.single_thread else None,
+                        progress=False, num_threads=task.threads,
                         **task.refine)
             if target != output:
                 _swap_in(target, output)
