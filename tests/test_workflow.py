@@ -261,3 +261,45 @@ def test_gnss_positions_rejected_as_gross_errors_are_not_priors(scene):
     assert len(result.gnss_priors) == len(gnss.positions) - 3
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
     assert result.quality.verdict != "failed"
+
+
+def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch):
+    """Out of iterations without convergence, the result is the iterate with the best block
+    objective, not the last one, and the report says so. The objective is made to worsen a
+    little with every evaluation (less than the divergence tolerance), so iteration 0 is the
+    best; convergence and cycle detection are switched off to reach the end of the loop."""
+    from colmap_citymodel.adjust import loop as loop_module
+    from colmap_citymodel.align.objective import BlockObjective
+
+    real = BlockObjective.__call__
+    calls = []
+
+    def worsening(self, rec, *args, **kwargs):
+        calls.append(None)
+        return real(self, rec, *args, **kwargs) + 1e-3 * len(calls)
+
+    counter = iter(range(10 ** 6))
+    monkeypatch.setattr(BlockObjective, "__call__", worsening)
+    monkeypatch.setattr(loop_module, "_signature",
+                        lambda assignment: next(counter).to_bytes(8, "little"))
+    options = RefineOptions()
+    options.workflow.max_iterations = 3
+    options.workflow.convergence_rms_change = 0.0
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert len(result.iterations) == 3
+    notes = [w for w in result.warnings if "did not converge" in w]
+    assert len(notes) == 1 and "iteration 0," in notes[0], result.warnings
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_loop_stops_when_an_assignment_repeats(scene, caplog):
+    """With the RMS criterion off, the loop still ends once an iteration assigns exactly as an
+    earlier one did (solving it again could only repeat that state)."""
+    options = RefineOptions()
+    options.workflow.max_iterations = 10
+    options.workflow.convergence_rms_change = 0.0
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
+        result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert len(result.iterations) < 10
+    assert any("assigned as iteration" in r.getMessage() for r in caplog.records)
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10

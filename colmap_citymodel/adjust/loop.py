@@ -1,6 +1,7 @@
 """Steps 3-4 of the global workflow, repeated: assign the tie points to the model planes, solve
 the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
-settles, the block objective worsens, or the iterations run out.
+settles, an assignment repeats an earlier one (a cycle), the block objective worsens, or the
+iterations run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
 never change; the threshold never grows (no flip-flop between two assignments). The first
@@ -89,6 +90,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     last = None
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
     diverged = None
+    seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
@@ -99,6 +101,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
+        repeats = seen.get(_signature(assignment))
+        seen.setdefault(_signature(assignment), iteration)
         if iteration == 0 and assignment.num_assigned:
             # Initial values: move the block as a whole onto its planes first, so that the
             # adjustment is left with the block's deformation. As in ICP: fit, assign again,
@@ -207,6 +211,24 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     _offset(priors))
         if change < o_w.convergence_rms_change:
             break
+        if repeats is not None:
+            # The same assignment as an earlier iteration: solving it again reaches the same
+            # state, so the loop would only cycle between assignments until max_iterations.
+            logger.info("iteration %d assigned as iteration %d did: the loop has converged",
+                        iteration, repeats)
+            break
+    else:
+        # Out of iterations without settling (a slow creep of the block along what the planes
+        # leave free): the best iterate by the block objective is the result, not the last.
+        if best is not None and best[2] is not None and last is not None \
+                and best[1] != iterations[-1].iteration:
+            warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
+                            f"iterations; iteration {best[1]}, the best by the block objective "
+                            f"({best[0]:.4f}), is the result")
+            logger.info(warnings[-1])
+            _, _, rec, assignment, current, offset = best
+            _restore_offset(priors, offset)
+            last = None
     bar.close()
     if diverged is not None and best is not None and best[2] is not None:
         _, _, rec, assignment, current, offset = best
@@ -228,6 +250,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
                       baselines=baselines, weights=weights)
+
+
+def _signature(assignment: Assignment) -> bytes:
+    return assignment.face_index.tobytes() + np.float64(assignment.threshold).tobytes()
 
 
 def offset_name(priors: GNSSPriors) -> str:
