@@ -238,38 +238,6 @@ class PlaneStore:
         R = self.rotations[faces]
         return np.einsum("ki,ki->k", D, R[:, :, 0]), np.einsum("ki,ki->k", D, R[:, :, 1])
 
-    def _pair_edges(self, faces: np.ndarray, u: np.ndarray, v: np.ndarray, chunk_edges: int):
-        """(face, 2D point) pairs x the ring edges of their face, in chunks of about
-        `chunk_edges` rows to bound memory: yields (start, stop, pair, first, x, y, au, av, bu,
-        bv) with rows grouped by pair (pair = index in the chunk, first = its first row)."""
-        E = self._edges2d()
-        n_edges = E["ptr"][faces + 1] - E["ptr"][faces]
-        ends = np.cumsum(n_edges)
-        start = 0
-        while start < len(faces):
-            stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk_edges))
-            stop = min(max(stop, start + 1), len(faces))
-            cnt = n_edges[start:stop]
-            pair = np.repeat(np.arange(stop - start), cnt)
-            first = np.cumsum(cnt) - cnt
-            edge = np.arange(len(pair)) - np.repeat(first, cnt) + np.repeat(
-                E["ptr"][faces[start:stop]], cnt
-            )
-            yield (start, stop, pair, first, u[start:stop][pair], v[start:stop][pair],
-                   E["au"][edge], E["av"][edge], E["bu"][edge], E["bv"][edge])
-            start = stop
-
-    @staticmethod
-    def _nearest_edge_squared(first, x, y, au, av, bu, bv) -> np.ndarray:
-        """Per pair (rows grouped from `first`), the squared distance to its nearest edge."""
-        du, dv = bu - au, bv - av
-        L2 = du * du + dv * dv
-        with np.errstate(divide="ignore", invalid="ignore"):
-            t = np.where(L2 > 0, ((x - au) * du + (y - av) * dv) / L2, 0.0)
-        t = np.clip(t, 0.0, 1.0)
-        d2 = (x - au - t * du) ** 2 + (y - av - t * dv) ** 2
-        return np.minimum.reduceat(d2, first) if len(d2) else d2
-
     def _inside_pairs(
         self, faces: np.ndarray, u: np.ndarray, v: np.ndarray, margin: float,
         chunk_edges: int = 4_000_000,
@@ -279,18 +247,42 @@ class PlaneStore:
         Crossing-number parity over all rings of the face (holes flip parity), OR distance to
         any ring edge <= margin. Vectorised over pairs x edges, in chunks to bound memory.
         """
+        E = self._edges2d()
         out = np.zeros(len(faces), dtype=bool)
-        for start, stop, pair, first, x, y, au, av, bu, bv in self._pair_edges(
-                faces, u, v, chunk_edges):
+        if len(faces) == 0:
+            return out
+        n_edges = E["ptr"][faces + 1] - E["ptr"][faces]
+        ends = np.cumsum(n_edges)
+        start = 0
+        while start < len(faces):
+            stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk_edges))
+            stop = max(stop, start + 1)
+            stop = min(stop, len(faces))
+            cnt = n_edges[start:stop]
+            pair = np.repeat(np.arange(stop - start), cnt)
+            first = np.cumsum(cnt) - cnt
+            edge = np.arange(len(pair)) - np.repeat(first, cnt) + np.repeat(
+                E["ptr"][faces[start:stop]], cnt
+            )
+            x, y = u[start:stop][pair], v[start:stop][pair]
+            au, av, bu, bv = E["au"][edge], E["av"][edge], E["bu"][edge], E["bv"][edge]
             straddle = (av > y) != (bv > y)
             with np.errstate(divide="ignore", invalid="ignore"):
                 xint = au + (bu - au) * (y - av) / (bv - av)
             cross = straddle & (x < xint)
-            inside = np.bincount(pair, cross, stop - start).astype(np.int64) % 2 == 1
+            parity = np.bincount(pair, cross, stop - start).astype(np.int64) % 2 == 1
+            inside = parity
             if margin > 0:
-                d2 = self._nearest_edge_squared(first, x, y, au, av, bu, bv)
-                inside = inside | (d2 <= margin * margin)
+                du, dv = bu - au, bv - av
+                L2 = du * du + dv * dv
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    t = np.where(L2 > 0, ((x - au) * du + (y - av) * dv) / L2, 0.0)
+                t = np.clip(t, 0.0, 1.0)
+                d2 = (x - au - t * du) ** 2 + (y - av - t * dv) ** 2
+                dmin = np.minimum.reduceat(d2, first) if len(d2) else d2
+                inside = inside | (dmin <= margin * margin)
             out[start:stop] = inside
+            start = stop
         return out
 
     def edge_distance(self, faces: np.ndarray, points_local: np.ndarray,
@@ -301,9 +293,32 @@ class PlaneStore:
         faces = np.asarray(faces, dtype=np.int64).reshape(-1)
         pts = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
         out = np.full(len(faces), np.inf)
+        if len(faces) == 0:
+            return out
         u, v = self._to_face_2d(faces, pts)
-        for start, stop, _, first, *rows in self._pair_edges(faces, u, v, chunk_edges):
-            out[start:stop] = np.sqrt(self._nearest_edge_squared(first, *rows))
+        E = self._edges2d()
+        n_edges = E["ptr"][faces + 1] - E["ptr"][faces]
+        ends = np.cumsum(n_edges)
+        start = 0
+        while start < len(faces):  # pairs x edges, in chunks to bound memory
+            stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk_edges))
+            stop = min(max(stop, start + 1), len(faces))
+            cnt = n_edges[start:stop]
+            pair = np.repeat(np.arange(stop - start), cnt)
+            first = np.cumsum(cnt) - cnt
+            edge = np.arange(len(pair)) - np.repeat(first, cnt) + np.repeat(
+                E["ptr"][faces[start:stop]], cnt)
+            x, y = u[start:stop][pair], v[start:stop][pair]
+            au, av, bu, bv = E["au"][edge], E["av"][edge], E["bu"][edge], E["bv"][edge]
+            du, dv = bu - au, bv - av
+            L2 = du * du + dv * dv
+            with np.errstate(divide="ignore", invalid="ignore"):
+                t = np.where(L2 > 0, ((x - au) * du + (y - av) * dv) / L2, 0.0)
+            t = np.clip(t, 0.0, 1.0)
+            d2 = (x - au - t * du) ** 2 + (y - av - t * dv) ** 2
+            if len(d2):
+                out[start:stop] = np.sqrt(np.minimum.reduceat(d2, first))
+            start = stop
         return out
 
     def contains_projection(
