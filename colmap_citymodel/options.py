@@ -47,13 +47,6 @@ class AssignmentOptions:
     """Planes with fewer assigned tie points get none (5 for a detailed model)."""
     planarity_threshold: float = 0.001
     """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
-    edge_band: float = 0.5
-    """Tie points whose projection lies within this distance (m) of a face's outline are edge
-    points. LOD2 leaves eaves, parapets, gutters and overhangs out, so a face with fewer than
-    `min_points_per_plane` points farther inside (a flat roof's edge seen from the street, a
-    wall seen edge-on) is kept only where faces seen inside their outline already fix the
-    direction of its normal; alone it would pull the block onto it by their height (a
-    parapet's top onto the roof plane). 0 turns the test off."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")

@@ -4,8 +4,6 @@ import numpy as np
 import pytest
 from conftest import box_store
 
-from colmap_citymodel.citymodel.build import store_from_polygons
-
 from colmap_citymodel.assign.assignment import Assignment, planarity
 from colmap_citymodel.assign.schedule import assign, next_threshold
 from colmap_citymodel.errors import InputError
@@ -52,58 +50,6 @@ def test_faces_with_too_few_points_or_collinear_points_are_rejected():
     assert result.rejected_faces == {"too_few_points": 1, "not_planar": 1}
     relaxed = AssignmentOptions(min_points_per_plane=5)
     assert assign(few, np.arange(10), store, 2.0, relaxed).num_assigned == 10
-
-
-def test_edge_distance_is_measured_in_the_face_plane_to_the_nearest_edge():
-    store = box_store()
-    top = int(np.argmax(store.normals[:, 2]))
-    points = np.array([[5.0, 0.3, 10.4],  # above the roof, 0.3 m inside its y = 0 edge
-                       [5.0, 5.0, 9.0],  # below its middle
-                       [12.0, 5.0, 10.0],  # 2 m outside its x = 10 edge
-                       [9.8, 0.1, 10.0]])  # in a corner: 0.1 m from the y = 0 edge
-    distance = store.edge_distance(np.full(4, top), points)
-    np.testing.assert_allclose(distance, [0.3, 5.0, 2.0, 0.1], atol=1e-9)
-
-
-def test_a_face_seen_only_along_its_outline_is_rejected():
-    """A flat roof seen from the street shows only its edge (parapets, eaves, gutters that
-    LOD2 leaves out): its points must not hold the block's height."""
-    rng = np.random.default_rng(5)
-    store = box_store()
-    top = int(np.argmax(store.normals[:, 2]))
-    n = 40
-    along_x = np.column_stack([rng.uniform(0.5, 9.5, n), rng.uniform(0.0, 0.3, n)])
-    along_y = np.column_stack([rng.uniform(9.7, 10.0, n), rng.uniform(0.5, 9.5, n)])
-    outline = np.vstack([along_x, along_y])  # an L along two edges: planar, not a line
-    outline = np.column_stack([outline, 10.3 + rng.normal(0, 0.02, 2 * n)])
-    result = assign(outline, np.arange(2 * n), store, 2.0, AssignmentOptions())
-    assert planarity(outline) > 0.01
-    assert result.num_assigned == 0 and result.rejected_faces == {"edge_only_alone": 1}
-    # the same number of points spread over the roof is assigned, and so is the outline
-    # with the test off
-    spread = np.column_stack([rng.uniform(0.5, 9.5, 2 * n), rng.uniform(0.5, 9.5, 2 * n),
-                              10.3 + rng.normal(0, 0.02, 2 * n)])
-    assert np.all(assign(spread, np.arange(2 * n), store, 2.0,
-                         AssignmentOptions()).face_index == top)
-    off = assign(outline, np.arange(2 * n), store, 2.0, AssignmentOptions(edge_band=0.0))
-    assert np.all(off.face_index == top)
-    # next to a sloped roof and a wall seen inside their outlines, which together fix the
-    # height, the outline of the flat roof is kept: it no longer sets the height alone
-    sloped = store_from_polygons(
-        [np.array([(0, 0, 10), (10, 0, 10), (10, 10, 10), (0, 10, 10)], float),
-         np.array([(0, -10, 5), (10, -10, 5), (10, 0, 10), (0, 0, 10)], float),
-         np.array([(0, -10, 0), (10, -10, 0), (10, -10, 5), (0, -10, 5)], float)],
-        origin=np.zeros(3), semantics=["RoofSurface", "RoofSurface", "WallSurface"])
-    u, w = rng.uniform(1, 9, 2 * n), rng.uniform(1, 9, 2 * n)
-    on_slope = np.column_stack([u, -w, 10 - w / 2]) + sloped.normals[1] * 0.02
-    on_wall = np.column_stack([u, np.full(2 * n, -10.02), w / 2])
-    three = assign(np.vstack([outline, on_slope, on_wall]), np.arange(6 * n), sloped, 2.0,
-                   AssignmentOptions())
-    assert three.num_faces == 3 and three.rejected_faces == {}
-    # the sloped roof alone leaves the height partly to the flat roof's outline: rejected
-    two = assign(np.vstack([outline, on_slope]), np.arange(4 * n), sloped, 2.0,
-                 AssignmentOptions())
-    assert two.num_faces == 1 and two.rejected_faces == {"edge_only_alone": 1}
 
 
 def test_planarity_measure():

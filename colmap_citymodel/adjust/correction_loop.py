@@ -135,8 +135,7 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         outliers = robust.point_ids[np.abs(robust.residuals["dTP"])
                                     > o_adj.elimination_threshold]
         assignment = assignment.without(np.isin(assignment.point_ids, outliers))
-        assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected,
-                                              current)
+        assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
         assignment.distance[assignment.face_index < 0] = np.nan
         assignment.rejected_faces = rejected
         last = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,

@@ -159,8 +159,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             normalised = robust.residuals["dTP"]
             outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
             assignment = assignment.without(np.isin(assignment.point_ids, outliers))
-            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected,
-                                                  current)
+            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
             assignment.distance[assignment.face_index < 0] = np.nan
             assignment.rejected_faces = rejected
             final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,

@@ -2,11 +2,9 @@
 
 Every method answers the same question: given the current tie point coordinates (local frame)
 and the plane store, which tie point belongs to which model face? At most one face per point
-per iteration. All methods finish with the same tests per face: a minimum number of points,
-a planarity test on the eigenvalues l1 >= l2 >= l3 of the assigned points' covariance,
-(l2 - l3) / l1 > threshold (rejects point sets close to a line), and a face seen only along
-its outline (`edge_band`) is kept only where faces seen inside their outline already fix its
-normal direction: alone, its eaves and parapets would set the block's position there.
+per iteration. All methods finish with the same two tests per face: a minimum number of points
+and a planarity test on the eigenvalues l1 >= l2 >= l3 of the assigned points' covariance,
+(l2 - l3) / l1 > threshold (rejects point sets close to a line).
 
 Methods, by `AssignmentOptions.method` (registered in `ASSIGNERS`):
 - "direct", (a): each point to its closest face within the threshold (here).
@@ -93,19 +91,10 @@ def planarity(points: np.ndarray) -> float:
 
 
 def filter_faces(points: np.ndarray, face_index: np.ndarray, options: AssignmentOptions,
-                 rejected: dict[str, int], store: PlaneStore | None = None) -> np.ndarray:
-    """Unassign the points of faces that fail the minimum-count or planarity test, and, given
-    the `store` the faces belong to, of faces seen only along their outline (fewer than the
-    minimum count farther than `edge_band` inside it) whose normal direction no face seen
-    inside its outline fixes (edge_only_alone)."""
+                 rejected: dict[str, int]) -> np.ndarray:
+    """Unassign the points of faces that fail the minimum-count or planarity test."""
     face_index = face_index.copy()
     faces, counts = np.unique(face_index[face_index >= 0], return_counts=True)
-    interior = None
-    if store is not None and options.edge_band > 0 and len(faces):
-        on = face_index >= 0
-        interior = np.zeros(len(face_index), bool)
-        interior[on] = store.edge_distance(face_index[on], points[on]) > options.edge_band
-    edge_only = []
     for face, count in zip(faces, counts):
         members = face_index == face
         if count < options.min_points_per_plane:
@@ -113,28 +102,10 @@ def filter_faces(points: np.ndarray, face_index: np.ndarray, options: Assignment
         elif planarity(points[members]) <= options.planarity_threshold:
             reason = "not_planar"
         else:
-            if (interior is not None
-                    and np.count_nonzero(interior[members]) < options.min_points_per_plane):
-                edge_only.append(int(face))
             continue
         face_index[members] = -1
         rejected[reason] = rejected.get(reason, 0) + 1
-    if edge_only:
-        kept = np.setdiff1d(np.unique(face_index[face_index >= 0]), edge_only)
-        for face in unsupported_directions(store.normals[kept], store.normals[edge_only]):
-            face_index[face_index == edge_only[face]] = -1
-            rejected["edge_only_alone"] = rejected.get("edge_only_alone", 0) + 1
     return face_index
-
-
-def unsupported_directions(normals: np.ndarray, candidates: np.ndarray,
-                           max_sigma: float = 2.0) -> np.ndarray:
-    """Indices of `candidates` (unit normals) along which the planes with `normals` fix a
-    translation only to more than `max_sigma` times what one plane along it does (each plane
-    one unit of information along its normal: its points share its generalisation error)."""
-    information = normals.T @ normals + 1e-9 * np.eye(3)
-    variance = np.einsum("ij,jk,ik->i", candidates, np.linalg.inv(information), candidates)
-    return np.flatnonzero(variance > max_sigma ** 2)
 
 
 def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:

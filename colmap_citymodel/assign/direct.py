@@ -25,7 +25,7 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     if len(excluded):
         face_index = np.where(np.isin(face_index, excluded), -1, face_index)
     rejected: dict[str, int] = {}
-    face_index = filter_faces(points, face_index, options, rejected, store)
+    face_index = filter_faces(points, face_index, options, rejected)
     distance = np.where(face_index >= 0, distance, np.nan)
     return Assignment(np.asarray(point_ids, dtype=np.int64), face_index, distance, threshold,
                       rejected)

@@ -185,7 +185,7 @@ def match_planes(planes: list[ExtractedPlane], store: PlaneStore, threshold: flo
 def _finish(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, face_index: np.ndarray,
             threshold: float, options: AssignmentOptions, rejected: dict[str, int],
             method: str) -> Assignment:
-    face_index = filter_faces(points, face_index, options, rejected, store)
+    face_index = filter_faces(points, face_index, options, rejected)
     distance = np.full(len(points), np.nan)
     on = face_index >= 0
     distance[on] = (np.einsum("ij,ij->i", points[on], store.normals[face_index[on]])

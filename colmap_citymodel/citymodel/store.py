@@ -285,42 +285,6 @@ class PlaneStore:
             start = stop
         return out
 
-    def edge_distance(self, faces: np.ndarray, points_local: np.ndarray,
-                      chunk_edges: int = 4_000_000) -> np.ndarray:
-        """(P,) distance (m, in the face's plane) from the orthogonal projection of each point
-        onto the plane of `faces[i]` to the nearest edge of that face's rings (outline or hole),
-        wherever the projection lies."""
-        faces = np.asarray(faces, dtype=np.int64).reshape(-1)
-        pts = np.asarray(points_local, dtype=np.float64).reshape(-1, 3)
-        out = np.full(len(faces), np.inf)
-        if len(faces) == 0:
-            return out
-        u, v = self._to_face_2d(faces, pts)
-        E = self._edges2d()
-        n_edges = E["ptr"][faces + 1] - E["ptr"][faces]
-        ends = np.cumsum(n_edges)
-        start = 0
-        while start < len(faces):  # pairs x edges, in chunks to bound memory
-            stop = int(np.searchsorted(ends, (ends[start - 1] if start else 0) + chunk_edges))
-            stop = min(max(stop, start + 1), len(faces))
-            cnt = n_edges[start:stop]
-            pair = np.repeat(np.arange(stop - start), cnt)
-            first = np.cumsum(cnt) - cnt
-            edge = np.arange(len(pair)) - np.repeat(first, cnt) + np.repeat(
-                E["ptr"][faces[start:stop]], cnt)
-            x, y = u[start:stop][pair], v[start:stop][pair]
-            au, av, bu, bv = E["au"][edge], E["av"][edge], E["bu"][edge], E["bv"][edge]
-            du, dv = bu - au, bv - av
-            L2 = du * du + dv * dv
-            with np.errstate(divide="ignore", invalid="ignore"):
-                t = np.where(L2 > 0, ((x - au) * du + (y - av) * dv) / L2, 0.0)
-            t = np.clip(t, 0.0, 1.0)
-            d2 = (x - au - t * du) ** 2 + (y - av - t * dv) ** 2
-            if len(d2):
-                out[start:stop] = np.sqrt(np.minimum.reduceat(d2, first))
-            start = stop
-        return out
-
     def contains_projection(
         self, face: int, points_local: np.ndarray, margin: float = 0.0
     ) -> np.ndarray:
