@@ -91,6 +91,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
     diverged = None
     seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
+    keep_best = False  # out of iterations: the best iterate, not the last, is the result
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
@@ -101,8 +102,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
-        repeats = seen.get(_signature(assignment))
-        seen.setdefault(_signature(assignment), iteration)
+        signature = _signature(assignment)
+        repeats = seen.get(signature)
+        seen.setdefault(signature, iteration)
         if iteration == 0 and assignment.num_assigned:
             # Initial values: move the block as a whole onto its planes first, so that the
             # adjustment is left with the block's deformation. As in ICP: fit, assign again,
@@ -225,11 +227,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                             f"iterations; iteration {best[1]}, the best by the block objective "
                             f"({best[0]:.4f}), is the result")
             logger.info(warnings[-1])
-            _, _, rec, assignment, current, offset = best
-            _restore_offset(priors, offset)
-            last = None
+            keep_best = True
     bar.close()
-    if diverged is not None and best is not None and best[2] is not None:
+    if (diverged is not None or keep_best) and best is not None and best[2] is not None:
         _, _, rec, assignment, current, offset = best
         _restore_offset(priors, offset)
         last = None
