@@ -14,7 +14,7 @@ from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.precision.quality import QualityThresholds, quality_verdict
+from colmap_citymodel.precision.quality import QualityThresholds, gnss_axis_shifts, quality_verdict
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors, make_street_scene
 from colmap_citymodel.workflow import refine
 
@@ -145,6 +145,14 @@ def test_a_height_on_one_roof_is_flagged_and_only_as_precise_as_gnss():
     assert height["sigma"] == pytest.approx(5.0 / np.sqrt(30), rel=0.05)
 
 
+def test_only_directions_left_to_gnss_are_compared_with_gnss():
+    rows = {"E": {"source": "planes", "sigma_gnss": 0.5},
+            "N": {"source": "gnss", "one_plane": False, "sigma_gnss": 0.5},
+            "U": {"source": "gnss", "one_plane": True, "sigma_gnss": 0.8}}
+    shifts = gnss_axis_shifts(np.array([2.0, -1.0, 4.0]), rows)
+    assert shifts == {"N": pytest.approx(2.0)}  # E: the planes' own; U: a roof may move it
+
+
 def test_verdict_rules():
     good = {"assigned_share": 0.6, "near_share": 0.8, "near_share_gnss_only": 0.1,
             "shift_m": 4.0, "shift_sigmas": 1.5, "planes_fix": ["E", "N", "U"]}
@@ -166,6 +174,11 @@ def test_verdict_rules():
     scaled = {**good, "scale_change": -0.04, "scale_change_sigmas": 4.0}
     assert quality_verdict({**scaled, "planes_fix": ["E", "N", "U", "scale"]}).verdict == "ok"
     assert quality_verdict(scaled).verdict == "failed"
+    # A direction only GNSS fixes, moved several of its sigmas: not by GNSS.
+    free_u = {**good, "planes_fix": ["E", "N"], "shift_enu_m": [0.1, 0.2, 3.0]}
+    assert quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 1.0}}).verdict == "weak"
+    moved = quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 6.0}})
+    assert moved.verdict == "failed" and "3.00 m in U" in moved.reasons[0]
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"

@@ -32,6 +32,15 @@ class QualityThresholds:
     position is not known better than one GNSS sigma."""
     shift_failed: float = 4.5
     """Above this the model has pulled the block further than any plausible GNSS error."""
+    gnss_axis_weak: float = 3.0
+    """Shift from the GNSS-only result along E, N or U, in units of that direction's GNSS
+    sigma (observability's sigma_gnss: the sigma of the block's mean position from GNSS), above
+    which a direction the planes leave to GNSS counts as moved by something else: a wrong
+    assignment pulling through the other parameters; weak. Nothing but GNSS determines such
+    a direction, so refined and GNSS-only blocks agree there to within that sigma."""
+    gnss_axis_failed: float = 5.0
+    """The same, failed: the block has been moved where GNSS alone decides, further than GNSS
+    can have put it; the GNSS-only result is the better one there."""
     scale_failed_sigmas: float = 5.0
     """Scale change from the GNSS-only result beyond this many of its GNSS sigmas: failed."""
     scale_gnss_sigmas: float = 3.0
@@ -90,6 +99,17 @@ def gnss_scatter(observed: np.ndarray, positions: np.ndarray, sigmas: np.ndarray
     return float(np.sqrt(np.mean((v - v.mean(0)) ** 2)))
 
 
+def gnss_axis_shifts(mean_shift: np.ndarray, observability_dict: dict) -> dict[str, float]:
+    """|shift| / sigma_gnss along each of E, N, U that GNSS alone fixes (source "gnss", not
+    resting on a single plane, which may move it legitimately)."""
+    out = {}
+    for k, axis in enumerate("ENU"):
+        row = observability_dict.get(axis, {})
+        if row.get("source") == "gnss" and not row.get("one_plane") and row.get("sigma_gnss"):
+            out[axis] = float(abs(mean_shift[k]) / row["sigma_gnss"])
+    return out
+
+
 def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                     ) -> QualityReport:
     """Verdict from the figures refine measured (keys as written by workflow.measure_quality)."""
@@ -110,6 +130,12 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
         elif shift > t.shift_ok:
             weak.append(f"the model moved the cameras {metrics['shift_m']:.1f} m "
                         f"({shift:.1f} GNSS sigma) from the GNSS-only result")
+    for axis, sigmas in (metrics.get("gnss_axis_shift_sigmas") or {}).items():
+        if sigmas > t.gnss_axis_weak:
+            (failed if sigmas > t.gnss_axis_failed else weak).append(
+                f"the cameras moved {abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in "
+                f"{axis} ({sigmas:.1f} sigma of GNSS there) from the GNSS-only result, although "
+                "only GNSS fixes that direction")
     scale = metrics.get("scale_change_sigmas")
     scale_by_gnss = fixed is not None and "scale" not in fixed
     if scale is not None and (scale > t.scale_failed_sigmas
@@ -203,6 +229,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["shift_m"] = float(np.linalg.norm(mean_shift))
         metrics["shift_enu_m"] = mean_shift.tolist()
         metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
+        metrics["gnss_axis_shift_sigmas"] = gnss_axis_shifts(mean_shift, observability_dict)
         if scale_sigma:
             change = scale_change(gnss_only, rec, ids)
             metrics["scale_change"] = change
