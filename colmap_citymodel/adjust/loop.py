@@ -8,6 +8,10 @@ never change; the threshold never grows (no flip-flop between two assignments). 
 assignment is followed by similarity rounds that move the whole block onto its planes. A solve
 that changes the scale further than GNSS allows is undone and the scale held from then on; a
 solve that moves the block away from the model ends the loop at the best iterate.
+
+The non-robust problem of one iteration is kept for the next where the set of planes and the
+priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
+plane); an assignment equal to the one the last solve used ends the loop without a solve.
 """
 
 from __future__ import annotations
