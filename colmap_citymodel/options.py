@@ -348,6 +348,12 @@ class WorkflowOptions:
     roll) is searched within +- this many GNSS sigmas of the GNSS-only position: GNSS errors
     are mostly a bias of metres that a 2 m assignment threshold cannot bridge
     (align.coarse). 0 switches the search off."""
+    reuse_problem: bool = True
+    """Keep one hybrid problem across the assign/adjust iterations: only the f_dTP blocks of
+    tie points whose plane changed are exchanged (HybridProblem.reassign); a new problem is
+    built when the set of planes, the loss or the priors change. An iteration whose
+    assignment is the one the last solve used ends the loop without solving it again. False:
+    a new problem every iteration (the same solution, set-up repeated)."""
     divergence_tolerance: float = 0.05
     """An iteration whose block objective (share of tie points off the model plus GNSS
     residuals; workflow.BlockObjective) is worse than the best iterate's by more than this

@@ -8,6 +8,10 @@ never change; the threshold never grows (no flip-flop between two assignments). 
 assignment is followed by similarity rounds that move the whole block onto its planes. A solve
 that changes the scale further than GNSS allows is undone and the scale held from then on; a
 solve that moves the block away from the model ends the loop at the best iterate.
+
+The non-robust problem of one iteration is kept for the next where the set of planes and the
+priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
+plane); an assignment equal to the one the last solve used ends the loop without a solve.
 """
 
 from __future__ import annotations
@@ -92,6 +96,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     diverged = None
     seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
+    # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem)
+    # with the signature of the assignment it solved.
+    reusable: HybridProblem | None = None
+    solved = None
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
@@ -103,6 +111,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                                                       o_adj.sigma_dtp))
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
         signature = _signature(assignment)
+        if o_w.reuse_problem and signature == solved and last is not None:
+            # The assignment the last solve used: solving it again would start at its
+            # solution. The loop has converged.
+            logger.info("iteration %d assigned as iteration %d, whose solution a solve would "
+                        "repeat: the loop has converged", iteration, iterations[-1].iteration)
+            seconds["assignment"] += time.perf_counter() - t0
+            break
         repeats = seen.get(signature)
         seen.setdefault(signature, iteration)
         if iteration == 0 and assignment.num_assigned:
@@ -145,9 +160,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if iteration > 0:
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
-            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=current, baselines=baselines,
-                             pose_priors=pose_priors)
+            final = _final_problem(reusable, rec, store, assignment, priors, o_adj, current,
+                                   baselines, pose_priors)
             final_report = final.solve()
             normalised = final.residuals["dTP"]
             needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
@@ -164,13 +178,15 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
             assignment.distance[assignment.face_index < 0] = np.nan
             assignment.rejected_faces = rejected
-            final = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                  robust_planes=False, current=model_after_solve(current, robust),
-                                  baselines=baselines, pose_priors=pose_priors)
+            final = _final_problem(reusable if iteration > 0 else None, rec, store, assignment,
+                                   priors, o_adj, model_after_solve(current, robust), baselines,
+                                   pose_priors)
             final_report = final.solve()
         seconds["hybrid_solves"] += time.perf_counter() - t1
         current = model_after_solve(current, final)
         last = final
+        reusable = final if o_w.reuse_problem else None
+        solved = _signature(assignment)
         if before_solve is not None:
             change = scale_change(gnss_only, rec, priors.image_ids)
             if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
@@ -180,7 +196,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma)
-                last = None
+                last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
 
         rms = final_report.rms_total
@@ -249,6 +265,21 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
                       baselines=baselines, weights=weights)
+
+
+def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
+                   store: PlaneStore, assignment: Assignment, priors: GNSSPriors | None,
+                   options, current: PlaneStore, baselines: BaselinePriors | None,
+                   pose_priors: PosePriors | None) -> HybridProblem:
+    """The non-robust hybrid problem of `assignment`: `reusable` with its f_dTP blocks
+    exchanged where it can be (same planes and priors), else a new one."""
+    if reusable is not None and reusable.reconstruction is rec and reusable.reassign(
+            assignment, current, baselines=baselines, pose_priors=pose_priors):
+        logger.debug("hybrid problem kept: %d f_dTP blocks exchanged", reusable.exchanged)
+        return reusable
+    return HybridProblem(rec, store, assignment, priors, options, robust_images=False,
+                         robust_planes=False, current=current, baselines=baselines,
+                         pose_priors=pose_priors)
 
 
 def _signature(assignment: Assignment) -> bytes:

@@ -27,9 +27,11 @@ weights stay right for another sigma_image, our cost functions get their sigmas 
 sigma_image (the whole objective is then scaled by sigma_image^2, which moves no minimum), and
 `group_residuals` divides every group by sigma_image.
 
-Residual order in the problem is the order of addition (nothing is ever removed), which lets
+Residual order in the problem is the order of addition, group by group (`GROUPS`), which lets
 `group_residuals` split `evaluate_residuals` into the observation groups without bookkeeping
-inside Ceres.
+inside Ceres. f_dTP comes last: `reassign` removes and adds only the f_dTP blocks of tie points
+whose plane changed, and Ceres fills a removed block's place with the last block, which is then
+always another f_dTP block (the problem mirrors that order in `point_ids`).
 """
 
 from __future__ import annotations
@@ -57,8 +59,12 @@ logger = logging.getLogger(__name__)
 #: hold the block's scale where the planes do not determine it (BaselinePriors; else empty).
 #: "offset": the prior of the GNSS offset (GNSSPriors.offset_prior_sigma; else empty).
 #: "pose": the poses of images held from the previous window of a sliding-window adjustment
-#: (PosePriors; else empty).
-GROUPS = ("image", "gnss", "dTP", "dVT", "VT", "gen", "scale", "offset", "pose")
+#: (PosePriors; else empty). "dTP" is last so that its blocks can be exchanged (`reassign`).
+GROUPS = ("image", "gnss", "dVT", "VT", "gen", "scale", "offset", "pose", "dTP")
+
+#: `reassign` rebuilds nothing up to this many changed f_dTP blocks; beyond it the caller
+#: builds a new problem (each removal scans Ceres's residual blocks: O(changes x residuals)).
+MAX_REASSIGNED = 2000
 
 
 @dataclass
@@ -247,6 +253,9 @@ class HybridProblem:
             bundle_adjustment_options(options, robust_images), config, reconstruction)
         self.problem: pyceres.Problem = self.adjuster.problem
         self.counts = {"image": self.problem.num_residuals()}
+        self.robust_planes = robust_planes
+        self.baselines = baselines
+        self.pose_priors = pose_priors
         self.point_ids = np.zeros(0, np.int64)
         self.point_faces = np.zeros(0, np.int64)  # the face of each f_dTP row
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
@@ -265,6 +274,8 @@ class HybridProblem:
         self._add_baselines(core, baselines)
         self._add_offset_prior(core, gnss)
         self._add_pose_priors(core, pose_priors)
+        if with_model:
+            self._add_tie_distances()
 
     def _add_pose_priors(self, core, priors: PosePriors | None) -> None:
         """Group "pose" (last): three rig points of each held frame at their held positions."""
@@ -390,23 +401,19 @@ class HybridProblem:
                 blocks.generalisation.append(np.zeros(1, dtype=np.float64))
                 problem.add_parameter_block(blocks.generalisation[-1], 1)
 
-        # f_dTP: one residual per assigned tie point, in the order of `point_ids`.
+        # f_dTP (added last, `_add_tie_distances`): one residual per assigned tie point, in
+        # the order of `point_ids`.
         tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
                        else core.PointPlaneDistanceCost)
-        tie_costs = [tie_factory(o.sigma_dtp / o.sigma_image, r) for r in blocks.references]
-        tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
+        self._tie_costs = [tie_factory(o.sigma_dtp / o.sigma_image, r)
+                           for r in blocks.references]
+        self._tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
+        self._with_offsets = with_offsets
+        self._slot_of_face = slot_of_face
         assigned = assignment.assigned
-        self.point_ids = assignment.point_ids[assigned]
-        point_faces = assignment.face_index[assigned]
-        self.point_faces = np.asarray(point_faces, np.int64)
+        self.point_ids = np.asarray(assignment.point_ids[assigned], np.int64)
+        self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
         rec = self.reconstruction
-        for point_id, face in zip(self.point_ids, point_faces):
-            k = slot_of_face[int(face)]
-            problem.add_residual_block(tie_costs[k], tie_loss,
-                                       [rec.point3D(int(point_id)).xyz, blocks.normals[k],
-                                        blocks.offsets[k]]
-                                       + ([blocks.generalisation[k]] if with_offsets else []))
-        self.counts["dTP"] = len(self.point_ids)
 
         # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
         vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
@@ -480,6 +487,81 @@ class HybridProblem:
                 problem.add_residual_block(prior, None, [block])
         self.counts["gen"] = len(blocks.generalisation)
         self.blocks = blocks
+
+    def _add_tie_block(self, point_id: int, face: int):
+        k = self._slot_of_face[face]
+        blocks = self.blocks
+        return self.problem.add_residual_block(
+            self._tie_costs[k], self._tie_loss,
+            [self.reconstruction.point3D(point_id).xyz, blocks.normals[k], blocks.offsets[k]]
+            + ([blocks.generalisation[k]] if self._with_offsets else []))
+
+    def _add_tie_distances(self) -> None:
+        """Group "dTP" (last): one block per assigned tie point, in the order of `point_ids`."""
+        self._tie_blocks = [self._add_tie_block(int(i), int(f))
+                            for i, f in zip(self.point_ids, self.point_faces)]
+        self.counts["dTP"] = len(self.point_ids)
+
+    def reassign(self, assignment: Assignment, current: PlaneStore, *,
+                 robust_planes: bool = False, baselines: BaselinePriors | None = None,
+                 pose_priors: PosePriors | None = None) -> bool:
+        """Make this problem the one `HybridProblem(..., assignment, current=current)` would
+        build, in place: the f_dTP blocks of the tie points whose plane changed are removed
+        and added, the model unknowns are set to `current`; image, GNSS and model blocks stay.
+        Poses and tie points are the reconstruction's own (already current). Returns False,
+        changing nothing, where that is not possible: another set of planes, another loss or
+        other priors, a problem that releases the model, or more than `MAX_REASSIGNED`
+        changes (build a new problem then)."""
+        if (self.releases_model or not self.counts.get("dTP") or not hasattr(self, "_tie_blocks")
+                or robust_planes != self.robust_planes or baselines is not self.baselines
+                or pose_priors is not self.pose_priors
+                or not np.array_equal(assignment.faces, self.blocks.faces)):
+            return False
+        assigned = assignment.assigned
+        new_ids = np.asarray(assignment.point_ids[assigned], np.int64)
+        new_faces = np.asarray(assignment.face_index[assigned], np.int64)
+        # Blocks that stay: the same tie point on the same plane (point ids are unique).
+        stays = np.zeros(len(self.point_ids), bool)
+        match = np.zeros(len(self.point_ids), np.int64)
+        if len(new_ids):
+            order = np.argsort(new_ids, kind="stable")
+            at = np.searchsorted(new_ids[order], self.point_ids)
+            match = order[np.minimum(at, len(new_ids) - 1)]
+            stays = (new_ids[match] == self.point_ids) & (new_faces[match] == self.point_faces)
+        removed = np.flatnonzero(~stays)
+        kept = np.zeros(len(new_ids), bool)
+        kept[match[stays]] = True
+        added = np.flatnonzero(~kept)
+        if len(removed) + len(added) > MAX_REASSIGNED:
+            return False
+        ids, faces, blocks = list(self.point_ids), list(self.point_faces), self._tie_blocks
+        # Ceres puts the last block where one is removed: mirror that, from the highest
+        # position down, so that every position still refers to the block it held.
+        for j in removed[::-1]:
+            self.problem.remove_residual_block(blocks[j])
+            ids[j], faces[j], blocks[j] = ids[-1], faces[-1], blocks[-1]
+            ids.pop(), faces.pop(), blocks.pop()
+        for j in added:
+            blocks.append(self._add_tie_block(int(new_ids[j]), int(new_faces[j])))
+            ids.append(new_ids[j])
+            faces.append(new_faces[j])
+        self.point_ids = np.asarray(ids, np.int64)
+        self.point_faces = np.asarray(faces, np.int64)
+        self.counts["dTP"] = len(self.point_ids)
+        self.exchanged = len(removed) + len(added)
+        self._set_model(current)
+        return True
+
+    def _set_model(self, current: PlaneStore) -> None:
+        """The model unknowns from `current` (same topology), as a new problem starts them."""
+        blocks = self.blocks
+        for k, f in enumerate(blocks.faces):
+            blocks.normals[k][:] = current.normals[f]
+            blocks.offsets[k][:] = current.offsets[f] + current.normals[f] @ blocks.references[k]
+        for vertex, v in zip(blocks.vertices, blocks.vertex_ids):
+            vertex[:] = current.vertices[v]
+        for offset in blocks.generalisation:
+            offset[:] = 0.0
 
     # -- solving ----------------------------------------------------------------------------
     def num_unknowns(self) -> int:

@@ -410,7 +410,7 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     if not len(faces) or not problem.counts["dTP"]:
         return GeneralisationEffects(faces, np.zeros((cof.layout.num_c, 0)),
                                      np.zeros((num_points, 3, 3)), float(sigma or 0.0), prior)
-    first = problem.counts["image"] + problem.counts["gnss"]
+    first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("dTP")])
     slot = {int(f): k for k, f in enumerate(faces)}
     rows = first + np.arange(len(problem.point_faces))
     columns = np.array([slot[int(f)] for f in problem.point_faces], np.int64)

@@ -1,0 +1,171 @@
+"""Refine against COLMAP's bundle adjustment as the block grows: 250 to 2,000 images.
+
+The blocks are `simulate.synthetic` street scenes (two rows of LOD2 buildings, a UAV flying
+along the street with a left, a right and a forward camera per station, tie points on the true
+facades and roofs with relief and clutter the model lacks, image noise 0.5 px, GNSS with a bias
+of metres). Every size has the same street density (2 m between stations, one tie point per
+square metre of visible surface); only the street's length grows with the number of images.
+
+COLMAP's mapper is skipped: the "SfM" input is the true block bent by a smooth drift
+(z += drift x^2, the bend at the far end `--bend` of the street length, default 0.5 %), moved
+into an arbitrary similarity frame, with the noisy image observations and the tie points at
+their bent (not re-triangulated) positions. Neither it nor refine's input is a bundle
+adjustment optimum, so both adjustments below start from the same unconverged state.
+
+Each size runs in its own process (peak memory per size, nothing cached between sizes) and
+prints, on copies of the same input:
+- colmap_ba_s: COLMAP's bundle adjustment with its defaults (`pycolmap.bundle_adjustment`
+  with default BundleAdjustmentOptions = `colmap bundle_adjuster`), one run;
+- refine_s: refine() as the CLI runs it (covariances off: the precision step is timed by
+  bench_precision.py), and refine_ratio = refine_s / colmap_ba_s;
+- peak_rss_mb: the process's peak resident memory (ru_maxrss) at the end, and scene_rss_mb,
+  its peak after synthesising the scene (before either adjustment);
+- the refine's iterations and seconds per stage, the camera centre RMS against the truth (m),
+  the verdict, and the machine's load average.
+
+    .venv/bin/python benchmarks/bench_scale.py [--sizes 250 500 1000 2000] [--results FILE]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+SIZES = (250, 500, 1000, 2000)
+IMAGES_PER_STATION = 3  # left, right, forward (simulate.synthetic)
+
+
+def peak_rss_mb() -> float:
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
+
+
+def run_size(num_images: int, bend: float, seed: int) -> dict:
+    """One size, in this process: synthesise, COLMAP's BA, refine. Returns the figures."""
+    import logging
+
+    import numpy as np
+    import pycolmap
+
+    from colmap_citymodel import logger
+    from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.simulate.synthetic import (
+        StreetSceneOptions,
+        centre_errors,
+        make_street_scene,
+    )
+    from colmap_citymodel.workflow import refine
+
+    logger.setLevel(logging.WARNING)
+    stations = num_images // IMAGES_PER_STATION
+    options = StreetSceneOptions(num_stations=stations, seed=seed)
+    length = stations * options.station_spacing
+    options.drift = bend / length  # z += drift x^2 reaches bend * length at the far end
+    t = time.perf_counter()
+    scene = make_street_scene(options)
+    scene_s = time.perf_counter() - t
+    sfm = scene.sfm
+    figures = {
+        "images": sfm.num_reg_images(), "tie_points": sfm.num_points3D(),
+        "observations": sfm.compute_num_observations(), "faces": len(scene.store.faces),
+        "street_m": length, "scene_s": scene_s, "scene_rss_mb": peak_rss_mb(),
+    }
+
+    plain = pycolmap.Reconstruction(sfm)
+    t = time.perf_counter()
+    pycolmap.bundle_adjustment(plain, pycolmap.BundleAdjustmentOptions())
+    figures["colmap_ba_s"] = time.perf_counter() - t
+    del plain
+
+    refine_options = RefineOptions()
+    refine_options.precision.covariances = "off"
+    t, c = time.perf_counter(), time.process_time()
+    result = refine(sfm, scene.store, scene.gnss(), refine_options, progress=False)
+    figures["refine_s"] = time.perf_counter() - t
+    figures["refine_cpu_s"] = time.process_time() - c
+    figures["refine_ratio"] = figures["refine_s"] / figures["colmap_ba_s"]
+    figures["iterations"] = len(result.iterations)
+    figures["stages_s"] = {k: round(v, 2) for k, v in result.seconds.items()}
+    truth = pycolmap.Reconstruction(scene.truth)
+    truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), scene.store.origin))
+    errors = centre_errors(result.reconstruction_in_crs(), truth)
+    figures["camera_rms_m"] = float(np.sqrt(np.mean(errors ** 2)))
+    figures["verdict"] = result.quality.verdict if result.quality is not None else "n/a"
+    figures["assigned_points"] = int(result.assignment.num_assigned)
+    figures["planes"] = int(result.assignment.num_faces)
+    figures["peak_rss_mb"] = peak_rss_mb()
+    figures["load"] = os.getloadavg()
+    return figures
+
+
+def line(r: dict) -> str:
+    return (f"{r['images']} images ({r['street_m']:.0f} m of street, {r['tie_points']} tie "
+            f"points, {r['observations']} observations): colmap_ba_s {r['colmap_ba_s']:.1f} "
+            f"refine_s {r['refine_s']:.1f} refine_ratio {r['refine_ratio']:.3f} peak_rss_mb "
+            f"{r['peak_rss_mb']:.0f} (after the scene {r['scene_rss_mb']:.0f}); "
+            f"{r['iterations']} iterations, stages {r['stages_s']}, camera centres "
+            f"{r['camera_rms_m']:.3f} m, verdict {r['verdict']}, load "
+            f"{' '.join(f'{v:.1f}' for v in r['load'])}")
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| images | tie points | observations | colmap_ba_s | refine_s | refine_ratio | "
+           "peak_rss_mb | iterations | camera centre RMS m | verdict | load (1/5/15 min) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        out.append(f"| {r['images']} | {r['tie_points']} | {r['observations']} | "
+                   f"{r['colmap_ba_s']:.1f} | {r['refine_s']:.1f} | {r['refine_ratio']:.3f} | "
+                   f"{r['peak_rss_mb']:.0f} | {r['iterations']} | {r['camera_rms_m']:.3f} | "
+                   f"{r['verdict']} | {' / '.join(f'{v:.1f}' for v in r['load'])} |")
+    return "\n".join(out) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__,
+                                     formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--sizes", type=int, nargs="+", default=list(SIZES),
+                        help="numbers of images (default 250 500 1000 2000)")
+    parser.add_argument("--bend", type=float, default=0.005,
+                        help="the drift's bend at the far end, relative to the street length")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--results", type=Path, help="write the table to this markdown file")
+    parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child process's size
+    args = parser.parse_args()
+    if args.one is not None:
+        print("RESULT " + json.dumps(run_size(args.one, args.bend, args.seed)), flush=True)
+        return
+
+    from bench_refine import code_version
+
+    version = code_version()
+    print(f"code {version}")
+    rows = []
+    for size in args.sizes:
+        child = subprocess.run(
+            [sys.executable, __file__, "--one", str(size), "--bend", str(args.bend),
+             "--seed", str(args.seed)], capture_output=True, text=True)
+        found = [ln for ln in child.stdout.splitlines() if ln.startswith("RESULT ")]
+        if child.returncode or not found:
+            print(f"{size} images: failed (exit {child.returncode})\n{child.stderr[-3000:]}")
+            continue
+        rows.append(json.loads(found[-1][len("RESULT "):]))
+        print(line(rows[-1]), flush=True)
+    print(table(rows))
+    for r in rows:
+        print(f"images {r['images']} colmap_ba_s {r['colmap_ba_s']:.3f} refine_s "
+              f"{r['refine_s']:.3f} refine_ratio {r['refine_ratio']:.3f} peak_rss_mb "
+              f"{r['peak_rss_mb']:.0f}")
+    if args.results is not None:
+        args.results.parent.mkdir(parents=True, exist_ok=True)
+        args.results.write_text(f"code {version}, `benchmarks/bench_scale.py --sizes "
+                                f"{' '.join(map(str, args.sizes))}`\n\n" + table(rows))
+        print(f"wrote {args.results}")
+
+
+if __name__ == "__main__":
+    main()
