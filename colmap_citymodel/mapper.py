@@ -360,11 +360,16 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         pipeline.image_path = str(image_path)
     else:
         pipeline.extract_colors = False
-    with pycolmap.Database.open(str(database_path)) as db:
-        cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions(
-            min_num_matches=pipeline.min_num_matches,
-            ignore_watermarks=pipeline.ignore_watermarks,
-            image_names=set(pipeline.image_names)))
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 1)  # COLMAP's per-image log lines
+    try:
+        with pycolmap.Database.open(str(database_path)) as db:
+            cache = pycolmap.DatabaseCache.create(db, pycolmap.DatabaseCacheOptions(
+                min_num_matches=pipeline.min_num_matches,
+                ignore_watermarks=pipeline.ignore_watermarks,
+                image_names=set(pipeline.image_names)))
+    finally:
+        pycolmap.logging.minloglevel = level
     num_images = cache.num_images()
     if num_images < 2:
         raise InputError(f"the database {database_path} holds {num_images} image(s) with "
@@ -385,8 +390,7 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         bar.refresh()
 
     warnings: list[str] = []
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(level, 1)  # COLMAP's per-image log lines
+    pycolmap.logging.minloglevel = max(level, 1)
     rec = None
     try:
         for _ in range(pipeline.init_num_trials):
@@ -487,6 +491,20 @@ def _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show) -> 
     return "ok"
 
 
+def refine_mapped(mapped: MappedBlock, store: PlaneStore, gnss, options: RefineOptions, *,
+                  initial_transform: pycolmap.Sim3d | None = None, **kwargs) -> RefineResult:
+    """refine's final adjustment, quality gate and precision on the mapped block. A block
+    georegistered during mapping is already in the model's local frame and on the model:
+    refine starts there (its georegistration is that frame's shift to the CRS, no GNSS fit and
+    no coarse search again). The other keyword arguments are workflow.refine's."""
+    if mapped.georegistered and initial_transform is None:
+        initial_transform = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), store.origin)
+    result = refine(mapped.reconstruction, store, gnss, options,
+                    initial_transform=initial_transform, **kwargs)
+    result.warnings += mapped.warnings
+    return result
+
+
 # -- the command -------------------------------------------------------------------------------
 
 def main(database_path, image_path, citymodel, output_path, *, output_type="bin",
@@ -536,15 +554,10 @@ def main(database_path, image_path, citymodel, output_path, *, output_type="bin"
           f"images in {mapped.seconds:.0f} s: {len(mapped.adjustments)} global adjustments, "
           f"{mapped.num_hybrid} of them with the model"
           + (f" (from {mapped.georegistered_at} images on)" if mapped.georegistered else ""))
-    # The mapped block is in the model's local frame once georegistered: refine starts there.
-    initial = read.initial_transform
-    if mapped.georegistered and initial is None:
-        initial = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), read.store.origin)
-    result = refine(mapped.reconstruction, read.store, read.observations, read.options,
-                    initial_transform=initial, progress=progress,
-                    checkpoints=read.checkpoints,
-                    checkpoint_observations=read.checkpoint_observations)
-    result.warnings += mapped.warnings
+    result = refine_mapped(mapped, read.store, read.observations, read.options,
+                           initial_transform=read.initial_transform, progress=progress,
+                           checkpoints=read.checkpoints,
+                           checkpoint_observations=read.checkpoint_observations)
     write_outputs(result, output_path, read, output_type=output_type,
                   output_frame=output_frame, lod=lod, model_crs=model_crs, what="mapped")
     return result, mapped
