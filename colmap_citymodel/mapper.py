@@ -526,13 +526,16 @@ def main(database_path, image_path, citymodel, output_path, *, output_type="bin"
                                 num_threads=kwargs.get("num_threads"))
     extraction = parse_option_values(extraction_options, "--extraction_options")
     matching = parse_option_values(matching_options, "--matching_options")
+    images, with_keypoints, pairs = database_state(database_path)
+    if with_keypoints == 0 and not image_path.is_dir():  # before reading anything else
+        raise InputError(f"the database {database_path} holds no features and the image "
+                         f"directory {image_path} does not exist: nothing to extract them from")
     if kwargs.get("gnss") is None and kwargs.get("exif") is None:
         database = database if database is not None else database_path
     read = read_inputs(citymodel, output_path, lod=lod, model_crs=model_crs, database=database,
                        **kwargs)
     read.inputs = {"database_path": str(database_path), "image_path": str(image_path),
                    **read.inputs}
-    images, with_keypoints, pairs = database_state(database_path)
     if with_keypoints == 0:
         extract_and_match(database_path, image_path, matcher=matcher, camera_model=camera_model,
                           single_camera=single_camera, extraction=extraction, matching=matching)

@@ -157,6 +157,20 @@ def test_missing_database_is_one_clear_error(tmp_path):
     assert not (tmp_path / "out").exists()
 
 
+def test_database_without_features_and_images_is_one_clear_error(tmp_path):
+    with pycolmap.Database.open(str(tmp_path / "empty.db")):
+        pass
+    result = subprocess.run(
+        [sys.executable, "-m", "colmap_citymodel", "map", "--database_path",
+         str(tmp_path / "empty.db"), "--image_path", str(tmp_path / "images"), "--citymodel",
+         str(tmp_path / "m.gml"), "--output_path", str(tmp_path / "out")],
+        capture_output=True, text=True, timeout=120)
+    assert result.returncode == 2
+    assert "Traceback" not in result.stderr
+    assert "holds no features and the image directory" in result.stderr
+    assert len(result.stderr.strip().splitlines()) == 1
+
+
 def test_option_values_parse_as_colmap_takes_them():
     assert parse_option_values(["ba_global_frames_ratio=1.2", "mapper.init_min_num_inliers=50",
                                 "ba_refine_focal_length=false", "snapshot_path=/tmp/x"],
