@@ -45,6 +45,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
+from contextlib import contextmanager
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -60,7 +61,7 @@ from .block.gnss import match_to_reconstruction
 from .block.priors import GNSSPriors, scale_sigma_from_gnss
 from .block.reconstruction import tie_points
 from .citymodel.store import PlaneStore
-from .errors import DatumError, GeoregistrationError, GNSSError, InputError
+from .errors import CityModelError, DatumError, GeoregistrationError, GNSSError, InputError
 from .options import MapperOptions, RefineOptions
 from .output.result import RefineResult
 from .workflow import coarse_start, read_inputs, refine, write_outputs
@@ -273,7 +274,8 @@ class ModelGlobalAdjustment:
                                         num_gnss=num_gnss, note=note)
         if self.georegistered:
             try:
-                self._hybrid(mapper, pipeline, record)
+                with _quiet_stages():
+                    self._hybrid(mapper, pipeline, record)
             except DatumError as error:  # no plane (and no GNSS) holds the block yet
                 record.kind, record.note = "colmap", f"no hybrid adjustment: {error.message}"
                 mapper.iterative_global_refinement(
@@ -323,6 +325,27 @@ class ModelGlobalAdjustment:
         record.iterations = len(loop.iterations)
         mapper.complete_and_merge_tracks(tri)
         mapper.filter_points(pipeline.get_mapper())
+
+
+#: Stages whose per-iteration log lines the global adjustments during mapping keep quiet (one
+#: line per global adjustment instead), unless debug logging is on.
+QUIET_DURING_MAPPING = ("colmap_citymodel.adjust", "colmap_citymodel.assign",
+                        "colmap_citymodel.align", "colmap_citymodel.block")
+
+
+@contextmanager
+def _quiet_stages():
+    if logging.getLogger("colmap_citymodel").getEffectiveLevel() <= logging.DEBUG:
+        yield
+        return
+    saved = [(lg, lg.level) for lg in map(logging.getLogger, QUIET_DURING_MAPPING)]
+    for lg, _ in saved:
+        lg.setLevel(logging.WARNING)
+    try:
+        yield
+    finally:
+        for lg, level in saved:
+            lg.setLevel(level)
 
 
 def _copy_back(rec: pycolmap.Reconstruction, adjusted: pycolmap.Reconstruction) -> None:
@@ -396,12 +419,13 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         for _ in range(pipeline.init_num_trials):
             rec = pycolmap.Reconstruction()
             mapper.begin_reconstruction(rec)
-            if not _initialize(mapper, mapper_opts, pipeline, rec, adjust):
+            status = _initialize(mapper, mapper_opts, pipeline, rec)
+            if status != "ok":
                 mapper.end_reconstruction(True)
                 rec = None
-                if mapper.find_initial_image_pair(mapper_opts, -1, -1) is None:
+                if status == "no_pair":
                     break
-                continue
+                continue  # a bad pair: COLMAP's next initial pair
             show(adjust.records[-1] if adjust.records else None)
             status = _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show)
             if status == "bad_model":
@@ -415,8 +439,6 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         pycolmap.logging.minloglevel = level
         bar.close()
     if rec is None or rec.num_reg_images() == 0:
-        from .errors import CityModelError
-
         raise CityModelError(f"COLMAP found no initial image pair in {database_path}: "
                              "too few verified matches to map")
     missing = num_images - int(rec.num_reg_images())
@@ -431,12 +453,13 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
                        time.perf_counter() - start, warnings)
 
 
-def _initialize(mapper, mapper_opts, pipeline, rec, adjust) -> bool:
-    """COLMAP's initial pair: find, register, triangulate, global BA (COLMAP's), filter."""
+def _initialize(mapper, mapper_opts, pipeline, rec) -> str:
+    """COLMAP's initial pair: find, register, triangulate, global BA (COLMAP's), filter.
+    Returns "ok", "no_pair" (none left to try) or "bad_pair"."""
     found = mapper.find_initial_image_pair(mapper_opts, pipeline.init_image_id1,
                                            pipeline.init_image_id2)
     if found is None:
-        return False
+        return "no_pair"
     (id1, id2), cam2_from_cam1 = found
     mapper.register_initial_image_pair(mapper_opts, id1, id2, cam2_from_cam1)
     for image_id in (id1, id2):
@@ -445,7 +468,7 @@ def _initialize(mapper, mapper_opts, pipeline, rec, adjust) -> bool:
     rec.normalize()
     mapper.filter_points(mapper_opts)
     mapper.filter_frames(mapper_opts)
-    return rec.num_reg_frames() > 0 and rec.num_points3D() > 0
+    return "ok" if rec.num_reg_frames() > 0 and rec.num_points3D() > 0 else "bad_pair"
 
 
 def _triangulate_frame(mapper, tri, rec, image_id: int) -> None:
