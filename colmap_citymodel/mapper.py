@@ -413,13 +413,19 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         bar.refresh()
 
     warnings: list[str] = []
+    seeds: list[int] = []
+    if gnss is not None and mapper_options.start_at_gnss and pipeline.init_image_id1 == -1:
+        graph = cache.correspondence_graph
+        names = set(gnss.image_names)
+        seeds = sorted((i for i, image in cache.images.items() if image.name in names),
+                       key=lambda i: -graph.num_correspondences_for_image(i))
     pycolmap.logging.minloglevel = max(level, 1)
     rec = None
     try:
         for _ in range(pipeline.init_num_trials):
             rec = pycolmap.Reconstruction()
             mapper.begin_reconstruction(rec)
-            status = _initialize(mapper, mapper_opts, pipeline, rec)
+            status = _initialize(mapper, mapper_opts, pipeline, rec, seeds)
             if status != "ok":
                 mapper.end_reconstruction(True)
                 rec = None
@@ -453,11 +459,22 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
                        time.perf_counter() - start, warnings)
 
 
-def _initialize(mapper, mapper_opts, pipeline, rec) -> str:
-    """COLMAP's initial pair: find, register, triangulate, global BA (COLMAP's), filter.
-    Returns "ok", "no_pair" (none left to try) or "bad_pair"."""
-    found = mapper.find_initial_image_pair(mapper_opts, pipeline.init_image_id1,
-                                           pipeline.init_image_id2)
+#: At most this many images with GNSS are tried as the first image of the initial pair.
+MAX_GNSS_SEEDS = 20
+
+
+def _initialize(mapper, mapper_opts, pipeline, rec, seeds: list[int]) -> str:
+    """COLMAP's initial pair: find (first with one of the `seeds` images), register,
+    triangulate, global BA (COLMAP's), filter. Returns "ok", "no_pair" (none left to try) or
+    "bad_pair"."""
+    found = None
+    for seed in seeds[:MAX_GNSS_SEEDS]:
+        found = mapper.find_initial_image_pair(mapper_opts, seed, -1)
+        if found is not None:
+            break
+    if found is None:
+        found = mapper.find_initial_image_pair(mapper_opts, pipeline.init_image_id1,
+                                               pipeline.init_image_id2)
     if found is None:
         return "no_pair"
     (id1, id2), cam2_from_cam1 = found
