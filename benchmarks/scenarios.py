@@ -11,6 +11,10 @@ the same `sparse/0` and is evaluated on the simulated check points:
 - sliding_window: refine with `--workflow sliding_window` (windows of 100 images moved on by
              33, then the global adjustment; direct assignment); long sequence only (the short
              one is a single window);
+- map:       colmap-citymodel map: COLMAP's incremental mapping of the workspace's database
+             (its simulated matches) again, with the model in every global bundle adjustment
+             once 10 registered images have GNSS, then refine's final adjustment (direct
+             assignment);
 - gnss_ba:   7-parameter fit to GNSS + bundle adjustment with GNSS priors (COLMAP's pose-prior BA);
 - gnss_sim3: 7-parameter fit to GNSS only (what `colmap model_aligner` does);
 - icp:       gnss_sim3, then rigid point-to-plane ICP of the tie points to the model (open3d), the
@@ -54,7 +58,7 @@ ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
 GENERATED = ROOT / "workspaces" / "generated"
 SCENARIOS = ("Scn1", "Scn2", "Scn3", "Scn4", "Scn5", "Scn6")
-METHODS = ("refine_a", "refine_b", "refine_c", "refine_auto", "sliding_window", "gnss_ba",
+METHODS = ("refine_a", "refine_b", "refine_c", "refine_auto", "sliding_window", "map", "gnss_ba",
            "gnss_sim3", "icp")
 #: Methods that only run on these sequences.
 ONLY_ON = {"sliding_window": ("long",)}
@@ -140,6 +144,43 @@ def run_refine(workspace: Path, assignment: str = "direct", workflow: str = "glo
     options.assignment.method = assignment
     options.workflow.mode = workflow
     result = refine(rec, store, gnss, options, progress=False)
+    return result.reconstruction, store
+
+
+def run_map(workspace: Path):
+    """colmap-citymodel map on a copy of the workspace's database (its simulated matches; the
+    interior orientation fixed as the simulator's COLMAP run keeps it), then refine's final
+    adjustment on the mapped block; the same refine options as run_refine."""
+    import shutil
+    import tempfile
+
+    from colmap_citymodel.mapper import map_block, pipeline_options, refine_mapped
+    from colmap_citymodel.options import MapperOptions, RefineOptions
+    from colmap_citymodel.simulate.scenario import load_scenario
+
+    _, store, gnss = inputs(workspace)
+    options = RefineOptions.preset(
+        "detailed" if model_variant(workspace) == "detailed" else "generalised")
+    options.precision.covariances = "off"
+    simulation = load_scenario(
+        ROOT / "workspaces" / f"{workspace.parent.name}_{workspace.name.lower()}.toml")
+    fixed = not simulation.mapping.refine_intrinsics
+    pipeline = pipeline_options({
+        "ba_refine_focal_length": not fixed, "ba_refine_principal_point": False,
+        "ba_refine_extra_params": not fixed,
+        "mapper": {"abs_pose_refine_focal_length": not fixed,
+                   "abs_pose_refine_extra_params": not fixed}},
+        seed=simulation.mapping.random_seed if simulation.mapping.random_seed is not None
+        else simulation.seed)
+    with tempfile.TemporaryDirectory() as tmp:
+        database = Path(tmp) / "database.db"
+        shutil.copy(workspace / "database.db", database)
+        mapped = map_block(database, store, gnss, options, MapperOptions(), pipeline,
+                           progress=False)
+    print(f"  map: {mapped.reconstruction.num_reg_images()} of {mapped.num_database_images} "
+          f"images, {len(mapped.adjustments)} global adjustments ({mapped.num_hybrid} with the "
+          f"model from {mapped.georegistered_at} images on), {mapped.seconds:.0f} s", flush=True)
+    result = refine_mapped(mapped, store, gnss, options, progress=False)
     return result.reconstruction, store
 
 
@@ -526,6 +567,7 @@ RUNNERS = {"refine_a": run_refine, "refine_b": lambda w: run_refine(w, "msac"),
            "refine_c": lambda w: run_refine(w, "roi_msac"),
            "refine_auto": lambda w: run_refine(w, "auto"),
            "sliding_window": lambda w: run_refine(w, workflow="sliding_window"),
+           "map": run_map,
            "gnss_ba": lambda w: run_gnss(w, True), "gnss_sim3": lambda w: run_gnss(w, False),
            "icp": run_icp}
 
@@ -592,7 +634,7 @@ def main() -> None:
             model = has_model(workspace)
             for method in args.methods or METHODS:
                 if not model and (method.startswith("refine") or method in (
-                        "icp", "sliding_window")):
+                        "icp", "sliding_window", "map")):
                     continue
                 if sequence not in ONLY_ON.get(method, (sequence,)):
                     continue

@@ -95,18 +95,17 @@ def _offset_value(text: str) -> float | str:
     return value
 
 
-def _add_refine(subparsers) -> None:
-    p = subparsers.add_parser(
-        "refine", help="georeference and refine a COLMAP model with a city building model",
-        epilog="exit status: 0 refined (quality ok or weak: see the quality line and "
-               "report.json), 2 bad input, 3 the quality gate failed: the model could not help "
-               "and the output holds the GNSS-only adjustment")
-    p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
+def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> None:
+    """The city model, GNSS, stochastic model, output and check point options that refine and
+    map share (workflow.read_inputs / write_outputs)."""
     p.add_argument("--citymodel", required=True, nargs="+",
                    help="CityGML/CityJSON file(s) or a directory of tiles")
     p.add_argument("--output_path", required=True, help="new directory for the results")
-    gnss = p.add_argument_group("GNSS (one source) or an initial transform")
-    gnss.add_argument("--database", help="COLMAP database with pose priors")
+    gnss = p.add_argument_group(
+        "GNSS (one source)" + (" or an initial transform" if initial_transform else
+                              "; default: the database's pose priors"))
+    if database:
+        gnss.add_argument("--database", help="COLMAP database with pose priors")
     gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
     gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:4979 or EPSG:25832+7837")
     gnss.add_argument("--exif", help="directory of the images with EXIF GPS")
@@ -122,8 +121,9 @@ def _add_refine(subparsers) -> None:
     gnss.add_argument("--lever_arm", type=float, nargs=3, metavar=("X", "Y", "Z"),
                       help="GNSS antenna in the camera (rig) frame, metres: x right, y down, "
                            "z along the view")
-    gnss.add_argument("--initial_transform",
-                      help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
+    if initial_transform:
+        gnss.add_argument("--initial_transform",
+                          help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
     p.add_argument("--preset", default="generalised",
                    choices=["generalised", "detailed", "correct_model"],
                    help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane; "
@@ -164,23 +164,94 @@ def _add_refine(subparsers) -> None:
                          help="iterated variance components of image and f_dTP, then a "
                               "re-weighted final solve")
 
+
+def _citymodel_kwargs(args) -> dict:
+    """workflow.read_inputs / write_outputs keyword arguments of the shared options."""
+    out = dict(citymodel=args.citymodel, output_path=args.output_path, gnss=args.gnss,
+               gnss_crs=args.gnss_crs, exif=args.exif, preset=args.preset,
+               options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
+               target_crs=args.target_crs, output_type=args.output_type,
+               output_frame=args.output_frame, progress=not args.no_progress,
+               precision=args.precision, gnss_height_offset=args.gnss_height_offset,
+               gnss_bias=args.gnss_bias, lever_arm=args.lever_arm,
+               checkpoints=args.checkpoints,
+               checkpoint_observations=args.checkpoint_observations,
+               sigma_generalisation=args.sigma_generalisation,
+               variance_components=args.variance_components, assignment=args.assignment,
+               write_model=args.write_model, workflow=args.workflow)
+    for name in ("database", "initial_transform"):
+        if hasattr(args, name):
+            out[name] = getattr(args, name)
+    return out
+
+
+def _add_refine(subparsers) -> None:
+    p = subparsers.add_parser(
+        "refine", help="georeference and refine a COLMAP model with a city building model",
+        epilog="exit status: 0 refined (quality ok or weak: see the quality line and "
+               "report.json), 2 bad input, 3 the quality gate failed: the model could not help "
+               "and the output holds the GNSS-only adjustment")
+    p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
+    _add_citymodel_arguments(p, database=True, initial_transform=True)
+
     def run(args):
         from .workflow import main
 
-        result = main(args.input_path, args.citymodel, args.output_path, database=args.database,
-             gnss=args.gnss, gnss_crs=args.gnss_crs, exif=args.exif,
-             initial_transform=args.initial_transform, preset=args.preset,
-             options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
-             target_crs=args.target_crs, output_type=args.output_type,
-             output_frame=args.output_frame, progress=not args.no_progress,
-             precision=args.precision, gnss_height_offset=args.gnss_height_offset,
-             gnss_bias=args.gnss_bias,
-             lever_arm=args.lever_arm, checkpoints=args.checkpoints,
-             checkpoint_observations=args.checkpoint_observations,
-             sigma_generalisation=args.sigma_generalisation,
-             variance_components=args.variance_components, assignment=args.assignment,
-             write_model=args.write_model, workflow=args.workflow)
+        result = main(args.input_path, **_citymodel_kwargs(args))
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
+        return 3 if result.quality.verdict == "failed" else 0
+
+    p.set_defaults(func=run)
+
+
+def _add_map(subparsers) -> None:
+    p = subparsers.add_parser(
+        "map", help="COLMAP's incremental mapping with the city model in its global bundle "
+                    "adjustments, then refine's final adjustment and outputs",
+        epilog="exit status as refine: 0 mapped (quality ok or weak), 2 bad input, 3 the "
+               "quality gate failed (the output holds the GNSS-only adjustment)")
+    p.add_argument("--database_path", required=True,
+                   help="COLMAP database; without keypoints, COLMAP's feature extraction and "
+                        "matching run first")
+    p.add_argument("--image_path", required=True,
+                   help="image directory (features are extracted from it when the database "
+                        "has none; colours of the points)")
+    _add_citymodel_arguments(p, database=False, initial_transform=False)
+    m = p.add_argument_group("mapping (COLMAP's options as in colmap mapper)")
+    m.add_argument("--mapper_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap IncrementalPipelineOptions, e.g. ba_global_frames_ratio=1.2 "
+                        "min_num_matches=30 mapper.init_min_num_inliers=50 "
+                        "ba_refine_focal_length=false")
+    m.add_argument("--min_gnss_images", type=int, default=None, metavar="N",
+                   help="registered images with GNSS before the block is georegistered and the "
+                        "global adjustments take the model (default 10)")
+    m.add_argument("--hybrid_iterations", type=int, default=None, metavar="N",
+                   help="assign + hybrid adjustment iterations per global adjustment while "
+                        "mapping (default 3; the final refine runs its own)")
+    m.add_argument("--num_threads", type=int, default=None, help="threads (COLMAP, Ceres)")
+    f = p.add_argument_group("features and matches (only when the database has none)")
+    f.add_argument("--matcher", choices=["exhaustive", "sequential", "spatial"],
+                   default="exhaustive", help="COLMAP matcher (default exhaustive)")
+    f.add_argument("--camera_model", default=None,
+                   help="COLMAP camera model of the images (default SIMPLE_RADIAL)")
+    f.add_argument("--single_camera", action="store_true",
+                   help="one camera for all images")
+    f.add_argument("--extraction_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap FeatureExtractionOptions, e.g. sift.max_num_features=4096")
+    f.add_argument("--matching_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap FeatureMatchingOptions, e.g. use_gpu=false")
+
+    def run(args):
+        from .mapper import main
+
+        result, _ = main(args.database_path, args.image_path, **_citymodel_kwargs(args),
+                         mapper_options=args.mapper_options,
+                         min_gnss_images=args.min_gnss_images,
+                         hybrid_iterations=args.hybrid_iterations,
+                         num_threads=args.num_threads, matcher=args.matcher,
+                         camera_model=args.camera_model, single_camera=args.single_camera,
+                         extraction_options=args.extraction_options,
+                         matching_options=args.matching_options)
         return 3 if result.quality.verdict == "failed" else 0
 
     p.set_defaults(func=run)
@@ -486,7 +557,7 @@ def _add_simulate_matching(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_refine, _add_demo, _add_evaluate, _add_simulate,
+SUBCOMMANDS = [_add_model_info, _add_refine, _add_map, _add_demo, _add_evaluate, _add_simulate,
                _add_precision, _add_batch, _add_import_eo, _add_pairs,
                _add_triangulate, _add_dense_quality, _add_simulate_oblique,
                _add_simulate_matching]

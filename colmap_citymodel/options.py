@@ -361,6 +361,30 @@ class WorkflowOptions:
 
 
 @dataclass
+class MapperOptions:
+    """`colmap-citymodel map`: COLMAP's incremental mapping with the model in its global
+    bundle adjustments (mapper.py). COLMAP's own mapper options stay pycolmap's
+    IncrementalPipelineOptions (`--mapper_options KEY=VALUE`)."""
+
+    min_gnss_images: int = 10
+    """The block is georegistered (7-parameter fit to GNSS, then the coarse search onto the
+    model) at the first global bundle adjustment at which at least this many registered images
+    have GNSS; from then on every global bundle adjustment is the hybrid one with the model.
+    Ten positions spread over a few stations give the similarity's seven parameters with
+    redundancy; fewer would let single GNSS errors tilt the young block."""
+    start_at_gnss: bool = True
+    """Seek COLMAP's initial image pair among the images with GNSS (those with the most
+    correspondences first), unless the pipeline names one. COLMAP otherwise starts where the
+    matches are densest, which with GNSS only at the start of a sequence can be hundreds of
+    images away from it: the block would only be georegistered, and held by the model, once
+    it has grown back to the GNSS part."""
+    hybrid_iterations: int = 3
+    """At most this many assign + hybrid adjustment iterations in each global bundle adjustment
+    during mapping (the block is still growing: the next one follows soon); the final refine
+    after mapping runs `workflow.max_iterations`."""
+
+
+@dataclass
 class PrecisionOptions:
     """A posteriori precision after the last solve (method.md 7 and 9; precision.py)."""
 

@@ -30,6 +30,7 @@ from __future__ import annotations
 
 import logging
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -69,7 +70,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     precision.checkpoints.read_*) are only evaluated at the end (Delta, and sigma when
     covariances are on).
     """
-    from .align.coarse import SurfaceDistance, coarse_alignment
+    from .align.coarse import SurfaceDistance
 
     options = options or RefineOptions()
     if options.workflow.mode == "sliding_window":  # bad window sizes before any work
@@ -104,24 +105,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
     coarse = None
     if priors is not None and initial_transform is None and o_w.coarse_search_sigmas > 0:
-        # The GNSS-only block is off the model by the GNSS error (metres, mostly a bias):
-        # search the shift (and, along a straight line, the roll) that puts the tie points
-        # on the model before any of them is assigned.
         t_coarse = time.perf_counter()
-        # The images with GNSS fixed the georegistration; if they lie on a line, its rotation
-        # about that line came from the cameras' upright orientation and is searched again.
-        centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
-        straight = "roll_about_line" in details.get("cues", {})
-        up, view = camera_up_and_view(rec, priors.image_ids)
-        coarse = coarse_alignment(points, centres, up, view, store, surface,
-                                  np.median(priors.sigmas, axis=0), straight,
-                                  o_w.coarse_search_sigmas,
-                                  free_height=bool(priors.offset_axes[2]))
-        if objective(rec, coarse.sim3) < objective(rec):
-            rec.transform(coarse.sim3)
+        coarse, moved = coarse_start(rec, points, store, surface, priors, objective, options,
+                                     straight="roll_about_line" in details.get("cues", {}))
+        if moved:
             sim3 = coarse.sim3 * sim3
-        else:
-            logger.info("coarse alignment kept the GNSS-only position (no better objective)")
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
     offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
     windows = None
@@ -216,6 +204,31 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         coarse_alignment=coarse.todict() if coarse is not None else None,
         gnss_offset=gnss_offset, model_correction=correction,
         sliding_window=windows.todict(options) if windows is not None else None)
+
+
+def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneStore, surface,
+                 priors, objective: BlockObjective, options: RefineOptions, *, straight: bool):
+    """The coarse alignment (align.coarse) of a GNSS-registered block: the GNSS-only block is
+    off the model by the GNSS error (metres, mostly a bias) that a 2 m assignment threshold
+    cannot bridge, so the shift (and, along a straight line, the roll) that puts the tie points
+    on the model is searched before any of them is assigned. `rec` is moved when that lowers
+    the block objective. `points`: the tie points that may lie on the model (not the check
+    points). Returns (the search's result, whether `rec` moved)."""
+    from .align.coarse import coarse_alignment
+
+    # The images with GNSS fixed the georegistration; if they lie on a line (`straight`), its
+    # rotation about that line came from the cameras' upright orientation and is searched again.
+    centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
+    up, view = camera_up_and_view(rec, priors.image_ids)
+    coarse = coarse_alignment(points, centres, up, view, store, surface,
+                              np.median(priors.sigmas, axis=0), straight,
+                              options.workflow.coarse_search_sigmas,
+                              free_height=bool(priors.offset_axes[2]))
+    if objective(rec, coarse.sim3) < objective(rec):
+        rec.transform(coarse.sim3)
+        return coarse, True
+    logger.info("coarse alignment kept the GNSS-only position (no better objective)")
+    return coarse, False
 
 
 def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
@@ -313,26 +326,35 @@ def _model_correction(store: PlaneStore, current: PlaneStore, corrected, last, p
 GNSS_READ_MARGIN = 250.0
 
 
-def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_crs=None,
-         exif=None, initial_transform=None, preset="generalised", options_file=None,
-         lod=2, model_crs=None, target_crs=None, output_type="bin", output_frame="crs",
-         progress=True, precision=None, gnss_height_offset=None, gnss_bias=None, lever_arm=None,
-         checkpoints=None, checkpoint_observations=None, sigma_generalisation=None,
-         variance_components=None, assignment=None, write_model=None,
-         num_threads=None, workflow=None) -> RefineResult:
-    """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
-    `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
-    are evaluated at the end (Delta, sigma; report.json `checkpoints`).
-    `gnss_height_offset`: metres added to the GNSS heights, or "auto" (estimated from the
-    model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all").
-    `write_model`: correct the model and write it back in its own format (default: with the
-    correct_model preset). `workflow`: "global" or "sliding_window" (overrides the options
-    file's `[workflow] mode`)."""
+@dataclass
+class RefineInputs:
+    """What refine reads besides the reconstruction: the options, the city model, the GNSS
+    and the check points, with the arguments the outputs need (shared by `refine` and `map`)."""
+
+    options: RefineOptions
+    store: PlaneStore
+    observations: object  # block.gnss.GNSSObservations or None
+    initial_transform: pycolmap.Sim3d | None
+    checkpoints: dict | None
+    checkpoint_observations: list | None
+    write_model: bool
+    inputs: dict  # report.json `inputs`
+    reconstruction: pycolmap.Reconstruction | None = None  # of `input_path`, when given
+
+
+def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=None, gnss_crs=None,
+                exif=None, initial_transform=None, preset="generalised", options_file=None,
+                lod=2, model_crs=None, target_crs=None, precision=None,
+                gnss_height_offset=None, gnss_bias=None, lever_arm=None, checkpoints=None,
+                checkpoint_observations=None, sigma_generalisation=None,
+                variance_components=None, assignment=None, write_model=None, num_threads=None,
+                workflow=None) -> RefineInputs:
+    """Options, city model, GNSS and check points as `main` takes them, and the reconstruction
+    of `input_path` if given; fails on a taken `output_path` before any expensive work."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
     from .files import atomic_directory
-    from .output.write import write_refined
 
     options = (RefineOptions.from_toml(options_file, preset) if options_file
                else RefineOptions.preset(preset))
@@ -379,7 +401,7 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
     with atomic_directory(output_path):
         pass
     Path(output_path).rmdir()
-    reconstruction = read_reconstruction(input_path)
+    reconstruction = read_reconstruction(input_path) if input_path is not None else None
     crs = user_crs(target_crs) if target_crs else peek_crs(citymodel, model_crs)
     observations = None
     if crs is not None:
@@ -413,16 +435,24 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
                                   "(--gnss_height_offset)")
     transform = read_initial_transform(initial_transform) if initial_transform else None
-    result = refine(reconstruction, store, observations, options,
-                    initial_transform=transform, progress=progress, checkpoints=cp_known,
-                    checkpoint_observations=cp_observations)
-    inputs = {"input_path": str(input_path),
+    inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
               "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}
+    return RefineInputs(options, store, observations, transform, cp_known, cp_observations,
+                        bool(write_model), inputs, reconstruction)
+
+
+def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, output_type="bin",
+                  output_frame="crs", lod=2, model_crs=None, what="refined") -> None:
+    """Write `result` into the new directory `output_path` (atomically) and print the summary
+    lines; `what` names the block in them ("refined", "mapped")."""
+    from .output.write import write_refined
+
+    store = result.store
     write_refined(result, output_path, output_type=output_type, output_frame=output_frame,
-                  inputs=inputs, write_model=bool(write_model), model_lod=lod,
+                  inputs=read.inputs, write_model=read.write_model, model_lod=lod,
                   model_crs=model_crs)
     last = result.iterations[-1]
     # s0 of the final solve: the variance-component re-solve when there was one.
@@ -432,10 +462,10 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         print(f"the city model could not help: wrote the GNSS-only adjustment of "
               f"{result.reconstruction.num_reg_images()} images")
     elif result.quality.verdict == "failed":
-        print("the city model could not help, and without GNSS there is no other result: the "
-              "refined block is written, but do not trust it")
+        print(f"the city model could not help, and without GNSS there is no other result: the "
+              f"{what} block is written, but do not trust it")
     else:
-        print(f"refined {result.reconstruction.num_reg_images()} images, "
+        print(f"{what} {result.reconstruction.num_reg_images()} images, "
               f"{result.reconstruction.num_points3D()} points; {last.num_assigned} tie points "
               f"on {last.num_faces} planes; s0 {s0:.3f}")
     print(result.quality.line())
@@ -448,7 +478,28 @@ def main(input_path, citymodel, output_path, *, database=None, gnss=None, gnss_c
         print(f"model correction: {summary['num_corrected_faces']} faces corrected, "
               f"{summary['num_corrected_vertices']} vertices moved, "
               f"{summary['num_significant_vertices']} significantly; model_changes.csv"
-              + (", corrected_model" if write_model else ""))
+              + (", corrected_model" if read.write_model else ""))
     print(f"output: {output_path} (COLMAP model in {store.crs.label}"
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
+
+
+def main(input_path, citymodel, output_path, *, output_type="bin", output_frame="crs",
+         progress=True, lod=2, model_crs=None, **kwargs) -> RefineResult:
+    """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
+    The other keyword arguments are `read_inputs`'s:
+    `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
+    are evaluated at the end (Delta, sigma; report.json `checkpoints`).
+    `gnss_height_offset`: metres added to the GNSS heights, or "auto" (estimated from the
+    model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all").
+    `write_model`: correct the model and write it back in its own format (default: with the
+    correct_model preset). `workflow`: "global" or "sliding_window" (overrides the options
+    file's `[workflow] mode`)."""
+    read = read_inputs(citymodel, output_path, input_path=input_path, lod=lod,
+                       model_crs=model_crs, **kwargs)
+    result = refine(read.reconstruction, read.store, read.observations, read.options,
+                    initial_transform=read.initial_transform, progress=progress,
+                    checkpoints=read.checkpoints,
+                    checkpoint_observations=read.checkpoint_observations)
+    write_outputs(result, output_path, read, output_type=output_type,
+                  output_frame=output_frame, lod=lod, model_crs=model_crs)
     return result
