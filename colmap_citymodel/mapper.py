@@ -8,8 +8,9 @@ pycolmap's `IncrementalMapper` (initial pair, `register_next_image`, `triangulat
 and filtering stay COLMAP's. The global refinements differ once the block can be placed on the
 model:
 
-0. the initial image pair is sought among the images with GNSS first
-   (`MapperOptions.start_at_gnss`), so that the block grows out of its GNSS part;
+0. the initial image pair is COLMAP's; with `MapperOptions.start_at_gnss` it is sought among
+   the images with GNSS first, so that the block grows out of its GNSS part (off by default:
+   see the option);
 1. while fewer than `MapperOptions.min_gnss_images` registered images have GNSS, a global
    refinement is COLMAP's (`iterative_global_refinement`, which also normalises the block);
 2. at the first global refinement with that many, the block is georegistered: the 7-parameter
