@@ -552,7 +552,8 @@ def refine_mapped(mapped: MappedBlock, store: PlaneStore, gnss, options: RefineO
 
 def main(database_path, image_path, citymodel, output_path, *, output_type="bin",
          output_frame="crs", progress=True, lod=2, model_crs=None, mapper_options=None,
-         min_gnss_images=None, hybrid_iterations=None, matcher="exhaustive",
+         min_gnss_images=None, hybrid_iterations=None, start_at_gnss=False,
+         matcher="exhaustive",
          camera_model=None, single_camera=False, extraction_options=None,
          matching_options=None, database=None, **kwargs) -> tuple[RefineResult, MappedBlock]:
     """`colmap-citymodel map`: features and matches if the database has none, incremental
@@ -594,6 +595,7 @@ def main(database_path, image_path, citymodel, output_path, *, output_type="bin"
         mapper_opts.min_gnss_images = int(min_gnss_images)
     if hybrid_iterations is not None:
         mapper_opts.hybrid_iterations = int(hybrid_iterations)
+    mapper_opts.start_at_gnss = bool(start_at_gnss)
     mapped = map_block(database_path, read.store, read.observations, read.options, mapper_opts,
                        pipeline, image_path=image_path, progress=progress)
     print(f"mapped {mapped.reconstruction.num_reg_images()} of {mapped.num_database_images} "
