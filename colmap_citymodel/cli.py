@@ -228,6 +228,9 @@ def _add_map(subparsers) -> None:
     m.add_argument("--hybrid_iterations", type=int, default=None, metavar="N",
                    help="assign + hybrid adjustment iterations per global adjustment while "
                         "mapping (default 3; the final refine runs its own)")
+    m.add_argument("--start_at_gnss", action="store_true",
+                   help="seek COLMAP's initial pair among the images with GNSS first (the model "
+                        "then enters early; experimental: see the README)")
     m.add_argument("--num_threads", type=int, default=None, help="threads (COLMAP, Ceres)")
     f = p.add_argument_group("features and matches (only when the database has none)")
     f.add_argument("--matcher", choices=["exhaustive", "sequential", "spatial"],
@@ -248,6 +251,7 @@ def _add_map(subparsers) -> None:
                          mapper_options=args.mapper_options,
                          min_gnss_images=args.min_gnss_images,
                          hybrid_iterations=args.hybrid_iterations,
+                         start_at_gnss=args.start_at_gnss,
                          num_threads=args.num_threads, matcher=args.matcher,
                          camera_model=args.camera_model, single_camera=args.single_camera,
                          extraction_options=args.extraction_options,

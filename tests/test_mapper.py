@@ -179,3 +179,28 @@ def test_option_values_parse_as_colmap_takes_them():
         "ba_refine_focal_length": False, "snapshot_path": "/tmp/x"}
     with pytest.raises(InputError, match="KEY=VALUE"):
         parse_option_values(["ba_global_frames_ratio"], "--mapper_options")
+
+
+def test_cli_passes_the_shared_and_the_mapping_options_on(monkeypatch):
+    import types
+
+    import colmap_citymodel.mapper as mapper
+    from colmap_citymodel import cli
+
+    seen = {}
+
+    def fake_main(*args, **kwargs):
+        seen.update(kwargs, args=args)
+        return types.SimpleNamespace(quality=types.SimpleNamespace(verdict="ok")), None
+
+    monkeypatch.setattr(mapper, "main", fake_main)
+    assert cli.main(["map", "--database_path", "db.db", "--image_path", "images",
+                     "--citymodel", "m.gml", "--output_path", "out", "--gnss_bias", "auto",
+                     "--workflow", "sliding_window", "--mapper_options",
+                     "ba_global_frames_ratio=1.2", "--min_gnss_images", "20",
+                     "--matcher", "sequential"]) == 0
+    assert seen["args"] == ("db.db", "images")
+    assert (seen["gnss_bias"], seen["workflow"], seen["min_gnss_images"], seen["matcher"]) == (
+        "auto", "sliding_window", 20, "sequential")
+    assert seen["mapper_options"] == ["ba_global_frames_ratio=1.2"]
+    assert "database" not in seen and "initial_transform" not in seen
