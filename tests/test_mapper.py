@@ -145,12 +145,17 @@ def test_mapped_block_lands_on_the_truth(street, mapped):
     assert np.max(errors) < 0.6
 
 
-def test_missing_database_is_one_clear_error(tmp_path):
-    result = subprocess.run(
+def run_map(tmp_path, database: str) -> subprocess.CompletedProcess:
+    """`colmap-citymodel map` on `tmp_path / database`, images and model that do not exist."""
+    return subprocess.run(
         [sys.executable, "-m", "colmap_citymodel", "map", "--database_path",
-         str(tmp_path / "none.db"), "--image_path", str(tmp_path / "images"), "--citymodel",
+         str(tmp_path / database), "--image_path", str(tmp_path / "images"), "--citymodel",
          str(tmp_path / "m.gml"), "--output_path", str(tmp_path / "out")],
         capture_output=True, text=True, timeout=120)
+
+
+def test_missing_database_is_one_clear_error(tmp_path):
+    result = run_map(tmp_path, "none.db")
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
     assert result.stderr.strip() == f"error: the database {tmp_path / 'none.db'} does not exist"
@@ -160,11 +165,7 @@ def test_missing_database_is_one_clear_error(tmp_path):
 def test_database_without_features_and_images_is_one_clear_error(tmp_path):
     with pycolmap.Database.open(str(tmp_path / "empty.db")):
         pass
-    result = subprocess.run(
-        [sys.executable, "-m", "colmap_citymodel", "map", "--database_path",
-         str(tmp_path / "empty.db"), "--image_path", str(tmp_path / "images"), "--citymodel",
-         str(tmp_path / "m.gml"), "--output_path", str(tmp_path / "out")],
-        capture_output=True, text=True, timeout=120)
+    result = run_map(tmp_path, "empty.db")
     assert result.returncode == 2
     assert "Traceback" not in result.stderr
     assert "holds no features and the image directory" in result.stderr
