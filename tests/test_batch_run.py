@@ -198,3 +198,26 @@ def test_ctrl_c_leaves_no_half_written_output(inputs, tmp_path):
     assert sorted(rows) == sorted(STREETS)
     for name, row in rows.items():
         assert (row["status"] == "done") == (out / name).exists()
+
+
+def test_output_completed_as_ctrl_c_came_counts_as_done(inputs, tmp_path, monkeypatch):
+    """A refine that renamed its finished output into place just before the interrupt, whose
+    result never reached the batch: the summary says done, not "not run"."""
+    import colmap_citymodel.batch.engine as engine
+
+    def interrupted_after_writing(fn, tasks, workers, threads=None):
+        first = Path(tasks[0].output)
+        first.mkdir(parents=True)
+        (first / "report.json").write_text(json.dumps(
+            {"num_images": 7, "quality": {"verdict": "weak", "reasons": []}}))
+        raise KeyboardInterrupt
+        yield  # a generator, as the engines are
+
+    monkeypatch.setattr(engine, "run_local", interrupted_after_writing)
+    out = tmp_path / "out"
+    with pytest.raises(KeyboardInterrupt):
+        run_batch(inputs, out, workers=1)
+    rows = {r["workspace"]: r for r in json.loads((out / "summary.json").read_text())["workspaces"]}
+    done = [name for name, row in rows.items() if row["status"] == "done"]
+    assert len(done) == 1 and rows[done[0]]["images"] == 7 and rows[done[0]]["verdict"] == "weak"
+    assert all(row["status"] == "not run" for name, row in rows.items() if name not in done)

@@ -181,6 +181,13 @@ def main(workspaces, citymodel, output_path, *, workers: int | None = None,
             if scheduler in (None, "local"):  # no worker of ours writes any more
                 for task in tasks:
                     _remove_stale(output, task.name)
+            for task in tasks:
+                # A refine that completed its output just as Ctrl-C came: its result never
+                # reached this process, but its output is whole (written atomically).
+                report = Path(task.output) / "report.json"
+                if rows[task.name]["status"] == "not run" and report.is_file():
+                    rows[task.name] = {**rows[task.name], **read_report_row(report),
+                                       "status": "done"}
     finally:
         bar.close()
         write_summary(output, list(rows.values()))
