@@ -61,8 +61,7 @@ from .adjust.loop import adjustment_loop
 from .align.block_to_model import georegister
 from .align.coarse import SurfaceDistance
 from .align.objective import BlockObjective
-from .block.gnss import match_to_reconstruction
-from .block.priors import GNSSPriors, scale_sigma_from_gnss
+from .block.priors import GNSSPriors, priors_of_registered_images, scale_sigma_from_gnss
 from .block.reconstruction import tie_points
 from .citymodel.store import PlaneStore
 from .errors import CityModelError, DatumError, GeoregistrationError, GNSSError, InputError
@@ -231,13 +230,10 @@ class ModelGlobalAdjustment:
         if self.gnss is None:
             return None
         try:
-            ids, positions, sigmas = match_to_reconstruction(self.gnss, rec, self.store.origin)
+            return priors_of_registered_images(self.gnss, rec, self.store.origin,
+                                               offset=self.offset.copy())
         except GNSSError:
             return None
-        lever_arm = getattr(self.gnss, "lever_arm", None)
-        return GNSSPriors(np.asarray(ids), np.asarray(positions), np.asarray(sigmas),
-                          None if lever_arm is None else np.asarray(lever_arm, float),
-                          offset=self.offset.copy())
 
     def georegister(self, rec: pycolmap.Reconstruction) -> None:
         """Move `rec` (in place) into the model's local frame and onto the model."""
@@ -282,15 +278,9 @@ class ModelGlobalAdjustment:
                     self._hybrid(mapper, pipeline, record)
             except DatumError as error:  # no plane (and no GNSS) holds the block yet
                 record.kind, record.note = "colmap", f"no hybrid adjustment: {error.message}"
-                mapper.iterative_global_refinement(
-                    pipeline.ba_global_max_refinements, pipeline.ba_global_max_refinement_change,
-                    mapper_opts, pipeline.get_global_bundle_adjustment(),
-                    pipeline.get_triangulation(), normalize_reconstruction=False)
+                _colmap_refinement(mapper, pipeline, normalize=False)
         else:
-            mapper.iterative_global_refinement(
-                pipeline.ba_global_max_refinements, pipeline.ba_global_max_refinement_change,
-                mapper_opts, pipeline.get_global_bundle_adjustment(),
-                pipeline.get_triangulation(), normalize_reconstruction=True)
+            _colmap_refinement(mapper, pipeline, normalize=True)
         mapper.filter_frames(mapper_opts)
         record.seconds = time.perf_counter() - t0
         self.records.append(record)
@@ -329,6 +319,16 @@ class ModelGlobalAdjustment:
         record.iterations = len(loop.iterations)
         mapper.complete_and_merge_tracks(tri)
         mapper.filter_points(pipeline.get_mapper())
+
+
+def _colmap_refinement(mapper: pycolmap.IncrementalMapper,
+                       pipeline: pycolmap.IncrementalPipelineOptions, *, normalize: bool) -> None:
+    """COLMAP's own global refinement; `normalize`: also rescale the block (only before it
+    is georegistered: afterwards it is in the model's frame)."""
+    mapper.iterative_global_refinement(
+        pipeline.ba_global_max_refinements, pipeline.ba_global_max_refinement_change,
+        pipeline.get_mapper(), pipeline.get_global_bundle_adjustment(),
+        pipeline.get_triangulation(), normalize_reconstruction=normalize)
 
 
 #: Stages whose per-iteration log lines the global adjustments during mapping keep quiet (one

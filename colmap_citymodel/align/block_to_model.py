@@ -47,7 +47,7 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
     `details`, when given, receives which cue fixed each datum parameter ("cues").
     `gnss_offset` (AdjustmentOptions.gnss_offset): the GNSS offset the adjustment estimates;
     with "height" or "all", heights that PROJ could not convert are accepted as they are."""
-    from ..block.gnss import match_to_reconstruction
+    from ..block.priors import priors_of_registered_images
     from .georegister import estimate_georegistration
 
     priors = None
@@ -66,11 +66,7 @@ def georegister(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, initial_t
                 "proj-data or the national grid, give the heights already converted, or "
                 "--gnss_height_offset METRES (model height minus GNSS height, e.g. about -47 "
                 "for ellipsoidal heights in Germany)")
-        image_ids, positions, sigmas = match_to_reconstruction(gnss, rec, store.origin)
-        lever_arm = getattr(gnss, "lever_arm", None)
-        priors = GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas),
-                            None if lever_arm is None else np.asarray(lever_arm, float),
-                            offset_axes=axes)
+        priors = priors_of_registered_images(gnss, rec, store.origin, offset_axes=axes)
     if initial_transform is not None:
         # The given transform maps the input frame to model CRS coordinates.
         to_local = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), -store.origin)

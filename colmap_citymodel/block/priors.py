@@ -99,6 +99,19 @@ class GNSSPriors:
         return out
 
 
+def priors_of_registered_images(gnss, rec: pycolmap.Reconstruction, origin: np.ndarray,
+                                **fields) -> GNSSPriors:
+    """The GNSS positions (block.gnss.GNSSObservations) of `rec`'s registered images as priors
+    in the local frame of `origin`, with the observations' lever arm; `fields` set the rest
+    (offset_axes, offset)."""
+    from .gnss import match_to_reconstruction
+
+    image_ids, positions, sigmas = match_to_reconstruction(gnss, rec, origin)
+    lever_arm = getattr(gnss, "lever_arm", None)
+    return GNSSPriors(np.asarray(image_ids), np.asarray(positions), np.asarray(sigmas),
+                      None if lever_arm is None else np.asarray(lever_arm, float), **fields)
+
+
 def scale_sigma_from_gnss(priors: GNSSPriors) -> float:
     """Relative sigma of the block's scale that its GNSS positions determine."""
     spread = priors.positions - priors.positions.mean(0)
