@@ -447,6 +447,74 @@ def _f(d: dict | None, *keys, fmt: str = "{:.3f}") -> str:
     return fmt.format(d) if isinstance(d, (int, float)) else str(d)
 
 
+#: A direction the planes constrain must end this many times closer to the truth than the
+#: GNSS-only block (and within TRUTH_TOLERANCE); a direction they leave to GNSS (or to a single
+#: plane, which observability names) must end no further from it than the GNSS-only block.
+CONSTRAINED_GAIN = 10.0
+
+
+def direction_check(cameras: dict | None, gnss_only: dict | None,
+                    observability: dict | None) -> dict:
+    """Per direction E, N, U (the local frame's X, Y, Z): what fixes it (observability), the
+    refined and GNSS-only camera-centre RMS, their ratio and whether the direction meets its
+    criterion: constrained by planes ('planes' or 'both', more than one plane) -> refined
+    <= TRUTH_TOLERANCE and >= CONSTRAINED_GAIN times better than GNSS only; otherwise (GNSS,
+    one plane, none) -> refined no worse than GNSS only."""
+    out = {}
+    for axis, key in (("E", "rms_x"), ("N", "rms_y"), ("U", "rms_z")):
+        obs = (observability or {}).get(axis, {})
+        source = obs.get("source", "-")
+        constrained = source in ("planes", "both") and not obs.get("one_plane", False)
+        refined = (cameras or {}).get(key)
+        gnss = (gnss_only or {}).get(key)
+        if refined is None or gnss is None:
+            out[axis] = {"source": source, "constrained": constrained, "meets": None}
+            continue
+        gain = gnss / refined if refined > 0 else float("inf")
+        meets = (refined <= TRUTH_TOLERANCE and gain >= CONSTRAINED_GAIN) if constrained \
+            else refined <= gnss
+        out[axis] = {"source": source + (" (one plane)" if obs.get("one_plane") else ""),
+                     "constrained": constrained, "refined": refined, "gnss_only": gnss,
+                     "gain": gain, "meets": bool(meets)}
+    return out
+
+
+def _direction_cell(d: dict) -> str:
+    if d.get("meets") is None:
+        return "-"
+    rule = "planes" if d["constrained"] else "free"
+    return (f"{d['refined']:.3f} / {d['gnss_only']:.3f} = {d['gain']:.1f}x, {d['source']}, "
+            f"{rule}: {'yes' if d['meets'] else 'no'}")
+
+
+def direction_table(results: dict) -> list[str]:
+    """The per-direction criterion for every case and model variant (direction_check)."""
+    lines = ["", f"Per direction: refined / GNSS-only camera-centre RMS (m) = gain, what fixes "
+             f"it, and whether it meets its criterion (a direction the planes fix, by more than "
+             f"one plane: <= {TRUTH_TOLERANCE} m and >= {CONSTRAINED_GAIN:.0f}x better than GNSS "
+             f"only; a direction left to GNSS or to one plane: no worse than GNSS only). The "
+             f"GNSS-only block is the same for every model variant.", "",
+             "| case | model | E | N | U | all |", "|---|---|---|---|---|---|"]
+    met = []
+    for case, r in results.items():
+        gnss = (r.get("gnss_only") or {}).get("cameras")
+        rows = [("original", (r.get("refine") or {}).get("cameras"), r.get("observability"))]
+        rows += [(v, m.get("cameras"), m.get("observability"))
+                 for v, m in (r.get("models") or {}).items()]
+        for variant, cams, obs in rows:
+            check = direction_check(cams, gnss, obs)
+            meets = [d["meets"] for d in check.values()]
+            everything = None if None in meets else all(meets)
+            if everything:
+                met.append(f"{case} ({variant})")
+            lines.append(f"| {case} | {variant} | " + " | ".join(
+                _direction_cell(check[a]) for a in ("E", "N", "U")) +
+                f" | {'-' if everything is None else ('yes' if everything else 'no')} |")
+    lines += ["", f"Cases and models that meet it in every direction: "
+              f"{', '.join(met) if met else 'none'}."]
+    return lines
+
+
 def robustness_table(results: dict) -> str:
     lines = ["| case | images (registered) | method | cam RMS X | Y | Z | 3D | CP RMS 3D "
              "| verdict | s |", "|---|---|---|---|---|---|---|---|---|---|"]
@@ -505,6 +573,7 @@ def robustness_table(results: dict) -> str:
                 lines.append(f"| {case} | {variant} | {_f(cams, 'rms_x')} | {_f(cams, 'rms_y')} "
                              f"| {_f(cams, 'rms_z')} | {_f(cams, 'rms_3d')} | {fixed} | "
                              f"{m['verdict']} |")
+    lines += direction_table(results)
     reasons = [(case, r["reasons"]) for case, r in results.items() if r["reasons"]]
     if reasons:
         lines += ["", "Reasons given with the verdicts:", ""]
