@@ -7,7 +7,7 @@ of metres). Every size has the same street density (2 m between stations, one ti
 square metre of visible surface); only the street's length grows with the number of images.
 
 COLMAP's mapper is skipped: the "SfM" input is the true block bent by a smooth drift
-(z += drift x^2, the bend at the far end `--bend` of the street length, default 0.5 %), moved
+(z += bend x^2 / length, the far end bent by `--bend` of the street length, default 0.5 %), moved
 into an arbitrary similarity frame, with the noisy image observations and the tie points at
 their bent (not re-triangulated) positions. Neither it nor refine's input is a bundle
 adjustment optimum, so both adjustments below start from the same unconverged state.
@@ -65,7 +65,7 @@ def run_size(num_images: int, bend: float, seed: int) -> dict:
     stations = num_images // IMAGES_PER_STATION
     options = StreetSceneOptions(num_stations=stations, seed=seed)
     length = stations * options.station_spacing
-    options.drift = bend / length  # z += drift x^2 reaches bend * length at the far end
+    options.drift = bend  # the far end bent by bend * length
     t = time.perf_counter()
     scene = make_street_scene(options)
     scene_s = time.perf_counter() - t

@@ -1,13 +1,13 @@
 """Sliding-window workflow speed and memory against the length of the sequence.
 
 Synthetic streets (simulate.synthetic: three cameras per station, 2 m between stations, GNSS
-with a bias of about 2 m for every image, the SfM input bent by a smooth drift) of 250, 500
-and 1,000 images, each refined with `[workflow] mode = "sliding_window"` (the source's
-windows: 100 images, 33 new per window) in a fresh subprocess, so that every size's peak
-resident memory is its own. Per size: seconds of the windows alone, of the whole refine
-(the global GNSS-only adjustment before and the final global hybrid adjustment after the
-windows included), seconds per image of each, peak RSS (MB), and camera centres against the
-truth (RMS 3D, m).
+with a bias of about 2 m for every image, the SfM input bent by a smooth drift of 1 % of the
+street's length at its far end) of 250, 500 and 1,000 images, each refined with
+`[workflow] mode = "sliding_window"` (the source's windows: 100 images, 33 new per window) in
+a fresh subprocess, so that every size's peak resident memory is its own. Per size: seconds
+of the windows alone, of the whole refine (the global GNSS-only adjustment before and the
+final global hybrid adjustment after the windows included), seconds per image of each, peak
+RSS (MB), and camera centres against the truth (RMS 3D, m).
 
 The baseline is the 250-image sequence of the same run: `window_time_ratio_1000` is the
 windows' seconds per image at 1,000 images over that at 250 (1 = linear growth). Prints last
@@ -117,8 +117,9 @@ def main() -> None:
             "# Sliding-window workflow: time and memory against the sequence length\n\n"
             "Produced by\n\n    .venv/bin/python benchmarks/bench_sequential.py --results "
             f"{args.results}\n\nSynthetic streets, windows of 100 images with 33 new each, "
-            "then the global adjustment; each size in its own process (2-core machine shared "
-            "with other jobs: compare sizes of the same run).\n\n" + text)
+            "then the global adjustment; the SfM input bent by 1 % of the street's length at "
+            "its far end; each size in its own process (2-core machine shared with other "
+            "jobs: compare sizes of the same run).\n\n" + text)
         args.results.with_suffix(".json").write_text(json.dumps(runs, indent=2))
     base = runs.get(250) or runs[min(runs)]
     for size, r in runs.items():
