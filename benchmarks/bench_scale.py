@@ -45,7 +45,8 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
-def run_size(num_images: int, bend: float, seed: int) -> dict:
+def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None = None
+             ) -> dict:
     """One size, in this process: synthesise, COLMAP's BA, refine. Returns the figures."""
     import logging
 
@@ -77,9 +78,14 @@ def run_size(num_images: int, bend: float, seed: int) -> dict:
     }
 
     plain = pycolmap.Reconstruction(sfm)
+    colmap_options = pycolmap.BundleAdjustmentOptions()
+    if colmap_limit:
+        colmap_options.ceres.solver_options.max_solver_time_in_seconds = colmap_limit
     t = time.perf_counter()
-    pycolmap.bundle_adjustment(plain, pycolmap.BundleAdjustmentOptions())
+    pycolmap.bundle_adjustment(plain, colmap_options)
     figures["colmap_ba_s"] = time.perf_counter() - t
+    # stopped by the time limit: COLMAP's own time is at least this, the ratio at most
+    figures["colmap_ba_stopped"] = bool(colmap_limit and figures["colmap_ba_s"] >= colmap_limit)
     del plain
 
     refine_options = RefineOptions()
@@ -105,12 +111,21 @@ def run_size(num_images: int, bend: float, seed: int) -> dict:
 
 def line(r: dict) -> str:
     return (f"{r['images']} images ({r['street_m']:.0f} m of street, {r['tie_points']} tie "
-            f"points, {r['observations']} observations): colmap_ba_s {r['colmap_ba_s']:.1f} "
-            f"refine_s {r['refine_s']:.1f} refine_ratio {r['refine_ratio']:.3f} peak_rss_mb "
+            f"points, {r['observations']} observations): colmap_ba_s {_bound(r)}"
+            f"{r['colmap_ba_s']:.1f} refine_s {r['refine_s']:.1f} refine_ratio "
+            f"{_bound(r, upper=True)}{r['refine_ratio']:.3f} peak_rss_mb "
             f"{r['peak_rss_mb']:.0f} (after the scene {r['scene_rss_mb']:.0f}); "
             f"{r['iterations']} iterations, stages {r['stages_s']}, camera centres "
             f"{r['camera_rms_m']:.3f} m, verdict {r['verdict']}, load "
             f"{' '.join(f'{v:.1f}' for v in r['load'])}")
+
+
+def _bound(r: dict, upper: bool = False) -> str:
+    """'>= ' before COLMAP's seconds (and '<= ' before the ratio) where the time limit stopped
+    COLMAP's adjustment."""
+    if not r.get("colmap_ba_stopped"):
+        return ""
+    return "<= " if upper else ">= "
 
 
 def table(rows: list[dict]) -> str:
@@ -119,7 +134,8 @@ def table(rows: list[dict]) -> str:
            "|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['images']} | {r['tie_points']} | {r['observations']} | "
-                   f"{r['colmap_ba_s']:.1f} | {r['refine_s']:.1f} | {r['refine_ratio']:.3f} | "
+                   f"{_bound(r)}{r['colmap_ba_s']:.1f} | {r['refine_s']:.1f} | "
+                   f"{_bound(r, upper=True)}{r['refine_ratio']:.3f} | "
                    f"{r['peak_rss_mb']:.0f} | {r['iterations']} | {r['camera_rms_m']:.3f} | "
                    f"{r['verdict']} | {' / '.join(f'{v:.1f}' for v in r['load'])} |")
     return "\n".join(out) + "\n"
@@ -134,10 +150,15 @@ def main() -> None:
                         help="the drift's bend at the far end, relative to the street length")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--results", type=Path, help="write the table to this markdown file")
+    parser.add_argument("--colmap_limit", type=float, default=None,
+                        help="stop COLMAP's adjustment after this many seconds (Ceres' "
+                             "max_solver_time_in_seconds): its time is then a lower bound and "
+                             "refine_ratio an upper bound, marked '>=' / '<='")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child process's size
     args = parser.parse_args()
     if args.one is not None:
-        print("RESULT " + json.dumps(run_size(args.one, args.bend, args.seed)), flush=True)
+        print("RESULT " + json.dumps(run_size(args.one, args.bend, args.seed,
+                                              args.colmap_limit)), flush=True)
         return
 
     from bench_refine import code_version
@@ -148,7 +169,9 @@ def main() -> None:
     for size in args.sizes:
         child = subprocess.run(
             [sys.executable, __file__, "--one", str(size), "--bend", str(args.bend),
-             "--seed", str(args.seed)], capture_output=True, text=True)
+             "--seed", str(args.seed)]
+            + (["--colmap_limit", str(args.colmap_limit)] if args.colmap_limit else []),
+            capture_output=True, text=True)
         found = [ln for ln in child.stdout.splitlines() if ln.startswith("RESULT ")]
         if child.returncode or not found:
             print(f"{size} images: failed (exit {child.returncode})\n{child.stderr[-3000:]}")
@@ -157,8 +180,9 @@ def main() -> None:
         print(line(rows[-1]), flush=True)
     print(table(rows))
     for r in rows:
-        print(f"images {r['images']} colmap_ba_s {r['colmap_ba_s']:.3f} refine_s "
-              f"{r['refine_s']:.3f} refine_ratio {r['refine_ratio']:.3f} peak_rss_mb "
+        print(f"images {r['images']} colmap_ba_s {_bound(r)}{r['colmap_ba_s']:.3f} refine_s "
+              f"{r['refine_s']:.3f} refine_ratio {_bound(r, upper=True)}"
+              f"{r['refine_ratio']:.3f} peak_rss_mb "
               f"{r['peak_rss_mb']:.0f}")
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
