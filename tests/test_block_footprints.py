@@ -97,6 +97,7 @@ def test_pairs_along_a_strip():
     assert shares[("0.jpg", "2.jpg")] == pytest.approx(120 / 320, rel=1e-6)
 
 
+@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
 def test_pairs_command_on_an_imported_block(tmp_path):
     """Two strips of five-head exposures over Berlin: the pairs command with the city model
     writes a pair list naming database images, far fewer than exhaustive."""
