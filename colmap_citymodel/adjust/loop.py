@@ -1,6 +1,6 @@
 """Steps 3-4 of the global workflow, repeated: assign the tie points to the model planes, solve
 the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
-settles, an assignment repeats an earlier one (a cycle), the block objective worsens, or the
+settles, a solve moves no camera by more than a few millimetres, an assignment repeats an earlier one (a cycle), the block objective worsens, or the
 iterations run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
@@ -150,6 +150,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                              "GNSS: the datum is undefined", store.source)
 
         t1 = time.perf_counter()
+        centres_before = _camera_centres(rec)
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
@@ -201,16 +202,22 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
 
         rms = final_report.rms_total
         change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
+        centres_after = _camera_centres(rec)
+        moved = float(np.max(np.linalg.norm(centres_after - centres_before, axis=1),
+                             initial=0.0)) if centres_after.shape == centres_before.shape \
+            else float("inf")
         iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
                                           assignment.num_faces, rejected, len(outliers),
-                                          robust_report, final_report, change))
+                                          robust_report, final_report, change,
+                                          camera_shift=moved))
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
         value = objective(rec)
         logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
-                    "eliminated, RMS %.4f (relative change %.1e), dTP RMS %.3f m, s0 %.3f, "
-                    "objective %.4f", iteration, threshold, assignment.num_assigned,
-                    assignment.num_faces, len(outliers), rms, change,
+                    "eliminated, RMS %.4f (relative change %.1e), cameras moved <= %.4f m, "
+                    "dTP RMS %.3f m, s0 %.3f, objective %.4f", iteration, threshold,
+                    assignment.num_assigned, assignment.num_faces, len(outliers), rms, change,
+                    moved,
                     final_report.rms["dTP"] * o_adj.sigma_dtp,
                     np.sqrt(final_report.sigma0_squared), value)
         previous_rms = rms
@@ -227,6 +234,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current,
                     _offset(priors))
         if change < o_w.convergence_rms_change:
+            break
+        if iteration > 0 and moved < o_w.convergence_camera_shift:
+            logger.info("iteration %d moved no camera by more than %.4f m: the loop has "
+                        "converged", iteration, o_w.convergence_camera_shift)
             break
         if repeats is not None:
             # The same assignment as an earlier iteration: solving it again reaches the same
@@ -280,6 +291,12 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
     return HybridProblem(rec, store, assignment, priors, options, robust_images=False,
                          robust_planes=False, current=current, baselines=baselines,
                          pose_priors=pose_priors)
+
+
+def _camera_centres(rec: pycolmap.Reconstruction) -> np.ndarray:
+    """Projection centres of the registered images, in image id order."""
+    ids = sorted(rec.reg_image_ids())
+    return np.array([rec.images[i].projection_center() for i in ids]).reshape(-1, 3)
 
 
 def _signature(assignment: Assignment) -> bytes:

@@ -19,6 +19,7 @@ class IterationRecord:
     final: SolveReport
     relative_change: float
     phase: str = "loop"  # "loop": steps 3-4; "correction": with the model corrected
+    camera_shift: float = float("nan")  # largest camera centre change of this iteration (m)
 
 
     def todict(self) -> dict:
@@ -29,7 +30,7 @@ class IterationRecord:
             "robust_solve": self.robust.todict() if self.robust else None,
             "solve": self.final.todict(),
             "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
-            "phase": self.phase,
+            "phase": self.phase, "camera_shift_m": self.camera_shift,
         }
 
 

@@ -93,8 +93,10 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "step2": {**(result.step2.todict() if result.step2 else {}),
                   "eliminated_image_observations": result.step2_eliminated},
         "iterations": [it.todict() for it in result.iterations],
-        "converged": bool(last and last.relative_change <
-                          result.options.workflow.convergence_rms_change),
+        "converged": bool(last and (
+            last.relative_change < result.options.workflow.convergence_rms_change
+            or (last.iteration > 0
+                and last.camera_shift < result.options.workflow.convergence_camera_shift))),
         "sigma0": float(np.sqrt(last.final.sigma0_squared)) if last else None,
         "num_images": result.reconstruction.num_reg_images(),
         "num_points3D": result.reconstruction.num_points3D(),
