@@ -285,6 +285,7 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     options = RefineOptions()
     options.workflow.max_iterations = 3
     options.workflow.convergence_rms_change = 0.0
+    options.workflow.convergence_camera_shift = 0.0
     result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(result.iterations) == 3
     notes = [w for w in result.warnings if "did not converge" in w]
@@ -298,8 +299,32 @@ def test_the_loop_stops_when_an_assignment_repeats(scene, caplog):
     options = RefineOptions()
     options.workflow.max_iterations = 10
     options.workflow.convergence_rms_change = 0.0
+    options.workflow.convergence_camera_shift = 0.0
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
         result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(result.iterations) < 10
     assert any("assigned as iteration" in r.getMessage() for r in caplog.records)
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_loop_stops_once_the_cameras_stop_moving(scene, refined, caplog):
+    """A run ends when an iteration after the first moves no camera by more than
+    convergence_camera_shift; the iterations it leaves out move the cameras by about that much,
+    not more. A tolerance between the first iteration's camera move and the later ones' makes
+    the rule fire after the second iteration."""
+    shifts = [it.camera_shift for it in refined.iterations]
+    assert len(shifts) >= 3 and all(np.isfinite(shifts))
+    # The solves settle: the first moves the cameras most.
+    assert shifts[0] > max(shifts[1:])
+    tolerance = 0.5 * (shifts[0] + max(shifts[1:]))
+    options = RefineOptions()
+    options.workflow.convergence_camera_shift = tolerance
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
+        early = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert any("moved no camera" in r.getMessage() for r in caplog.records)
+    assert len(early.iterations) == 2 and early.iterations[-1].camera_shift < tolerance
+    difference = [np.linalg.norm(early.reconstruction.image(i).projection_center()
+                                 - refined.reconstruction.image(i).projection_center())
+                  for i in refined.reconstruction.reg_image_ids()]
+    assert max(difference) < 2 * tolerance
+    assert rms(centre_errors(early.reconstruction, scene.truth)) < 0.10
