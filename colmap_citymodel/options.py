@@ -190,6 +190,9 @@ class AdjustmentOptions:
     """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
     max_solver_iterations: int = 300
     """Ceres iterations per solve (COLMAP: 100); a drifted block needs more to converge."""
+    max_images_direct_solver: int = 1000
+    """Up to this many images every solve uses Ceres' direct SPARSE_SCHUR solver, above it
+    ITERATIVE_SCHUR (COLMAP's `max_num_images_direct_sparse_cpu_solver`, 1,000)."""
     function_tolerance: float = 1e-6
     """A solve ends when a step lowers the cost by less than this fraction of it. The cost is
     half the chi-square of n normalised residuals, whose own spread is sqrt(2n): a 1e-6

@@ -206,6 +206,7 @@ def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
     else:
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
     ba.ceres.solver_options.max_num_iterations = options.max_solver_iterations
+    ba.ceres.max_num_images_direct_sparse_cpu_solver = options.max_images_direct_solver
     ba.ceres.solver_options.num_threads = options.num_threads
     # COLMAP stops on gradient_tolerance only; a relative cost tolerance ends the many
     # near-converged re-solves of the outer loop early without changing the optimum.
