@@ -190,9 +190,14 @@ class AdjustmentOptions:
     """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
     max_solver_iterations: int = 300
     """Ceres iterations per solve (COLMAP: 100); a drifted block needs more to converge."""
-    max_images_direct_solver: int = 1000
-    """Up to this many images every solve uses Ceres' direct SPARSE_SCHUR solver, above it
-    ITERATIVE_SCHUR (COLMAP's `max_num_images_direct_sparse_cpu_solver`, 1,000)."""
+    max_images_direct_solver: int = 4000
+    """Up to this many images every solve (step 2 and the hybrid ones) uses Ceres' direct
+    SPARSE_SCHUR solver, above it ITERATIVE_SCHUR (COLMAP's
+    `max_num_images_direct_sparse_cpu_solver`, whose default 1,000 refine would otherwise
+    inherit). On a 2,000-image synthetic street step 2 took 26 s in 6 iterations with the
+    direct solver against 1,120 s with the iterative one, and the whole refine 201 s against
+    1,453 s, cameras 0.010 m off either way: the reduced camera system of a block, where each
+    image shares points with its neighbours only, stays sparse."""
     function_tolerance: float = 1e-6
     """A solve ends when a step lowers the cost by less than this fraction of it. The cost is
     half the chi-square of n normalised residuals, whose own spread is sqrt(2n): a 1e-6
