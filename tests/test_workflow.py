@@ -334,3 +334,21 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
                   for i in full.reconstruction.reg_image_ids()]
     assert max(difference) < tolerance
     assert rms(centre_errors(early.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_direct_solver_is_kept_up_to_max_images_direct_solver(scene):
+    """COLMAP's adjuster switches Ceres to ITERATIVE_SCHUR above a number of images; refine's
+    option moves that limit. The direct solver reaches at least as low a cost."""
+    results = {}
+    for limit in (RefineOptions().adjustment.max_images_direct_solver, 10):
+        options = RefineOptions()
+        options.adjustment.max_images_direct_solver = limit
+        rec = pycolmap.Reconstruction(scene.sfm)
+        _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
+        report, _ = step2_bundle_adjustment(rec, priors, options)
+        results[limit] = report
+    assert scene.sfm.num_reg_images() > 10
+    direct, iterative = results.values()
+    assert direct.linear_solver == "SPARSE_SCHUR"
+    assert iterative.linear_solver == "ITERATIVE_SCHUR"
+    assert sum(direct.sum_squares.values()) <= sum(iterative.sum_squares.values()) * (1 + 1e-6)

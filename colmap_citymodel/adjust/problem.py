@@ -114,6 +114,7 @@ class SolveReport:
     ceres_iterations: int
     seconds: float
     termination: str
+    linear_solver: str = ""  # Ceres' linear solver used (SPARSE_SCHUR, ITERATIVE_SCHUR, ...)
 
     @property
     def num_observations(self) -> int:
@@ -138,7 +139,7 @@ class SolveReport:
             "rms": self.rms, "count": self.count, "num_unknowns": self.num_unknowns,
             "redundancy": self.redundancy, "sigma0": float(np.sqrt(self.sigma0_squared)),
             "ceres_iterations": self.ceres_iterations, "seconds": self.seconds,
-            "termination": self.termination,
+            "termination": self.termination, "linear_solver": self.linear_solver,
         }
 
 
@@ -206,7 +207,11 @@ def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
     else:
         ba.ceres.loss_function_type = pycolmap.LossFunctionType.TRIVIAL
     ba.ceres.solver_options.max_num_iterations = options.max_solver_iterations
-    ba.ceres.max_num_images_direct_sparse_cpu_solver = options.max_images_direct_solver
+    sparse = max(int(options.max_images_direct_solver), 1)
+    ba.ceres.max_num_images_direct_sparse_cpu_solver = sparse
+    # COLMAP requires its dense limit (50) below the sparse one.
+    ba.ceres.max_num_images_direct_dense_cpu_solver = min(
+        ba.ceres.max_num_images_direct_dense_cpu_solver, sparse - 1)
     ba.ceres.solver_options.num_threads = options.num_threads
     # COLMAP stops on gradient_tolerance only; a relative cost tolerance ends the many
     # near-converged re-solves of the outer loop early without changing the optimum.
@@ -617,6 +622,8 @@ class HybridProblem:
             ceres_iterations=iterations,
             seconds=seconds,
             termination=str(getattr(summary, "termination_type", "")),
+            linear_solver=(str(ceres_summary.linear_solver_type_used).split(".")[-1]
+                           if ceres_summary is not None else ""),
         )
 
 
