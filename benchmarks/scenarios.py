@@ -511,7 +511,11 @@ def direction_table(results: dict) -> list[str]:
                 _direction_cell(check[a]) for a in ("E", "N", "U")) +
                 f" | {'-' if everything is None else ('yes' if everything else 'no')} |")
     lines += ["", f"Cases and models that meet it in every direction: "
-              f"{', '.join(met) if met else 'none'}."]
+              f"{', '.join(met) if met else 'none'}.", "",
+              "How much of the error the given model's own plane errors leave to any method "
+              "that takes its planes as given (the true block fitted onto them), and whether a "
+              "direction's target lies below that: `model_floor.md` "
+              "(`benchmarks/model_floor.py`)."]
     return lines
 
 
