@@ -351,6 +351,11 @@ class WorkflowOptions:
     the solves from the third iteration on moved the cameras by at most 24, 4.3, 2.2, 0.4, 0.5
     and 0.4 mm, each costing a hybrid solve; one small move alone can be a pause in a slow
     swing (long Scn4: 4 mm between moves of 6 cm). 0 runs until the RMS settles."""
+    robust_second_iteration: bool = True
+    """The second iteration, whose threshold falls from the upper limit to one from the data,
+    goes straight to the robust solve. Later iterations first solve with the original weights
+    and solve robustly only if some |v| / sigma exceeds the elimination threshold, which in the
+    second iteration it always did (short Scn3: 29 f_dTP, long Scn3: 23): one solve fewer."""
     alignment_rounds: int = 20
     """At most this many rounds of similarity fit + assignment before the first hybrid
     adjustment (initial_alignment; ICP-like)."""

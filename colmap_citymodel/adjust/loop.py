@@ -158,7 +158,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         robust_report = None
         outliers = np.zeros(0, np.int64)
         rejected = dict(assignment.rejected_faces)
-        if iteration > 0:
+        if iteration > 0 and not (iteration == 1 and o_w.robust_second_iteration):
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
             final = _final_problem(reusable, rec, store, assignment, priors, o_adj, current,
