@@ -355,7 +355,9 @@ class WorkflowOptions:
     """The second iteration, whose threshold falls from the upper limit to one from the data,
     goes straight to the robust solve. Later iterations first solve with the original weights
     and solve robustly only if some |v| / sigma exceeds the elimination threshold, which in the
-    second iteration it always did (short Scn3: 29 f_dTP, long Scn3: 23): one solve fewer."""
+    second iteration it did on every simulated COLMAP block (short Scn3: 29 f_dTP, long Scn3:
+    23): one solve fewer there. On a block without such outliers (the synthetic test street)
+    it costs one solve more."""
     alignment_rounds: int = 20
     """At most this many rounds of similarity fit + assignment before the first hybrid
     adjustment (initial_alignment; ICP-like)."""

@@ -352,3 +352,20 @@ def test_the_direct_solver_is_kept_up_to_max_images_direct_solver(scene):
     assert direct.linear_solver == "SPARSE_SCHUR"
     assert iterative.linear_solver == "ITERATIVE_SCHUR"
     assert sum(direct.sum_squares.values()) <= sum(iterative.sum_squares.values()) * (1 + 1e-6)
+
+
+def test_the_second_iteration_solves_robustly_at_once(scene, refined):
+    """The second iteration goes straight to the robust solve (no non-robust check first); with
+    the check instead the block ends at the same place."""
+    assert len(refined.iterations) >= 2 and refined.iterations[1].robust is not None
+    options = RefineOptions()
+    options.workflow.robust_second_iteration = False
+    checked = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    # With the check, a robust solve follows only where the check found |v| > 3 sigma.
+    second = checked.iterations[1]
+    assert second.robust is None or second.num_eliminated > 0
+    difference = [np.linalg.norm(checked.reconstruction.image(i).projection_center()
+                                 - refined.reconstruction.image(i).projection_center())
+                  for i in refined.reconstruction.reg_image_ids()]
+    assert max(difference) < 0.01
+    assert rms(centre_errors(checked.reconstruction, scene.truth)) < 0.10
