@@ -53,9 +53,7 @@ SCALE_SIGMA = 0.01
 
 def true_block(workspace: Path):
     truth = pycolmap.Reconstruction(str(workspace / "truth"))
-    lines = [ln for ln in (workspace / "truth" / "origin.txt").read_text().splitlines()
-             if ln.strip() and not ln.startswith("#")]
-    origin = np.array([float(v) for v in lines[0].split()])
+    origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3]
     points = np.array([p.xyz for p in truth.points3D.values()])
     ids = np.array(list(truth.points3D.keys()), dtype=np.int64)
     centres = np.array([truth.images[i].projection_center() for i in sorted(truth.images)])
@@ -80,9 +78,11 @@ def apply(params: np.ndarray, x: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return x + params[:3] + np.cross(params[3:6], r) + params[6] * r
 
 
-def floor(workspace: Path, variant: str, threshold: float, gnss_sigma: np.ndarray) -> dict:
+def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray
+          ) -> dict:
+    """The floor of one model variant; `block` is `true_block(workspace)`."""
     store = read_city_model(workspace / "models" / f"{variant}.gml")
-    points_crs, ids, centres_crs = true_block(workspace)
+    points_crs, ids, centres_crs = block
     points = store.to_local(points_crs)
     centres = store.to_local(centres_crs)
     assignment = assign_direct(points, ids, store, threshold, AssignmentOptions())
@@ -147,8 +147,9 @@ def main() -> None:
              "| 3D |", "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     print("\n".join(table))
     for case in args.cases:
+        block = true_block(ROBUST / case)
         for variant in args.variants:
-            f = floor(ROBUST / case, variant, args.threshold, np.array(args.gnss_sigma))
+            f = floor(ROBUST / case, variant, block, args.threshold, np.array(args.gnss_sigma))
             rows.setdefault(case, {})[variant] = f
             p, q = f["per point"], f["per face"]
             table.append(

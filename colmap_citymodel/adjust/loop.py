@@ -28,14 +28,14 @@ from ..align.objective import BlockObjective
 from ..assign.assignment import Assignment, filter_faces
 from ..assign.schedule import assign, initial_threshold, next_threshold
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import tie_points
+from ..block.reconstruction import camera_centres, tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import RefineOptions
 from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
-from .record import IterationRecord
+from .record import IterationRecord, cameras_settled
 from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
 from .steps import align_block_to_planes, model_after_solve
 
@@ -150,7 +150,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                              "GNSS: the datum is undefined", store.source)
 
         t1 = time.perf_counter()
-        centres_before = _camera_centres(rec)
+        centres_before = camera_centres(rec).reshape(-1, 3)
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
@@ -202,7 +202,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
 
         rms = final_report.rms_total
         change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
-        centres_after = _camera_centres(rec)
+        centres_after = camera_centres(rec).reshape(-1, 3)
         moved = float(np.max(np.linalg.norm(centres_after - centres_before, axis=1),
                              initial=0.0)) if centres_after.shape == centres_before.shape \
             else float("inf")
@@ -235,10 +235,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     _offset(priors))
         if change < o_w.convergence_rms_change:
             break
-        if len(iterations) > 2 and max(it.camera_shift for it in iterations[-2:]) \
-                < o_w.convergence_camera_shift:
-            # Two in a row: a single small move can be a pause in a slow swing of the block
-            # (long Scn4: 4 mm between moves of 6 cm).
+        if cameras_settled(iterations, o_w.convergence_camera_shift):
             logger.info("iterations %d and %d moved no camera by more than %.4f m: the loop "
                         "has converged", iteration - 1, iteration, o_w.convergence_camera_shift)
             break
@@ -294,12 +291,6 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
     return HybridProblem(rec, store, assignment, priors, options, robust_images=False,
                          robust_planes=False, current=current, baselines=baselines,
                          pose_priors=pose_priors)
-
-
-def _camera_centres(rec: pycolmap.Reconstruction) -> np.ndarray:
-    """Projection centres of the registered images, in image id order."""
-    ids = sorted(rec.reg_image_ids())
-    return np.array([rec.images[i].projection_center() for i in ids]).reshape(-1, 3)
 
 
 def _signature(assignment: Assignment) -> bytes:

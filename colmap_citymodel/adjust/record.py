@@ -34,3 +34,7 @@ class IterationRecord:
         }
 
 
+def cameras_settled(iterations: list[IterationRecord], tolerance: float) -> bool:
+    """Two iterations in a row, after the first, moved no camera by more than `tolerance` (m):
+    one small move alone can be a pause in a slow swing of the block."""
+    return len(iterations) > 2 and max(it.camera_shift for it in iterations[-2:]) < tolerance

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..adjust.record import cameras_settled
 from ..errors import InputError
 from ..files import atomic_directory, write_point_ply
 from ..precision.figures import html_page
@@ -95,9 +96,8 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "iterations": [it.todict() for it in result.iterations],
         "converged": bool(last and (
             last.relative_change < result.options.workflow.convergence_rms_change
-            or (len(result.iterations) > 2
-                and max(it.camera_shift for it in result.iterations[-2:])
-                < result.options.workflow.convergence_camera_shift))),
+            or cameras_settled(result.iterations,
+                               result.options.workflow.convergence_camera_shift))),
         "sigma0": float(np.sqrt(last.final.sigma0_squared)) if last else None,
         "num_images": result.reconstruction.num_reg_images(),
         "num_points3D": result.reconstruction.num_points3D(),
