@@ -286,6 +286,8 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     options.workflow.max_iterations = 3
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_camera_shift = 0.0
+    # Every iteration ends on a solve with the original weights (none on its robust solve).
+    options.workflow.solve_again_after_elimination = True
     result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(result.iterations) == 3
     notes = [w for w in result.warnings if "did not converge" in w]
@@ -369,3 +371,94 @@ def test_the_second_iteration_solves_robustly_at_once(scene, refined):
                   for i in refined.reconstruction.reg_image_ids()]
     assert max(difference) < 0.01
     assert rms(centre_errors(checked.reconstruction, scene.truth)) < 0.10
+
+
+def test_an_eliminated_observation_is_not_given_to_its_face_again():
+    """A tie point eliminated from a face stays off that face in later assignments (another
+    face may take it); a face left with too few points is dropped as the assignment would."""
+    from colmap_citymodel.adjust.loop import _without_eliminated
+    from colmap_citymodel.assign.assignment import Assignment
+    from colmap_citymodel.options import AssignmentOptions
+
+    options = AssignmentOptions()
+    n = options.min_points_per_plane
+    rng = np.random.default_rng(4)
+    # Face 0: a wall x = 0 with 3n points; face 1: a roof z = 10 with exactly n points.
+    wall = np.column_stack([np.zeros(3 * n), rng.uniform(0, 10, 3 * n), rng.uniform(0, 8, 3 * n)])
+    roof = np.column_stack([rng.uniform(1, 9, n), rng.uniform(0, 10, n), np.full(n, 10.0)])
+    points = np.vstack([wall, roof])
+    faces = np.r_[np.zeros(3 * n, np.int64), np.ones(n, np.int64)]
+    assignment = Assignment(np.arange(4 * n, dtype=np.int64), faces.copy(),
+                            np.zeros(4 * n), 0.5)
+    eliminated_from = np.full(4 * n, -1, np.int64)
+    eliminated_from[[0, 1]] = 0  # two wall points eliminated from the wall
+    eliminated_from[2] = 1  # one wall point once eliminated from the roof: it keeps the wall
+    eliminated_from[3 * n] = 1  # one roof point: the roof falls below the minimum
+    result = _without_eliminated(assignment, eliminated_from, points, options)
+    assert list(result.face_index[:3]) == [-1, -1, 0]
+    assert np.all(result.face_index[3:3 * n] == 0)
+    assert np.all(result.face_index[3 * n:] == -1)
+    assert result.rejected_faces.get("too_few_points") == 1
+    assert np.isnan(result.distance[result.face_index < 0]).all()
+    assert assignment.face_index.tolist() == faces.tolist()  # the input is not changed
+
+
+@pytest.mark.parametrize("undo_sigmas", [1e9, 0.0])
+def test_a_scale_change_beyond_gnss_holds_the_scale_and_only_a_large_one_is_undone(
+        scene, monkeypatch, caplog, undo_sigmas):
+    """Every solve is made to count as changing the scale beyond what GNSS allows. Up to
+    SCALE_UNDO_SIGMAS the solve is kept and the scale held from then on; beyond it the solve is
+    undone and the iteration repeated with the scale held. Both end on the truth, and the kept
+    solve saves the repetition."""
+    from colmap_citymodel.adjust import loop as loop_module
+
+    monkeypatch.setattr(loop_module, "SCALE_RUNAWAY_SIGMAS", 0.0)
+    monkeypatch.setattr(loop_module, "SCALE_UNDO_SIGMAS", undo_sigmas)
+    monkeypatch.setattr(loop_module, "scale_change", lambda *args: 1e-3)
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
+        result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    messages = [r.getMessage() for r in caplog.records if "changed the block's scale" in
+                r.getMessage()]
+    assert len(messages) == 1  # held from then on: no second check
+    first = result.iterations[0].iteration
+    if undo_sigmas:
+        assert "undone" not in messages[0] and first == 0
+    else:
+        assert "undone" in messages[0] and first == 1
+    # The second kept iteration goes straight to the robust solve, undone iteration or not.
+    assert len(result.iterations) >= 2 and result.iterations[1].robust is not None
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_solve_after_an_elimination_is_the_next_iterations(scene, monkeypatch):
+    """By default an iteration that eliminated f_dTP does not solve again at once: the next
+    iteration's solve, which leaves them out, does. That takes fewer solves, never ends the
+    loop on a robust solve, and ends where solving again at once ends."""
+    from colmap_citymodel.adjust import problem as problem_module
+
+    solves = []
+    real_solve = problem_module.HybridProblem.solve
+
+    def counted(self):
+        solves.append(self.robust_planes)
+        return real_solve(self)
+
+    monkeypatch.setattr(problem_module.HybridProblem, "solve", counted)
+    counts = {}
+    results = {}
+    for again in (False, True):
+        options = RefineOptions()
+        options.workflow.solve_again_after_elimination = again
+        solves.clear()
+        results[again] = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+        counts[again] = len(solves)
+        assert not solves[-1]  # the last solve of the loop has the original weights
+    deferred = [it.todict()["robust_only"] for it in results[False].iterations]
+    assert any(deferred) and not deferred[-1]
+    assert not any(it.todict()["robust_only"] for it in results[True].iterations)
+    assert counts[False] < counts[True]
+    difference = [np.linalg.norm(results[False].reconstruction.image(i).projection_center()
+                                 - results[True].reconstruction.image(i).projection_center())
+                  for i in results[True].reconstruction.reg_image_ids()]
+    assert max(difference) < 0.01
+    assert rms(centre_errors(results[False].reconstruction, scene.truth)) < 0.10

@@ -4,10 +4,12 @@ settles, two solves in a row move no camera by more than a few millimetres, an a
 repeats an earlier one (a cycle), the block objective worsens, or the iterations run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
-never change; the threshold never grows (no flip-flop between two assignments). The first
-assignment is followed by similarity rounds that move the whole block onto its planes. A solve
-that changes the scale further than GNSS allows is undone and the scale held from then on; a
-solve that moves the block away from the model ends the loop at the best iterate.
+never change; the threshold never grows (no flip-flop between two assignments); an f_dTP
+eliminated as an outlier is not assigned to its face again. The first assignment is followed by
+similarity rounds that move the whole block onto its planes. A solve that changes the scale
+further than GNSS allows holds the scale from then on, and is undone first if it changed the
+scale by far more (a collapse onto a few planes); a solve that moves the block away from the
+model ends the loop at the best iterate.
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
 priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
@@ -36,7 +38,7 @@ from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
-from .scale import SCALE_RUNAWAY_SIGMAS, baseline_priors, scale_change
+from .scale import SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, scale_change
 from .steps import align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
@@ -100,6 +102,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     # with the signature of the assignment it solved.
     reusable: HybridProblem | None = None
     solved = None
+    eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
@@ -110,6 +113,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
+        if eliminated_from is None:  # the tie points keep their order inside the loop
+            eliminated_from = np.full(len(point_ids), -1, np.int64)
+        if o_w.keep_eliminated:
+            assignment = _without_eliminated(assignment, eliminated_from, points, o_a)
         signature = _signature(assignment)
         if o_w.reuse_problem and signature == solved and last is not None:
             # The assignment the last solve used: solving it again would start at its
@@ -158,7 +165,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         robust_report = None
         outliers = np.zeros(0, np.int64)
         rejected = dict(assignment.rejected_faces)
-        if iteration > 0 and not (iteration == 1 and o_w.robust_second_iteration):
+        # Only iterations that were kept count: one undone (its scale) is solved again as it was.
+        if iterations and not (len(iterations) == 1 and o_w.robust_second_iteration):
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
             final = _final_problem(reusable, rec, store, assignment, priors, o_adj, current,
@@ -175,25 +183,44 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             robust_report = robust.solve()
             normalised = robust.residuals["dTP"]
             outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
-            assignment = assignment.without(np.isin(assignment.point_ids, outliers))
+            eliminated = np.isin(assignment.point_ids, outliers)
+            if iterations:  # in the first, the block still moves by decimetres
+                eliminated_from[eliminated] = assignment.face_index[eliminated]
+            assignment = assignment.without(eliminated)
             assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
             assignment.distance[assignment.face_index < 0] = np.nan
             assignment.rejected_faces = rejected
-            final = _final_problem(reusable if iteration > 0 else None, rec, store, assignment,
-                                   priors, o_adj, model_after_solve(current, robust), baselines,
-                                   pose_priors)
-            final_report = final.solve()
+            if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
+                    and iteration + 1 < o_w.max_iterations):
+                # The next iteration's solve, which leaves these f_dTP out, is the one with
+                # the original weights; it starts where the robust one ended.
+                final, final_report = robust, robust_report
+            else:
+                final = _final_problem(reusable if iteration > 0 else None, rec, store,
+                                       assignment, priors, o_adj,
+                                       model_after_solve(current, robust), baselines,
+                                       pose_priors)
+                final_report = final.solve()
         seconds["hybrid_solves"] += time.perf_counter() - t1
         current = model_after_solve(current, final)
         last = final
-        reusable = final if o_w.reuse_problem else None
-        solved = _signature(assignment)
+        robust_only = final.robust_planes  # the iteration ended on its robust solve
+        if not robust_only:
+            reusable = final if o_w.reuse_problem else None
+        solved = None if robust_only else _signature(assignment)
         if before_solve is not None:
             change = scale_change(gnss_only, rec, priors.image_ids)
-            if abs(np.log1p(change)) > SCALE_RUNAWAY_SIGMAS * scale_sigma:
+            sigmas = abs(np.log1p(change)) / scale_sigma
+            if SCALE_RUNAWAY_SIGMAS < sigmas <= SCALE_UNDO_SIGMAS:
+                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
+                               "sigma): the scale is held from now on", iteration,
+                               100 * change, sigmas)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+                reusable = None  # the next problem has the baseline priors
+            elif sigmas > SCALE_UNDO_SIGMAS:
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
                                "sigma): undone, the scale is held from now on", iteration,
-                               100 * change, abs(np.log1p(change)) / scale_sigma)
+                               100 * change, sigmas)
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma)
@@ -233,6 +260,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if best[1] == iteration:
             best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current,
                     _offset(priors))
+        if robust_only:  # no stopping rule before a solve with the original weights
+            continue
         if change < o_w.convergence_rms_change:
             break
         if cameras_settled(iterations, o_w.convergence_camera_shift):
@@ -260,7 +289,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         _, _, rec, assignment, current, offset = best
         _restore_offset(priors, offset)
         last = None
-    if last is None:  # back to the best iterate, or the last iteration was undone
+    if last is not None and last.robust_planes:
+        last = None
+    if last is None:  # back to the best iterate, the last iteration undone or robust only
         last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
                              robust_planes=False, current=current, baselines=baselines,
                              pose_priors=pose_priors)
@@ -291,6 +322,19 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
     return HybridProblem(rec, store, assignment, priors, options, robust_images=False,
                          robust_planes=False, current=current, baselines=baselines,
                          pose_priors=pose_priors)
+
+
+def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
+                        points: np.ndarray, options) -> Assignment:
+    """`assignment` without the tie points given again to a face they were eliminated from;
+    faces left with too few points (or not planar) are dropped as in the assignment."""
+    again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
+    if not again.any():
+        return assignment
+    out = assignment.without(again)
+    out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces)
+    out.distance[out.face_index < 0] = np.nan
+    return out
 
 
 def _signature(assignment: Assignment) -> bytes:

@@ -31,6 +31,9 @@ class IterationRecord:
             "solve": self.final.todict(),
             "rms_normalised": self.final.rms_total, "relative_change": self.relative_change,
             "phase": self.phase, "camera_shift_m": self.camera_shift,
+            # The iteration ended on its robust solve; the next one solved with the original
+            # weights (WorkflowOptions.solve_again_after_elimination).
+            "robust_only": self.robust is not None and self.final is self.robust,
         }
 
 
