@@ -11,8 +11,15 @@ import pycolmap
 
 def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
-    ids = np.array([i for i in rec.point3D_ids() if not exclude or i not in exclude], np.int64)
-    xyz = np.array([rec.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
+    # One pass over the points (by id, each lookup took as long again).
+    points = rec.points3D
+    ids = np.fromiter(points.keys(), np.int64, count=len(points))
+    xyz = np.array([point.xyz for point in points.values()], np.float64).reshape(-1, 3)
+    order = np.argsort(ids)  # ascending ids, as point3D_ids() gives them
+    ids, xyz = ids[order], xyz[order]
+    if exclude:
+        keep = ~np.isin(ids, np.fromiter(exclude, np.int64, count=len(exclude)))
+        ids, xyz = ids[keep], xyz[keep]
     return ids, xyz
 
 
