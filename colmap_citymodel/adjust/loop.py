@@ -33,7 +33,7 @@ from ..block.priors import GNSSPriors
 from ..block.reconstruction import camera_centres, tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
-from ..options import RefineOptions
+from ..options import AssignmentOptions, RefineOptions
 from .datum import check_datum
 from .observability import assigned_observability, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
@@ -325,7 +325,7 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
 
 
 def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
-                        points: np.ndarray, options) -> Assignment:
+                        points: np.ndarray, options: AssignmentOptions) -> Assignment:
     """`assignment` without the tie points given again to a face they were eliminated from;
     faces left with too few points (or not planar) are dropped as in the assignment."""
     again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
