@@ -372,7 +372,9 @@ class WorkflowOptions:
     original weights (the source's order), and the next iteration assigns from that solution.
     False (with keep_eliminated): the next iteration's assignment, which leaves those f_dTP
     out, is solved with the original weights instead; the loop never ends on a robust solve.
-    One solve fewer in each iteration that eliminates (short Scn3: 9 solves -> 7)."""
+    One solve fewer in each iteration that eliminates (short Scn3: 9 solves -> 7). The sliding
+    window (its windows and the global loop after them) always solves again at once: long Scn4
+    with GNSS for the first 50 images ended at 0.179 m check point RMS otherwise, 0.170 m so."""
     alignment_rounds: int = 20
     """At most this many rounds of similarity fit + assignment before the first hybrid
     adjustment (initial_alignment; ICP-like)."""
