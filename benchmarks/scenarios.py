@@ -290,21 +290,19 @@ def truth_centres(workspace: Path) -> dict[str, np.ndarray]:
 def centre_errors(rec: pycolmap.Reconstruction, origin: np.ndarray, truth: dict) -> dict:
     """RMS of (estimated - true) camera centres of `rec` (local frame: model CRS - origin) per
     axis and 3D, over its registered images; also how many of the true images it has."""
-    names, diff, ids = [], [], []
-    for image_id, image in rec.images.items():
-        if image.has_pose and image.name in truth:
-            names.append(image.name)
-            ids.append(image_id)
-            diff.append(image.projection_center() + origin - truth[image.name])
-    if not diff:
+    names = [image.name for image in rec.images.values()
+             if image.has_pose and image.name in truth]
+    if not names:
         return {"num_images": 0, "num_true_images": len(truth)}
-    d = np.array(diff)
+    by_name = {image.name: image for image in rec.images.values()}
+    estimated = np.array([by_name[name].projection_center() for name in names])
+    true_local = np.array([truth[name] for name in names]) - origin
+    d = estimated - true_local
     rms = np.sqrt(np.mean(d ** 2, axis=0))
     # The block's shape alone: what remains after the 7-parameter fit onto the true centres.
-    estimated = np.array([rec.image(i).projection_center() for i in ids])
-    similarity = pycolmap.estimate_sim3d(estimated, estimated - d) if len(d) >= 3 else None
+    similarity = pycolmap.estimate_sim3d(estimated, true_local) if len(d) >= 3 else None
     shape = (float(np.sqrt(np.mean(np.sum((np.array([similarity * x for x in estimated])
-                                            - (estimated - d)) ** 2, axis=1))))
+                                            - true_local) ** 2, axis=1))))
              if similarity is not None else float("nan"))
     return {"rms_x": float(rms[0]), "rms_y": float(rms[1]), "rms_z": float(rms[2]),
             "rms_3d": float(np.sqrt(np.sum(rms ** 2))), "rms_3d_after_helmert": shape,

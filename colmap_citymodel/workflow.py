@@ -114,23 +114,22 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
     offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
     windows = None
+    loop_options = options
     if o_w.mode == "sliding_window":
+        # The windows' iterations and those of the global loop after them each end on a solve
+        # with the original weights: long Scn4 0.170 m, 0.179 with that solve left to the next
+        # iteration.
+        loop_options = copy.deepcopy(options)
+        loop_options.workflow.solve_again_after_elimination = True
         # Windows along the sequence, each on the model; the loop below is then the final
         # global hybrid adjustment of all images, starting from where the windows left them.
         from .adjust.sliding_window import sliding_window
 
-        windows = sliding_window(rec, store, priors, options, surface,
+        windows = sliding_window(rec, store, priors, loop_options, surface,
                                  exclude_point_ids=exclude_point_ids, progress=progress)
         warnings += windows.warnings
         timer["sliding_window"] = windows.seconds
 
-    loop_options = options
-    if windows is not None:
-        # After the windows (which solve so too) each of the loop's iterations ends on a
-        # solve with the original weights: long Scn4 0.170 m, 0.179 with that solve left to
-        # the next iteration.
-        loop_options = copy.deepcopy(options)
-        loop_options.workflow.solve_again_after_elimination = True
     loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
                            exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
                            scale_sigma=scale_sigma, progress=progress)

@@ -37,7 +37,7 @@ import pycolmap
 
 from ..align.coarse import SurfaceDistance
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment, filter_faces
+from ..assign.assignment import Assignment
 from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
@@ -126,7 +126,6 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         assignment = assign(points, point_ids, current, threshold, o_a, weights)
         if not assignment.num_assigned:
             break
-        rejected = dict(assignment.rejected_faces)
         robust = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,
                                    robust_planes=True, current=current, baselines=baselines)
         if not moves_block:
@@ -134,10 +133,7 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         robust_report = robust.solve()
         outliers = robust.point_ids[np.abs(robust.residuals["dTP"])
                                     > o_adj.elimination_threshold]
-        assignment = assignment.without(np.isin(assignment.point_ids, outliers))
-        assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
-        assignment.distance[assignment.face_index < 0] = np.nan
-        assignment.rejected_faces = rejected
+        assignment = assignment.eliminate(np.isin(assignment.point_ids, outliers), points, o_a)
         last = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,
                                  robust_planes=False, current=model_after_solve(current, robust),
                                  baselines=baselines)
@@ -149,7 +145,8 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
         previous_rms = rms
         records.append(IterationRecord(first_iteration + k, threshold, assignment.num_assigned,
-                                       assignment.num_faces, rejected, len(outliers),
+                                       assignment.num_faces, dict(assignment.rejected_faces),
+                                       len(outliers),
                                        robust_report, report, change, phase="correction"))
         selection = last.blocks.correction
         logger.info("model correction %d: %d faces corrected (%d vertices released, %d faces "

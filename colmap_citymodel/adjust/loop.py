@@ -27,7 +27,7 @@ import pycolmap
 from tqdm import tqdm
 
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment, filter_faces
+from ..assign.assignment import Assignment
 from ..assign.schedule import assign, initial_threshold, next_threshold
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import camera_centres, tie_points
@@ -164,7 +164,6 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             if gnss_only is not None and baselines is None and scale_sigma else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
-        rejected = dict(assignment.rejected_faces)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
         if iterations and not (len(iterations) == 1 and o_w.robust_second_iteration):
             # Förstner-Wrobel only where needed: with the original weights first; robust
@@ -186,10 +185,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             eliminated = np.isin(assignment.point_ids, outliers)
             if iterations:  # in the first, the block still moves by decimetres
                 eliminated_from[eliminated] = assignment.face_index[eliminated]
-            assignment = assignment.without(eliminated)
-            assignment.face_index = filter_faces(points, assignment.face_index, o_a, rejected)
-            assignment.distance[assignment.face_index < 0] = np.nan
-            assignment.rejected_faces = rejected
+            assignment = assignment.eliminate(eliminated, points, o_a)
             if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
                     and iteration + 1 < o_w.max_iterations):
                 # The next iteration's solve, which leaves these f_dTP out, is the one with
@@ -234,7 +230,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                              initial=0.0)) if centres_after.shape == centres_before.shape \
             else float("inf")
         iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
-                                          assignment.num_faces, rejected, len(outliers),
+                                          assignment.num_faces,
+                                          dict(assignment.rejected_faces), len(outliers),
                                           robust_report, final_report, change,
                                           camera_shift=moved))
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
@@ -326,15 +323,9 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
 
 def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
                         points: np.ndarray, options: AssignmentOptions) -> Assignment:
-    """`assignment` without the tie points given again to a face they were eliminated from;
-    faces left with too few points (or not planar) are dropped as in the assignment."""
+    """`assignment` without the tie points given again to a face they were eliminated from."""
     again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
-    if not again.any():
-        return assignment
-    out = assignment.without(again)
-    out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces)
-    out.distance[out.face_index < 0] = np.nan
-    return out
+    return assignment.eliminate(again, points, options) if again.any() else assignment
 
 
 def _signature(assignment: Assignment) -> bytes:

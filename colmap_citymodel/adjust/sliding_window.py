@@ -245,9 +245,6 @@ def _window_priors(priors: GNSSPriors | None, image_ids: set[int]) -> GNSSPriors
 def _window_options(options: RefineOptions, first: bool) -> RefineOptions:
     window = copy.deepcopy(options)
     window.adjustment.refine_intrinsics = False
-    # Each iteration ends on a solve with the original weights, as in the global loop after
-    # the windows (workflow.refine).
-    window.workflow.solve_again_after_elimination = True
     if not first:  # the window before placed it: no similarity moves of the whole window
         window.workflow.alignment_rounds = 0
     return window

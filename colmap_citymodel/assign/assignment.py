@@ -70,6 +70,16 @@ class Assignment:
         return Assignment(self.point_ids, face_index, distance, self.threshold,
                           dict(self.rejected_faces), self.method)
 
+    def eliminate(self, point_mask: np.ndarray, points: np.ndarray,
+                  options: AssignmentOptions) -> "Assignment":
+        """`without(point_mask)`, then the faces left with too few points (or not planar)
+        dropped as the assignment drops them (counted in the copy's `rejected_faces`);
+        `points`: the tie points' coordinates, in the order of `point_ids`."""
+        out = self.without(point_mask)
+        out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces)
+        out.distance[out.face_index < 0] = np.nan
+        return out
+
 
 class PlaneAssigner(Protocol):
     """Interface of an assignment method. `weights`: per-point quality (higher = better) for
