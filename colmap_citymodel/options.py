@@ -386,7 +386,9 @@ class WorkflowOptions:
     """Before the first assignment the block's shift (and, along a straight flight line, its
     roll) is searched within +- this many GNSS sigmas of the GNSS-only position: GNSS errors
     are mostly a bias of metres that a 2 m assignment threshold cannot bridge
-    (align.coarse). 0 switches the search off."""
+    (align.coarse). With an initial transform as well, only the shift is searched: the GNSS-only
+    adjustment has moved the block from the transform onto the GNSS. 0 switches the search
+    off."""
     reuse_problem: bool = True
     """Keep one hybrid problem across the assign/adjust iterations: only the f_dTP blocks of
     tie points whose plane changed are exchanged (HybridProblem.reassign); a new problem is

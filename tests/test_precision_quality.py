@@ -183,3 +183,22 @@ def test_verdict_rules():
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
 
+
+
+def test_an_exact_initial_transform_is_not_lost_to_biased_gnss():
+    """A user's transform puts the block on the model, but the bundle adjustment with GNSS
+    that follows moves it by the GNSS bias (5.4 m): the coarse search must bring it back."""
+    scene = make_street_scene(StreetSceneOptions(seed=5, gnss_bias=(4.0, -3.0, 2.0),
+                                                 gnss_sigma=(2.0, 2.0, 2.0)))
+    names = [im.name for im in scene.sfm.images.values()]
+    exact = pycolmap.estimate_sim3d(
+        np.array([scene.sfm.find_image_with_name(n).projection_center() for n in names]),
+        np.array([scene.truth.find_image_with_name(n).projection_center() for n in names])
+        + scene.store.origin)
+    result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(),
+                    initial_transform=exact, progress=False)
+    before = rms(centre_errors(result.gnss_only, scene.truth))
+    after = rms(centre_errors(result.reconstruction, scene.truth))
+    assert before > 3.0
+    assert after < 0.15, (before, after, result.quality.todict())
+    assert result.coarse_alignment is not None
