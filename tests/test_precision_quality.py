@@ -151,6 +151,8 @@ def test_only_directions_left_to_gnss_are_compared_with_gnss():
             "U": {"source": "gnss", "one_plane": True, "sigma_gnss": 0.8}}
     shifts = gnss_axis_shifts(np.array([2.0, -1.0, 4.0]), rows)
     assert shifts == {"N": pytest.approx(2.0)}  # E: the planes' own; U: a roof may move it
+    assert gnss_axis_shifts(np.array([2.0, -1.0, 4.0]), rows, one_plane=True) == \
+        {"U": pytest.approx(5.0)}
 
 
 def test_verdict_rules():
@@ -179,10 +181,16 @@ def test_verdict_rules():
     assert quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 1.0}}).verdict == "weak"
     moved = quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 6.0}})
     assert moved.verdict == "failed" and "3.00 m in U" in moved.reasons[0]
+    # A single roof that moved the block far in height: said in so many words, still weak.
+    roof = {**free_u, "one_plane": ["U"]}
+    assert not any("alone moved" in r for r in quality_verdict(
+        {**roof, "one_plane_shift_sigmas": {"U": 2.0}}).reasons)
+    far = quality_verdict({**roof, "one_plane_shift_sigmas": {"U": 8.0}})
+    assert far.verdict == "weak" and any("alone moved the cameras 3.00 m in U (8.0 sigma" in r
+                                         for r in far.reasons)
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
-
 
 
 def test_an_exact_initial_transform_is_not_lost_to_biased_gnss():

@@ -99,13 +99,16 @@ def gnss_scatter(observed: np.ndarray, positions: np.ndarray, sigmas: np.ndarray
     return float(np.sqrt(np.mean((v - v.mean(0)) ** 2)))
 
 
-def gnss_axis_shifts(mean_shift: np.ndarray, observability_dict: dict) -> dict[str, float]:
-    """|shift| / sigma_gnss along each of E, N, U that GNSS alone fixes (source "gnss", not
-    resting on a single plane, which may move it legitimately)."""
+def gnss_axis_shifts(mean_shift: np.ndarray, observability_dict: dict, *,
+                     one_plane: bool = False) -> dict[str, float]:
+    """|shift| / sigma_gnss along each of E, N, U that GNSS alone fixes (source "gnss"), either
+    those not resting on a single plane or (`one_plane`) those that do, which a single plane
+    may move legitimately (a ground or roof plane against GNSS heights metres off)."""
     out = {}
     for k, axis in enumerate("ENU"):
         row = observability_dict.get(axis, {})
-        if row.get("source") == "gnss" and not row.get("one_plane") and row.get("sigma_gnss"):
+        if row.get("source") == "gnss" and bool(row.get("one_plane")) == one_plane \
+                and row.get("sigma_gnss"):
             out[axis] = float(abs(mean_shift[k]) / row["sigma_gnss"])
     return out
 
@@ -177,6 +180,13 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
         if single:
             weak.append(f"{', '.join(single)} rest(s) on a single model plane, which nothing "
                         "checks (a wrong assignment there moves the block unseen)")
+        moved = metrics.get("one_plane_shift_sigmas") or {}
+        for axis in single:
+            if moved.get(axis, 0.0) > t.gnss_axis_weak:
+                weak.append(
+                    f"that plane alone moved the cameras "
+                    f"{abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in {axis} "
+                    f"({moved[axis]:.1f} sigma of GNSS there) from the GNSS-only result")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
 
@@ -230,6 +240,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["shift_enu_m"] = mean_shift.tolist()
         metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
         metrics["gnss_axis_shift_sigmas"] = gnss_axis_shifts(mean_shift, observability_dict)
+        metrics["one_plane_shift_sigmas"] = gnss_axis_shifts(mean_shift, observability_dict,
+                                                             one_plane=True)
         if scale_sigma:
             change = scale_change(gnss_only, rec, ids)
             metrics["scale_change"] = change
