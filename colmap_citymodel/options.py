@@ -88,6 +88,14 @@ class AssignmentOptions:
     (Mulder: 6; more are steadier for noisy tie points)."""
     msac_max_planes: int = 1000
     """(b): at most this many planes are extracted (bounds the run time; not from Unger)."""
+    msac_keep_segmentation: bool = True
+    """(b): a call with the same tie points as the last extraction, moved (by a solve), keeps
+    that segmentation while no plane, refitted to its moved points, has lost more than 5 % of
+    them from within `msac_inlier_distance` (assign.indirect.MAX_LOST_SHARE); else the planes
+    are extracted anew. A plane of the cloud stays one when the block bends by centimetres, but a
+    new random extraction splits it otherwise and moves the block by decimetres (long Scn3: 155
+    to 183 planes from one iteration to the next, cameras moved 4-15 cm each time, the loop
+    never settled). Not from Unger. False extracts every time."""
     msac_max_failures: int = 3
     """(b): the extraction stops after this many planes in a row whose largest connected
     component has fewer than `min_points_per_plane` points (Unger 4.3.1: "repeatedly

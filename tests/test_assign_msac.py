@@ -76,6 +76,50 @@ def test_extraction_of_the_same_points_is_reused():
         np.testing.assert_array_equal(a.members, b.members)
 
 
+def test_extraction_follows_moved_points_while_its_planes_hold(monkeypatch):
+    """Between refine's iterations the tie points move by centimetres: the segmentation is kept
+    and its planes follow the points (here a similarity of 2 deg and 3 m plus 5 cm of
+    non-rigid noise); a plane whose points no longer lie on one plane is extracted anew."""
+    import colmap_citymodel.assign.indirect as indirect
+
+    rng = np.random.default_rng(5)
+    points = np.vstack([plane_patch(rng, 300, [5, 0, 5], [1, 0, 0], [0, 0, 1], (10, 8), 0.02),
+                        plane_patch(rng, 300, [20, 5, 5], [0, 1, 0], [0, 0, 1], (10, 8), 0.02)])
+    options = AssignmentOptions()
+    calls = []
+    real = indirect._extract_planes
+    monkeypatch.setattr(indirect, "_extract_planes", lambda *a: calls.append(1) or real(*a))
+    ids = np.arange(len(points)) + 7
+    first = extract_planes(points, options, point_ids=ids)
+    angle = np.radians(2.0)
+    rotation = np.array([[np.cos(angle), -np.sin(angle), 0], [np.sin(angle), np.cos(angle), 0],
+                         [0, 0, 1]])
+    shift = np.array([3.0, -1.0, 0.5])
+    moved = 1.001 * points @ rotation.T + shift + rng.normal(0, 0.05, points.shape)
+    followed = extract_planes(moved, options, point_ids=ids)
+    assert len(calls) == 1 and len(followed) == len(first) == 2
+    for a, b in zip(first, followed):
+        np.testing.assert_array_equal(a.members, b.members)
+        assert abs(abs(b.normal @ (rotation @ a.normal)) - 1) < 1e-3
+        assert np.sqrt(np.mean((moved[b.members] @ b.normal + b.offset) ** 2)) < 0.08
+        assert abs(b.normal @ b.centroid + b.offset) < 1e-9
+        np.testing.assert_allclose(b.centroid, 1.001 * rotation @ a.centroid + shift,
+                                   atol=0.05)
+    # Half of the first facade pushed 1 m out of its plane: no longer one plane.
+    folded = points.copy()
+    folded[:150, 1] += 1.0
+    extract_planes(folded, options, point_ids=ids)
+    assert len(calls) == 2
+    # Other tie points (or none named): never taken for the last ones moved.
+    extract_planes(moved, options, point_ids=ids + 1)
+    extract_planes(points, options)
+    assert len(calls) == 4
+    every_time = AssignmentOptions(msac_keep_segmentation=False)
+    extract_planes(points, every_time, point_ids=ids)
+    extract_planes(points + [0.0, 0.0, 0.001], every_time, point_ids=ids)
+    assert len(calls) == 6
+
+
 def test_matching_rejects_rotated_distant_and_outside_planes():
     store = box_store()
     wall = face_with_normal(store, [0, -1, 0])

@@ -13,7 +13,9 @@ dropped. Several extracted planes may match one model face. Beyond Unger: half t
 are local (`msac_sample_cell`), and an inlier's point normal must agree with the plane's
 (`msac_point_normal_angle`, as in Mulder's RANSAC): once the large planes are gone, a slab that
 cuts every facade of a street otherwise holds more points than any one facade, and is extracted
-as strips.
+as strips. Also beyond Unger: the segmentation is made once and followed through the iterations
+while its planes stay planar (`msac_keep_segmentation`); a new random extraction in every
+iteration assigns differently each time, and the loop does not settle.
 
 (c) "roi_msac", with ROIs (Unger 4.3.2). A face's ROI is the tie points closer than `threshold`
 to its plane whose projection lies inside its polygon; a point in several ROIs belongs to the
@@ -56,45 +58,87 @@ class ExtractedPlane:
     offset: float
     members: np.ndarray
     centroid: np.ndarray
+    #: share of the members within the inlier distance of the plane (refitted to them)
+    inlier_share: float = 1.0
 
 
-#: The last extraction with the default generator: (points, weights, options, planes). Refine
-#: assigns the same tie points again when it undoes an iteration (with another threshold, which
-#: the extraction does not depend on): then they are the points of the last call moved by a
-#: similarity and back, equal to ~1e-13 m, and that extraction's planes are returned again.
+#: The last extraction with the default generator: (points, weights, options, planes, point
+#: ids). Refine assigns the same tie points again in every iteration, moved by the last solve;
+#: when it undoes an iteration they are the extraction's points moved by a similarity and back.
 _last_extraction: tuple | None = None
 #: Points no farther (m, per coordinate) from the last call's count as the same points.
 _SAME_POINTS = 1e-9
 
 
-def _same_input(points: np.ndarray, weights: np.ndarray | None,
-                options: AssignmentOptions) -> bool:
+def _same_setting(points: np.ndarray, weights: np.ndarray | None,
+                  options: AssignmentOptions) -> bool:
     if _last_extraction is None:
         return False
-    last_points, last_weights, last_options, _ = _last_extraction
+    last_points, last_weights, last_options = _last_extraction[:3]
     return (points.shape == last_points.shape and repr(options) == last_options
             and (weights is None) == (last_weights is None)
-            and (weights is None or np.array_equal(weights, last_weights))
-            and bool(np.all(np.abs(points - last_points) <= _SAME_POINTS)))
+            and (weights is None or np.array_equal(weights, last_weights)))
+
+
+#: The segmentation is kept (msac_keep_segmentation) while no extracted plane, refitted to its
+#: moved points, has lost more than this share of them from its inlier band.
+MAX_LOST_SHARE = 0.05
+
+
+def _followed_planes(points: np.ndarray, planes: list[ExtractedPlane], moved: np.ndarray,
+                     weights: np.ndarray | None, inlier_distance: float
+                     ) -> list[ExtractedPlane] | None:
+    """The planes of the last extraction refitted to their moved members, each boundary
+    centroid moved with its members' mean displacement onto the refitted plane; None when a
+    plane's members no longer lie on one plane (MAX_LOST_SHARE more of them outside
+    `inlier_distance` than at the extraction)."""
+    out = []
+    for plane in planes:
+        members = plane.members
+        on_plane = points[members]
+        normal, offset = fit_plane(on_plane, None if weights is None else weights[members])
+        share = float(np.mean(np.abs(on_plane @ normal + offset) <= inlier_distance))
+        if share < plane.inlier_share - MAX_LOST_SHARE:
+            return None
+        centroid = plane.centroid + moved[members].mean(0)
+        centroid = centroid - (normal @ centroid + offset) * normal
+        out.append(ExtractedPlane(normal, offset, members, centroid, plane.inlier_share))
+    return out
 
 
 def extract_planes(points: np.ndarray, options: AssignmentOptions,
                    weights: np.ndarray | None = None,
-                   rng: np.random.Generator | None = None) -> list[ExtractedPlane]:
+                   rng: np.random.Generator | None = None,
+                   point_ids: np.ndarray | None = None) -> list[ExtractedPlane]:
     """Sequential MSAC with connected components (method (b)'s first stage, Unger 4.3.1).
     Without `rng` (the generator seeded by `options.random_seed`) the result depends on the
-    points, weights and options only: a call with the last call's points (to `_SAME_POINTS`),
-    weights and options returns its planes again."""
+    points, weights and options only, as far as `msac_keep_segmentation` allows: a call with
+    the last extraction's points (to `_SAME_POINTS`), weights and options returns its planes
+    again; one with the same `point_ids` (the same tie points, moved) gets them refitted while
+    they stay planar."""
     global _last_extraction
     points = np.asarray(points, dtype=np.float64)
     if rng is not None:
         return _extract_planes(points, options, weights, rng)
-    if _same_input(points, weights, options):
-        logger.debug("extraction reused: the same %d points as the last call", len(points))
-        return list(_last_extraction[3])
+    if _same_setting(points, weights, options):
+        last_points, _, _, last_planes, last_ids = _last_extraction
+        moved = points - last_points
+        if bool(np.all(np.abs(moved) <= _SAME_POINTS)):
+            logger.debug("extraction reused: the same %d points as the last call", len(points))
+            return list(last_planes)
+        if options.msac_keep_segmentation and point_ids is not None \
+                and last_ids is not None and np.array_equal(point_ids, last_ids):
+            # Always against the extraction's own points, so that moves cannot add up unseen.
+            followed = _followed_planes(points, last_planes, moved, weights,
+                                        options.msac_inlier_distance)
+            if followed is not None:
+                logger.debug("segmentation kept: %d planes refitted to their moved points",
+                             len(followed))
+                return followed
     planes = _extract_planes(points, options, weights, np.random.default_rng(options.random_seed))
     _last_extraction = (points.copy(), None if weights is None else np.array(weights, float),
-                        repr(options), planes)
+                        repr(options), planes,
+                        None if point_ids is None else np.array(point_ids, np.int64))
     return list(planes)
 
 
@@ -144,7 +188,8 @@ def _extract_planes(points: np.ndarray, options: AssignmentOptions,
         # back to 3D: the point on the plane with those in-plane coordinates
         basis = plane_coordinates(np.eye(3), normal)  # rows: e_k -> (u_k, v_k)
         centroid = basis @ centre_uv - offset * normal
-        planes.append(ExtractedPlane(normal, offset, remaining[component], centroid))
+        share = float(np.mean(np.abs(component_points @ normal + offset) <= threshold))
+        planes.append(ExtractedPlane(normal, offset, remaining[component], centroid, share))
         keep = np.ones(len(remaining), bool)
         keep[component] = False
         kept = np.flatnonzero(keep)
@@ -214,7 +259,7 @@ def assign_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, th
     bounds the distance of an extracted plane's boundary centroid to the model plane."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     weights = _weights_for(weights, options, len(points))
-    planes = extract_planes(points, options, weights)
+    planes = extract_planes(points, options, weights, point_ids=point_ids)
     match = match_planes(planes, store, threshold, options)
     face_index = np.full(len(points), -1, np.int64)
     for plane, face in zip(planes, match):
