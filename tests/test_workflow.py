@@ -462,3 +462,30 @@ def test_the_solve_after_an_elimination_is_the_next_iterations(scene, monkeypatc
                   for i in results[True].reconstruction.reg_image_ids()]
     assert max(difference) < 0.01
     assert rms(centre_errors(results[False].reconstruction, scene.truth)) < 0.10
+
+
+def test_a_robust_solve_that_leaves_the_model_is_followed_at_once(scene, monkeypatch):
+    """The solve with the original weights is deferred to the next iteration only while the
+    robust solve did not raise the block objective: here the objective reports the block off
+    the model after every robust solve, so every iteration that eliminated solves again at
+    once, as with solve_again_after_elimination."""
+    from colmap_citymodel.adjust import problem as problem_module
+    from colmap_citymodel.align import objective as objective_module
+
+    last_robust = [False]
+    real_solve = problem_module.HybridProblem.solve
+    real_call = objective_module.BlockObjective.__call__
+
+    def solve(self):
+        last_robust[0] = self.robust_planes
+        return real_solve(self)
+
+    def worse_after_a_robust_solve(self, rec, moved=None):
+        return real_call(self, rec, moved) + (1.0 if last_robust[0] else 0.0)
+
+    monkeypatch.setattr(problem_module.HybridProblem, "solve", solve)
+    monkeypatch.setattr(objective_module.BlockObjective, "__call__", worse_after_a_robust_solve)
+    result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    assert any(it.num_eliminated for it in result.iterations)
+    assert not any(it.todict()["robust_only"] for it in result.iterations)
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10

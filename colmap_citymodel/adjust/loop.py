@@ -103,6 +103,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     reusable: HybridProblem | None = None
     solved = None
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
+    value = None  # the block objective after the last kept iteration
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
@@ -158,6 +159,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
 
         t1 = time.perf_counter()
         centres_before = camera_centres(rec).reshape(-1, 3)
+        # The block objective where this iteration's solves start (the last one's end).
+        value_before = objective(rec) if value is None else value
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
@@ -187,9 +190,16 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 eliminated_from[eliminated] = assignment.face_index[eliminated]
             assignment = assignment.eliminate(eliminated, points, o_a)
             if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
-                    and iteration + 1 < o_w.max_iterations):
+                    and iteration + 1 < o_w.max_iterations
+                    and objective(rec) <= value_before + o_w.divergence_tolerance):
                 # The next iteration's solve, which leaves these f_dTP out, is the one with
-                # the original weights; it starts where the robust one ended.
+                # the original weights; it starts where the robust one ended. Not when the
+                # robust solve moved the block off the model (its objective rose by more than
+                # divergence_tolerance, as a diverging iteration's does): a wrong start had
+                # assigned points to planes they are not on, and the solve with the original
+                # weights must come at once (a drive moved 20 m by wrong matches of extracted
+                # planes ended 2.9 m off when the next iteration started from there, 0.32 m
+                # else).
                 final, final_report = robust, robust_report
             else:
                 final = _final_problem(reusable if iteration > 0 else None, rec, store,
