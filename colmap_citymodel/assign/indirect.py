@@ -70,11 +70,11 @@ _last_extraction: tuple | None = None
 _SAME_POINTS = 1e-9
 
 
-def _same_setting(points: np.ndarray, weights: np.ndarray | None,
+def _same_setting(last: tuple | None, points: np.ndarray, weights: np.ndarray | None,
                   options: AssignmentOptions) -> bool:
-    if _last_extraction is None:
+    if last is None:
         return False
-    last_points, last_weights, last_options = _last_extraction[:3]
+    last_points, last_weights, last_options = last[:3]
     return (points.shape == last_points.shape and repr(options) == last_options
             and (weights is None) == (last_weights is None)
             and (weights is None or np.array_equal(weights, last_weights)))
@@ -120,8 +120,9 @@ def extract_planes(points: np.ndarray, options: AssignmentOptions,
     points = np.asarray(points, dtype=np.float64)
     if rng is not None:
         return _extract_planes(points, options, weights, rng)
-    if _same_setting(points, weights, options):
-        last_points, _, _, last_planes, last_ids = _last_extraction
+    last = _last_extraction  # read once: refines in other threads may replace it
+    if _same_setting(last, points, weights, options):
+        last_points, _, _, last_planes, last_ids = last
         moved = points - last_points
         if bool(np.all(np.abs(moved) <= _SAME_POINTS)):
             logger.debug("extraction reused: the same %d points as the last call", len(points))
