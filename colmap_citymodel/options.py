@@ -93,9 +93,10 @@ class AssignmentOptions:
     that segmentation while no plane, refitted to its moved points, has lost more than 5 % of
     them from within `msac_inlier_distance` (assign.indirect.MAX_LOST_SHARE); else the planes
     are extracted anew. A plane of the cloud stays one when the block bends by centimetres, but a
-    new random extraction splits it otherwise and moves the block by decimetres (long Scn3: 155
-    to 183 planes from one iteration to the next, cameras moved 4-15 cm each time, the loop
-    never settled). Not from Unger. False extracts every time."""
+    new random extraction splits it otherwise and moves the block by decimetres (long Scn3
+    extracted anew in every iteration: 155 to 183 planes from one iteration to the next,
+    cameras moved 4-15 cm each time, no convergence in 10 iterations). Not from Unger. False
+    extracts every time."""
     msac_max_failures: int = 3
     """(b): the extraction stops after this many planes in a row whose largest connected
     component has fewer than `min_points_per_plane` points (Unger 4.3.1: "repeatedly
