@@ -147,6 +147,39 @@ def test_datum_check_without_gnss(scene, refined):
     assert check_datum(refined.store, refined.assignment, has_gnss=False) == []
 
 
+def test_the_planes_observability_decides_the_datum_without_gnss(refined):
+    """Three orthogonal orientations (facades, side walls, flat-ish roof slopes of one pitch)
+    with parallel planes apart fix all 7 parameters: the observability lets them through where
+    the four-orientation count refuses; parallel facades alone leave the shift along the
+    street free and are refused with the parameters named."""
+    from colmap_citymodel.adjust.observability import assigned_observability
+    from colmap_citymodel.block.reconstruction import tie_points
+
+    store, assignment, rec = refined.store, refined.assignment, refined.reconstruction
+    normals = store.normals
+    faces = assignment.faces
+    walls_y = [f for f in faces if abs(normals[f][1]) > 0.99]
+    walls_x = [f for f in faces if abs(normals[f][0]) > 0.99]
+    roofs = [f for f in faces if normals[f][2] > 0.3 and normals[f][0] > 0.05]
+    assert walls_y and walls_x and roofs
+    ids, xyz = tie_points(rec)
+    assert np.array_equal(ids, assignment.point_ids)
+    options = RefineOptions()
+
+    def kept(selected):
+        subset = assignment.without(~np.isin(assignment.face_index, selected))
+        return subset, assigned_observability(xyz, subset, store, None, rec, options)
+
+    three, three_view = kept(walls_y + walls_x + roofs)
+    assert all(row["source"] == "planes" for row in three_view.values()), three_view
+    assert check_datum(store, three, has_gnss=False, observability=three_view) is not None
+    with pytest.raises(DatumError, match="at least 4 different orientations"):
+        check_datum(store, three, has_gnss=False)
+    parallel, parallel_view = kept(walls_y)
+    with pytest.raises(DatumError, match="leave E.* free or on a single plane"):
+        check_datum(store, parallel, has_gnss=False, observability=parallel_view)
+
+
 def test_model_far_away_is_a_clear_error(scene):
     far = make_street_scene(StreetSceneOptions(seed=7), crs_origin=(700000.0, 5335000.0, 500.0))
     with pytest.raises(NoOverlapError, match="does not overlap"):

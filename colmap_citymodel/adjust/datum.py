@@ -21,17 +21,30 @@ SAME_ORIENTATION_DEG = 10.0
 WEAK_DIRECTION_RATIO = 0.05
 
 
-def check_datum(store: PlaneStore, assignment: Assignment, has_gnss: bool) -> list[str]:
-    """Unger 3.2.3: at least four planes of different orientation fix the 7 datum parameters;
-    GNSS adds a weak datum. Raise without GNSS and too few orientations; warn about weak
-    directions (e.g. only parallel facades leave the translation along the street free)."""
+def check_datum(store: PlaneStore, assignment: Assignment, has_gnss: bool,
+                observability: dict | None = None) -> list[str]:
+    """Without GNSS the planes alone must fix the 7 datum parameters. Unger 3.2.3: four planes
+    of different orientation do; fewer may too (three orthogonal orientations, with parallel
+    planes apart for the scale: a straight street's facades, cross walls and roofs). With
+    `observability` (adjust.observability, from the assigned tie points) it decides: raise
+    when a parameter has no source or rests on a single plane; without it, at least four
+    orientations are required. Warn about weak directions (e.g. only parallel facades leave
+    the translation along the street free)."""
     normals = store.normals[assignment.faces]
     orientations: list[np.ndarray] = []
     cos_same = np.cos(np.radians(SAME_ORIENTATION_DEG))
     for n in normals:
         if all(abs(n @ o) < cos_same for o in orientations):
             orientations.append(n)
-    if len(orientations) < 4 and not has_gnss:
+    if not has_gnss and observability is not None:
+        free = [name for name, row in observability.items() if row.get("source") == "none"]
+        if free:
+            raise DatumError(
+                f"without GNSS the model planes must fix the datum, but those that received "
+                f"tie points ({len(normals)} planes, {len(orientations)} orientation(s)) leave "
+                f"{', '.join(free)} free or on a single plane: give GNSS positions or a model "
+                "that covers more of the scene")
+    elif len(orientations) < 4 and not has_gnss:
         raise DatumError(
             f"only {len(orientations)} model plane orientation(s) received tie points "
             f"({len(normals)} planes); at least 4 different orientations are needed to fix the "

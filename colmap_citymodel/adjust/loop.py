@@ -140,9 +140,11 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             t0 += seconds["initial_alignment"]
         seconds["assignment"] += time.perf_counter() - t0
         if iteration == 0:
-            warnings += check_datum(store, assignment, priors is not None)
             observability_before = assigned_observability(points, assignment, current, priors,
                                                           rec, options)
+            # A sliding window's frames held from the window before keep the orientation count.
+            warnings += check_datum(store, assignment, priors is not None,
+                                    observability_before if pose_priors is None else None)
             if priors is not None and priors.estimates_offset:
                 refusal = offset_refusal(observability_before, priors.offset_axes)
                 if refusal:
