@@ -43,12 +43,13 @@ def check_datum(store: PlaneStore, assignment: Assignment, has_gnss: bool,
                 f"without GNSS the model planes must fix the datum, but those that received "
                 f"tie points ({len(normals)} planes, {len(orientations)} orientation(s)) leave "
                 f"{', '.join(free)} free or on a single plane: give GNSS positions or a model "
-                "that covers more of the scene")
+                "that covers more of the scene", store.source or None)
     elif len(orientations) < 4 and not has_gnss:
         raise DatumError(
             f"only {len(orientations)} model plane orientation(s) received tie points "
             f"({len(normals)} planes); at least 4 different orientations are needed to fix the "
-            "datum without GNSS: give GNSS positions or a model that covers more of the scene")
+            "datum without GNSS: give GNSS positions or a model that covers more of the scene",
+            store.source or None)
     warnings = []
     if len(normals):
         scatter = normals.T @ normals
