@@ -300,10 +300,12 @@ def centre_errors(rec: pycolmap.Reconstruction, origin: np.ndarray, truth: dict)
     d = estimated - true_local
     rms = np.sqrt(np.mean(d ** 2, axis=0))
     # The block's shape alone: what remains after the 7-parameter fit onto the true centres.
-    similarity = pycolmap.estimate_sim3d(estimated, true_local) if len(d) >= 3 else None
-    shape = (float(np.sqrt(np.mean(np.sum((np.array([similarity * x for x in estimated])
-                                            - true_local) ** 2, axis=1))))
-             if similarity is not None else float("nan"))
+    from colmap_citymodel.precision.checkpoints import helmert_transform
+
+    try:
+        shape = helmert_transform(true_local, estimated).rms_3d
+    except ValueError:  # fewer than 3 images, or all on one line
+        shape = float("nan")
     return {"rms_x": float(rms[0]), "rms_y": float(rms[1]), "rms_z": float(rms[2]),
             "rms_3d": float(np.sqrt(np.sum(rms ** 2))), "rms_3d_after_helmert": shape,
             "mean_error": [float(v) for v in d.mean(axis=0)],
