@@ -51,6 +51,15 @@ class AssignmentOptions:
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
     """Faces no tie point can lie on: a building's ground is under it, closures are virtual."""
+    roofs_seen_from_above: bool = True
+    """A tie point goes to a roof face only when most of the images that observe it lie on the
+    roof's outward side (above its plane). A surface is seen from its front only: cameras below a
+    roof see eaves, parapets and the tops of facades near its plane, never the roof (a simulated
+    street drive, camera 2 m above the road: 48 parapet points 0.66 m above a flat roof were
+    its only "roof" points and set the block's height 0.93 m too low). Roofs only: their
+    orientation is checked by their class when the model is read; a wall's ring orientation in
+    published models often is not outward. Not in Unger (all his images see the roofs from
+    above)."""
     msac_inlier_distance: float = 0.3
     """(b): MSAC inlier distance (m) of the plane extraction in the whole cloud (Unger 5.3:
     tighter than (c)'s because the search is not restricted to the model's vicinity)."""

@@ -37,10 +37,10 @@ import pycolmap
 
 from ..align.coarse import SurfaceDistance
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment
+from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import tie_points
+from ..block.reconstruction import observations, observer_centres, tie_points
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
 from .model_correction import CorrectionSelection
@@ -121,9 +121,15 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
     records: list[IterationRecord] = []
     previous_rms = None
     last = assignment = None
+    observed = None  # (row, image id) of every observation of the tie points
     for k in range(o_adj.correction_iterations):
         point_ids, points = tie_points(work, exclude_point_ids)
-        assignment = assign(points, point_ids, current, threshold, o_a, weights)
+        if observed is None and o_a.roofs_seen_from_above \
+                and np.any(current.faces.semantic.mask("RoofSurface")):
+            observed = observations(work, point_ids)
+        observers = None if observed is None else Observers(
+            observed[0], observer_centres(work, observed[1]))
+        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers)
         if not assignment.num_assigned:
             break
         robust = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,

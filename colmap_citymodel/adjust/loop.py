@@ -27,10 +27,11 @@ import pycolmap
 from tqdm import tqdm
 
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment
+from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import assign, initial_threshold, next_threshold
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import camera_centres, tie_points
+from ..block.reconstruction import (camera_centres, observations, observer_centres,
+                                   tie_points)
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
@@ -103,6 +104,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     reusable: HybridProblem | None = None
     solved = None
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
+    observed = None  # (row, image id) of every observation of the tie points
     value = None  # the block objective after the last kept iteration
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
@@ -113,7 +115,16 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # The threshold never grows again: no flip-flop between two assignments.
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
-        assignment = assign(points, point_ids, current, threshold, o_a, weights)
+        # Roofs keep only the points seen from above once the block is on the model: while
+        # the first assignment and the similarity rounds bring it there from metres away,
+        # parapets and eaves near a roof's plane hold its height (a street drive whose only
+        # roof points were seen from below ran 25 m away without them).
+        if iterations and observed is None and o_a.roofs_seen_from_above \
+                and np.any(current.faces.semantic.mask("RoofSurface")):
+            observed = observations(rec, point_ids)
+        observers = None if observed is None else Observers(
+            observed[0], observer_centres(rec, observed[1]))
+        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
         if o_w.keep_eliminated:
@@ -135,7 +146,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             t_align = time.perf_counter()
             total_move, points, assignment = align_block_to_planes(
                 rec, point_ids, points, assignment, current, priors, threshold, options,
-                objective=objective, scale_sigma=scale_sigma, weights=weights)
+                objective=objective, scale_sigma=scale_sigma, weights=weights,
+                observers=observers)
             seconds["initial_alignment"] = time.perf_counter() - t_align
             t0 += seconds["initial_alignment"]
         seconds["assignment"] += time.perf_counter() - t0

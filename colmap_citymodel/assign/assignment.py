@@ -81,6 +81,44 @@ class Assignment:
         return out
 
 
+@dataclass
+class Observers:
+    """Where the tie points were seen from: observation k is of the tie point in row `rows[k]`
+    of the arrays being assigned, made by a camera at `centres[k]` (local frame)."""
+
+    rows: np.ndarray  # (O,) int64
+    centres: np.ndarray  # (O, 3) float64
+
+
+def front_share(points: np.ndarray, face_index: np.ndarray, normals: np.ndarray,
+                observers: Observers) -> np.ndarray:
+    """Per point, the share of its observations made from the side of its face's plane that
+    the face's normal points to (nan for unassigned points and points nobody observes)."""
+    share = np.full(len(points), np.nan)
+    face_of_obs = face_index[observers.rows]
+    on = (face_of_obs >= 0) & np.isfinite(observers.centres[:, 0])
+    rows = observers.rows[on]
+    rays = observers.centres[on] - points[rows]
+    front = np.einsum("ij,ij->i", rays, normals[face_of_obs[on]]) > 0
+    seen = np.bincount(rows, minlength=len(points))
+    in_front = np.bincount(rows, weights=front, minlength=len(points))
+    observed = seen > 0
+    share[observed] = in_front[observed] / seen[observed]
+    return share
+
+
+def roof_points_seen_from_below(points: np.ndarray, face_index: np.ndarray,
+                                store: PlaneStore, observers: Observers) -> np.ndarray:
+    """(P,) bool: points assigned to a roof face that most of their images see from below its
+    plane (`AssignmentOptions.roofs_seen_from_above`)."""
+    roofs = store.faces.semantic.mask("RoofSurface")
+    on_roof = (face_index >= 0) & roofs[np.maximum(face_index, 0)]
+    if not np.any(on_roof):
+        return np.zeros(len(points), bool)
+    share = front_share(points, np.where(on_roof, face_index, -1), store.normals, observers)
+    return on_roof & (share < 0.5)
+
+
 class PlaneAssigner(Protocol):
     """Interface of an assignment method. `weights`: per-point quality (higher = better) for
     methods that sample points; others ignore it."""

@@ -9,7 +9,7 @@ import numpy as np
 
 from ..citymodel.store import PlaneStore
 from ..options import AssignmentOptions
-from .assignment import Assignment, PlaneAssigner
+from .assignment import Assignment, Observers, PlaneAssigner, roof_points_seen_from_below
 from .direct import assign_direct
 from .indirect import assign_msac, assign_roi_msac
 
@@ -28,10 +28,12 @@ def resolve_method(options: AssignmentOptions, threshold: float) -> str:
 
 
 def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
-           options: AssignmentOptions, weights: np.ndarray | None = None) -> Assignment:
+           options: AssignmentOptions, weights: np.ndarray | None = None,
+           observers: Observers | None = None) -> Assignment:
     """Assign tie points (local frame) to faces with the method of `options`. `weights`: per-point
     quality (higher = better, e.g. indirect.point_quality_weights), used by the MSAC methods
-    when `options.weighted_sampling` is on."""
+    when `options.weighted_sampling` is on. `observers`: where the points were seen from; with
+    `options.roofs_seen_from_above` a roof keeps only the points seen from above it."""
     method = resolve_method(options, threshold)
     try:
         assigner = ASSIGNERS[method]
@@ -45,6 +47,13 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
                     method, threshold, options.auto_switch_threshold)
     result = assigner(points, point_ids, store, threshold, options, weights=weights)
     result.method = method
+    if observers is not None and options.roofs_seen_from_above:
+        below = roof_points_seen_from_below(points, result.face_index, store, observers)
+        if np.any(below):
+            logger.debug("%d points near roofs but seen from below them left unassigned",
+                         int(np.count_nonzero(below)))
+            result = result.eliminate(below, points, options)
+            result.method = method
     logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
                  result.num_assigned, len(point_ids), result.num_faces, threshold,
                  result.rejected_faces)

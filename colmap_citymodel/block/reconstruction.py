@@ -23,6 +23,34 @@ def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
     return ids, xyz
 
 
+def observations(rec: pycolmap.Reconstruction, point_ids: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Every observation of the tie points `point_ids`: (row of its point in `point_ids`,
+    image id), both (O,) int64."""
+    point_ids = np.asarray(point_ids, np.int64)
+    rows: list[int] = []
+    image_ids: list[int] = []
+    for row, point_id in enumerate(point_ids.tolist()):
+        elements = rec.point3D(point_id).track.elements
+        rows.extend([row] * len(elements))
+        image_ids.extend(e.image_id for e in elements)
+    return np.asarray(rows, np.int64), np.asarray(image_ids, np.int64)
+
+
+def observer_centres(rec: pycolmap.Reconstruction, image_ids: np.ndarray) -> np.ndarray:
+    """(O, 3) the current centre of the image of each observation (nan: image not registered)."""
+    image_ids = np.asarray(image_ids, np.int64)
+    centres = np.full((len(image_ids), 3), np.nan)
+    registered = np.asarray(sorted(rec.reg_image_ids()), np.int64)
+    if not len(registered):
+        return centres
+    table = np.array([rec.image(int(i)).projection_center() for i in registered])
+    at = np.minimum(np.searchsorted(registered, image_ids), len(registered) - 1)
+    known = registered[at] == image_ids
+    centres[known] = table[at[known]]
+    return centres
+
+
 def camera_centres(rec: pycolmap.Reconstruction) -> np.ndarray:
     return np.array([rec.image(i).projection_center() for i in rec.reg_image_ids()])
 
