@@ -4,8 +4,10 @@ import numpy as np
 import pytest
 from conftest import box_store
 
-from colmap_citymodel.assign.assignment import Assignment, planarity
+from colmap_citymodel.assign.assignment import (Assignment, Observers, front_share, planarity,
+                                                roof_points_seen_from_below)
 from colmap_citymodel.assign.schedule import assign, next_threshold
+from colmap_citymodel.block.reconstruction import observations, observer_centres
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.options import AssignmentOptions
 
@@ -86,3 +88,75 @@ def test_without_unassigns_only_the_masked_points():
 def test_unknown_method_is_a_clear_error():
     with pytest.raises(InputError, match="unknown assignment method 'bogus'"):
         assign(np.zeros((1, 3)), np.arange(1), box_store(), 2.0, AssignmentOptions(method="bogus"))
+
+
+def _observed_from(points, cameras):
+    """Observers: every point seen from every camera in `cameras` (M, 3)."""
+    rows = np.repeat(np.arange(len(points)), len(cameras))
+    return Observers(rows, np.tile(np.asarray(cameras, float), (len(points), 1)))
+
+
+def test_a_roof_keeps_only_the_points_seen_from_above_it():
+    rng = np.random.default_rng(4)
+    store = box_store()
+    top = int(np.argmax(store.normals[:, 2]))
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    # 30 points 0.3 m above the roof's plane (a parapet the model does not have), 40 on the wall
+    roof = np.column_stack([rng.uniform(1, 9, 30), rng.uniform(1, 9, 30),
+                            10.3 + rng.normal(0, 0.05, 30)])
+    points = np.vstack([roof, wall_points(rng, 40)])
+    ids = np.arange(len(points))
+    street = [(-5.0, -20.0, 2.0), (5.0, -20.0, 2.0), (15.0, -20.0, 2.0)]  # below the roof
+    drone = [(0.0, -10.0, 30.0), (10.0, 5.0, 30.0), (5.0, 20.0, 30.0)]  # above it
+    options = AssignmentOptions()
+
+    from_street = assign(points, ids, store, 2.0, options,
+                         observers=_observed_from(points, street))
+    assert np.all(from_street.face_index[:30] == -1)  # the roof is not seen from the street
+    assert np.all(from_street.face_index[30:] == wall)  # walls are never tested
+    assert from_street.num_faces == 1
+
+    from_drone = assign(points, ids, store, 2.0, options, observers=_observed_from(points, drone))
+    assert np.all(from_drone.face_index[:30] == top)
+    # the wall's points, seen from behind by two of these cameras, stay: walls are not tested
+    assert np.all(from_drone.face_index[30:] == wall)
+
+    off = AssignmentOptions(roofs_seen_from_above=False)
+    kept = assign(points, ids, store, 2.0, off, observers=_observed_from(points, street))
+    assert np.all(kept.face_index[:30] == top)
+    without = assign(points, ids, store, 2.0, options)  # no observers: nothing to test
+    np.testing.assert_array_equal(without.face_index, kept.face_index)
+
+
+def test_the_majority_of_a_points_images_decides_which_side_it_is_seen_from():
+    store = box_store()
+    top = int(np.argmax(store.normals[:, 2]))
+    points = np.array([[5.0, 5.0, 10.0], [4.0, 4.0, 10.0], [6.0, 6.0, 10.0]])
+    face_index = np.array([top, top, -1])
+    above, below = (5.0, -10.0, 40.0), (5.0, -30.0, 1.5)
+    # point 0: two of three images above; point 1: one of three; point 2: unassigned
+    rows = np.array([0, 0, 0, 1, 1, 1, 2])
+    centres = np.array([above, above, below, above, below, below, above], float)
+    observers = Observers(rows, centres)
+    share = front_share(points, face_index, store.normals, observers)
+    np.testing.assert_allclose(share[:2], [2 / 3, 1 / 3])
+    assert np.isnan(share[2])
+    below_roof = roof_points_seen_from_below(points, face_index, store, observers)
+    np.testing.assert_array_equal(below_roof, [False, True, False])
+    # an image that is not registered (nan centre) does not count
+    centres[[1, 2]] = np.nan
+    share = front_share(points, face_index, store.normals, Observers(rows, centres))
+    np.testing.assert_allclose(share[:2], [1.0, 1 / 3])
+
+
+def test_observations_list_every_image_of_every_tie_point(street_scene):
+    rec = street_scene.truth
+    ids = np.array(sorted(rec.point3D_ids()))[::7]
+    rows, image_ids = observations(rec, ids)
+    assert len(rows) == sum(rec.point3D(int(i)).track.length() for i in ids)
+    k = len(rows) // 2
+    elements = rec.point3D(int(ids[rows[k]])).track.elements
+    assert image_ids[k] in [e.image_id for e in elements]
+    centres = observer_centres(rec, image_ids)
+    np.testing.assert_allclose(centres[k], rec.image(int(image_ids[k])).projection_center())
+    assert np.all(np.isnan(observer_centres(rec, np.array([10**6]))))
