@@ -110,8 +110,10 @@ def front_share(points: np.ndarray, face_index: np.ndarray, normals: np.ndarray,
 def roof_points_seen_from_below(points: np.ndarray, face_index: np.ndarray,
                                 store: PlaneStore, observers: Observers) -> np.ndarray:
     """(P,) bool: points assigned to a roof face that most of their images see from below its
-    plane (`AssignmentOptions.roofs_seen_from_above`)."""
-    roofs = store.faces.semantic.mask("RoofSurface")
+    plane (`AssignmentOptions.roofs_seen_from_above`). Roofs steeper than about 84 deg are left
+    alone: reading the model turns a roof's normal up only where it has a vertical component of
+    0.1 or more."""
+    roofs = store.faces.semantic.mask("RoofSurface") & (store.normals[:, 2] > 0.1)
     on_roof = (face_index >= 0) & roofs[np.maximum(face_index, 0)]
     if not np.any(on_roof):
         return np.zeros(len(points), bool)
