@@ -160,3 +160,40 @@ def test_observations_list_every_image_of_every_tie_point(street_scene):
     centres = observer_centres(rec, image_ids)
     np.testing.assert_allclose(centres[k], rec.image(int(image_ids[k])).projection_center())
     assert np.all(np.isnan(observer_centres(rec, np.array([10**6]))))
+
+
+def test_a_face_held_from_the_last_iteration_passes_the_tests_at_the_relaxed_limits():
+    rng = np.random.default_rng(5)
+    store = box_store()
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    points = wall_points(rng, 10)  # 10 points: below the 15 of a new face
+    ids = np.arange(len(points))
+    options = AssignmentOptions()  # held_face_factor 0.5: 8 points for a held face
+    assert assign(points, ids, store, 2.0, options).num_assigned == 0
+    held = assign(points, ids, store, 2.0, options, held_faces=np.array([wall]))
+    assert held.num_assigned == 10 and held.faces.tolist() == [wall]
+    # eliminating points later tests the face as held as well: 8 stay, 7 do not
+    assert held.eliminate(ids >= 8, points, options).num_assigned == 8
+    assert held.eliminate(ids >= 7, points, options).num_assigned == 0
+    # another face is not held by it, and without hysteresis nothing is
+    other = assign(points, ids, store, 2.0, options, held_faces=np.array([wall + 1]))
+    assert other.num_assigned == 0
+    none = AssignmentOptions(held_face_factor=1.0)
+    assert assign(points, ids, store, 2.0, none, held_faces=np.array([wall])).num_assigned == 0
+
+
+def test_planarity_limit_of_a_held_face_is_relaxed_too():
+    store = box_store()
+    rng = np.random.default_rng(6)
+    # 30 points on the y = 0 wall, nearly on a line: planarity between 0.5 and 1 x the limit
+    x = np.linspace(1, 9, 30)
+    z = 5.0 + 0.09 * rng.standard_normal(30)
+    points = np.column_stack([x, np.full(30, -0.02), z])
+    value = planarity(points)
+    options = AssignmentOptions(planarity_threshold=1.5 * value)
+    assert 0.5 * options.planarity_threshold < value <= options.planarity_threshold
+    ids = np.arange(30)
+    assert assign(points, ids, store, 2.0, options).num_assigned == 0
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    assert assign(points, ids, store, 2.0, options,
+                  held_faces=np.array([wall])).num_assigned == 30

@@ -124,7 +124,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             observed = observations(rec, point_ids)
         observers = None if observed is None else Observers(
             observed[0], observer_centres(rec, observed[1]))
-        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers)
+        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers,
+                            held_faces=None if assignment is None else assignment.faces)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
         if o_w.keep_eliminated:
