@@ -28,7 +28,8 @@ from tqdm import tqdm
 
 from ..align.objective import BlockObjective
 from ..assign.assignment import Assignment, Observers
-from ..assign.schedule import assign, initial_threshold, next_threshold
+from ..assign.schedule import (assign, initial_threshold, next_threshold,
+                               without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import (camera_centres, observations, observer_centres,
                                    tie_points)
@@ -115,16 +116,17 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # The threshold never grows again: no flip-flop between two assignments.
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
-        # Roofs keep only the points seen from above once the block is on the model: while
-        # the first assignment and the similarity rounds bring it there from metres away,
-        # parapets and eaves near a roof's plane hold its height (a street drive whose only
-        # roof points were seen from below ran 25 m away without them).
-        if iterations and observed is None and o_a.roofs_seen_from_above \
+        if observed is None and o_a.roofs_seen_from_above \
                 and np.any(current.faces.semantic.mask("RoofSurface")):
             observed = observations(rec, point_ids)
         observers = None if observed is None else Observers(
             observed[0], observer_centres(rec, observed[1]))
-        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers,
+        # Roofs keep only the points seen from above once the block is on the model: while
+        # the first assignment and the similarity rounds bring it there from metres away,
+        # parapets and eaves near a roof's plane hold its height (a street drive whose only
+        # roof points were seen from below ran 25 m away without them).
+        assignment = assign(points, point_ids, current, threshold, o_a, weights,
+                            observers if iterations else None,
                             held_faces=None if assignment is None else assignment.faces)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
@@ -147,8 +149,11 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             t_align = time.perf_counter()
             total_move, points, assignment = align_block_to_planes(
                 rec, point_ids, points, assignment, current, priors, threshold, options,
-                objective=objective, scale_sigma=scale_sigma, weights=weights,
-                observers=observers)
+                objective=objective, scale_sigma=scale_sigma, weights=weights)
+            if observers is not None:  # the cameras moved with the block
+                observers = Observers(observers.rows, total_move * observers.centres)
+                assignment = without_roof_points_seen_from_below(assignment, points, current,
+                                                                 observers, o_a)
             seconds["initial_alignment"] = time.perf_counter() - t_align
             t0 += seconds["initial_alignment"]
         seconds["assignment"] += time.perf_counter() - t0

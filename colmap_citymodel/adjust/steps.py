@@ -10,7 +10,7 @@ import numpy as np
 import pycolmap
 
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment, Observers
+from ..assign.assignment import Assignment
 from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
 from ..citymodel.store import PlaneStore
@@ -39,8 +39,7 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                           points: np.ndarray, assignment: Assignment, store: PlaneStore,
                           priors: GNSSPriors | None, threshold: float, options: RefineOptions,
                           *, objective: BlockObjective | None = None,
-                          scale_sigma: float | None = None, weights: np.ndarray | None = None,
-                          observers: Observers | None = None
+                          scale_sigma: float | None = None, weights: np.ndarray | None = None
                           ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
     """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
     by it, assign again at `threshold`, until a fit moves the tie points by less than
@@ -62,10 +61,7 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
         total = move * total
         mean_shift = float(np.linalg.norm(moved - points, axis=1).mean())
         points = moved
-        if observers is not None:  # the cameras moved with the block
-            observers = Observers(observers.rows, move * observers.centres)
-        assignment = assign(points, point_ids, store, threshold, options.assignment, weights,
-                            observers)
+        assignment = assign(points, point_ids, store, threshold, options.assignment, weights)
         if mean_shift < options.workflow.alignment_tolerance or not assignment.num_assigned:
             break
     return total, points, assignment

@@ -54,17 +54,27 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     else:
         result = assigner(points, point_ids, store, threshold, options, weights=weights)
     result.method = method
-    if observers is not None and options.roofs_seen_from_above:
-        below = roof_points_seen_from_below(points, result.face_index, store, observers)
-        if np.any(below):
-            logger.debug("%d points near roofs but seen from below them left unassigned",
-                         int(np.count_nonzero(below)))
-            result = result.eliminate(below, points, options)
-            result.method = method
+    if observers is not None:
+        result = without_roof_points_seen_from_below(result, points, store, observers, options)
     logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
                  result.num_assigned, len(point_ids), result.num_faces, threshold,
                  result.rejected_faces)
     return result
+
+
+def without_roof_points_seen_from_below(assignment: Assignment, points: np.ndarray,
+                                        store: PlaneStore, observers: Observers,
+                                        options: AssignmentOptions) -> Assignment:
+    """`assignment` without the points on roofs that most of their images see from below
+    (`options.roofs_seen_from_above`; faces left too small are dropped as usual)."""
+    if not options.roofs_seen_from_above:
+        return assignment
+    below = roof_points_seen_from_below(points, assignment.face_index, store, observers)
+    if not np.any(below):
+        return assignment
+    logger.debug("%d points near roofs but seen from below them left unassigned",
+                 int(np.count_nonzero(below)))
+    return assignment.eliminate(below, points, options)
 
 
 def initial_threshold(options: AssignmentOptions) -> float:
