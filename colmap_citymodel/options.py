@@ -63,7 +63,10 @@ class AssignmentOptions:
     roof's outward side (above its plane). A surface is seen from its front only: cameras below a
     roof see eaves, parapets and the tops of facades near its plane, never the roof (a simulated
     street drive, camera 2 m above the road: 48 parapet points 0.66 m above a flat roof were
-    its only "roof" points and set the block's height 0.93 m too low). Roofs only: their
+    its only "roof" points and set the block's height 0.93 m too low). Applied from the first
+    solve on: the first assignment and the similarity rounds before it, which bring the block
+    from metres away, keep such points (without them that drive's start ran 25 m away).
+    Roofs only: their
     orientation is checked by their class when the model is read; a wall's ring orientation in
     published models often is not outward. Not in Unger (all his images see the roofs from
     above)."""
