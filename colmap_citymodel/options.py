@@ -47,13 +47,6 @@ class AssignmentOptions:
     """Planes with fewer assigned tie points get none (5 for a detailed model)."""
     planarity_threshold: float = 0.001
     """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
-    held_face_factor: float = 0.5
-    """Direct assignment in the refine loop: a face that had tie points in the iteration before
-    keeps them while they pass the minimum count and the planarity test at this fraction of
-    their limits; a new face must pass them in full. A face at the edge of a test otherwise
-    comes and goes from one iteration to the next and moves the block each time (simulated
-    short Scn3: a wall of 47 tie points near the planarity limit came and went in every other
-    iteration, and the loop ran 8 iterations instead of 6). 1 = no hysteresis. Not in Unger."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")

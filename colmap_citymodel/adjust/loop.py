@@ -126,8 +126,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # parapets and eaves near a roof's plane hold its height (a street drive whose only
         # roof points were seen from below ran 25 m away without them).
         assignment = assign(points, point_ids, current, threshold, o_a, weights,
-                            observers if iterations else None,
-                            held_faces=None if assignment is None else assignment.faces)
+                            observers if iterations else None)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
         if o_w.keep_eliminated:

@@ -19,7 +19,6 @@ Mulder 4.4): `assign(..., weights=...)` with `AssignmentOptions.weighted_samplin
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -41,8 +40,6 @@ class Assignment:
     threshold: float
     rejected_faces: dict[str, int] = field(default_factory=dict)  # reason -> number of faces
     method: str = "direct"  # the method that made it ("auto" resolves to one)
-    #: faces tested at `AssignmentOptions.held_face_factor` of the limits (see filter_faces)
-    held_faces: np.ndarray | None = None
 
     @property
     def assigned(self) -> np.ndarray:
@@ -71,7 +68,7 @@ class Assignment:
         face_index[point_mask] = -1
         distance[point_mask] = np.nan
         return Assignment(self.point_ids, face_index, distance, self.threshold,
-                          dict(self.rejected_faces), self.method, self.held_faces)
+                          dict(self.rejected_faces), self.method)
 
     def eliminate(self, point_mask: np.ndarray, points: np.ndarray,
                   options: AssignmentOptions) -> "Assignment":
@@ -79,8 +76,7 @@ class Assignment:
         dropped as the assignment drops them (counted in the copy's `rejected_faces`);
         `points`: the tie points' coordinates, in the order of `point_ids`."""
         out = self.without(point_mask)
-        out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces,
-                                      self.held_faces)
+        out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces)
         out.distance[out.face_index < 0] = np.nan
         return out
 
@@ -145,22 +141,15 @@ def planarity(points: np.ndarray) -> float:
 
 
 def filter_faces(points: np.ndarray, face_index: np.ndarray, options: AssignmentOptions,
-                 rejected: dict[str, int], held_faces: np.ndarray | None = None) -> np.ndarray:
-    """Unassign the points of faces that fail the minimum-count or planarity test; the
-    `held_faces` (those of the iteration before) at `options.held_face_factor` of the limits."""
+                 rejected: dict[str, int]) -> np.ndarray:
+    """Unassign the points of faces that fail the minimum-count or planarity test."""
     face_index = face_index.copy()
     faces, counts = np.unique(face_index[face_index >= 0], return_counts=True)
-    held = (np.isin(faces, held_faces) if held_faces is not None
-            else np.zeros(len(faces), bool))
-    factor = options.held_face_factor
-    for face, count, is_held in zip(faces, counts, held):
+    for face, count in zip(faces, counts):
         members = face_index == face
-        min_points = (max(3, math.ceil(factor * options.min_points_per_plane)) if is_held
-                      else options.min_points_per_plane)
-        limit = options.planarity_threshold * (factor if is_held else 1.0)
-        if count < min_points:
+        if count < options.min_points_per_plane:
             reason = "too_few_points"
-        elif planarity(points[members]) <= limit:
+        elif planarity(points[members]) <= options.planarity_threshold:
             reason = "not_planar"
         else:
             continue

@@ -29,14 +29,11 @@ def resolve_method(options: AssignmentOptions, threshold: float) -> str:
 
 def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
            options: AssignmentOptions, weights: np.ndarray | None = None,
-           observers: Observers | None = None, held_faces: np.ndarray | None = None
-           ) -> Assignment:
+           observers: Observers | None = None) -> Assignment:
     """Assign tie points (local frame) to faces with the method of `options`. `weights`: per-point
     quality (higher = better, e.g. indirect.point_quality_weights), used by the MSAC methods
     when `options.weighted_sampling` is on. `observers`: where the points were seen from; with
-    `options.roofs_seen_from_above` a roof keeps only the points seen from above it.
-    `held_faces`: the faces of the last assignment, which direct assignment keeps at
-    `options.held_face_factor` of its minimum count and planarity limits."""
+    `options.roofs_seen_from_above` a roof keeps only the points seen from above it."""
     method = resolve_method(options, threshold)
     try:
         assigner = ASSIGNERS[method]
@@ -48,11 +45,7 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     if options.method == "auto":
         logger.info("assignment method auto: %s at threshold %.2f m (switch at %.2f m)",
                     method, threshold, options.auto_switch_threshold)
-    if method == "direct" and held_faces is not None:
-        result = assign_direct(points, point_ids, store, threshold, options,
-                               held_faces=np.asarray(held_faces, np.int64))
-    else:
-        result = assigner(points, point_ids, store, threshold, options, weights=weights)
+    result = assigner(points, point_ids, store, threshold, options, weights=weights)
     result.method = method
     if observers is not None:
         result = without_roof_points_seen_from_below(result, points, store, observers, options)
