@@ -59,10 +59,9 @@ class AssignmentOptions:
     its only "roof" points and set the block's height 0.93 m too low). Applied from the first
     solve on: the first assignment and the similarity rounds before it, which bring the block
     from metres away, keep such points (without them that drive's start ran 25 m away).
-    Roofs only: their
-    orientation is checked by their class when the model is read; a wall's ring orientation in
-    published models often is not outward. Not in Unger (all his images see the roofs from
-    above)."""
+    Roofs only: their orientation is checked by their class when the model is read; a wall's
+    ring orientation in published models often is not outward. Not in Unger (all his images see
+    the roofs from above)."""
     msac_inlier_distance: float = 0.3
     """(b): MSAC inlier distance (m) of the plane extraction in the whole cloud (Unger 5.3:
     tighter than (c)'s because the search is not restricted to the model's vicinity)."""
