@@ -37,16 +37,16 @@ import pycolmap
 
 from ..align.coarse import SurfaceDistance
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment, Observers
+from ..assign.assignment import Assignment
 from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import observations, observer_centres, tie_points
+from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
 from .model_correction import CorrectionSelection
 from .problem import BaselinePriors, HybridProblem
 from .record import IterationRecord
-from .steps import model_after_solve
+from .steps import RoofObservers, model_after_solve
 
 logger = logging.getLogger(__name__)
 
@@ -121,15 +121,11 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
     records: list[IterationRecord] = []
     previous_rms = None
     last = assignment = None
-    observed = None  # (row, image id) of every observation of the tie points
+    roof_observers = RoofObservers(store, o_a)
     for k in range(o_adj.correction_iterations):
         point_ids, points = tie_points(work, exclude_point_ids)
-        if observed is None and o_a.roofs_seen_from_above \
-                and np.any(current.faces.semantic.mask("RoofSurface")):
-            observed = observations(work, point_ids)
-        observers = None if observed is None else Observers(
-            observed[0], observer_centres(work, observed[1]))
-        assignment = assign(points, point_ids, current, threshold, o_a, weights, observers)
+        assignment = assign(points, point_ids, current, threshold, o_a, weights,
+                            roof_observers(work, point_ids))
         if not assignment.num_assigned:
             break
         robust = CorrectionProblem(work, store, assignment, priors, o_solve, robust_images=False,

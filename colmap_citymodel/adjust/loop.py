@@ -31,8 +31,7 @@ from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import (assign, initial_threshold, next_threshold,
                                without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import (camera_centres, observations, observer_centres,
-                                   tie_points)
+from ..block.reconstruction import camera_centres, tie_points
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
@@ -41,7 +40,7 @@ from .observability import assigned_observability, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
 from .scale import SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, scale_change
-from .steps import align_block_to_planes, model_after_solve
+from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
 
@@ -105,7 +104,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     reusable: HybridProblem | None = None
     solved = None
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
-    observed = None  # (row, image id) of every observation of the tie points
+    roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
     value = None  # the block objective after the last kept iteration
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
@@ -116,11 +115,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # The threshold never grows again: no flip-flop between two assignments.
             threshold = min(threshold, next_threshold(assignment, points, current, o_a,
                                                       o_adj.sigma_dtp))
-        if observed is None and o_a.roofs_seen_from_above \
-                and np.any(current.faces.semantic.mask("RoofSurface")):
-            observed = observations(rec, point_ids)
-        observers = None if observed is None else Observers(
-            observed[0], observer_centres(rec, observed[1]))
+        observers = roof_observers(rec, point_ids)
         # Roofs keep only the points seen from above once the block is on the model: while
         # the first assignment and the similarity rounds bring it there from metres away,
         # parapets and eaves near a roof's plane hold its height (a street drive whose only

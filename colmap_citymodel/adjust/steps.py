@@ -10,14 +10,36 @@ import numpy as np
 import pycolmap
 
 from ..align.objective import BlockObjective
-from ..assign.assignment import Assignment
+from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
+from ..block.reconstruction import observations, observer_centres
 from ..citymodel.store import PlaneStore
-from ..options import RefineOptions
+from ..options import AssignmentOptions, RefineOptions
 from .problem import HybridProblem, SolveReport
 
 logger = logging.getLogger(__name__)
+
+
+class RoofObservers:
+    """Where the tie points are seen from, for the roof test of the assignment
+    (`AssignmentOptions.roofs_seen_from_above`): the observations are listed once, the camera
+    centres read anew at each call. None when the test is off or the model has no roof."""
+
+    def __init__(self, store: PlaneStore, options: AssignmentOptions):
+        self.enabled = options.roofs_seen_from_above and bool(
+            np.any(store.faces.semantic.mask("RoofSurface")))
+        self._index: tuple[np.ndarray, np.ndarray] | None = None
+
+    def __call__(self, rec: pycolmap.Reconstruction, point_ids: np.ndarray
+                 ) -> Observers | None:
+        """`point_ids`: the same tie points, in the same order, at every call."""
+        if not self.enabled:
+            return None
+        if self._index is None:
+            self._index = observations(rec, point_ids)
+        rows, image_ids = self._index
+        return Observers(rows, observer_centres(rec, image_ids))
 
 
 def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
