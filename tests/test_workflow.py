@@ -463,6 +463,76 @@ def test_a_scale_change_beyond_gnss_holds_the_scale_and_only_a_large_one_is_undo
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
 
 
+def test_the_level_prior_holds_one_central_image_along_the_free_axes_only(scene):
+    from colmap_citymodel.adjust.problem import LEVEL_FREE
+    from colmap_citymodel.adjust.scale import LEVEL_TIGHTENING, baseline_priors
+
+    rec = pycolmap.Reconstruction(scene.sfm)
+    _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
+    assert baseline_priors(rec, priors, 0.01, hold_scale=False) is None
+    holds = baseline_priors(rec, priors, 0.01, hold_scale=False,
+                            level_axes=np.array([False, False, True]))
+    assert not holds.holds_scale and holds.holds_level
+    centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
+    distance = np.linalg.norm(centres - centres.mean(0), axis=1)
+    anchor = rec.image(holds.level_image).projection_center()
+    assert np.linalg.norm(anchor - centres.mean(0)) == pytest.approx(distance.min())
+    assert np.allclose(holds.level_position, anchor)
+    mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / priors.sigmas[:, 2] ** 2))
+    assert holds.level_sigmas == pytest.approx([LEVEL_FREE, LEVEL_FREE,
+                                                mean_sigma / LEVEL_TIGHTENING])
+    both = baseline_priors(rec, priors, 0.01, level_axes=np.array([False, False, True]))
+    assert both.holds_scale and both.holds_level
+
+
+def walls_only(store, tilt_deg=0.0):
+    """`store` without its roofs; each wall tilted by `tilt_deg` about its lowest edge (top
+    outward): planes that fix the plan position but hardly the height."""
+    from colmap_citymodel.citymodel.build import store_from_polygons
+
+    rings, semantics = [], []
+    for f, face in enumerate(store.faces):
+        if face.semantic == "RoofSurface":
+            continue
+        ring = store.vertices[face.exterior].copy()
+        height = ring[:, 2] - ring[:, 2].min()
+        ring[:, :2] += np.outer(np.tan(np.radians(tilt_deg)) * height, store.normals[f][:2])
+        rings.append(store.to_crs(ring))
+        semantics.append(face.semantic)
+    return store_from_polygons(rings, semantics=semantics, origin=store.origin, crs=store.crs)
+
+
+@pytest.mark.parametrize("hold", [True, False])
+def test_a_height_the_planes_leave_to_gnss_stays_gnss_s(scene, caplog, hold):
+    """Walls only, each tilted by 0.3 deg: the planes fix the plan position, and the height
+    only through the tilts, far more weakly than GNSS. The level of the GNSS-only block is then
+    held there: the refined cameras' mean height is the GNSS-only block's. Without the hold the
+    tilts' thousands of f_dTP take the height elsewhere."""
+    options = RefineOptions()
+    options.workflow.hold_gnss_level = hold
+    store = walls_only(scene.store, tilt_deg=0.3)
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust.scale"):
+        result = refine(scene.sfm, store, scene.gnss(), options, progress=False)
+    assert result.observability_before["U"]["source"] == "gnss"
+    assert result.observability_before["E"]["source"] in ("planes", "both")
+    ids = [i for i in result.reconstruction.reg_image_ids()]
+    refined = np.array([result.reconstruction.image(i).projection_center() for i in ids])
+    gnss_only = np.array([result.gnss_only.image(i).projection_center() for i in ids])
+    height_shift = abs(float(np.mean(refined[:, 2] - gnss_only[:, 2])))
+    held = [r for r in caplog.records if "held at the GNSS-only block's" in r.getMessage()]
+    if hold:
+        assert held and "U" in held[0].getMessage()
+        assert height_shift < 0.12  # two sigma of the held level (GNSS mean sigma / 10)
+        # The plan position is the planes': within a decimetre or two of the truth.
+        true = {im.name: im.projection_center() for im in scene.truth.images.values()}
+        plan = [result.reconstruction.image(i).projection_center()[:2]
+                - true[result.reconstruction.image(i).name][:2] for i in ids]
+        assert rms(np.linalg.norm(plan, axis=1)) < 0.2
+    else:
+        assert not held
+        assert height_shift > 0.2
+
+
 def test_the_solve_after_an_elimination_is_the_next_iterations(scene, monkeypatch):
     """By default an iteration that eliminated f_dTP does not solve again at once: the next
     iteration's solve, which leaves them out, does. That takes fewer solves, never ends the

@@ -8,7 +8,8 @@ never change; the threshold never grows (no flip-flop between two assignments); 
 eliminated as an outlier is not assigned to its face again. The first assignment is followed by
 similarity rounds that move the whole block onto its planes. A solve that changes the scale
 further than GNSS allows holds the scale from then on, and is undone first if it changed the
-scale by far more (a collapse onto a few planes); a solve that moves the block away from the
+scale by far more (a collapse onto a few planes); a shift that GNSS alone fixes is held at the
+GNSS-only block's level (workflow.hold_gnss_level); a solve that moves the block away from the
 model ends the loop at the best iterate.
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
@@ -36,7 +37,7 @@ from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
 from .datum import check_datum
-from .observability import assigned_observability, offset_refusal
+from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
 from .scale import SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, scale_change
@@ -93,6 +94,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
     total_move = pycolmap.Sim3d()
     baselines = None
+    level_axes = np.zeros(3, bool)  # the shifts held at the GNSS-only block's
     previous_rms = None
     last = None
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
@@ -164,9 +166,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                         f"{offset_name(priors)} cannot be estimated from this model: {refusal}. "
                         "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
                         "model's height system", store.source)
-            if gnss_only is not None and scale_sigma and \
-                    observability_before.get("scale", {}).get("source") not in ("planes", "both"):
-                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+            if gnss_only is not None and priors is not None and pose_priors is None:
+                level_axes = left_to_gnss(observability_before) if o_w.hold_gnss_level \
+                    else np.zeros(3, bool)
+                hold_scale = bool(scale_sigma) and observability_before.get(
+                    "scale", {}).get("source") not in ("planes", "both")
+                baselines = baseline_priors(gnss_only, priors, scale_sigma,
+                                            hold_scale=hold_scale, level_axes=level_axes)
         elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
@@ -178,7 +184,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
-            if gnss_only is not None and baselines is None and scale_sigma else None
+            if gnss_only is not None and not (baselines is not None and baselines.holds_scale) \
+            and scale_sigma else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
@@ -235,7 +242,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
                                "sigma): the scale is held from now on", iteration,
                                100 * change, sigmas)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma,
+                                            level_axes=level_axes)
                 reusable = None  # the next problem has the baseline priors
             elif sigmas > SCALE_UNDO_SIGMAS:
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
@@ -243,7 +251,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                                100 * change, sigmas)
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma,
+                                            level_axes=level_axes)
                 last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
 

@@ -147,6 +147,20 @@ def rests_on_one_plane(observability_dict: dict) -> list[str]:
     return [k for k, v in observability_dict.items() if v.get("one_plane")]
 
 
+def left_to_gnss(observability_dict: dict) -> np.ndarray:
+    """(3,) bool, E N U: the shifts that GNSS fixes while the planes' information there (each
+    plane with its generalisation error) is DOMINANCE times weaker or none. Per tie point, as
+    the adjustment weighs them, the same planes can seem to fix it: walls tilted by a fraction
+    of a degree, thousands of points each."""
+    out = np.zeros(3, bool)
+    for k, name in enumerate(("E", "N", "U")):
+        row = observability_dict.get(name, {})
+        planes, gnss = row.get("sigma_planes"), row.get("sigma_gnss")
+        out[k] = (row.get("source") == "gnss" and gnss is not None
+                  and (planes is None or planes > DOMINANCE * gnss))
+    return out
+
+
 def planes_fix(observability_dict: dict) -> list[str]:
     """The datum parameters the planes fix alone or together with GNSS."""
     return [k for k, v in observability_dict.items() if v["source"] in ("planes", "both")]

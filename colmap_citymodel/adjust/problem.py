@@ -69,15 +69,37 @@ MAX_REASSIGNED = 2000
 
 @dataclass
 class BaselinePriors:
-    """Distances between the projection centres of image pairs held at given lengths: the
-    block's scale from GNSS where the planes cannot give it (workflow.baseline_priors)."""
+    """What the GNSS-only block holds where the planes cannot (adjust.scale): its scale, as
+    distances between the projection centres of image pairs held at given lengths, and its
+    level along the shift axes the planes leave to GNSS, as one image's projection centre
+    held there."""
 
-    image_pairs: np.ndarray  # (K, 2) image ids
+    image_pairs: np.ndarray  # (K, 2) image ids; K = 0: the scale is not held
     lengths: np.ndarray  # (K,) metres
     sigmas: np.ndarray  # (K,) metres
+    level_image: int = -1  # -1: no level held
+    level_position: np.ndarray | None = None  # (3,) its projection centre, local frame
+    level_sigmas: np.ndarray | None = None  # (3,) metres; LEVEL_FREE on axes not held
+    # How much tighter than what they hold (GNSS's scale, GNSS's mean position) the priors
+    # are: the solve needs them so, the covariances count them at what they hold
+    # (`hold_relaxation`).
+    tightening: float = 1.0
+    level_tightening: float = 1.0
 
     def __len__(self) -> int:
         return len(self.lengths)
+
+    @property
+    def holds_scale(self) -> bool:
+        return len(self.lengths) > 0
+
+    @property
+    def holds_level(self) -> bool:
+        return self.level_image >= 0
+
+
+#: The prior sigma (m) of BaselinePriors.level_sigmas on an axis that is not held.
+LEVEL_FREE = 1e6
 
 
 @dataclass
@@ -309,7 +331,10 @@ class HybridProblem:
                 self.counts["pose"] += 3
 
     def _add_baselines(self, core, baselines: BaselinePriors | None) -> None:
+        """Group "scale": the holds of `baselines`; `hold_relaxation` has a factor per row
+        that takes it back from its tightened sigma to the sigma of what it holds."""
         self.counts["scale"] = 0
+        self.hold_relaxation = np.zeros(0)
         if baselines is None:
             return
         rec = self.reconstruction
@@ -327,6 +352,19 @@ class HybridProblem:
                 position_in_rig(rec, image_a), position_in_rig(rec, image_b))
             self.problem.add_residual_block(cost, None, [block_a, block_b])
             self.counts["scale"] += 1
+        relaxation = [np.full(self.counts["scale"], 1.0 / baselines.tightening)]
+        if baselines.holds_level:
+            image = rec.image(int(baselines.level_image))
+            block = rec.frame(image.frame_id).rig_from_world.params
+            if self.problem.has_parameter_block(block):
+                cost = core.ProjectionCenterPriorCost(
+                    np.asarray(baselines.level_position, float),
+                    np.asarray(baselines.level_sigmas, float) / self.options.sigma_image,
+                    position_in_rig(rec, image))
+                self.problem.add_residual_block(cost, None, [block])
+                self.counts["scale"] += 3
+                relaxation.append(np.full(3, 1.0 / baselines.level_tightening))
+        self.hold_relaxation = np.concatenate(relaxation)
 
     # -- building ---------------------------------------------------------------------------
     def _add_gnss(self, core, gnss: GNSSPriors | None, estimate_offset: bool) -> None:

@@ -257,7 +257,16 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
     jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
                              shape=(crs.num_rows, crs.num_cols))
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
-    return jacobian / problem.options.sigma_image, layout
+    jacobian = jacobian / problem.options.sigma_image
+    relaxation = getattr(problem, "hold_relaxation", np.zeros(0))
+    if len(relaxation):
+        # The holds of what GNSS alone fixes (the scale, a level) count at GNSS's sigma, not
+        # at the tighter one that keeps the solve there.
+        first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
+        factors = np.ones(jacobian.shape[0])
+        factors[first:first + len(relaxation)] = relaxation
+        jacobian = sp.diags(factors) @ jacobian
+    return jacobian, layout
 
 
 @dataclass
