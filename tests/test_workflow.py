@@ -509,7 +509,7 @@ def test_a_height_the_planes_leave_to_gnss_stays_gnss_s(scene, caplog, hold):
     held there: the refined cameras' mean height is the GNSS-only block's. Without the hold the
     tilts' thousands of f_dTP take the height elsewhere."""
     options = RefineOptions()
-    options.workflow.hold_gnss_level = hold
+    options.workflow.hold_gnss_height = hold
     store = walls_only(scene.store, tilt_deg=0.3)
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.scale"):
         result = refine(scene.sfm, store, scene.gnss(), options, progress=False)
@@ -531,6 +531,32 @@ def test_a_height_the_planes_leave_to_gnss_stays_gnss_s(scene, caplog, hold):
     else:
         assert not held
         assert height_shift > 0.2
+
+
+def test_a_held_height_is_released_once_the_planes_fix_it(scene, monkeypatch, caplog):
+    """The first assignment is made to leave the height to GNSS; the next one, on the street
+    with its roofs, gives it to the planes: the hold ends there, and the block ends on the
+    truth as without it."""
+    from colmap_citymodel.adjust import loop as loop_module
+
+    calls = []
+
+    def first_free(observability_dict):
+        calls.append(observability_dict)
+        if len(calls) == 1:
+            return np.array([False, False, True])
+        return left_to_gnss(observability_dict)
+
+    from colmap_citymodel.adjust.observability import left_to_gnss
+
+    monkeypatch.setattr(loop_module, "left_to_gnss", first_free)
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust"):
+        result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    messages = [r.getMessage() for r in caplog.records]
+    assert any("held at the GNSS-only block's" in m for m in messages)
+    assert any("iteration 1: the planes now fix U" in m for m in messages)
+    assert len(calls) >= 2
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
 
 
 def test_the_solve_after_an_elimination_is_the_next_iterations(scene, monkeypatch):

@@ -8,8 +8,8 @@ never change; the threshold never grows (no flip-flop between two assignments); 
 eliminated as an outlier is not assigned to its face again. The first assignment is followed by
 similarity rounds that move the whole block onto its planes. A solve that changes the scale
 further than GNSS allows holds the scale from then on, and is undone first if it changed the
-scale by far more (a collapse onto a few planes); a shift that GNSS alone fixes is held at the
-GNSS-only block's level (workflow.hold_gnss_level); a solve that moves the block away from the
+scale by far more (a collapse onto a few planes); a height that GNSS alone fixes is held at the
+GNSS-only block's (workflow.hold_gnss_height); a solve that moves the block away from the
 model ends the loop at the best iterate.
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
@@ -44,6 +44,12 @@ from .scale import SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, sca
 from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
+
+#: The shift held at the GNSS-only block's where the planes leave it to GNSS: the height only.
+#: Vertical walls never fix it, and the first assignment, metres from the model, can leave E or
+#: N seemingly free as well (a drive whose walls fix them once its height is known: held in
+#: the first solve, the cameras went 1.7 m away and back).
+HEIGHT = np.array([False, False, True])
 
 
 @dataclass
@@ -167,8 +173,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                         "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
                         "model's height system", store.source)
             if gnss_only is not None and priors is not None and pose_priors is None:
-                level_axes = left_to_gnss(observability_before) if o_w.hold_gnss_level \
-                    else np.zeros(3, bool)
+                level_axes = left_to_gnss(observability_before) & HEIGHT \
+                    if o_w.hold_gnss_height else np.zeros(3, bool)
                 hold_scale = bool(scale_sigma) and observability_before.get(
                     "scale", {}).get("source") not in ("planes", "both")
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,
@@ -176,6 +182,20 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
+        if iteration > 0 and level_axes.any():
+            # A shift that the planes have come to fix (the first assignment, metres from the
+            # model, saw other planes) is theirs from now on: released, never held again.
+            fixed = level_axes & ~left_to_gnss(assigned_observability(
+                points, assignment, current, priors, rec, options))
+            if fixed.any():
+                level_axes = level_axes & ~fixed
+                logger.info("iteration %d: the planes now fix %s: no longer held at the "
+                            "GNSS-only block's", iteration,
+                            "/".join(a for a, f in zip("ENU", fixed) if f))
+                baselines = baseline_priors(gnss_only, priors, scale_sigma,
+                                            hold_scale=baselines.holds_scale,
+                                            level_axes=level_axes)
+                reusable = None  # the next problem has other priors
 
         t1 = time.perf_counter()
         centres_before = camera_centres(rec).reshape(-1, 3)

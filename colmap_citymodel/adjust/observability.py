@@ -72,18 +72,26 @@ def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarr
     return info
 
 
+#: Prior sigmas (shifts in metres, log scale, rotations in radians) that keep a singular
+#: information matrix invertible, far above every UNDETERMINED limit.
+REGULARISATION = np.array([1e6, 1e6, 1e6, 1e3, 1e3, 1e3, 1e3])
+
+
 def _sigmas(info: np.ndarray) -> np.ndarray:
-    """Marginal sigma per datum parameter; inf where the information leaves it free."""
-    scale = np.sqrt(np.maximum(np.diag(info), 1e-30))
-    normalised = info / np.outer(scale, scale)
-    values, vectors = np.linalg.eigh(normalised)
-    keep = values > 1e-9 * max(values.max(), 1e-30)
-    inverse = (vectors[:, keep] / values[keep]) @ vectors[:, keep].T
+    """Marginal sigma per datum parameter; inf where the information leaves it free. The
+    inverse is taken with REGULARISATION as priors: a direction with hardly any information
+    (vertical walls and the height) keeps its large sigma without dragging the others it barely
+    touches into the null space (in units scaled by the diagonal, the height's null vector
+    looked half made of E and N)."""
+    prior = 1.0 / REGULARISATION ** 2
+    regularised = info + np.diag(prior)
+    scale = np.sqrt(np.diag(regularised))
+    normalised = regularised / np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(0.5 * (normalised + normalised.T))
+    inverse = (vectors / np.maximum(values, 1e-300)) @ vectors.T
     sigma = np.sqrt(np.maximum(np.diag(inverse), 0.0)) / scale
-    # A direction with (almost) no information is free, whatever the pseudo-inverse says.
-    free = vectors[:, ~keep]
-    if free.size:
-        sigma[np.abs(free).max(axis=1) > 0.1] = np.inf
+    # Within a factor of two of the regularisation: the information said (almost) nothing.
+    sigma[sigma > 0.5 * REGULARISATION] = np.inf
     return sigma
 
 
