@@ -160,7 +160,16 @@ def test_verdict_rules():
             "shift_m": 4.0, "shift_sigmas": 1.5, "planes_fix": ["E", "N", "U"]}
     assert quality_verdict(good).verdict == "ok"
     assert quality_verdict({**good, "shift_sigmas": 3.5}).verdict == "weak"
-    assert quality_verdict({**good, "shift_sigmas": 6.0}).verdict == "failed"
+    # A move further than GNSS can be off fails, unless it brought a quarter of the tie points
+    # near the model that were not near it before (here 10 % -> 80 %): weak, saying so.
+    unbacked = {**good, "near_share_gnss_only": 0.7}
+    assert quality_verdict({**unbacked, "shift_sigmas": 6.0}).verdict == "failed"
+    backed = quality_verdict({**good, "shift_sigmas": 6.0})
+    assert backed.verdict == "weak" and "10 % -> 80 %" in backed.reasons[0]
+    height = {**good, "planes_fix": ["E", "N"], "shift_enu_m": [0.1, 0.2, 7.0],
+              "gnss_axis_shift_sigmas": {"U": 8.8}}
+    assert quality_verdict({**height, "near_share_gnss_only": 0.7}).verdict == "failed"
+    assert quality_verdict(height).verdict == "weak"
     assert quality_verdict({**good, "near_share": 0.05}).verdict == "failed"
     assert quality_verdict({**good, "planes_fix": []}).verdict == "weak"
     one_roof = quality_verdict({**good, "planes_fix": ["E", "N"], "one_plane": ["U"]})
@@ -177,7 +186,8 @@ def test_verdict_rules():
     assert quality_verdict({**scaled, "planes_fix": ["E", "N", "U", "scale"]}).verdict == "ok"
     assert quality_verdict(scaled).verdict == "failed"
     # A direction only GNSS fixes, moved several of its sigmas: not by GNSS.
-    free_u = {**good, "planes_fix": ["E", "N"], "shift_enu_m": [0.1, 0.2, 3.0]}
+    free_u = {**good, "planes_fix": ["E", "N"], "shift_enu_m": [0.1, 0.2, 3.0],
+              "near_share_gnss_only": 0.7}
     assert quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 1.0}}).verdict == "weak"
     moved = quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 6.0}})
     assert moved.verdict == "failed" and "3.00 m in U" in moved.reasons[0]

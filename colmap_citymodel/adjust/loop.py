@@ -8,9 +8,9 @@ never change; the threshold never grows (no flip-flop between two assignments); 
 eliminated as an outlier is not assigned to its face again. The first assignment is followed by
 similarity rounds that move the whole block onto its planes. A solve that changes the scale
 further than GNSS allows holds the scale from then on, and is undone first if it changed the
-scale by far more (a collapse onto a few planes); a height that GNSS alone fixes is held at the
-GNSS-only block's (workflow.hold_gnss_height); a solve that moves the block away from the
-model ends the loop at the best iterate.
+scale by far more (a collapse onto a few planes); a height that the planes leave to GNSS is
+held where the first assignment and its similarity rounds put it (workflow.hold_gnss_height);
+a solve that moves the block away from the model ends the loop at the best iterate.
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
 priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
@@ -40,12 +40,14 @@ from .datum import check_datum
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
-from .scale import SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, scale_change
+from .scale import (SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, level_prior,
+                    scale_change)
 from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
 
-#: The shift held at the GNSS-only block's where the planes leave it to GNSS: the height only.
+#: The shift held where the similarity rounds put it, where the planes leave it to GNSS: the
+#: height only.
 #: Vertical walls never fix it, and the first assignment, metres from the model, can leave E or
 #: N seemingly free as well (a drive whose walls fix them once its height is known: held in
 #: the first solve, the cameras went 1.7 m away and back).
@@ -100,7 +102,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
     total_move = pycolmap.Sim3d()
     baselines = None
-    level_axes = np.zeros(3, bool)  # the shifts held at the GNSS-only block's
+    level_axes = np.zeros(3, bool)  # the shifts held where the similarity rounds put them
+    level = None  # scale.level_prior of those
     previous_rms = None
     last = None
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
@@ -175,10 +178,14 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             if gnss_only is not None and priors is not None and pose_priors is None:
                 level_axes = left_to_gnss(observability_before) & HEIGHT \
                     if o_w.hold_gnss_height else np.zeros(3, bool)
+                # Where the coarse search and the similarity rounds put the block: GNSS at
+                # full weight with every plane near it, roofs' edges seen from below too.
+                level = level_prior({int(i): rec.image(int(i)).projection_center()
+                                     for i in priors.image_ids}, priors, level_axes)
                 hold_scale = bool(scale_sigma) and observability_before.get(
                     "scale", {}).get("source") not in ("planes", "both")
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            hold_scale=hold_scale, level_axes=level_axes)
+                                            hold_scale=hold_scale, level=level)
         elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
@@ -189,12 +196,11 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 points, assignment, current, priors, rec, options))
             if fixed.any():
                 level_axes = level_axes & ~fixed
-                logger.info("iteration %d: the planes now fix %s: no longer held at the "
-                            "GNSS-only block's", iteration,
+                logger.info("iteration %d: the planes now fix %s: no longer held", iteration,
                             "/".join(a for a, f in zip("ENU", fixed) if f))
+                level = None
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            hold_scale=baselines.holds_scale,
-                                            level_axes=level_axes)
+                                            hold_scale=baselines.holds_scale, level=level)
                 reusable = None  # the next problem has other priors
 
         t1 = time.perf_counter()
@@ -262,8 +268,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
                                "sigma): the scale is held from now on", iteration,
                                100 * change, sigmas)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            level_axes=level_axes)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
                 reusable = None  # the next problem has the baseline priors
             elif sigmas > SCALE_UNDO_SIGMAS:
                 logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
@@ -271,8 +276,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                                100 * change, sigmas)
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            level_axes=level_axes)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
                 last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
 

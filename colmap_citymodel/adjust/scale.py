@@ -1,5 +1,5 @@
-"""Holding the block's scale, and its level along the axes the planes leave to GNSS, at the
-GNSS-only block's where the planes cannot determine them."""
+"""Holding the block's scale at the GNSS-only block's, and its height where the first
+assignment put it, where the planes cannot determine them."""
 
 from __future__ import annotations
 
@@ -47,16 +47,17 @@ BASELINE_TIGHTENING = 10.0
 
 def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
                     scale_sigma: float | None, *, hold_scale: bool = True,
-                    level_axes=None) -> BaselinePriors | None:
+                    level: tuple[int, np.ndarray, np.ndarray] | None = None
+                    ) -> BaselinePriors | None:
     """What the GNSS-only block holds: with `hold_scale`, pairs of GNSS images half the block
     apart along its main axis, with their distances in the GNSS-only adjustment, which together
-    hold its scale to scale_sigma / BASELINE_TIGHTENING; along `level_axes` (bool (3,), E N U),
-    its level (see `level_prior`). None when neither is asked for."""
+    hold its scale to scale_sigma / BASELINE_TIGHTENING; with `level` (from `level_prior`), one
+    image's projection centre along the axes it holds. None when neither is asked for."""
     ids = np.asarray(priors.image_ids)
-    centres = np.array([gnss_only.image(int(i)).projection_center() for i in ids])
     hold_scale = bool(hold_scale and scale_sigma and len(ids) > 1)
     pairs, lengths, sigmas = np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
     if hold_scale:
+        centres = np.array([gnss_only.image(int(i)).projection_center() for i in ids])
         axis = np.linalg.svd(centres - centres.mean(0))[2][0]
         order = ids[np.argsort((centres - centres.mean(0)) @ axis)]
         half = len(order) // 2
@@ -68,35 +69,38 @@ def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
         sigmas = np.maximum(lengths * relative, 1e-6)
         logger.info("the planes do not fix the block's scale: %d baseline priors hold the "
                     "GNSS-only scale (sigma %.2g)", len(pairs), scale_sigma / BASELINE_TIGHTENING)
-    level = np.zeros(3, bool) if level_axes is None else np.asarray(level_axes, bool)
-    if not hold_scale and not level.any():
+    if not hold_scale and level is None:
         return None
     holds = BaselinePriors(pairs, lengths, sigmas, tightening=BASELINE_TIGHTENING,
                            level_tightening=LEVEL_TIGHTENING)
-    if level.any():
-        holds.level_image, holds.level_position, holds.level_sigmas = level_prior(
-            ids, centres, priors, level)
-        logger.info("the planes do not fix the block's %s: held at the GNSS-only block's "
-                    "(sigma %s m)", "/".join(a for a, h in zip("ENU", level) if h),
-                    "/".join(f"{v:.2g}" for v, h in zip(holds.level_sigmas, level) if h))
+    if level is not None:
+        holds.level_image, holds.level_position, holds.level_sigmas = level
     return holds
 
 
-#: Where the planes do not determine a shift, the level prior holds the GNSS-only block there
-#: this many times tighter than the mean of its GNSS positions: the planes' own information
-#: along it, a wall tilted by a fraction of a degree, would otherwise move the block by metres
-#: (a drive along facades whose eaves count only from above: 5.8 m in height from walls
-#: tilted by at most 0.3 deg, GNSS's mean 1.4 m off).
+#: Where the planes do not determine the height, the level prior holds it this many times
+#: tighter than the mean of the GNSS heights: the planes' own information there, walls tilted
+#: by a fraction of a degree, would otherwise move the block by metres (a drive along the true
+#: building planes, walls within 0.3 deg of vertical: 5.7 m in the first solve).
 LEVEL_TIGHTENING = 10.0
 
 
-def level_prior(ids: np.ndarray, centres: np.ndarray, priors: GNSSPriors, axes: np.ndarray
-                ) -> tuple[int, np.ndarray, np.ndarray]:
-    """The GNSS image nearest the centroid of the GNSS-only projection centres `centres` (of
-    `ids`), its centre, and the sigmas that hold it along `axes`: the GNSS sigma of the mean
-    of all positions / LEVEL_TIGHTENING (LEVEL_FREE elsewhere). One image near the middle
-    holds the level and leaves the block's rotations to the planes and GNSS."""
-    anchor = int(np.argmin(np.linalg.norm(centres - centres.mean(0), axis=1)))
+def level_prior(centres: dict[int, np.ndarray], priors: GNSSPriors, axes: np.ndarray
+                ) -> tuple[int, np.ndarray, np.ndarray] | None:
+    """The level of a block along `axes` (bool (3,), E N U) as one image holds it: of the
+    projection centres `centres` (image id -> centre) of the GNSS images, the one nearest their
+    centroid, and the sigmas that hold it there, the GNSS sigma of the mean of all positions /
+    LEVEL_TIGHTENING (LEVEL_FREE elsewhere). One image near the middle leaves the block's
+    rotations to the planes and GNSS. None when no axis is held."""
+    axes = np.asarray(axes, bool)
+    if not axes.any():
+        return None
+    ids = np.asarray(priors.image_ids)
+    points = np.array([centres[int(i)] for i in ids])
+    anchor = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
     sigmas = np.where(axes, mean_sigma / LEVEL_TIGHTENING, LEVEL_FREE)
-    return int(ids[anchor]), np.array(centres[anchor], dtype=np.float64), sigmas
+    logger.info("the planes do not fix the block's %s: held where the first assignment put it "
+                "(sigma %s m)", "/".join(a for a, h in zip("ENU", axes) if h),
+                "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
+    return int(ids[anchor]), np.array(points[anchor], dtype=np.float64), sigmas
