@@ -371,14 +371,6 @@ class WorkflowOptions:
     the solves from the third iteration on moved the cameras by at most 24, 4.3, 2.2, 0.4, 0.5
     and 0.4 mm, each costing a hybrid solve; one small move alone can be a pause in a slow
     swing (long Scn4: 4 mm between moves of 6 cm). 0 runs until the RMS settles."""
-    convergence_shift_sigmas: float = 0.5
-    """The camera-shift test's tolerance is at least this fraction of the a posteriori sigma
-    of the block's position (the smallest of E, N, U from the planes and GNSS at the first
-    assignment, quality.observability): moves far inside what the result can claim do not
-    change it. On the short simulated sequence (sigma 7 cm) the solves from the fourth
-    iteration on moved the cameras by 8, 21, 17, 18 and 18 mm, a face joining and leaving
-    the assignment in turn, and its check points ended 0.259 m from the truth after five
-    iterations, 0.261 m after eight. 0: `convergence_camera_shift` alone."""
     robust_second_iteration: bool = True
     """The second iteration, whose threshold falls from the upper limit to one from the data,
     goes straight to the robust solve. Later iterations first solve with the original weights

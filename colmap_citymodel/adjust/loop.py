@@ -318,10 +318,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             continue
         if change < o_w.convergence_rms_change:
             break
-        settled = settle_tolerance(observability_before, o_w)
-        if cameras_settled(iterations, settled):
+        if cameras_settled(iterations, o_w.convergence_camera_shift):
             logger.info("iterations %d and %d moved no camera by more than %.4f m: the loop "
-                        "has converged", iteration - 1, iteration, settled)
+                        "has converged", iteration - 1, iteration, o_w.convergence_camera_shift)
             break
         if repeats is not None:
             # The same assignment as an earlier iteration: solving it again reaches the same
@@ -362,16 +361,6 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
                       baselines=baselines, weights=weights)
-
-
-def settle_tolerance(observability_dict: dict, options) -> float:
-    """The camera-shift tolerance of the convergence test (m): workflow.convergence_camera_shift,
-    or convergence_shift_sigmas times the smallest a posteriori sigma of the block's E, N, U
-    position if that is larger."""
-    sigmas = [row["sigma"] for name, row in observability_dict.items()
-              if name in ("E", "N", "U") and row.get("sigma") is not None]
-    relative = options.convergence_shift_sigmas * min(sigmas) if sigmas else 0.0
-    return max(options.convergence_camera_shift, relative)
 
 
 def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
