@@ -416,16 +416,16 @@ class WorkflowOptions:
     assignment is the one the last solve used ends the loop without solving it again. False:
     a new problem every iteration (the same solution, set-up repeated)."""
     hold_gnss_height: bool = True
-    """Where GNSS fixes the block's height while the planes' information there is far weaker
+    """Where the planes' information on the block's height is far weaker than GNSS's
     (adjust.observability.left_to_gnss: each plane with its generalisation error), the height
-    is held at the GNSS-only adjustment's (adjust.scale.level_prior), until the assignment
-    gives the planes a say in it. Per tie point, as the adjustment weighs them, walls tilted by
-    a fraction of a degree can seem to fix the height: a street drive along the true (detailed)
-    building planes, walls within 0.3 deg of vertical, went 5.8 m up or down from them, GNSS's
-    mean being 1.4 m off. Published LOD2 walls are vertical (in the Berlin, Den Haag, NRW and
-    TUM files 99 % within 0.1 deg), so there the hold changes nothing; the simulator's given
-    models tilt every face by N(0, 0.5 deg), and the hold gives up what those tilts said about
-    the height. False: the planes decide there, as their f_dTP weigh."""
+    is held where the coarse search and the similarity rounds of the first assignment put the
+    block (adjust.scale.level_prior), until the assignment gives the planes a say in it. Per
+    tie point, as the adjustment weighs them, walls tilted by a fraction of a degree can seem
+    to fix the height: a street drive along the true (detailed) building planes, walls within
+    0.3 deg of vertical, went 5.7 m up in its first solve once its roof points seen from
+    below were gone (0.22 m from the truth with the hold). Published LOD2 walls are vertical
+    (in the Berlin, Den Haag, NRW and TUM files 99 % within 0.1 deg). False: the planes decide
+    there, as their f_dTP weigh."""
     divergence_tolerance: float = 0.05
     """An iteration whose block objective (share of tie points off the model plus GNSS
     residuals; workflow.BlockObjective) is worse than the best iterate's by more than this
