@@ -46,11 +46,10 @@ from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
 
-#: The shift held where the similarity rounds put it, where the planes leave it to GNSS: the
-#: height only.
-#: Vertical walls never fix it, and the first assignment, metres from the model, can leave E or
-#: N seemingly free as well (a drive whose walls fix them once its height is known: held in
-#: the first solve, the cameras went 1.7 m away and back).
+#: The shifts held where the first assignment put the block when the planes leave them to GNSS:
+#: the height only. Vertical walls never fix it; E or N can seem free at the first assignment,
+#: metres from the model, and be fixed by the walls once the height is known (a drive whose E
+#: and N were held in its first solve: the cameras went 1.7 m away and back).
 HEIGHT = np.array([False, False, True])
 
 
@@ -102,7 +101,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
     total_move = pycolmap.Sim3d()
     baselines = None
-    level_axes = np.zeros(3, bool)  # the shifts held where the similarity rounds put them
+    level_axes = np.zeros(3, bool)  # the shifts held where the first assignment put them
     level = None  # scale.level_prior of those
     previous_rms = None
     last = None

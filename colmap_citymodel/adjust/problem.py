@@ -69,10 +69,10 @@ MAX_REASSIGNED = 2000
 
 @dataclass
 class BaselinePriors:
-    """What the GNSS-only block holds where the planes cannot (adjust.scale): its scale, as
-    distances between the projection centres of image pairs held at given lengths, and its
-    level along the shift axes the planes leave to GNSS, as one image's projection centre
-    held there."""
+    """What is held where the planes cannot fix it (adjust.scale): the GNSS-only block's scale,
+    as distances between the projection centres of image pairs held at given lengths, and the
+    block's height where the first assignment put it, as one image's projection centre held
+    there."""
 
     image_pairs: np.ndarray  # (K, 2) image ids; K = 0: the scale is not held
     lengths: np.ndarray  # (K,) metres
@@ -80,8 +80,8 @@ class BaselinePriors:
     level_image: int = -1  # -1: no level held
     level_position: np.ndarray | None = None  # (3,) its projection centre, local frame
     level_sigmas: np.ndarray | None = None  # (3,) metres; LEVEL_FREE on axes not held
-    # How much tighter than what they hold (GNSS's scale, GNSS's mean position) the priors
-    # are: the solve needs them so, the covariances count them at what they hold
+    # How much tighter the priors are than GNSS's own sigma of what they hold (the scale, the
+    # mean height): the solve needs them so, the covariances count them at GNSS's sigma
     # (`hold_relaxation`).
     tightening: float = 1.0
     level_tightening: float = 1.0

@@ -260,8 +260,8 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
     jacobian = jacobian / problem.options.sigma_image
     relaxation = getattr(problem, "hold_relaxation", np.zeros(0))
     if len(relaxation):
-        # The holds of what GNSS alone fixes (the scale, a level) count at GNSS's sigma, not
-        # at the tighter one that keeps the solve there.
+        # The holds of what the planes do not fix (the scale, the height) count at GNSS's sigma
+        # of it, not at the tighter one that keeps the solve there.
         first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
         factors = np.ones(jacobian.shape[0])
         factors[first:first + len(relaxation)] = relaxation
