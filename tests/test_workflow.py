@@ -470,9 +470,9 @@ def test_the_level_prior_holds_one_central_image_along_the_free_axes_only(scene)
     rec = pycolmap.Reconstruction(scene.sfm)
     _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
     centres = {int(i): rec.image(int(i)).projection_center() for i in priors.image_ids}
-    assert level_prior(centres, priors, [False, False, False]) is None
+    assert level_prior(rec, priors, [False, False, False]) is None
     assert baseline_priors(rec, priors, 0.01, hold_scale=False) is None
-    level = level_prior(centres, priors, [False, False, True])
+    level = level_prior(rec, priors, [False, False, True])
     holds = baseline_priors(rec, priors, 0.01, hold_scale=False, level=level)
     assert not holds.holds_scale and holds.holds_level
     points = np.array(list(centres.values()))
@@ -516,9 +516,9 @@ def test_a_height_the_planes_leave_to_gnss_stays_where_the_first_assignment_put_
 
     seen = []
 
-    def recording(centres, priors, axes):
-        seen.append(dict(centres))
-        return level_prior(centres, priors, axes)
+    def recording(block, priors, axes):
+        seen.append({int(i): block.image(int(i)).projection_center() for i in priors.image_ids})
+        return level_prior(block, priors, axes)
 
     monkeypatch.setattr(loop_module, "level_prior", recording)
     options = RefineOptions()

@@ -101,8 +101,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
     total_move = pycolmap.Sim3d()
     baselines = None
-    level_axes = np.zeros(3, bool)  # the shifts held where the first assignment put them
-    level = None  # scale.level_prior of those
+    level = None  # scale.level_prior: the height held where the first assignment put it
     previous_rms = None
     last = None
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
@@ -175,12 +174,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                         "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
                         "model's height system", store.source)
             if gnss_only is not None and priors is not None and pose_priors is None:
-                level_axes = left_to_gnss(observability_before) & HEIGHT \
-                    if o_w.hold_gnss_height else np.zeros(3, bool)
                 # Where the coarse search and the similarity rounds put the block: GNSS at
                 # full weight with every plane near it, roofs' edges seen from below too.
-                level = level_prior({int(i): rec.image(int(i)).projection_center()
-                                     for i in priors.image_ids}, priors, level_axes)
+                level = level_prior(rec, priors, left_to_gnss(observability_before) & HEIGHT
+                                    & o_w.hold_gnss_height)
                 hold_scale = bool(scale_sigma) and observability_before.get(
                     "scale", {}).get("source") not in ("planes", "both")
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,
@@ -188,15 +185,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
-        if iteration > 0 and level_axes.any():
-            # A shift that the planes have come to fix (the first assignment, metres from the
+        if iteration > 0 and level is not None:
+            # A height that the planes have come to fix (the first assignment, metres from the
             # model, saw other planes) is theirs from now on: released, never held again.
-            fixed = level_axes & ~left_to_gnss(assigned_observability(
-                points, assignment, current, priors, rec, options))
-            if fixed.any():
-                level_axes = level_axes & ~fixed
-                logger.info("iteration %d: the planes now fix %s: no longer held", iteration,
-                            "/".join(a for a, f in zip("ENU", fixed) if f))
+            if not np.any(left_to_gnss(assigned_observability(
+                    points, assignment, current, priors, rec, options)) & HEIGHT):
+                logger.info("iteration %d: the planes now fix U: no longer held", iteration)
                 level = None
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,
                                             hold_scale=baselines.holds_scale, level=level)

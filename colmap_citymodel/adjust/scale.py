@@ -9,6 +9,7 @@ import numpy as np
 import pycolmap
 
 from ..block.priors import GNSSPriors
+from ..block.reconstruction import observer_centres
 from .problem import LEVEL_FREE, BaselinePriors
 
 logger = logging.getLogger(__name__)
@@ -57,14 +58,13 @@ def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
     hold_scale = bool(hold_scale and scale_sigma and len(ids) > 1)
     pairs, lengths, sigmas = np.zeros((0, 2), np.int64), np.zeros(0), np.zeros(0)
     if hold_scale:
-        centres = np.array([gnss_only.image(int(i)).projection_center() for i in ids])
+        centres = observer_centres(gnss_only, ids)
         axis = np.linalg.svd(centres - centres.mean(0))[2][0]
-        order = ids[np.argsort((centres - centres.mean(0)) @ axis)]
+        order = np.argsort((centres - centres.mean(0)) @ axis)
         half = len(order) // 2
-        pairs = np.column_stack([order[:half], order[len(order) - half:]])
-        lengths = np.array([np.linalg.norm(gnss_only.image(int(a)).projection_center()
-                                           - gnss_only.image(int(b)).projection_center())
-                            for a, b in pairs])
+        first, second = order[:half], order[len(order) - half:]
+        pairs = np.column_stack([ids[first], ids[second]])
+        lengths = np.linalg.norm(centres[first] - centres[second], axis=1)
         relative = scale_sigma / BASELINE_TIGHTENING * np.sqrt(max(len(pairs), 1))
         sigmas = np.maximum(lengths * relative, 1e-6)
         logger.info("the planes do not fix the block's scale: %d baseline priors hold the "
@@ -85,18 +85,18 @@ def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
 LEVEL_TIGHTENING = 10.0
 
 
-def level_prior(centres: dict[int, np.ndarray], priors: GNSSPriors, axes: np.ndarray
+def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.ndarray
                 ) -> tuple[int, np.ndarray, np.ndarray] | None:
-    """The level of a block along `axes` (bool (3,), E N U) as one image holds it: of the
-    projection centres `centres` (image id -> centre) of the GNSS images, the one nearest their
-    centroid, and the sigmas that hold it there, the GNSS sigma of the mean of all positions /
-    LEVEL_TIGHTENING (LEVEL_FREE elsewhere). One image near the middle leaves the block's
-    rotations to the planes and GNSS. None when no axis is held."""
+    """The level of `block` along `axes` (bool (3,), E N U) as one image holds it: of its GNSS
+    images, the one whose projection centre is nearest their centroid, that centre, and the
+    sigmas that hold it there, the GNSS sigma of the mean of all positions / LEVEL_TIGHTENING
+    (LEVEL_FREE elsewhere). One image near the middle leaves the block's rotations to the
+    planes and GNSS. None when no axis is held."""
     axes = np.asarray(axes, bool)
     if not axes.any():
         return None
     ids = np.asarray(priors.image_ids)
-    points = np.array([centres[int(i)] for i in ids])
+    points = observer_centres(block, ids)
     anchor = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
     sigmas = np.where(axes, mean_sigma / LEVEL_TIGHTENING, LEVEL_FREE)

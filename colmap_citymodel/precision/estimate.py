@@ -258,7 +258,7 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
                              shape=(crs.num_rows, crs.num_cols))
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
     jacobian = jacobian / problem.options.sigma_image
-    relaxation = getattr(problem, "hold_relaxation", np.zeros(0))
+    relaxation = problem.hold_relaxation
     if len(relaxation):
         # The holds of what the planes do not fix (the scale, the height) count at GNSS's sigma
         # of it, not at the tighter one that keeps the solve there.
