@@ -54,6 +54,31 @@ def test_faces_with_too_few_points_or_collinear_points_are_rejected():
     assert assign(few, np.arange(10), store, 2.0, relaxed).num_assigned == 10
 
 
+@pytest.mark.parametrize("method", ["direct", "roi_msac"])
+def test_a_face_of_the_previous_assignment_keeps_its_points_nearer_the_limits(method):
+    rng = np.random.default_rng(4)
+    store = box_store()
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    other = int(np.argmin(np.linalg.norm(store.normals - [0, 1, 0], axis=1)))
+    few = wall_points(rng, 10)  # 10 points: below 15, above half of it
+    # On the y = 10 wall, a band 8 m long and 0.22 m wide: planarity about 8e-4, under the
+    # limit of 1e-3 and above half of it
+    band = np.column_stack([rng.uniform(1, 9, 40), np.full(40, 10.02),
+                            5.0 + rng.uniform(-0.11, 0.11, 40)])
+    assert 0.5e-3 < planarity(band) < 1e-3
+    points, ids = np.vstack([few, band]), np.arange(50)
+    options = AssignmentOptions(method=method)
+    assert assign(points, ids, store, 2.0, options).num_assigned == 0
+    kept = assign(points, ids, store, 2.0, options, kept_faces=np.array([wall, other]))
+    assert np.all(kept.face_index[:10] == wall) and np.all(kept.face_index[10:] == other)
+    # Only the faces named keep their points; without hysteresis nothing is kept.
+    assert assign(points, ids, store, 2.0, options,
+                  kept_faces=np.array([other])).num_faces == 1
+    strict = AssignmentOptions(method=method, face_hysteresis=1.0)
+    assert assign(points, ids, store, 2.0, strict,
+                  kept_faces=np.array([wall, other])).num_assigned == 0
+
+
 def test_planarity_measure():
     rng = np.random.default_rng(3)
     plane = np.column_stack([rng.uniform(0, 5, 100), rng.uniform(0, 5, 100), np.zeros(100)])

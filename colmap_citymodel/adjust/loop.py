@@ -129,12 +129,14 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # the first assignment and the similarity rounds bring it there from metres away,
         # parapets and eaves near a roof's plane hold its height (a street drive whose only
         # roof points were seen from below ran 25 m away without them).
+        kept_faces = assignment.faces if assignment is not None else None
         assignment = assign(points, point_ids, current, threshold, o_a, weights,
-                            observers if iterations else None)
+                            observers if iterations else None, kept_faces)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
         if o_w.keep_eliminated:
-            assignment = _without_eliminated(assignment, eliminated_from, points, o_a)
+            assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
+                                             kept_faces)
         signature = _signature(assignment)
         if o_w.reuse_problem and signature == solved and last is not None:
             # The assignment the last solve used: solving it again would start at its
@@ -228,7 +230,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             eliminated = np.isin(assignment.point_ids, outliers)
             if iterations:  # in the first, the block still moves by decimetres
                 eliminated_from[eliminated] = assignment.face_index[eliminated]
-            assignment = assignment.eliminate(eliminated, points, o_a)
+            assignment = assignment.eliminate(eliminated, points, o_a, kept_faces)
             if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
                     and iteration + 1 < o_w.max_iterations
                     and objective(rec) <= value_before + o_w.divergence_tolerance):
@@ -372,10 +374,12 @@ def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
 
 
 def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
-                        points: np.ndarray, options: AssignmentOptions) -> Assignment:
+                        points: np.ndarray, options: AssignmentOptions,
+                        kept_faces: np.ndarray | None = None) -> Assignment:
     """`assignment` without the tie points given again to a face they were eliminated from."""
     again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
-    return assignment.eliminate(again, points, options) if again.any() else assignment
+    return assignment.eliminate(again, points, options, kept_faces) if again.any() \
+        else assignment
 
 
 def _signature(assignment: Assignment) -> bytes:

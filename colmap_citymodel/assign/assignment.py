@@ -71,12 +71,15 @@ class Assignment:
                           dict(self.rejected_faces), self.method)
 
     def eliminate(self, point_mask: np.ndarray, points: np.ndarray,
-                  options: AssignmentOptions) -> "Assignment":
+                  options: AssignmentOptions, kept_faces: np.ndarray | None = None
+                  ) -> "Assignment":
         """`without(point_mask)`, then the faces left with too few points (or not planar)
         dropped as the assignment drops them (counted in the copy's `rejected_faces`);
-        `points`: the tie points' coordinates, in the order of `point_ids`."""
+        `points`: the tie points' coordinates, in the order of `point_ids`; `kept_faces`: as
+        for `filter_faces`."""
         out = self.without(point_mask)
-        out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces)
+        out.face_index = filter_faces(points, out.face_index, options, out.rejected_faces,
+                                      kept_faces)
         out.distance[out.face_index < 0] = np.nan
         return out
 
@@ -123,11 +126,13 @@ def roof_points_seen_from_below(points: np.ndarray, face_index: np.ndarray,
 
 class PlaneAssigner(Protocol):
     """Interface of an assignment method. `weights`: per-point quality (higher = better) for
-    methods that sample points; others ignore it."""
+    methods that sample points; others ignore it. `kept_faces`: the faces of the previous
+    assignment, tested with `AssignmentOptions.face_hysteresis` (`filter_faces`)."""
 
     def __call__(self, points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
                  threshold: float, options: AssignmentOptions,
-                 weights: np.ndarray | None = None) -> Assignment: ...
+                 weights: np.ndarray | None = None,
+                 kept_faces: np.ndarray | None = None) -> Assignment: ...
 
 
 def planarity(points: np.ndarray) -> float:
@@ -141,15 +146,20 @@ def planarity(points: np.ndarray) -> float:
 
 
 def filter_faces(points: np.ndarray, face_index: np.ndarray, options: AssignmentOptions,
-                 rejected: dict[str, int]) -> np.ndarray:
-    """Unassign the points of faces that fail the minimum-count or planarity test."""
+                 rejected: dict[str, int], kept_faces: np.ndarray | None = None) -> np.ndarray:
+    """Unassign the points of faces that fail the minimum-count or planarity test. Faces in
+    `kept_faces` (those of the previous assignment) are tested at `options.face_hysteresis`
+    times both limits: a face near a limit would otherwise come and go from one iteration to
+    the next."""
     face_index = face_index.copy()
     faces, counts = np.unique(face_index[face_index >= 0], return_counts=True)
-    for face, count in zip(faces, counts):
+    kept = np.isin(faces, kept_faces) if kept_faces is not None else np.zeros(len(faces), bool)
+    for face, count, relaxed in zip(faces, counts, kept):
         members = face_index == face
-        if count < options.min_points_per_plane:
+        factor = options.face_hysteresis if relaxed else 1.0
+        if count < factor * options.min_points_per_plane:
             reason = "too_few_points"
-        elif planarity(points[members]) <= options.planarity_threshold:
+        elif planarity(points[members]) <= factor * options.planarity_threshold:
             reason = "not_planar"
         else:
             continue

@@ -12,12 +12,13 @@ from .assignment import Assignment, excluded_faces, filter_faces
 
 def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
                   threshold: float, options: AssignmentOptions,
-                  weights: np.ndarray | None = None) -> Assignment:
+                  weights: np.ndarray | None = None,
+                  kept_faces: np.ndarray | None = None) -> Assignment:
     """Method (a): each tie point to its closest model face, if closer than `threshold`.
 
     "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
     contains the point's orthogonal projection (grown by `polygon_margin`). `weights` play no
-    part.
+    part; `kept_faces`: see `filter_faces`.
     """
     face_index, distance = store.closest_faces(points, max_distance=threshold,
                                                margin=options.polygon_margin)
@@ -25,7 +26,7 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     if len(excluded):
         face_index = np.where(np.isin(face_index, excluded), -1, face_index)
     rejected: dict[str, int] = {}
-    face_index = filter_faces(points, face_index, options, rejected)
+    face_index = filter_faces(points, face_index, options, rejected, kept_faces)
     distance = np.where(face_index >= 0, distance, np.nan)
     return Assignment(np.asarray(point_ids, dtype=np.int64), face_index, distance, threshold,
                       rejected)

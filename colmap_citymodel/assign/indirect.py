@@ -23,7 +23,10 @@ closest face: these are exactly the candidates of direct assignment, `PlaneStore
 In each ROI, MSAC searches one plane whose normal is within `max_normal_angle` of the model normal;
 its inliers (inside the polygon by construction of the ROI) are assigned.
 
-Both end with the minimum-count and planarity tests of every method (`filter_faces`). With
+Both end with the minimum-count and planarity tests of every method (`filter_faces`), at
+`face_hysteresis` times the limits for the faces of the previous assignment; (c) also skips an
+ROI with fewer points at those limits, while (b)'s extraction holds every plane to the full
+minimum count (its planes are not yet faces). With
 `weighted_sampling` and per-point weights (`point_quality_weights`), both sample by weight
 (weighted RANSAC, Mulder 4.4).
 """
@@ -230,8 +233,8 @@ def match_planes(planes: list[ExtractedPlane], store: PlaneStore, threshold: flo
 
 def _finish(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, face_index: np.ndarray,
             threshold: float, options: AssignmentOptions, rejected: dict[str, int],
-            method: str) -> Assignment:
-    face_index = filter_faces(points, face_index, options, rejected)
+            method: str, kept_faces: np.ndarray | None) -> Assignment:
+    face_index = filter_faces(points, face_index, options, rejected, kept_faces)
     distance = np.full(len(points), np.nan)
     on = face_index >= 0
     distance[on] = (np.einsum("ij,ij->i", points[on], store.normals[face_index[on]])
@@ -255,7 +258,8 @@ def _weights_for(weights: np.ndarray | None, options: AssignmentOptions, n: int
 
 
 def assign_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
-                options: AssignmentOptions, weights: np.ndarray | None = None) -> Assignment:
+                options: AssignmentOptions, weights: np.ndarray | None = None,
+                kept_faces: np.ndarray | None = None) -> Assignment:
     """Method (b): planes extracted from the whole cloud, matched to model faces; `threshold`
     bounds the distance of an extracted plane's boundary centroid to the model plane."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -273,7 +277,8 @@ def assign_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, th
         if np.any(match < 0) else {}
     logger.debug("msac: %d extracted planes, %d matched to %d faces", len(planes),
                  int(np.count_nonzero(match >= 0)), len(np.unique(match[match >= 0])))
-    return _finish(points, point_ids, store, face_index, threshold, options, rejected, "msac")
+    return _finish(points, point_ids, store, face_index, threshold, options, rejected, "msac",
+                   kept_faces)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -283,7 +288,8 @@ def assign_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, th
 
 def assign_roi_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
                     threshold: float, options: AssignmentOptions,
-                    weights: np.ndarray | None = None) -> Assignment:
+                    weights: np.ndarray | None = None,
+                    kept_faces: np.ndarray | None = None) -> Assignment:
     """Method (c): per model face, MSAC with the normal constraint on the points of its ROI
     (search distance `threshold`); the inliers are assigned."""
     points = np.asarray(points, dtype=np.float64).reshape(-1, 3)
@@ -299,8 +305,9 @@ def assign_roi_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore
     members = members[np.argsort(roi[members], kind="stable")]
     faces, starts, counts = np.unique(roi[members], return_index=True, return_counts=True)
     inlier_distance = options.roi_inlier_distance
-    for face, start, count in zip(faces, starts, counts):
-        if count < options.min_points_per_plane:
+    kept = np.isin(faces, kept_faces) if kept_faces is not None else np.zeros(len(faces), bool)
+    for face, start, count, relaxed in zip(faces, starts, counts, kept):
+        if count < options.min_points_per_plane * (options.face_hysteresis if relaxed else 1.0):
             rejected["too_few_points"] = rejected.get("too_few_points", 0) + 1
             continue
         idx = members[start:start + count]
@@ -313,7 +320,7 @@ def assign_roi_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore
             continue
         face_index[idx[found[2]]] = face
     return _finish(points, point_ids, store, face_index, threshold, options, rejected,
-                   "roi_msac")
+                   "roi_msac", kept_faces)
 
 
 # ----------------------------------------------------------------------------------------------

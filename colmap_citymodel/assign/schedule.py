@@ -29,11 +29,14 @@ def resolve_method(options: AssignmentOptions, threshold: float) -> str:
 
 def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, threshold: float,
            options: AssignmentOptions, weights: np.ndarray | None = None,
-           observers: Observers | None = None) -> Assignment:
+           observers: Observers | None = None, kept_faces: np.ndarray | None = None
+           ) -> Assignment:
     """Assign tie points (local frame) to faces with the method of `options`. `weights`: per-point
     quality (higher = better, e.g. indirect.point_quality_weights), used by the MSAC methods
     when `options.weighted_sampling` is on. `observers`: where the points were seen from; with
-    `options.roofs_seen_from_above` a roof keeps only the points seen from above it."""
+    `options.roofs_seen_from_above` a roof keeps only the points seen from above it.
+    `kept_faces`: the faces of the previous assignment, which keep their points at
+    `options.face_hysteresis` times the minimum count and planarity."""
     method = resolve_method(options, threshold)
     try:
         assigner = ASSIGNERS[method]
@@ -45,10 +48,12 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     if options.method == "auto":
         logger.info("assignment method auto: %s at threshold %.2f m (switch at %.2f m)",
                     method, threshold, options.auto_switch_threshold)
-    result = assigner(points, point_ids, store, threshold, options, weights=weights)
+    result = assigner(points, point_ids, store, threshold, options, weights=weights,
+                      kept_faces=kept_faces)
     result.method = method
     if observers is not None:
-        result = without_roof_points_seen_from_below(result, points, store, observers, options)
+        result = without_roof_points_seen_from_below(result, points, store, observers, options,
+                                                     kept_faces)
     logger.debug("assigned %d of %d points to %d faces (threshold %.3f m, rejected %s)",
                  result.num_assigned, len(point_ids), result.num_faces, threshold,
                  result.rejected_faces)
@@ -57,7 +62,8 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
 
 def without_roof_points_seen_from_below(assignment: Assignment, points: np.ndarray,
                                         store: PlaneStore, observers: Observers,
-                                        options: AssignmentOptions) -> Assignment:
+                                        options: AssignmentOptions,
+                                        kept_faces: np.ndarray | None = None) -> Assignment:
     """`assignment` without the points on roofs that most of their images see from below
     (`options.roofs_seen_from_above`; faces left too small are dropped as usual)."""
     if not options.roofs_seen_from_above:
@@ -67,7 +73,7 @@ def without_roof_points_seen_from_below(assignment: Assignment, points: np.ndarr
         return assignment
     logger.debug("%d points near roofs but seen from below them left unassigned",
                  int(np.count_nonzero(below)))
-    return assignment.eliminate(below, points, options)
+    return assignment.eliminate(below, points, options, kept_faces)
 
 
 def initial_threshold(options: AssignmentOptions) -> float:
