@@ -49,10 +49,13 @@ class AssignmentOptions:
     """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
     face_hysteresis: float = 0.5
     """In the refine loop a face that held tie points in the previous iteration keeps them while
-    they pass the minimum count and the planarity test at this fraction of both limits. A face
-    near a limit otherwise comes and goes from one iteration to the next, each time moving the
+    they pass the planarity test at this fraction of its limit. A face whose points are close
+    to a line otherwise comes and goes from one iteration to the next, each time moving the
     block (by 1-2 cm on the short simulated sequence, whose loop then ran to its end) and
-    forcing a new problem. 1: the same limits for every face."""
+    forcing a new problem. The minimum count is not relaxed: a face that loses its points as
+    the block moves onto the model (a wrong one) must be able to leave (a 12-image street
+    stayed 1-2 m off on 11 faces when one kept its last 8 points). 1: the same limit for every
+    face."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")

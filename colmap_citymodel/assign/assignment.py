@@ -149,15 +149,15 @@ def filter_faces(points: np.ndarray, face_index: np.ndarray, options: Assignment
                  rejected: dict[str, int], kept_faces: np.ndarray | None = None) -> np.ndarray:
     """Unassign the points of faces that fail the minimum-count or planarity test. Faces in
     `kept_faces` (those of the previous assignment) are tested at `options.face_hysteresis`
-    times both limits: a face near a limit would otherwise come and go from one iteration to
-    the next."""
+    times the planarity limit: a face whose points are close to a line would otherwise come and
+    go from one iteration to the next."""
     face_index = face_index.copy()
     faces, counts = np.unique(face_index[face_index >= 0], return_counts=True)
     kept = np.isin(faces, kept_faces) if kept_faces is not None else np.zeros(len(faces), bool)
     for face, count, relaxed in zip(faces, counts, kept):
         members = face_index == face
         factor = options.face_hysteresis if relaxed else 1.0
-        if count < factor * options.min_points_per_plane:
+        if count < options.min_points_per_plane:
             reason = "too_few_points"
         elif planarity(points[members]) <= factor * options.planarity_threshold:
             reason = "not_planar"

@@ -23,10 +23,8 @@ closest face: these are exactly the candidates of direct assignment, `PlaneStore
 In each ROI, MSAC searches one plane whose normal is within `max_normal_angle` of the model normal;
 its inliers (inside the polygon by construction of the ROI) are assigned.
 
-Both end with the minimum-count and planarity tests of every method (`filter_faces`), at
-`face_hysteresis` times the limits for the faces of the previous assignment; (c) also skips an
-ROI with fewer points at those limits, while (b)'s extraction holds every plane to the full
-minimum count (its planes are not yet faces). With
+Both end with the minimum-count and planarity tests of every method (`filter_faces`; the
+faces of the previous assignment at `face_hysteresis` times the planarity limit). With
 `weighted_sampling` and per-point weights (`point_quality_weights`), both sample by weight
 (weighted RANSAC, Mulder 4.4).
 """
@@ -305,9 +303,8 @@ def assign_roi_msac(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore
     members = members[np.argsort(roi[members], kind="stable")]
     faces, starts, counts = np.unique(roi[members], return_index=True, return_counts=True)
     inlier_distance = options.roi_inlier_distance
-    kept = np.isin(faces, kept_faces) if kept_faces is not None else np.zeros(len(faces), bool)
-    for face, start, count, relaxed in zip(faces, starts, counts, kept):
-        if count < options.min_points_per_plane * (options.face_hysteresis if relaxed else 1.0):
+    for face, start, count in zip(faces, starts, counts):
+        if count < options.min_points_per_plane:
             rejected["too_few_points"] = rejected.get("too_few_points", 0) + 1
             continue
         idx = members[start:start + count]

@@ -36,7 +36,7 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     when `options.weighted_sampling` is on. `observers`: where the points were seen from; with
     `options.roofs_seen_from_above` a roof keeps only the points seen from above it.
     `kept_faces`: the faces of the previous assignment, which keep their points at
-    `options.face_hysteresis` times the minimum count and planarity."""
+    `options.face_hysteresis` times the planarity limit."""
     method = resolve_method(options, threshold)
     try:
         assigner = ASSIGNERS[method]
