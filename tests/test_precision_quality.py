@@ -191,13 +191,31 @@ def test_verdict_rules():
     assert quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 1.0}}).verdict == "weak"
     moved = quality_verdict({**free_u, "gnss_axis_shift_sigmas": {"U": 6.0}})
     assert moved.verdict == "failed" and "3.00 m in U" in moved.reasons[0]
-    # A single roof that moved the block far in height: said in so many words, still weak.
+    # A single roof that moved the block in height: said in so many words; weak up to 5 GNSS
+    # sigma there, failed beyond unless the move brought the tie points onto the model.
     roof = {**free_u, "one_plane": ["U"]}
     assert not any("alone moved" in r for r in quality_verdict(
         {**roof, "one_plane_shift_sigmas": {"U": 2.0}}).reasons)
+    near = quality_verdict({**roof, "one_plane_shift_sigmas": {"U": 4.0}})
+    assert near.verdict == "weak" and any("alone moved the cameras 3.00 m in U (4.0 sigma" in r
+                                          for r in near.reasons)
     far = quality_verdict({**roof, "one_plane_shift_sigmas": {"U": 8.0}})
-    assert far.verdict == "weak" and any("alone moved the cameras 3.00 m in U (8.0 sigma" in r
-                                         for r in far.reasons)
+    assert far.verdict == "failed" and any("alone moved the cameras 3.00 m in U (8.0 sigma" in r
+                                           for r in far.reasons)
+    far_backed = quality_verdict({**roof, "near_share_gnss_only": 0.1,
+                                  "one_plane_shift_sigmas": {"U": 8.0}})
+    assert far_backed.verdict == "weak" and any("10 % -> 80 %" in r for r in far_backed.reasons)
+    # Walls: only those where the model has buildings count. A model of one side of a street
+    # that fits there: weak (it holds few of the walls seen), not failed.
+    one_side = quality_verdict({**good, "wall_coverage": 0.37, "wall_near_share": 0.99})
+    assert one_side.verdict == "weak" and "only 37 % of the tie points on walls" in \
+        one_side.reasons[0]
+    assert quality_verdict({**good, "wall_coverage": 0.95, "wall_near_share": 0.97}
+                           ).verdict == "ok"
+    assert quality_verdict({**good, "wall_coverage": 0.95, "wall_near_share": 0.8}
+                           ).verdict == "weak"
+    assert quality_verdict({**good, "wall_coverage": 0.41, "wall_near_share": 0.56}
+                           ).verdict == "failed"
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
