@@ -208,6 +208,28 @@ def test_verdict_rules():
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
+    # Out of iterations, still moving: weak; out of iterations but settled: nothing to say.
+    moving = quality_verdict({**good, "loop_iterations": 10, "unsettled_shift_m": 0.3})
+    assert moving.verdict == "weak" and "had not settled after 10 iterations" in \
+        moving.reasons[0] and "0.30 m" in moving.reasons[0]
+    assert quality_verdict({**good, "loop_iterations": 10, "unsettled_shift_m": 0.002}
+                           ).verdict == "ok"
+
+
+def test_a_loop_stopped_before_it_settled_is_weak(scene):
+    """No similarity rounds and one iteration only: the first solve moves the block by metres
+    onto its planes, so the loop has not settled, and the verdict says so."""
+    options = RefineOptions()
+    options.workflow.max_iterations = 1
+    options.workflow.alignment_rounds = 0
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    metrics = result.quality.metrics
+    assert metrics["loop_iterations"] == 1
+    assert metrics["unsettled_shift_m"] > QualityThresholds().unsettled_shift
+    assert result.quality.verdict == "weak"
+    assert any("had not settled after 1 iterations" in r for r in result.quality.reasons)
+    settled = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    assert settled.quality.metrics["unsettled_shift_m"] is None
 
 
 def test_an_exact_initial_transform_is_not_lost_to_biased_gnss():

@@ -57,6 +57,12 @@ class QualityThresholds:
     """The same where the planes do not determine the scale (observability): beyond this the
     model has bent the block against the only observation of its scale (a real drive past
     arcades: -5.6 %, 4.8 sigma, camera centres 0.24 -> 1.12 m)."""
+    unsettled_shift: float = 0.05
+    """The assign/adjust loop ran all its iterations and the last one still moved a camera by
+    more than this (m): the assignment had not settled, and the result is one state of a loop
+    still moving; weak. (Loops that settle end with moves of 0-3 mm; a real drive whose pitch
+    rested on three small cross walls that came and went still moved 0.08-1.1 m per
+    iteration at the tenth.)"""
     min_assigned_share: float = 0.02
     """Fewer tie points than this share on planes: the model does not fit the block."""
     min_near_share: float = 0.35
@@ -129,6 +135,10 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
     t = thresholds or QualityThresholds()
     failed, weak = [], []
     fixed = metrics.get("planes_fix")
+    unsettled = metrics.get("unsettled_shift_m")
+    if unsettled is not None and unsettled > t.unsettled_shift:
+        weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
+                    f"iterations: the last moved the cameras by up to {unsettled:.2f} m")
     if metrics.get("diverged"):
         weak.append(f"the assignment loop diverged ({metrics['diverged']}); its best iterate "
                     "is kept")
@@ -215,9 +225,11 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
 def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
                     surface, priors: GNSSPriors | None, assignment: Assignment, last,
                     observability_dict: dict, points: np.ndarray, options: RefineOptions,
-                    diverged: str | None, scale_sigma: float | None):
+                    diverged: str | None, scale_sigma: float | None,
+                    unsettled: tuple[int, float] | None = None):
     """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
-    are the refined tie points that could be assigned (check points left out)."""
+    are the refined tie points that could be assigned (check points left out); `unsettled`:
+    (iterations, largest camera move of the last) when the loop ran all its iterations."""
 
     thresholds = QualityThresholds()
     metrics: dict = {
@@ -226,6 +238,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "near_share": float(np.mean(surface(points) < thresholds.near_distance))
         if len(points) else 0.0,
         "near_share_gnss_only": None, "diverged": diverged,
+        "loop_iterations": unsettled[0] if unsettled else None,
+        "unsettled_shift_m": float(unsettled[1]) if unsettled else None,
         "planes_fix": planes_fix(observability_dict),
         "one_plane": rests_on_one_plane(observability_dict),
     }
