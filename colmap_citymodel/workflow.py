@@ -177,10 +177,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                    if estimate_offset else None)
     if gnss_offset is not None:
         logger.info(offset_line(gnss_offset))
-    in_loop = [it for it in loop.iterations if it.phase == "loop"]
-    # Out of iterations: how far the last one still moved the block.
-    unsettled = ((len(in_loop), in_loop[-1].camera_shift)
-                 if len(in_loop) >= options.workflow.max_iterations else None)
+    unsettled = ((options.workflow.max_iterations, loop.unsettled_shift)
+                 if loop.unsettled_shift is not None else None)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma, unsettled)
     logger.info("datum fixed by: %s", datum_line(observability))

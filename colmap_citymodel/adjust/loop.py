@@ -73,6 +73,8 @@ class LoopResult:
     threshold: float = 0.0
     baselines: BaselinePriors | None = None
     weights: np.ndarray | None = None
+    # Out of iterations: the largest camera move of the last iteration (m); None if it stopped.
+    unsettled_shift: float | None = None
 
 
 def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
@@ -108,6 +110,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     diverged = None
     seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
+    unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
     # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem)
     # with the signature of the assignment it solved.
     reusable: HybridProblem | None = None
@@ -326,6 +329,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     else:
         # Out of iterations without settling (a slow creep of the block along what the planes
         # leave free): the best iterate by the block objective is the result, not the last.
+        unsettled_shift = iterations[-1].camera_shift if iterations else None
         if best is not None and best[2] is not None and last is not None \
                 and best[1] != iterations[-1].iteration:
             warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
@@ -355,7 +359,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       iterations=iterations, move=total_move,
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
-                      baselines=baselines, weights=weights)
+                      baselines=baselines, weights=weights, unsettled_shift=unsettled_shift)
 
 
 def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
