@@ -51,7 +51,7 @@ class AssignmentOptions:
     """In the refine loop a face that held tie points in the previous iteration keeps them while
     they pass the planarity test at this fraction of its limit. A face whose points are close
     to a line otherwise comes and goes from one iteration to the next, each time moving the
-    block (by 1-2 cm on the short simulated sequence, whose loop then ran to its end) and
+    block (by 1-2 cm on the short simulated sequence, whose cameras then never settled) and
     forcing a new problem. The minimum count is not relaxed: a face that loses its points as
     the block moves onto the model (a wrong one) must be able to leave (a 12-image street
     stayed 1-2 m off on 11 faces when one kept its last 8 points). 1: the same limit for every
