@@ -177,10 +177,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                    if estimate_offset else None)
     if gnss_offset is not None:
         logger.info(offset_line(gnss_offset))
-    unsettled = ((options.workflow.max_iterations, loop.unsettled_shift)
-                 if loop.unsettled_shift is not None else None)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
-                              points, options, loop.diverged, scale_sigma, unsettled)
+                              points, options, loop.diverged, scale_sigma,
+                              loop.unsettled_shift)
     logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
     precision = evaluation = None

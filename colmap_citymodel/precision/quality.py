@@ -152,6 +152,14 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                 if before is not None else "")
     backed = before is not None and after >= t.min_near_share \
         and after - before >= t.model_evidence_gain
+
+    def moved_where_gnss_checks(sigmas: float, text: str) -> None:
+        """A move along a direction that only GNSS checks, beyond `gnss_axis_weak` of its
+        sigma: failed beyond `gnss_axis_failed` unless the model's evidence backs it."""
+        beyond = sigmas > t.gnss_axis_failed
+        (failed if beyond and not backed else weak).append(
+            text + (evidence if backed and beyond else ""))
+
     shift = metrics.get("shift_sigmas")
     if shift is not None:
         if shift > t.shift_failed:
@@ -163,11 +171,11 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                         f"({shift:.1f} GNSS sigma) from the GNSS-only result")
     for axis, sigmas in (metrics.get("gnss_axis_shift_sigmas") or {}).items():
         if sigmas > t.gnss_axis_weak:
-            (failed if sigmas > t.gnss_axis_failed and not backed else weak).append(
+            moved_where_gnss_checks(
+                sigmas,
                 f"the cameras moved {abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in "
                 f"{axis} ({sigmas:.1f} sigma of GNSS there) from the GNSS-only result, although "
-                "only GNSS fixes that direction"
-                + (evidence if backed and sigmas > t.gnss_axis_failed else ""))
+                "only GNSS fixes that direction")
     scale = metrics.get("scale_change_sigmas")
     scale_by_gnss = fixed is not None and "scale" not in fixed
     if scale is not None and (scale > t.scale_failed_sigmas
@@ -213,11 +221,11 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
             if moved.get(axis, 0.0) > t.gnss_axis_weak:
                 # One plane against GNSS, further than GNSS's own sigma allows: nothing checks
                 # the plane, so the GNSS-only result is the safer one.
-                (failed if moved[axis] > t.gnss_axis_failed and not backed else weak).append(
+                moved_where_gnss_checks(
+                    moved[axis],
                     f"that plane alone moved the cameras "
                     f"{abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in {axis} "
-                    f"({moved[axis]:.1f} sigma of GNSS there) from the GNSS-only result"
-                    + (evidence if backed and moved[axis] > t.gnss_axis_failed else ""))
+                    f"({moved[axis]:.1f} sigma of GNSS there) from the GNSS-only result")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
 
@@ -226,10 +234,11 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
                     surface, priors: GNSSPriors | None, assignment: Assignment, last,
                     observability_dict: dict, points: np.ndarray, options: RefineOptions,
                     diverged: str | None, scale_sigma: float | None,
-                    unsettled: tuple[int, float] | None = None):
+                    unsettled_shift: float | None = None):
     """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
-    are the refined tie points that could be assigned (check points left out); `unsettled`:
-    (iterations, largest camera move of the last) when the loop ran all its iterations."""
+    are the refined tie points that could be assigned (check points left out);
+    `unsettled_shift`: the largest camera move of the loop's last iteration when it ran out
+    of iterations (adjust.loop.LoopResult)."""
 
     thresholds = QualityThresholds()
     metrics: dict = {
@@ -238,8 +247,9 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "near_share": float(np.mean(surface(points) < thresholds.near_distance))
         if len(points) else 0.0,
         "near_share_gnss_only": None, "diverged": diverged,
-        "loop_iterations": unsettled[0] if unsettled else None,
-        "unsettled_shift_m": float(unsettled[1]) if unsettled else None,
+        "loop_iterations": (options.workflow.max_iterations if unsettled_shift is not None
+                            else None),
+        "unsettled_shift_m": float(unsettled_shift) if unsettled_shift is not None else None,
         "planes_fix": planes_fix(observability_dict),
         "one_plane": rests_on_one_plane(observability_dict),
     }
