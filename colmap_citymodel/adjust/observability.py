@@ -4,9 +4,15 @@ assigned planes fix, which GNSS fixes, and the a posteriori sigma of each.
 A plane's tie points share its generalisation error (Unger 6.3: systematic, about 0.2 m), so a
 plane adds at most about one observation of that size in its normal direction, however many
 points it holds; the information of plane p is J^T (s^2 I + g^2 1 1^T)^-1 J (Sherman-Morrison
-below)."""
+below). The error is not only an offset: a face whose vertices are each off by g is also
+tilted, by about g over its extent (`face_tilts`). Its points share that tilt too, so a long
+facade fixes the block's rotations as well as its azimuth is known, not to the hundredths of a
+degree its thousands of points alone would claim; the information then is
+J^T (s^2 I + A A^T)^-1 J with A = [g 1, tilt columns] (Woodbury)."""
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
@@ -38,17 +44,59 @@ def _datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarr
                       np.cross(y, directions)])
 
 
+@dataclass
+class FaceTilt:
+    """The tilt error of one face: about its vertices' centroid, along its two in-plane axes
+    (rows of `axes`), with covariance `covariance` (rad^2)."""
+
+    centroid: np.ndarray  # (3,)
+    axes: np.ndarray  # (2, 3)
+    covariance: np.ndarray  # (2, 2)
+
+
+def face_tilts(store: PlaneStore, faces, sigma_generalisation: float) -> dict[int, FaceTilt]:
+    """Per face of `faces`, the tilt its plane has when each of its vertices is off by
+    `sigma_generalisation` along the normal, independently: the covariance of the tilts of a
+    plane fitted to the vertices, g^2 (sum_i w_i w_i^T)^-1, w_i a vertex's in-plane offset from
+    their centroid. About g / L for a face of length L: 0.1 deg along a 100 m facade row,
+    1.1 deg on a 10 m cross wall."""
+    out = {}
+    for face in np.unique(np.asarray(faces, np.int64)):
+        axes = store.rotations[face][:, :2].T
+        vertices = store.vertices[store.face_vertex_ids(int(face))]
+        centroid = vertices.mean(0)
+        w = (vertices - centroid) @ axes.T
+        out[int(face)] = FaceTilt(centroid, axes,
+                                  sigma_generalisation ** 2 * np.linalg.pinv(w.T @ w))
+    return out
+
+
 def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
-                      centre: np.ndarray, sigma: float, sigma_generalisation: float
-                      ) -> list[np.ndarray]:
-    """7x7 information of the datum from the tie points of each plane (one group per plane)."""
+                      centre: np.ndarray, sigma: float, sigma_generalisation: float,
+                      tilts: dict[int, FaceTilt] | None = None) -> list[np.ndarray]:
+    """7x7 information of the datum from the tie points of each plane (one group per plane):
+    each plane's points share its offset error (sigma_generalisation) and, for the groups in
+    `tilts`, its tilt error."""
     jac = _datum_jacobian(points, normals, centre)
     g2, s2 = sigma_generalisation ** 2, sigma ** 2
     out = []
     for group in np.unique(groups):
-        j = jac[groups == group]
-        total = j.sum(0)
-        out.append(j.T @ j / s2 - np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2)))
+        selected = groups == group
+        j = jac[selected]
+        tilt = None if tilts is None else tilts.get(int(group))
+        if tilt is None:
+            total = j.sum(0)
+            out.append(j.T @ j / s2 - np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2)))
+            continue
+        # The shared error's columns: the offset and the two tilts (square root of their
+        # covariance), as distances along the normal at each point.
+        lever = (points[selected] - tilt.centroid) @ tilt.axes.T
+        values, vectors = np.linalg.eigh(tilt.covariance)
+        shared = np.column_stack([np.full(len(j), np.sqrt(g2)),
+                                  lever @ (vectors * np.sqrt(np.maximum(values, 0.0)))])
+        projected = j.T @ shared
+        inner = s2 * np.eye(shared.shape[1]) + shared.T @ shared
+        out.append((j.T @ j - projected @ np.linalg.solve(inner, projected.T)) / s2)
     return out
 
 
@@ -97,16 +145,18 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
 
 def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
-                  sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None) -> dict:
+                  sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
+                  tilts: dict[int, FaceTilt] | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
-    `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none)."""
+    `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
+    `tilts`: the tilt errors of the planes (`face_tilts`, by group), else offsets only."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
               else points.mean(0))
     per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
-                                   sigma_generalisation) if len(points) else [])
+                                   sigma_generalisation, tilts) if len(points) else [])
     planes = sum(per_plane, np.zeros((7, 7)))
     gnss = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes)
             if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
@@ -197,7 +247,8 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          priors.observed_points(rec) if priors is not None else None,
                          priors.sigmas if priors is not None else None,
                          options.adjustment.sigma_dtp, sigma_gen,
-                         priors.offset_axes if priors is not None else None)
+                         priors.offset_axes if priors is not None else None,
+                         face_tilts(store, faces, sigma_gen))
 
 
 def offset_refusal(observability_dict: dict, offset_axes) -> str | None:
