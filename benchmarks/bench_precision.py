@@ -170,7 +170,7 @@ def main() -> None:
         sys.path.insert(0, str(ROOT / "benchmarks"))
         from bench_refine import workspace_for
 
-        args.workspace = workspace_for("short")
+        args.workspace = workspace_for("short_scn3")
     workspace = args.workspace.resolve()
     runs = []
     for variant in args.variants:

@@ -242,9 +242,10 @@ class AdjustmentOptions:
     the generalisation-aware one as well: the f_dTP errors of one plane share an offset
     o_p ~ N(0, sigma^2) (n.X + d + o_p = 0 on the true surface), so that a plane's systematic
     deviation does not average out with its number of points (Unger 6.3, Table 12: sigma of
-    check points 3-19x too small). By default o_p is a consider parameter (precision.py): the
-    estimate stays the classical one and its covariance gains sum_p K_p K_p^T sigma^2, K_p the
-    estimate's sensitivity to plane p's offset. Recommended: `GENERALISATION_SIGMA` = 0.20 m,
+    check points 3-19x too small), and the tilt the plane has when each of its vertices is off
+    by sigma. By default these are consider parameters (precision.estimate): the estimate stays
+    the classical one and its covariance gains sum_p K_p C_p K_p^T, K_p the estimate's
+    sensitivity to plane p's offset and tilts, C_p their covariance. Recommended: `GENERALISATION_SIGMA` = 0.20 m,
     Unger's "expected typical size of generalisation effects" (5.3; 0.05 for a detailed
     model). With PrecisionOptions.variance_components ("gen") the data's own value (from the
     planes' mean f_dTP residuals) is used instead (simulated short Scn3: 0.22 m, Scn2 with the

@@ -289,6 +289,9 @@ class HybridProblem:
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
         self._generalisation_offsets = generalisation_offsets
         self.gnss = gnss
+        # The model as this problem saw it (its faces' extents give their tilt errors in the
+        # generalisation-aware precision); None without one.
+        self.model = (current if current is not None else store) if with_model else None
         # The GNSS offset's unknown components (a view of nothing else: solve() copies it back
         # into gnss.offset); None when the offset is not estimated in this problem.
         self.gnss_offset: np.ndarray | None = None

@@ -37,9 +37,11 @@ covariance, eliminated like tie points with their own image observations in the 
 Generalisation (`generalisation_effects`, Unger 6.3): the classical model treats f_dTP errors as
 independent, so a plane's systematic deviation averages out with its number of points and
 check point sigmas come out 3-19x too small (Table 12). With sigma_generalisation, the errors of
-a plane's f_dTP share an offset o_p ~ N(0, sigma^2) which is not estimated but propagated
-(a consider parameter): Sigma_aware = s0^2 Q + sigma^2 sum_p dx_p dx_p^T, dx_p the estimate's
-response to o_p = 1 m. Estimating the o_p instead (HybridProblem(generalisation_offsets=True))
+a plane's f_dTP share an offset o_p ~ N(0, sigma^2) and a tilt (the tilt of a plane whose
+vertices are each off by sigma, adjust.observability.face_tilts), which are not estimated but
+propagated (consider parameters): Sigma_aware = s0^2 Q + sigma^2 sum_p sum_k dx_pk dx_pk^T,
+dx_pk the estimate's response to o_p = 1 m and to each of the plane's two principal tilts at
+sigma = 1 m. Estimating the o_p instead (HybridProblem(generalisation_offsets=True))
 lets the block shrink against the model (errors-in-variables: the tie points' real relief
 about their planes shrinks with it), hence experimental.
 
@@ -379,10 +381,13 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
 @dataclass
 class GeneralisationEffects:
     """Effect of a 1 m offset o_p of each assigned plane's true surface (all its f_dTP
-    observations off by the same o_p) on the estimate; `points_cov` already times sigma^2."""
+    observations off by the same o_p) and of its tilts (at sigma = 1 m) on the estimate;
+    `points_cov` already times sigma^2."""
 
     faces: np.ndarray  # (F,)
-    camera: np.ndarray  # (nc, F) change of the camera-side unknowns per metre of o_p
+    # (nc, 3F) change of the camera-side unknowns: per metre of o_p (columns 0..F-1), then per
+    # plane its two principal tilts at sigma = 1 m (columns F + 2p, F + 2p + 1)
+    camera: np.ndarray
     points_cov: np.ndarray  # (P, 3, 3) sigma^2 sum_p d_i,p d_i,p^T of the tie points
     sigma: float  # the sigma used: the given one, or the estimate when asked for
     sigma_prior: float | None = None
@@ -400,6 +405,10 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     1_p (1_p: plane p's f_dTP rows, whitened), so its covariance gains
     sigma^2 sum_p dx_p dx_p^T. By Schur elimination: with g = J^T 1_p / sigma_dTP,
     dx_c = Q_cc (g_c - E^T W^-1 g_p) and dx_points = W^-1 g_p - W^-1 E dx_c.
+    The plane's tilts are consider parameters the same way, with the f_dTP rows' lever
+    (their point's in-plane offset from the face's vertex centroid along each principal tilt
+    axis, times that tilt's sigma at sigma = 1 m) in place of 1_p: a facade's thousands of
+    points share its azimuth error as they share its offset.
 
     Independent f_dTP errors average out with the number of points of a plane, a shared
     offset does not: this is what keeps check point sigmas from being 3-19x too small
@@ -424,8 +433,11 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     rows = first + np.arange(len(problem.point_faces))
     columns = np.array([slot[int(f)] for f in problem.point_faces], np.int64)
     sigma_dtp = problem.options.sigma_dtp  # the weight the rows were whitened with
-    unit = sp.csr_matrix((np.full(len(rows), 1.0 / sigma_dtp), (rows, columns)),
-                         shape=(j_c.shape[0], len(faces)))
+    tilt_rows, tilt_columns, tilt_values = _tilt_entries(problem, faces, columns)
+    unit = sp.csr_matrix((np.concatenate([np.full(len(rows), 1.0), tilt_values]) / sigma_dtp,
+                          (np.concatenate([rows, first + tilt_rows]),
+                           np.concatenate([columns, len(faces) + tilt_columns]))),
+                         shape=(j_c.shape[0], 3 * len(faces)))
     g_c = np.asarray((j_c.T @ unit).todense())  # (nc, F)
     g_p = (j_p.T @ unit).tocsr()  # (3P, F)
     d_c = cof.q_cc @ (g_c - np.asarray((b.T @ g_p).todense()))
@@ -442,12 +454,39 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     counts = np.bincount(columns, minlength=len(faces))
     v = problem.group_residuals()["dTP"]
     t = np.bincount(columns, weights=v / sigma_dtp, minlength=len(faces))
+    # The offsets' variance component (the tilt columns take no part in it).
+    cross = cross[:len(faces), :len(faces)]
     m = np.diag(counts / sigma_dtp ** 2) - 0.5 * (cross + cross.T)
     estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
     if estimate or sigma is None:
         sigma = estimated
     return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
                                  estimated, counts, t * sigma_dtp ** 2 / np.maximum(counts, 1))
+
+
+def _tilt_entries(problem: HybridProblem, faces: np.ndarray, columns: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The tilt consider parameters' design entries: per f_dTP row (index among the f_dTP
+    rows) its two columns (2 * plane slot + principal tilt) and values, the row's tie point's
+    in-plane lever along each principal tilt axis times that tilt's sigma at sigma = 1 m (its
+    distance change, in metres, per unit of the tilt)."""
+    from ..adjust.observability import face_tilts
+
+    empty = (np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros(0))
+    if problem.model is None or not len(problem.point_ids):
+        return empty
+    rec = problem.reconstruction
+    points = np.array([rec.point3D(int(i)).xyz for i in problem.point_ids])
+    tilts = face_tilts(problem.model, faces, 1.0)
+    values = np.zeros((len(points), 2))
+    for slot, face in enumerate(faces):
+        tilt = tilts[int(face)]
+        selected = columns == slot
+        eigenvalues, eigenvectors = np.linalg.eigh(tilt.covariance)
+        root = eigenvectors * np.sqrt(np.maximum(eigenvalues, 0.0))
+        values[selected] = (points[selected] - tilt.centroid) @ tilt.axes.T @ root
+    rows = np.repeat(np.arange(len(points)), 2)
+    return rows, (2 * columns[:, None] + np.arange(2)).ravel(), values.ravel()
 
 
 # -- image quantities ----------------------------------------------------------------------------
