@@ -10,7 +10,8 @@ reports sigma_CP under two stochastic models for the same estimate:
 - classical: Unger's (independent f_dTP, sigma_dTP 0.2 m), s0^2 (A^T P A)^-1;
 - generalisation_aware: plus per-plane offsets o_p ~ N(0, sigma_generalisation^2) shared by the
   plane's f_dTP (options.GENERALISATION_SIGMA = 0.2 m, Unger 5.3's "typical size of
-  generalisation effects"), propagated as consider parameters.
+  generalisation effects") and the plane's tilts (its vertices each off by that sigma),
+  propagated as consider parameters.
 
 Variants: `plain` (Unger's weights), `vce` (then iterated variance components of image and
 f_dTP, the re-weighted solve is the result), `estimated` (experimental: the offsets estimated as
@@ -99,7 +100,8 @@ def markdown(workspace: Path, runs: list[dict], command: str) -> str:
              "posteriori sigma of the check points (poses, planes, vertices and datum uncertain; "
              "check point image observations in the normal system), scaled by s0^2; the "
              "generalisation-aware sigma adds per-plane offsets (0.2 m a priori; with VCE the "
-             "data's own value) propagated into the same estimate. RMS over the check points per axis. \"after Helmert\" uses the "
+             "data's own value) and tilts (the planes' vertices each off by that much) "
+             "propagated into the same estimate. RMS over the check points per axis. \"after Helmert\" uses the "
              "same sigma_CP (Unger Table 13); the extra row divides by the sigma of the Helmert "
              "residuals. Unger's ratios for Scn3a (short sequence): 6.8 / 18.9 / 8.9 before, "
              "3.7 / 4.3 / 1.1 after Helmert. Target for the generalisation-aware model: "
