@@ -13,7 +13,9 @@ reports sigma_CP under two stochastic models for the same estimate:
   generalisation effects") and the plane's tilts (its vertices each off by that sigma),
   propagated as consider parameters.
 
-Variants: `plain` (Unger's weights), `vce` (then iterated variance components of image and
+Variants: `default` (refine's defaults: no a priori sigma_generalisation, the
+generalisation-aware sigmas with the sigma the planes' mean residuals give), `plain` (Unger's
+weights, sigma_generalisation 0.2 m a priori), `vce` (then iterated variance components of image and
 f_dTP, the re-weighted solve is the result), `estimated` (experimental: the offsets estimated as
 unknowns in a final re-solve; shows the scale bias that keeps this off).
 
@@ -35,8 +37,11 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-VARIANTS = ("plain", "vce", "estimated")
+VARIANTS = ("default", "plain", "vce", "estimated")
 DESCRIPTION = {
+    "default": "refine's defaults (Unger's weights, no a priori sigma_generalisation): the "
+               "generalisation-aware sigmas with the sigma the planes' mean f_dTP residuals "
+               "give (moments, no re-solve)",
     "plain": "Unger's weights (sigma_image 1 px, sigma_dTP 0.2 m), sigma_generalisation 0.2 m",
     "vce": "iterated variance components of image and f_dTP after the loop (re-weighted "
            "solve); sigma_generalisation estimated from the planes' mean residuals",
@@ -50,7 +55,8 @@ def options_for(variant: str):
 
     options = RefineOptions()
     options.precision.covariances = "on"
-    options.adjustment.sigma_generalisation = GENERALISATION_SIGMA
+    if variant != "default":
+        options.adjustment.sigma_generalisation = GENERALISATION_SIGMA
     options.precision.variance_components = variant == "vce"
     options.adjustment.estimate_generalisation = variant == "estimated"
     return options
@@ -137,7 +143,9 @@ def markdown(workspace: Path, runs: list[dict], command: str) -> str:
                 f"{'converged' if vc['converged'] else 'not converged'}).", ""]
         g = r.get("generalisation") or {}
         if g.get("mode") == "consider":
-            lines += [f"Generalisation offsets per plane: a priori {g['sigma_prior_m']:.3f} m, "
+            prior = g["sigma_prior_m"]
+            lines += [f"Generalisation offsets per plane: a priori "
+                      f"{'none' if prior is None else f'{prior:.3f} m'}, "
                       f"from the planes' mean residuals {g['sigma_estimated_m']:.3f} m; used "
                       f"{g['sigma_m']:.3f} m ({'estimated' if g['sigma_from_data'] else 'a priori'}"
                       ").", ""]

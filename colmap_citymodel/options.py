@@ -482,6 +482,16 @@ class PrecisionOptions:
     at 300 images / 29k points it cost ~2.5 hybrid solves)."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
+    generalisation_from_data: bool = True
+    """Without an a priori `AdjustmentOptions.sigma_generalisation`, the covariances are also
+    given under the generalisation-aware stochastic model, with the sigma the planes' mean
+    f_dTP residuals give (a variance component by moments, precision.generalisation_effects;
+    no re-solve, the estimate is unchanged). The classical covariances treat a plane's
+    thousands of f_dTP as independent and state check points 1.5-16x too precise (the
+    simulated short sequence, Scn1-4; Unger Table 12: 3-19x); with the data's own sigma (simulated short sequence,
+    Scn1-4: 0.22 m from the original model, 0.02 m from the corrected one) Delta/sigma of the
+    check points is 0.4-1.8 per axis where the classical one is 1.5-15.6
+    (benchmarks/results/precision.md). False: the classical covariances only, as Unger."""
     variance_components: bool = False
     """Iterated variance component estimation (Foerstner) of `variance_component_groups` after
     the last iteration, re-solving with the estimated sigmas; the covariances are those of that

@@ -630,8 +630,8 @@ CHECKPOINT_SIGMA_NOTE = (
     "scaled by s0^2 of the adjustment")
 GENERALISATION_NOTE = {
     "consider": "the classical sigma plus per-plane generalisation offsets "
-                "o_p ~ N(0, {sigma:.3f}^2 m^2) shared by each plane's f_dTP, propagated into "
-                "the estimate (consider parameters)",
+                "o_p ~ N(0, {sigma:.3f}^2 m^2) and tilts (vertices that far off) shared by "
+                "each plane's f_dTP, propagated into the estimate (consider parameters)",
     "estimated": "per-plane generalisation offsets estimated with the prior "
                  "N(0, {sigma:.3f}^2 m^2); marginal sigma scaled by s0^2",
 }

@@ -820,7 +820,8 @@ class PrecisionResult:
             aware = {"image": _sigmas(self.aware("image_cov")),
                      "point": _sigmas(self.aware("point_cov"))}
             g = out["generalisation"]
-            g["note"] = ("per-plane offsets o_p ~ N(0, sigma^2) shared by the plane's f_dTP, "
+            g["note"] = ("per-plane offsets o_p ~ N(0, sigma^2) and the tilts of planes "
+                         "whose vertices are sigma off, shared by the plane's f_dTP, "
                          "propagated into the classical estimate's covariance (not scaled "
                          "by s0^2)")
             if len(aware["image"]):
@@ -1048,7 +1049,9 @@ def precision_after_refine(problem: HybridProblem | None, options,
             problem, covariances=covariances, alpha=options.alpha,
             checkpoint_observations=checkpoint_observations,
             estimate_generalisation=bool(options.variance_components
-                                         and "gen" in options.variance_component_groups))
+                                         and "gen" in options.variance_component_groups)
+            or (options.generalisation_from_data
+                and problem.options.sigma_generalisation is None))
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("precision: covariances failed (%s); reporting s0 only", error)
         return estimate_precision(problem, covariances=False, alpha=options.alpha)

@@ -238,8 +238,9 @@ def precision_markdown(report: dict) -> str:
                       else f"a priori; the planes' mean f_dTP residuals say "
                            f"{g.get('sigma_estimated_m') or 0.0:.3f} m")
             lines += ["", f"Generalisation-aware (per-plane offsets of {g['sigma_m']:.3f} m, "
-                      f"{source}, shared by each plane's f_dTP and propagated into the "
-                      "estimate; the `*_aware` columns and fields):"]
+                      f"{source}, and the tilts of planes whose vertices are that far off, "
+                      "shared by each plane's f_dTP and propagated into the estimate; the "
+                      "`*_aware` columns and fields):"]
             if gi:
                 lines.append(f"- projection centres X0/Y0/Z0: {gi['X0'] * 100:.2f} / "
                              f"{gi['Y0'] * 100:.2f} / {gi['Z0'] * 100:.2f} cm")
