@@ -487,11 +487,12 @@ class PrecisionOptions:
     given under the generalisation-aware stochastic model, with the sigma the planes' mean
     f_dTP residuals give (a variance component by moments, precision.generalisation_effects;
     no re-solve, the estimate is unchanged). The classical covariances treat a plane's
-    thousands of f_dTP as independent and state check points 1.5-16x too precise (the
-    simulated short sequence, Scn1-4; Unger Table 12: 3-19x); with the data's own sigma (simulated short sequence,
-    Scn1-4: 0.22 m from the original model, 0.02 m from the corrected one) Delta/sigma of the
-    check points is 0.4-1.8 per axis where the classical one is 1.5-15.6
-    (benchmarks/results/precision.md). False: the classical covariances only, as Unger."""
+    thousands of f_dTP as independent and state check points too precise (Unger Table 12:
+    3-19x). Simulated short sequence, check points' Delta/sigma per axis: Scn3 (original
+    model; 0.22 m from the data) 1.14 / 0.42 / 0.87 against the classical 15.6 / 3.3 / 14.1,
+    Scn2 (corrected model; 0.02 m) 0.83 / 1.56 / 0.83 against 1.49 / 1.97 / 1.59
+    (benchmarks/results/precision.md, precision_short_scn2.md). False: the classical
+    covariances only, as Unger."""
     variance_components: bool = False
     """Iterated variance component estimation (Foerstner) of `variance_component_groups` after
     the last iteration, re-solving with the estimated sigmas; the covariances are those of that
