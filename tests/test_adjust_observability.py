@@ -2,6 +2,8 @@
 tie points share its offset and its tilt, so many points on a few faces fix the block's
 rotations only as well as those faces' orientations are known."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -9,8 +11,11 @@ from scipy.spatial.transform import Rotation
 from colmap_citymodel.adjust.observability import face_tilts, observability
 from colmap_citymodel.align.initial_alignment import similarity_to_planes
 from colmap_citymodel.citymodel.build import store_from_polygons
+from colmap_citymodel.citymodel.read import read_city_model
 
 GENERALISATION = 0.2
+BERLIN = Path(__file__).resolve().parents[2] / "shared" / "data" / "citygml" / "berlin" / \
+    "3910_5819.gml"
 
 
 def street_store():
@@ -86,3 +91,41 @@ def test_rotation_sigmas_cover_what_tilted_faces_do_to_the_block():
     for name in ("E", "N", "U"):
         assert with_tilts[name]["sigma_planes"] == pytest.approx(
             offsets_only[name]["sigma_planes"], rel=0.05)
+
+
+@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
+def test_the_walls_of_a_real_tile_tilt_by_the_generalisation_over_their_length():
+    """Berlin's official LoD2 tile (867 walls): every face gets a finite tilt about in-plane
+    axes; a wall's azimuth (its tilt about the vertical) is uncertain by about g over its
+    length, so long facades are known to tenths of a degree and short segments by degrees."""
+    store = read_city_model(BERLIN)
+    faces = np.arange(store.num_faces)
+    tilts = face_tilts(store, faces, GENERALISATION)
+    assert set(tilts) == set(faces.tolist())
+    ratios, sigmas, lengths = [], [], []
+    for face, tilt in tilts.items():
+        assert np.all(np.isfinite(tilt.covariance))
+        assert np.abs(tilt.axes @ store.normals[face]).max() < 1e-6
+        normal = store.normals[face]
+        if abs(normal[2]) > 0.05:
+            continue  # not a wall
+        vertical = np.array([0.0, 0.0, 1.0])
+        # The azimuth tilt turns the wall about the vertical: its lever runs along the wall.
+        along = np.cross(vertical, normal)
+        along /= np.linalg.norm(along)
+        in_plane = tilt.axes @ along
+        azimuth_sigma = float(np.sqrt(in_plane @ tilt.covariance @ in_plane))
+        corners = store.vertices[store.face_vertex_ids(face)]
+        length = np.ptp(corners @ along)
+        ratios.append(azimuth_sigma * length / GENERALISATION)
+        sigmas.append(np.degrees(azimuth_sigma))
+        lengths.append(length)
+    assert len(ratios) > 800
+    # g / L for a rectangle (most walls), sqrt(2) g / L for a gable triangle.
+    assert np.median(ratios) == pytest.approx(1.0, abs=0.1)
+    assert np.percentile(ratios, 95) < 1.5
+    lengths = np.array(lengths)
+    sigmas = np.array(sigmas)
+    # Median wall 6 m: 2.1 deg; facades over 20 m to 0.2-0.75 deg, short segments by degrees.
+    assert np.all(sigmas[lengths > 20.0] < 0.9)
+    assert np.all(sigmas[lengths < 2.0] > 5.0)
