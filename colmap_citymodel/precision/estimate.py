@@ -247,10 +247,11 @@ def _layout(problem: HybridProblem) -> _Layout:
     return _Layout(blocks, names, starts, sizes, num_c, np.array(point_ids, np.int64))
 
 
-def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
-                      ) -> tuple[sp.csr_matrix, _Layout]:
+def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None, *,
+                      relax_holds: bool = True) -> tuple[sp.csr_matrix, _Layout]:
     """The Jacobian of the whitened residuals (rows in `GROUPS` order, loss functions not
-    applied) w.r.t. the tangent spaces of the variable blocks, in `layout` column order."""
+    applied) w.r.t. the tangent spaces of the variable blocks, in `layout` column order.
+    `relax_holds=False`: the holds weighted as in the solve (the estimator's own weights)."""
     layout = layout or _layout(problem)
     evaluate = pyceres.EvaluateOptions()
     evaluate.apply_loss_function = False
@@ -261,7 +262,7 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
     jacobian = jacobian / problem.options.sigma_image
     relaxation = problem.hold_relaxation
-    if len(relaxation):
+    if len(relaxation) and relax_holds:
         # The holds of what the planes do not fix (the scale, the height) count at GNSS's sigma
         # of it, not at the tighter one that keeps the solve there.
         first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
@@ -318,14 +319,14 @@ def _inverse(s: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: bool = False,
-              points: bool = True) -> Cofactors:
+              points: bool = True, relax_holds: bool = True) -> Cofactors:
     """Q_cc, marginal and conditional point cofactors and (optionally) the redundancy numbers
     summed per observation group, all by Schur elimination of the tie points. `keep_system`
     keeps the Jacobian's camera and point columns and W^-1 E for `generalisation_effects`.
     `points=False` (with redundancy=False): Q_cc without the points' marginal cofactors
-    (`q_points` then holds the conditional ones)."""
+    (`q_points` then holds the conditional ones). `relax_holds`: see `whitened_jacobian`."""
     start = time.perf_counter()
-    jacobian, layout = whitened_jacobian(problem)
+    jacobian, layout = whitened_jacobian(problem, relax_holds=relax_holds)
     nc = layout.num_c
     num_points = len(layout.point_ids)
     jacobian = jacobian.tocsc()
@@ -883,9 +884,18 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     effects = None
     if mode == "consider":
         t0 = time.perf_counter()
-        effects = generalisation_effects(problem, cof, sigma_generalisation,
+        # The response to the planes' errors is the estimator's own: with the holds of what
+        # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
+        # sigma, the walls' tilts would seem to move a drive's height by metres (3.1 m
+        # stated against 0.7 m found), which the hold does not let them.
+        held = len(problem.hold_relaxation) > 0
+        solve_cof = (cofactors(problem, redundancy=False, keep_system=True, points=False,
+                               relax_holds=False) if held else cof)
+        effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
                                          estimate=estimate_generalisation,
                                          s0_squared=variance.sigma0_squared)
+        if held:
+            solve_cof.system = None
         if own_cofactors:
             cof.system = None  # free the Jacobian and W^-1 E
         sigma_generalisation = effects.sigma
