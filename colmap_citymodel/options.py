@@ -245,11 +245,12 @@ class AdjustmentOptions:
     check points 3-19x too small), and the tilt the plane has when each of its vertices is off
     by sigma. By default these are consider parameters (precision.estimate): the estimate stays
     the classical one and its covariance gains sum_p K_p C_p K_p^T, K_p the estimate's
-    sensitivity to plane p's offset and tilts, C_p their covariance. Recommended: `GENERALISATION_SIGMA` = 0.20 m,
-    Unger's "expected typical size of generalisation effects" (5.3; 0.05 for a detailed
-    model). With PrecisionOptions.variance_components ("gen") the data's own value (from the
-    planes' mean f_dTP residuals) is used instead (simulated short Scn3: 0.22 m, Scn2 with the
-    corrected model: 0.04 m)."""
+    sensitivity to plane p's offset and tilts, C_p their covariance. Recommended:
+    `GENERALISATION_SIGMA` = 0.20 m, Unger's "expected typical size of generalisation effects"
+    (5.3; 0.05 for a detailed model). With PrecisionOptions.variance_components ("gen") the
+    data's own value (from the planes' mean f_dTP residuals) is used instead (simulated short
+    Scn3: 0.22 m, Scn2 with the corrected model: 0.04 m); None with
+    PrecisionOptions.generalisation_from_data (the default) uses it too."""
     estimate_generalisation: bool = False
     """Experimental: also estimate the o_p (unknowns with that prior, f_dTP becomes
     (n.X + d + o_p) / sigma_dTP) in a re-solve after refine's assignment loop. Off: with the

@@ -439,8 +439,8 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
                           (np.concatenate([rows, first + tilt_rows]),
                            np.concatenate([columns, len(faces) + tilt_columns]))),
                          shape=(j_c.shape[0], 3 * len(faces)))
-    g_c = np.asarray((j_c.T @ unit).todense())  # (nc, F)
-    g_p = (j_p.T @ unit).tocsr()  # (3P, F)
+    g_c = np.asarray((j_c.T @ unit).todense())  # (nc, 3F)
+    g_p = (j_p.T @ unit).tocsr()  # (3P, 3F)
     d_c = cof.q_cc @ (g_c - np.asarray((b.T @ g_p).todense()))
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
     points_cov = np.empty((num_points, 3, 3))
@@ -876,9 +876,13 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     elif (sigma_generalisation is not None or estimate_generalisation) \
             and problem.counts["dTP"]:
         mode = "consider"
-    own_cofactors = cof is None or (mode == "consider" and cof.system is None)
+    # Where refine held what the planes do not fix, the planes' errors act through the solve's
+    # own weights (below), from a second system; else through this one.
+    held = mode == "consider" and len(problem.hold_relaxation) > 0
+    needs_system = mode == "consider" and not held
+    own_cofactors = cof is None or (needs_system and cof.system is None)
     if own_cofactors:
-        cof = cofactors(problem, keep_system=mode == "consider")
+        cof = cofactors(problem, keep_system=needs_system)
     variance = variance_factors(residuals, problem.num_unknowns(), cof.redundancy_by_group,
                                 alpha=alpha)
     effects = None
@@ -888,7 +892,6 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
         # sigma, the walls' tilts would seem to move a drive's height by metres (3.1 m
         # stated against 0.7 m found), which the hold does not let them.
-        held = len(problem.hold_relaxation) > 0
         solve_cof = (cofactors(problem, redundancy=False, keep_system=True, points=False,
                                relax_holds=False) if held else cof)
         effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
