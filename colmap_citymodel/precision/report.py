@@ -164,19 +164,31 @@ def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> byte
 
 
 def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
-    """Sigma of X0, Y0, Z0 and omega, phi, kappa per image, in image order."""
+    """Sigma of X0, Y0, Z0 and omega, phi, kappa per image, in image order; with the
+    generalisation-aware model, its centre sigmas solid and the classical ones dashed."""
     if not len(precision.image_ids):
         return None
     order = np.argsort(precision.image_names)
     sigma = precision.image_sigmas[order]
+    aware = None
+    if precision.generalisation == "consider" and len(precision.image_cov_generalisation):
+        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("image_cov"), axis1=1,
+                                               axis2=2), 0.0))[order]
     figure = new_figure(12, 4)
     ax = figure.add_subplot(1, 2, 1)
     for i, axis in enumerate(("X0", "Y0", "Z0")):
-        ax.plot(sigma[:, i] * 100.0, ".-", ms=3, lw=0.6, label=axis)
+        if aware is None:
+            ax.plot(sigma[:, i] * 100.0, ".-", ms=3, lw=0.6, label=axis)
+            continue
+        line, = ax.plot(aware[:, i] * 100.0, ".-", ms=3, lw=0.8, label=f"{axis}")
+        ax.plot(sigma[:, i] * 100.0, "--", lw=0.6, color=line.get_color(),
+                label=f"{axis} classical")
     ax.set_ylabel("sigma (cm)")
     ax.set_xlabel("image (sorted by name)")
     ax.legend(fontsize=8)
-    ax.set_title("projection centres", fontsize=9)
+    ax.set_title("projection centres" + (" (solid: with the model's generalisation error; "
+                                         "dashed: classical)" if aware is not None else ""),
+                 fontsize=9)
     ax = figure.add_subplot(1, 2, 2)
     for i, axis in enumerate(("omega", "phi", "kappa")):
         ax.plot(sigma[:, 3 + i] * 3600.0, ".-", ms=3, lw=0.6, label=axis)
