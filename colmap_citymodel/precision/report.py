@@ -139,13 +139,17 @@ def plot_plane_histograms(residuals: dict[int, np.ndarray], labels: dict[int, st
 
 
 def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> bytes | None:
-    """Plan view of the tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5), with cameras."""
+    """Plan view of the tie points coloured by sigma X, Y, Z (Mulder Fig. 5.5), with cameras;
+    the generalisation-aware sigmas where refine gives them."""
     if not len(precision.point_ids):
         return None
     figure = new_figure(15, 4.6)
     xy = precision.points[:, :2] - precision.points[:, :2].mean(0)
     centres = precision.centres[:, :2] - precision.points[:, :2].mean(0)
-    sigma = precision.point_sigmas * 100.0
+    aware = (precision.generalisation == "consider"
+             and len(precision.point_cov_generalisation) == len(precision.point_ids))
+    sigma = (np.sqrt(np.maximum(np.diagonal(precision.aware("point_cov"), axis1=1, axis2=2),
+                                0.0)) if aware else precision.point_sigmas) * 100.0
     for i, axis in enumerate("XYZ"):
         ax = figure.add_subplot(1, 3, i + 1)
         hi = float(np.percentile(sigma[:, i], 98))
@@ -154,8 +158,8 @@ def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> byte
         if len(centres):
             ax.plot(centres[:, 0], centres[:, 1], "r.", ms=3, label="cameras")
         ax.set_aspect("equal")
-        ax.set_title(f"tie point sigma {axis} (cm), median {np.median(sigma[:, i]):.2f}",
-                     fontsize=9)
+        ax.set_title(f"tie point sigma {axis} (cm{', aware' if aware else ''}), "
+                     f"median {np.median(sigma[:, i]):.2f}", fontsize=9)
         ax.set_xlabel("X - mean (m)", fontsize=8)
         ax.set_ylabel("Y - mean (m)", fontsize=8)
         ax.tick_params(labelsize=7)
