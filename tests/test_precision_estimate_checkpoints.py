@@ -239,10 +239,10 @@ def test_generalisation_sigma_from_the_planes_mean_residuals(streets):
         precision.generalisation_estimate["sigma_estimated_m"])
 
 
-def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
-    # The linear propagation of per-plane offsets must match what re-solving does: offset one
-    # plane's f_dTP observations by 0.3 m (shift its tie points' plane by moving the plane in
-    # the model) and compare the change of the check points with the predicted sensitivity.
+def _consider_street():
+    """A noise-free street of 4 stations on its exact model, solved once, with the consider
+    parameters' predicted responses of 6 check points: what re-solving with a changed model
+    is compared with."""
     from colmap_citymodel.precision.checkpoints import triangulate_checkpoints
     from colmap_citymodel.precision.estimate import checkpoint_cofactors, generalisation_effects
 
@@ -265,8 +265,26 @@ def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
     cof = cofactors(problem, keep_system=True)
     effects = generalisation_effects(problem, cof, 0.2)
     cps = checkpoint_cofactors(problem, cof, points, observations)
-    predicted = cps.b @ effects.camera  # (3N, F) check point change per metre of offset
     before = triangulate_checkpoints(problem.reconstruction, observations)
+
+    def resolved_change(store):
+        """The check points' change when the same problem is solved again on `store`."""
+        again = HybridProblem(pycolmap.Reconstruction(problem.reconstruction), store,
+                              assignment, priors, options, robust_images=False,
+                              robust_planes=False)
+        again.solve()
+        after = triangulate_checkpoints(again.reconstruction, observations)
+        return np.concatenate([after[i] - before[i] for i in cps.ids])
+
+    return scene, problem, effects, cps.b @ effects.camera, resolved_change
+
+
+def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
+    # The linear propagation of per-plane offsets must match what re-solving does: offset one
+    # plane's f_dTP observations by 0.3 m (shift its tie points' plane by moving the plane in
+    # the model) and compare the change of the check points with the predicted sensitivity.
+    scene, problem, _, predicted, resolved_change = _consider_street()
+    # predicted: (3N, 3F), the first F columns the check points' change per metre of offset
     # The largest plane: move its true surface by +0.3 m, i.e. the observed distances of its
     # tie points become -0.3 m: emulate by moving the model face (vertices) by -0.3 m along n.
     k = int(np.argmax(np.bincount(problem.point_faces, minlength=scene.store.num_faces)
@@ -275,13 +293,7 @@ def test_consider_covariance_is_the_spread_of_the_estimate_over_plane_offsets():
     moved = scene.store.vertices.copy()
     normal = scene.store.normals[face]
     moved[scene.store.face_vertex_ids(face)] -= 0.3 * normal
-    store2 = scene.store.with_vertices(moved)
-    problem2 = HybridProblem(pycolmap.Reconstruction(problem.reconstruction), store2,
-                             assignment, priors, options, robust_images=False,
-                             robust_planes=False)
-    problem2.solve()
-    after = triangulate_checkpoints(problem2.reconstruction, observations)
-    change = np.concatenate([after[i] - before[i] for i in cps.ids])
+    change = resolved_change(scene.store.with_vertices(moved))
     # Moving the vertices also moves the neighbouring faces that share them (slightly, they are
     # re-fitted), so direction and size are compared (measured: 0.699 vs 0.698 m, cos 0.998).
     expected = -0.3 * predicted[:, k]
@@ -378,32 +390,10 @@ def test_consider_covariance_follows_a_tilted_plane_as_re_solving_does():
     # the model about its principal tilt axis (its vertices rotated about their centroid) and
     # compare the check points' change on re-solving with the predicted response.
     from colmap_citymodel.adjust.observability import face_tilts
-    from colmap_citymodel.precision.checkpoints import triangulate_checkpoints
-    from colmap_citymodel.precision.estimate import checkpoint_cofactors, generalisation_effects
 
-    scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=2.5,
-                                                 image_noise_px=0.0, relief_sigma=0.0,
-                                                 clutter_fraction=0.0, seed=5))
-    truth = scene.truth
-    rng = np.random.default_rng(5)
-    points, observations, used = _checkpoints(truth, 6, rng, noise_px=0.0)
-    ids = np.array(truth.reg_image_ids())
-    centres = np.array([truth.image(i).projection_center() for i in ids])
-    priors = GNSSPriors(ids, centres, np.tile([3.0, 3.0, 5.0], (len(ids), 1)))
-    point_ids, xyz = tie_points(truth, exclude=used)
-    assignment = assign(xyz, point_ids, scene.store, 0.5,
-                        AssignmentOptions(min_points_per_plane=5))
-    options = AdjustmentOptions(sigma_dtp=0.05, sigma_generalisation=0.2)
-    problem = HybridProblem(pycolmap.Reconstruction(truth), scene.store, assignment, priors,
-                            options, robust_images=False, robust_planes=False)
-    problem.solve()
-    cof = cofactors(problem, keep_system=True)
-    effects = generalisation_effects(problem, cof, 0.2)
+    scene, problem, effects, predicted, resolved_change = _consider_street()
     num_faces = len(problem.blocks.faces)
     assert effects.camera.shape[1] == 3 * num_faces
-    cps = checkpoint_cofactors(problem, cof, points, observations)
-    predicted = cps.b @ effects.camera
-    before = triangulate_checkpoints(problem.reconstruction, observations)
     k = int(np.argmax(np.bincount(problem.point_faces, minlength=scene.store.num_faces)
                       [problem.blocks.faces]))
     face = int(problem.blocks.faces[k])
@@ -416,12 +406,7 @@ def test_consider_covariance_follows_a_tilted_plane_as_re_solving_does():
     moved = scene.store.vertices.copy()
     corners = scene.store.face_vertex_ids(face)
     moved[corners] += angle * ((moved[corners] - tilt.centroid) @ direction)[:, None] * normal
-    problem2 = HybridProblem(pycolmap.Reconstruction(problem.reconstruction),
-                             scene.store.with_vertices(moved), assignment, priors, options,
-                             robust_images=False, robust_planes=False)
-    problem2.solve()
-    after = triangulate_checkpoints(problem2.reconstruction, observations)
-    change = np.concatenate([after[i] - before[i] for i in cps.ids])
+    change = resolved_change(scene.store.with_vertices(moved))
     # The model plane tilted by +angle: its tie points' observed distances change as a true
     # surface tilted by -angle would; the column is per sqrt(eigenvalue) of that tilt
     # (measured: 0.0357 vs 0.0346 m, cos 0.978).
