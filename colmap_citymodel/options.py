@@ -168,7 +168,9 @@ class AdjustmentOptions:
     True: block and model are estimated together; where the images have systematic errors the
     block bends back and the planes follow it (simulated, with faces chosen by >= 50 tie points
     over half the face: long sequence check points 0.161 -> 0.564 m, corrected planes 0.199 ->
-    0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089 m). See
+    0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089 m. With the faces chosen by
+    `correction_max_sigma`, short Scn3: check points 0.264 -> 0.256 m, corrected planes
+    0.211 -> 0.134 m, against 0.216 -> 0.108 m with the block held). See
     adjust.correction_loop."""
     sigma_vt_corrected: float = 0.5
     """Direct observation (m) of the vertices of corrected faces: Unger's 0.5 m "to correct the
