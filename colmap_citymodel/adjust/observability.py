@@ -3,12 +3,11 @@ assigned planes fix, which GNSS fixes, and the a posteriori sigma of each.
 
 A plane's tie points share its generalisation error (Unger 6.3: systematic, about 0.2 m), so a
 plane adds at most about one observation of that size in its normal direction, however many
-points it holds; the information of plane p is J^T (s^2 I + g^2 1 1^T)^-1 J (Sherman-Morrison
-below). The error is not only an offset: a face whose vertices are each off by g is also
-tilted, by about g over its extent (`face_tilts`). Its points share that tilt too, so a long
-facade fixes the block's rotations as well as its azimuth is known, not to the hundredths of a
-degree its thousands of points alone would claim; the information then is
-J^T (s^2 I + A A^T)^-1 J with A = [g 1, tilt columns] (Woodbury)."""
+points it holds. The error is not only an offset: a face whose vertices are each off by g is
+also tilted, by about g over its extent (`face_tilts`). Its points share that tilt too, so a
+long facade fixes the block's rotations as well as its azimuth is known, not to the
+hundredths of a degree its thousands of points alone would claim. The information of plane p
+is J^T (s^2 I + A A^T)^-1 J with A = [g 1, tilt columns] (Woodbury)."""
 
 from __future__ import annotations
 
@@ -78,22 +77,19 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
     each plane's points share its offset error (sigma_generalisation) and, for the groups in
     `tilts`, its tilt error."""
     jac = _datum_jacobian(points, normals, centre)
-    g2, s2 = sigma_generalisation ** 2, sigma ** 2
+    s2 = sigma ** 2
     out = []
     for group in np.unique(groups):
         selected = groups == group
         j = jac[selected]
+        # The shared error's columns: the offset and, when known, the two tilts (square root
+        # of their covariance), as distances along the normal at each point.
+        shared = np.full((len(j), 1), sigma_generalisation)
         tilt = None if tilts is None else tilts.get(int(group))
-        if tilt is None:
-            total = j.sum(0)
-            out.append(j.T @ j / s2 - np.outer(total, total) * g2 / (s2 * (s2 + len(j) * g2)))
-            continue
-        # The shared error's columns: the offset and the two tilts (square root of their
-        # covariance), as distances along the normal at each point.
-        lever = (points[selected] - tilt.centroid) @ tilt.axes.T
-        values, vectors = np.linalg.eigh(tilt.covariance)
-        shared = np.column_stack([np.full(len(j), np.sqrt(g2)),
-                                  lever @ (vectors * np.sqrt(np.maximum(values, 0.0)))])
+        if tilt is not None:
+            lever = (points[selected] - tilt.centroid) @ tilt.axes.T
+            values, vectors = np.linalg.eigh(tilt.covariance)
+            shared = np.hstack([shared, lever @ (vectors * np.sqrt(np.maximum(values, 0.0)))])
         projected = j.T @ shared
         inner = s2 * np.eye(shared.shape[1]) + shared.T @ shared
         out.append((j.T @ j - projected @ np.linalg.solve(inner, projected.T)) / s2)

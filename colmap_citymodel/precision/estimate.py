@@ -750,6 +750,14 @@ class PrecisionResult:
             return base
         return base + getattr(self, f"{covariance}_generalisation")
 
+    def aware_sigmas(self, covariance: str) -> np.ndarray | None:
+        """Square roots of the diagonal blocks of `aware(covariance)` ((N, k), m; radians for
+        image angles); None when there is no generalisation-aware model to state."""
+        if self.generalisation != "consider" \
+                or not len(getattr(self, f"{covariance}_generalisation")):
+            return None
+        return _sigmas(self.aware(covariance))
+
     @property
     def has_covariances(self) -> bool:
         return len(self.image_cov) > 0 or len(self.point_cov) > 0

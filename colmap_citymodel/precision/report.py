@@ -49,10 +49,9 @@ CHECKPOINT_CSV_COLUMNS = ("id", "X", "Y", "Z", "dX", "dY", "dZ", "views")
 
 def write_image_csv(path: Path, precision: PrecisionResult, offset: np.ndarray) -> None:
     sigma = precision.image_sigmas
-    aware = None
-    if precision.generalisation == "consider":
-        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("image_cov"), axis1=1,
-                                               axis2=2)[:, :3], 0.0))
+    aware = precision.aware_sigmas("image_cov")
+    if aware is not None:
+        aware = aware[:, :3]
     with open(path, "w", newline="") as f:
         writer = csv.writer(f)
         writer.writerow(CSV_COLUMNS + (AWARE_CSV_COLUMNS if aware is not None else ()))
@@ -98,9 +97,8 @@ def write_point_ply(path: Path, precision: PrecisionResult, offset: np.ndarray,
     scalars.update({f"sigma_{a}_conditional": conditional[:, i].astype(np.float32)
                     for i, a in enumerate("xyz")})
     scalars["sigma_3d"] = np.linalg.norm(sigma, axis=1).astype(np.float32)
-    if precision.generalisation == "consider":
-        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("point_cov"), axis1=1, axis2=2),
-                                   0.0))
+    aware = precision.aware_sigmas("point_cov")
+    if aware is not None:
         scalars.update({f"sigma_{a}_aware": aware[:, i].astype(np.float32)
                         for i, a in enumerate("xyz")})
     if num_images is not None:
@@ -146,10 +144,9 @@ def plot_point_sigma_map(precision: PrecisionResult, offset: np.ndarray) -> byte
     figure = new_figure(15, 4.6)
     xy = precision.points[:, :2] - precision.points[:, :2].mean(0)
     centres = precision.centres[:, :2] - precision.points[:, :2].mean(0)
-    aware = (precision.generalisation == "consider"
-             and len(precision.point_cov_generalisation) == len(precision.point_ids))
-    sigma = (np.sqrt(np.maximum(np.diagonal(precision.aware("point_cov"), axis1=1, axis2=2),
-                                0.0)) if aware else precision.point_sigmas) * 100.0
+    aware_sigmas = precision.aware_sigmas("point_cov")
+    aware = aware_sigmas is not None
+    sigma = (aware_sigmas if aware else precision.point_sigmas) * 100.0
     for i, axis in enumerate("XYZ"):
         ax = figure.add_subplot(1, 3, i + 1)
         hi = float(np.percentile(sigma[:, i], 98))
@@ -174,10 +171,9 @@ def plot_image_sigmas(precision: PrecisionResult) -> bytes | None:
         return None
     order = np.argsort(precision.image_names)
     sigma = precision.image_sigmas[order]
-    aware = None
-    if precision.generalisation == "consider" and len(precision.image_cov_generalisation):
-        aware = np.sqrt(np.maximum(np.diagonal(precision.aware("image_cov"), axis1=1,
-                                               axis2=2), 0.0))[order]
+    aware = precision.aware_sigmas("image_cov")
+    if aware is not None:
+        aware = aware[order]
     figure = new_figure(12, 4)
     ax = figure.add_subplot(1, 2, 1)
     for i, axis in enumerate(("X0", "Y0", "Z0")):
