@@ -25,17 +25,18 @@ second table checks that with the given model. Three sets of tie points are each
 model as above and scored as a fit to it: the true block (its true tie points, without SfM
 noise, which favours the truth); the same true block moved rigidly to where refine put the
 cameras (the similarity that takes the true cameras onto refine's, fitted to their centres and
-to points 10 m along their three axes, so that the roll about a straight line is fixed too);
-and refine's own tie points, which the adjustment has also moved each towards its plane (so they
-fit better than a rigid block could; the rigid one is the fair comparison). The scores: the share of tie points within the threshold,
-their RMS distance, both in one as the mean over all tie points of Tukey's biweight
-(1 - (d / threshold)^2)^2 (`near score`, 0 beyond the threshold), and the faces' mean offsets
-in units of the generalisation sigma (0.2 m), each capped at 2 (a face further off counts as an
-outlier, not more), summed in squares (`face score`). Where the true block at refine's pose fits
-the model at least as well as at its true pose by both scores, no method that fits these planes
-can prefer the truth: what remains is the model's error, not the optimiser's. A third table scores the
-true block moved by 0.3 m along each axis the same way: where a moved block scores better than
-the true one, the model itself pulls the block off the truth in that direction.
+to points 10 m along their three axes, so that the roll about a straight line is fixed too); and
+refine's own tie points, which the adjustment has also moved each towards its plane (so they fit
+better than a rigid block could; the rigid one is the fair comparison). The scores: the share of
+tie points within the threshold, their RMS distance, both in one as the mean over all tie points
+of Tukey's biweight (1 - (d / threshold)^2)^2 (`near score`, 0 beyond the threshold), and the
+faces' mean offsets in units of the generalisation sigma (0.2 m), each capped at 2 (a face
+further off counts as an outlier, not more), summed in squares (`face score`). Where the true
+block at refine's pose fits the model at least as well as at its true pose by both scores, no
+method that fits these planes can prefer the truth: what remains is the model's error, not the
+optimiser's. A third table scores the true block moved by 0.3 m along each axis the same way:
+where a moved block scores better than the true one, the model itself pulls the block off the
+truth in that direction.
 
 Writes benchmarks/results/model_floor.md (with refine's own figures and the per-direction
 target from the `robustness` section of scenarios.json beside the floor) and the `model_floor`
