@@ -20,8 +20,8 @@ model's 0.5 deg) do to it. Where the planes fix a direction only weakly, these p
 truth lower the floor: the `planes alone` fits (translation 100 m, rotation 20 deg, scale 20 %)
 show the floor without them.
 
-The floor assumes that the true block is where the model's planes want the block to be. The
-second table checks that with the given model. Three sets of tie points are each assigned to the
+The floor assumes that the true block is where the model's planes want the block to be. A
+further table checks that with the given model. Three sets of tie points are each assigned to the
 model as above and scored as a fit to it: the true block (its true tie points, without SfM
 noise, which favours the truth); the same true block moved rigidly to where refine put the
 cameras (the similarity that takes the true cameras onto refine's, fitted to their centres and
@@ -34,7 +34,7 @@ faces' mean offsets in units of the generalisation sigma (0.2 m), each capped at
 further off counts as an outlier, not more), summed in squares (`face score`). Where the true
 block at refine's pose fits the model at least as well as at its true pose by both scores, no
 method that fits these planes can prefer the truth: what remains is the model's error, not the
-optimiser's. A third table scores the true block moved by 0.3 m along each axis the same way:
+optimiser's. Another scores the true block moved by 0.3 m along each axis the same way:
 where a moved block scores better than the true one, the model itself pulls the block off the
 truth in that direction. Last, refine is started at the truth: the same block with the true
 projection centres as its GNSS (stated sigma as the workspace's, no bias, no noise), so that its
