@@ -67,6 +67,8 @@ from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.options import AssignmentOptions
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+from scenarios import centre_errors, inputs, truth_centres, update_json  # noqa: E402
 ROBUST = ROOT / "workspaces" / "generated" / "robust"
 RESULTS = ROOT / "benchmarks" / "results"
 # The per-direction target of the robustness cases where the planes fix a direction.
@@ -182,12 +184,10 @@ def pose_points(rec: pycolmap.Reconstruction, names: list[str], origin: np.ndarr
     return np.array(out)
 
 
-def true_centres_as_gnss(workspace: Path, store, sigma: np.ndarray):
-    """GNSS observations that are the true projection centres (model CRS) with `sigma`."""
+def true_centres_as_gnss(centres: dict[str, np.ndarray], store, sigma: np.ndarray):
+    """GNSS observations that are the true projection centres (`truth_centres`, model CRS)
+    with `sigma`."""
     import tempfile
-
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from scenarios import truth_centres
 
     from colmap_citymodel.block.gnss import read_gnss_text
 
@@ -195,34 +195,32 @@ def true_centres_as_gnss(workspace: Path, store, sigma: np.ndarray):
         path = Path(directory) / "true_centres.txt"
         path.write_text("".join(f"{name} {c[0]:.4f} {c[1]:.4f} {c[2]:.4f} "
                                 f"{sigma[0]} {sigma[1]} {sigma[2]}\n"
-                                for name, c in truth_centres(workspace).items()))
+                                for name, c in centres.items()))
         return read_gnss_text(path, store.crs.label, store.crs)
 
 
-def refine_against_truth(workspace: Path, block, threshold: float, gnss_sigma: np.ndarray
-                         ) -> dict:
-    """refine() on the workspace with its given model, then `model_fit` against that model of
-    the true tie points, of them moved rigidly to refine's pose of the block, and of refine's
-    own tie points; with refine's camera-centre RMS against the truth. Also refine started at
-    the truth (`true_centres_as_gnss`) and how far its cameras end from the first refine's."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from scenarios import centre_errors, inputs, truth_centres
-
+def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: float,
+                         gnss_sigma: np.ndarray) -> dict:
+    """refine() on the workspace (`workspace_inputs`: its reconstruction, given model and GNSS,
+    scenarios.inputs), then `model_fit` against that model of the true tie points, of them
+    moved rigidly to refine's pose of the block, and of refine's own tie points; with refine's
+    camera-centre RMS against the truth. Also refine started at the truth
+    (`true_centres_as_gnss`) and how far its cameras end from the first refine's."""
     from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.precision.checkpoints import helmert_transform
     from colmap_citymodel.workflow import refine
 
-    rec, store, gnss = inputs(workspace)
+    rec, store, gnss = workspace_inputs
+    centres = truth_centres(workspace)
     options = RefineOptions.preset("generalised")
     options.precision.covariances = "off"
     result = refine(rec, store, gnss, options, progress=False)
     refined = np.array([p.xyz for p in result.reconstruction.points3D.values()]) + store.origin
-    cameras = centre_errors(result.reconstruction, store.origin, truth_centres(workspace))
-    at_truth = refine(rec, store, true_centres_as_gnss(workspace, store, gnss_sigma), options,
+    cameras = centre_errors(result.reconstruction, store.origin, centres)
+    at_truth = refine(rec, store, true_centres_as_gnss(centres, store, gnss_sigma), options,
                       progress=False)
-    started = {"cameras": centre_errors(at_truth.reconstruction, store.origin,
-                                        truth_centres(workspace)),
-               "gnss_only": centre_errors(at_truth.gnss_only, store.origin,
-                                          truth_centres(workspace)),
+    started = {"cameras": centre_errors(at_truth.reconstruction, store.origin, centres),
+               "gnss_only": centre_errors(at_truth.gnss_only, store.origin, centres),
                "verdict": at_truth.quality.verdict}
     first = {image.name: image.projection_center()
              for image in result.reconstruction.images.values() if image.has_pose}
@@ -234,8 +232,6 @@ def refine_against_truth(workspace: Path, block, threshold: float, gnss_sigma: n
     origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3]
     names = sorted(image.name for image in result.reconstruction.images.values()
                    if image.has_pose)
-    from colmap_citymodel.precision.checkpoints import helmert_transform
-
     pose = helmert_transform(pose_points(result.reconstruction, names, store.origin),
                              pose_points(truth, names, origin))
     return {"refine": model_fit(refined, store, threshold),
@@ -244,7 +240,7 @@ def refine_against_truth(workspace: Path, block, threshold: float, gnss_sigma: n
             "pose_fit_rms": pose.rms_3d,
             "cameras_rms_3d": cameras.get("rms_3d"), "cameras": cameras,
             "gnss_only_rms_3d": (centre_errors(result.gnss_only, store.origin,
-                                               truth_centres(workspace)).get("rms_3d")
+                                               centres).get("rms_3d")
                                  if result.gnss_only is not None else None),
             "verdict": result.quality.verdict, "started_at_truth": started}
 
@@ -292,17 +288,16 @@ def started_at_truth_table(rows: dict) -> list[str]:
 MOVE_M = 0.3
 
 
-def moved_truth_table(preferences: dict, blocks: dict, threshold: float) -> list[str]:
-    """Near score / face score of the true block and of it moved by +-MOVE_M along E, N, U."""
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from scenarios import inputs
-
+def moved_truth_table(preferences: dict, blocks: dict, stores: dict, threshold: float
+                      ) -> list[str]:
+    """Near score / face score of the true block and of it moved by +-MOVE_M along E, N, U,
+    against each case's given model (`stores`)."""
     moves = [(axis, sign) for axis in range(3) for sign in (1.0, -1.0)]
     lines = ["| case | true block | " + " | ".join(
         f"{'ENU'[axis]} {sign * MOVE_M:+.1f} m" for axis, sign in moves) + " |",
         "|---|---|" + "---|" * len(moves)]
     for case in preferences:
-        _, store, _ = inputs(ROBUST / case)
+        store = stores[case]
         true = preferences[case]["truth"]
         cells = []
         for axis, sign in moves:
@@ -359,7 +354,7 @@ def main() -> None:
     parser.add_argument("--no_refine", action="store_true",
                         help="leave out the fit of refine's block against the true one")
     args = parser.parse_args()
-    preferences, blocks = {}, {}
+    preferences, blocks, stores = {}, {}, {}
     rows = {}
     table = ["| case | model | points | faces | per point: X | Y | Z | 3D | per face: X | Y | Z "
              "| 3D | planes alone, per point: 3D | per face: 3D |",
@@ -379,12 +374,11 @@ def main() -> None:
                 f"{f['per face, planes alone']['rms_3d']:.3f} |")
             print(table[-1], flush=True)
         if not args.no_refine:
-            preferences[case] = refine_against_truth(ROBUST / case, block, args.threshold,
-                                                     np.array(args.gnss_sigma))
+            workspace_inputs = inputs(ROBUST / case)
+            stores[case] = workspace_inputs[1]
+            preferences[case] = refine_against_truth(ROBUST / case, workspace_inputs, block,
+                                                     args.threshold, np.array(args.gnss_sigma))
             print("\n".join(preference_table({case: preferences[case]})[2:]), flush=True)
-    sys.path.insert(0, str(ROOT / "benchmarks"))
-    from scenarios import update_json
-
     everything = update_json(RESULTS / "scenarios.json", ["model_floor"], rows)
     if preferences:
         update_json(RESULTS / "scenarios.json", ["model_preference"], preferences)
@@ -411,7 +405,8 @@ def main() -> None:
                   f"The true block moved by {MOVE_M} m along each axis, scored the same way "
                   "(near score / face score; better: higher near score and lower face score "
                   "than the true block's):", "", *moved_truth_table(preferences, blocks,
-                                                                    args.threshold), "",
+                                                                    stores, args.threshold),
+                  "",
                   "Refine started at the truth: the true projection centres as GNSS (sigma "
                   f"{'/'.join(f'{v:g}' for v in args.gnss_sigma)} m, no bias), against refine "
                   "with the workspace's GNSS (3-5 m bias); camera-centre RMS against the truth "

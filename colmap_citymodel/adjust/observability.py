@@ -52,6 +52,14 @@ class FaceTilt:
     axes: np.ndarray  # (2, 3)
     covariance: np.ndarray  # (2, 2)
 
+    def distances(self, points: np.ndarray) -> np.ndarray:
+        """(N, 2): how far each point moves along the normal per unit of each principal tilt
+        (the square root of `covariance`): its in-plane lever from the centroid times that
+        tilt's sigma."""
+        values, vectors = np.linalg.eigh(self.covariance)
+        return (points - self.centroid) @ self.axes.T @ (
+            vectors * np.sqrt(np.maximum(values, 0.0)))
+
 
 def face_tilts(store: PlaneStore, faces, sigma_generalisation: float) -> dict[int, FaceTilt]:
     """Per face of `faces`, the tilt its plane has when each of its vertices is off by
@@ -87,9 +95,7 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
         shared = np.full((len(j), 1), sigma_generalisation)
         tilt = None if tilts is None else tilts.get(int(group))
         if tilt is not None:
-            lever = (points[selected] - tilt.centroid) @ tilt.axes.T
-            values, vectors = np.linalg.eigh(tilt.covariance)
-            shared = np.hstack([shared, lever @ (vectors * np.sqrt(np.maximum(values, 0.0)))])
+            shared = np.hstack([shared, tilt.distances(points[selected])])
         projected = j.T @ shared
         inner = s2 * np.eye(shared.shape[1]) + shared.T @ shared
         out.append((j.T @ j - projected @ np.linalg.solve(inner, projected.T)) / s2)

@@ -481,11 +481,8 @@ def _tilt_entries(problem: HybridProblem, faces: np.ndarray, columns: np.ndarray
     tilts = face_tilts(problem.model, faces, 1.0)
     values = np.zeros((len(points), 2))
     for slot, face in enumerate(faces):
-        tilt = tilts[int(face)]
         selected = columns == slot
-        eigenvalues, eigenvectors = np.linalg.eigh(tilt.covariance)
-        root = eigenvectors * np.sqrt(np.maximum(eigenvalues, 0.0))
-        values[selected] = (points[selected] - tilt.centroid) @ tilt.axes.T @ root
+        values[selected] = tilts[int(face)].distances(points[selected])
     rows = np.repeat(np.arange(len(points)), 2)
     return rows, (2 * columns[:, None] + np.arange(2)).ravel(), values.ravel()
 
