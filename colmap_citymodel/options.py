@@ -384,6 +384,11 @@ class WorkflowOptions:
     the solves from the third iteration on moved the cameras by at most 24, 4.3, 2.2, 0.4, 0.5
     and 0.4 mm, each costing a hybrid solve; one small move alone can be a pause in a slow
     swing (long Scn4: 4 mm between moves of 6 cm). 0 runs until the RMS settles."""
+    convergence_assignment_change: float | None = 0.002
+    """Stop before solving when the last solve (after the second iteration) moved no camera
+    centre by more than convergence_camera_shift and the new assignment keeps the same planes
+    and changes the plane of at most this share of the tie points: the solve would start close
+    to its own solution. 0 stops only on an unchanged assignment, None never."""
     robust_second_iteration: bool = True
     """The second iteration, whose threshold falls from the upper limit to one from the data,
     goes straight to the robust solve. Later iterations first solve with the original weights

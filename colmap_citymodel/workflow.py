@@ -214,7 +214,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         datum_cues=details.get("cues", {}),
         coarse_alignment=coarse.todict() if coarse is not None else None,
         gnss_offset=gnss_offset, model_correction=correction,
-        sliding_window=windows.todict(options) if windows is not None else None)
+        sliding_window=windows.todict(options) if windows is not None else None,
+        loop_stopped_by=loop.stopped_by)
 
 
 def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneStore, surface,

@@ -354,6 +354,7 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     options = RefineOptions()
     options.workflow.max_iterations = 6
     options.workflow.convergence_rms_change = 0.0
+    options.workflow.convergence_assignment_change = None
     tolerance = options.workflow.convergence_camera_shift
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
         early = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
@@ -364,6 +365,39 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     options.workflow.convergence_camera_shift = 0.0
     full = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(full.iterations) == 6
+    difference = [np.linalg.norm(early.reconstruction.image(i).projection_center()
+                                 - full.reconstruction.image(i).projection_center())
+                  for i in full.reconstruction.reg_image_ids()]
+    assert max(difference) < tolerance
+    assert rms(centre_errors(early.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_loop_stops_before_a_solve_that_would_barely_change_anything(scene, monkeypatch,
+                                                                         caplog):
+    """With the other stopping rules off, the loop ends without solving again once a solve
+    moved no camera by more than convergence_camera_shift and the next assignment keeps its
+    planes and nearly all of its tie points; the solves it leaves out would have moved the
+    cameras by less than that."""
+    from colmap_citymodel.adjust import loop as loop_module
+
+    counter = iter(range(10 ** 6))
+    monkeypatch.setattr(loop_module, "_signature",
+                        lambda assignment: next(counter).to_bytes(8, "little"))
+    monkeypatch.setattr(loop_module, "cameras_settled", lambda *args: False)
+    options = RefineOptions()
+    options.workflow.max_iterations = 6
+    options.workflow.convergence_rms_change = 0.0
+    tolerance = options.workflow.convergence_camera_shift
+    with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
+        early = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert early.loop_stopped_by == "assignment_change"
+    assert any("otherwise than the solve of iteration" in r.getMessage()
+               for r in caplog.records)
+    assert early.iterations[-1].camera_shift < tolerance
+    assert len(early.iterations) < 6
+    options.workflow.convergence_assignment_change = None
+    full = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert full.loop_stopped_by is None and len(full.iterations) == 6
     difference = [np.linalg.norm(early.reconstruction.image(i).projection_center()
                                  - full.reconstruction.image(i).projection_center())
                   for i in full.reconstruction.reg_image_ids()]

@@ -1,7 +1,9 @@
 """Steps 3-4 of the global workflow, repeated: assign the tie points to the model planes, solve
 the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
-settles, two solves in a row move no camera by more than a few millimetres, an assignment
-repeats an earlier one (a cycle), the block objective worsens, or the iterations run out.
+settles, two solves in a row move no camera by more than a few millimetres, a solve that moved
+them that little is followed by an assignment that keeps its planes and nearly all of its points,
+an assignment repeats an earlier one (a cycle), the block objective worsens, or the iterations
+run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
 never change; the threshold never grows (no flip-flop between two assignments); an f_dTP
@@ -75,6 +77,9 @@ class LoopResult:
     weights: np.ndarray | None = None
     # Out of iterations: the largest camera move of the last iteration (m); None if it stopped.
     unsettled_shift: float | None = None
+    # The rule that ended the loop: "rms", "camera_shift", "assignment_change",
+    # "same_assignment", "cycle" or "diverged"; None when the iterations ran out.
+    stopped_by: str | None = None
 
 
 def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
@@ -111,10 +116,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
     unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
+    stopped_by = None
     # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem)
     # with the signature of the assignment it solved.
     reusable: HybridProblem | None = None
     solved = None
+    solved_faces = None  # the face of every tie point in the last solve (original weights)
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
     roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
     value = None  # the block objective after the last kept iteration
@@ -147,7 +154,23 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             logger.info("iteration %d assigned as iteration %d, whose solution a solve would "
                         "repeat: the loop has converged", iteration, iterations[-1].iteration)
             seconds["assignment"] += time.perf_counter() - t0
+            stopped_by = "same_assignment"
             break
+        if (o_w.convergence_assignment_change is not None and solved_faces is not None
+                and last is not None and len(iterations) >= 2
+                and iterations[-1].camera_shift < o_w.convergence_camera_shift):
+            changed = assignment_change(solved_faces, assignment.face_index)
+            if changed is not None and changed <= o_w.convergence_assignment_change:
+                # The last solve barely moved the cameras and this assignment keeps its
+                # planes and nearly all of its points: a solve would start at its own
+                # solution and move them less again.
+                logger.info("iteration %d assigned %.2f %% of the tie points otherwise than the "
+                            "solve of iteration %d, which moved no camera by more than %.4f m: "
+                            "the loop has converged", iteration, 100 * changed,
+                            iterations[-1].iteration, iterations[-1].camera_shift)
+                seconds["assignment"] += time.perf_counter() - t0
+                stopped_by = "assignment_change"
+                break
         repeats = seen.get(signature)
         seen.setdefault(signature, iteration)
         if iteration == 0 and assignment.num_assigned:
@@ -259,6 +282,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if not robust_only:
             reusable = final if o_w.reuse_problem else None
         solved = None if robust_only else _signature(assignment)
+        solved_faces = None if robust_only else assignment.face_index.copy()
         if before_solve is not None:
             change = scale_change(gnss_only, rec, priors.image_ids)
             sigmas = abs(np.log1p(change)) / scale_sigma
@@ -275,7 +299,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
-                last = reusable = solved = None  # `rec` is the copy from before the solve
+                last = reusable = solved = solved_faces = None  # `rec`: copy from before
                 continue
 
         rms = final_report.rms_total
@@ -308,6 +332,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             diverged = (f"objective {value:.3f} in iteration {iteration} against "
                         f"{best[0]:.3f} in iteration {best[1]}")
             logger.warning("refine diverged (%s); the best iterate is kept", diverged)
+            stopped_by = "diverged"
             break
         if best[1] == iteration:
             best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current,
@@ -315,16 +340,19 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if robust_only:  # no stopping rule before a solve with the original weights
             continue
         if change < o_w.convergence_rms_change:
+            stopped_by = "rms"
             break
         if cameras_settled(iterations, o_w.convergence_camera_shift):
             logger.info("iterations %d and %d moved no camera by more than %.4f m: the loop "
                         "has converged", iteration - 1, iteration, o_w.convergence_camera_shift)
+            stopped_by = "camera_shift"
             break
         if repeats is not None:
             # The same assignment as an earlier iteration: solving it again reaches the same
             # state, so the loop would only cycle between assignments until max_iterations.
             logger.info("iteration %d assigned as iteration %d did: the loop has converged",
                         iteration, repeats)
+            stopped_by = "cycle"
             break
     else:
         # Out of iterations without settling (a slow creep of the block along what the planes
@@ -359,7 +387,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       iterations=iterations, move=total_move,
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
-                      baselines=baselines, weights=weights, unsettled_shift=unsettled_shift)
+                      baselines=baselines, weights=weights, unsettled_shift=unsettled_shift,
+                      stopped_by=stopped_by)
 
 
 def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
@@ -384,6 +413,18 @@ def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
     again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
     return assignment.eliminate(again, points, options, kept_faces) if again.any() \
         else assignment
+
+
+def assignment_change(before: np.ndarray, after: np.ndarray) -> float | None:
+    """Share of the tie points assigned in either of two assignments (face of each tie point,
+    -1: none; same points in the same order) whose face differs; None if the set of faces
+    differs (a face gained or lost moves the block in its own way)."""
+    if not np.array_equal(np.unique(before[before >= 0]), np.unique(after[after >= 0])):
+        return None
+    either = (before >= 0) | (after >= 0)
+    if not either.any():
+        return 0.0
+    return float(np.count_nonzero(before[either] != after[either]) / np.count_nonzero(either))
 
 
 def _signature(assignment: Assignment) -> bytes:

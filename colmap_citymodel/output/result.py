@@ -59,6 +59,9 @@ class RefineResult:
     model_correction: ModelCorrection | None = None
     # The windows of the sliding-window workflow (adjust.sliding_window), else None.
     sliding_window: dict | None = None
+    # The rule that ended the assign/adjust loop (adjust.loop.LoopResult.stopped_by): None when
+    # its iterations ran out or when it did not run.
+    loop_stopped_by: str | None = None
 
     @property
     def handed_back(self) -> str:

@@ -95,9 +95,11 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
                   "eliminated_image_observations": result.step2_eliminated},
         "iterations": [it.todict() for it in result.iterations],
         "converged": bool(last and (
-            last.relative_change < result.options.workflow.convergence_rms_change
+            result.loop_stopped_by not in (None, "diverged")
+            or last.relative_change < result.options.workflow.convergence_rms_change
             or cameras_settled(result.iterations,
                                result.options.workflow.convergence_camera_shift))),
+        "stopped_by": result.loop_stopped_by,
         "sigma0": float(np.sqrt(last.final.sigma0_squared)) if last else None,
         "num_images": result.reconstruction.num_reg_images(),
         "num_points3D": result.reconstruction.num_points3D(),
