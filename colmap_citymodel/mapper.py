@@ -212,7 +212,8 @@ class ModelGlobalAdjustment:
                  mapper_options: MapperOptions):
         self.store, self.gnss, self.options = store, gnss, options
         self.mapper_options = mapper_options
-        self.surface = SurfaceDistance(store, options.assignment.excluded_classes)
+        self.surface = SurfaceDistance(store, options.assignment.excluded_classes,
+                                       options.adjustment.num_threads)
         self.georegistered_at: int | None = None
         self.offset = np.zeros(3)  # the GNSS offset found at georegistration, then held
         self.records: list[GlobalAdjustmentRecord] = []

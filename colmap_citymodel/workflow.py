@@ -100,7 +100,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     if estimate_offset:
         priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
         priors.fit_offset(rec)
-    surface = SurfaceDistance(store, o_a.excluded_classes)
+    surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
     all_ids, points = tie_points(rec, exclude_point_ids)
     objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
     scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None

@@ -167,7 +167,8 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
         if before is not None:
             # The block objective against the corrected model: the tie points near the model
             # they were adjusted to, and GNSS.
-            after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes),
+            after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes,
+                                                   options.adjustment.num_threads),
                                    objective.priors, objective.ids, objective.radius)(rec)
             if after > before + o_w.divergence_tolerance:
                 reason = (f"the corrected model moved the block away from it (objective "

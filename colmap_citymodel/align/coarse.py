@@ -17,8 +17,9 @@ searches close that gap before any tie point is assigned:
   (`height_search_range`), without penalty: roofs and eaves put the block at its height.
 
 Both use `SurfaceDistance`, the unsigned distance from a point to the model's surfaces that can
-carry tie points (walls, roofs, ...; not ground or closure surfaces), through Open3D's
-`RaycastingScene`.
+carry tie points (walls, roofs, ...; not ground or closure surfaces) up to the radius a caller
+counts points within (the extension's `TriangleDistance`: a grid of the triangles near each
+cell, exact in double precision below that radius).
 """
 
 from __future__ import annotations
@@ -47,11 +48,13 @@ MAX_GRID_CELLS = 4_000_000
 
 
 class SurfaceDistance:
-    """Unsigned distance (m) from points to the model faces that tie points can lie on."""
+    """Unsigned distance (m) from points to the model faces that tie points can lie on, up to
+    a radius: exact below `within`, `within` itself where no face is closer. Every caller
+    counts points within a radius of the model, so no distance beyond it is ever computed."""
 
-    def __init__(self, store: PlaneStore, excluded_classes=("GroundSurface", "ClosureSurface")):
-        import open3d as o3d
-
+    def __init__(self, store: PlaneStore, excluded_classes=("GroundSurface", "ClosureSurface"),
+                 threads: int = 0):
+        """`threads`: of each query (0 or less: every core)."""
         from ..citymodel.mesh import store_to_trimesh
 
         mesh, triangle_face = store_to_trimesh(store)
@@ -59,17 +62,21 @@ class SurfaceDistance:
                          for f in triangle_face], bool)
         if not keep.any():
             keep[:] = True
-        self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(
-            o3d.core.Tensor(np.asarray(mesh.vertices, np.float32)),
-            o3d.core.Tensor(np.asarray(mesh.faces, np.uint32)[keep]))
-        self._o3d = o3d
+        self.vertices = np.ascontiguousarray(mesh.vertices, np.float64)
+        self.triangles = np.ascontiguousarray(np.asarray(mesh.faces, np.int64)[keep])
+        self.threads = max(int(threads), 0)
+        self._grids: dict[float, object] = {}  # one triangle grid per radius asked for
 
-    def __call__(self, points: np.ndarray) -> np.ndarray:
+    def __call__(self, points: np.ndarray, within: float) -> np.ndarray:
         if len(points) == 0:
             return np.zeros(0)
-        query = self._o3d.core.Tensor(np.ascontiguousarray(points, np.float32))
-        return self.scene.compute_distance(query).numpy().astype(np.float64)
+        grid = self._grids.get(within)
+        if grid is None:
+            from .._ext import load_core
+
+            grid = self._grids[within] = load_core().TriangleDistance(
+                self.vertices, self.triangles, float(within))
+        return grid(np.ascontiguousarray(points, np.float64).reshape(-1, 3), self.threads)
 
 
 def near_share(distances: np.ndarray, radius: float) -> float:
@@ -101,10 +108,10 @@ class TranslationSearch:
 
 
 def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, low: np.ndarray,
-                         high: np.ndarray, spacing: float):
-    """Distances on a regular grid around `points` shifted by `low`..`high` (nearest-cell
-    lookups) for the coarse level: one distance query per cell instead of one per (point,
-    shift)."""
+                         high: np.ndarray, spacing: float, within: float):
+    """Distances (up to `within`) on a regular grid around `points` shifted by `low`..`high`
+    (nearest-cell lookups) for the coarse level: one distance query per cell instead of one
+    per (point, shift)."""
     lower = points.min(0) + low - 2 * spacing
     upper = points.max(0) + high + 2 * spacing
     cells = np.prod((upper - lower) / spacing)
@@ -113,7 +120,7 @@ def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, low: np.n
     shape = np.ceil((upper - lower) / spacing).astype(int) + 1
     axes = [lower[k] + spacing * np.arange(shape[k]) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    values = surface(grid).reshape(shape).astype(np.float32)
+    values = surface(grid, within).reshape(shape).astype(np.float32)
 
     def lookup(xyz: np.ndarray) -> np.ndarray:
         index = np.rint((xyz - lower) / spacing).astype(np.int64)
@@ -151,7 +158,7 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
 
     # Coarse level on a distance grid.
     radius, step = levels[0]
-    lookup = _grid_lookup_builder(pts, surface, low, high, step / 1.5)
+    lookup = _grid_lookup_builder(pts, surface, low, high, step / 1.5, radius)
     axes = [np.arange(np.ceil(lo / step), np.floor(hi / step) + 1) * step
             for lo, hi in zip(low, high)]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
@@ -176,7 +183,7 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
         local = centre + local
         local = local[np.all((local >= low - step) & (local <= high + step), axis=1)]
         moved = (pts[None, :, :] + local[:, None, :]).reshape(-1, 3)
-        d = surface(moved).reshape(len(local), len(pts))
+        d = surface(moved, radius).reshape(len(local), len(pts))
         u = np.clip(d / radius, 0.0, 1.0)
         s = objective(np.mean((1.0 - u * u) ** 2, axis=1), local)
         best = int(np.argmax(s))
@@ -192,8 +199,9 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
             best_shift, best_score = shift, value
     finest = levels[-1][0]
     sample = subsample(points, 20000)
-    result = TranslationSearch(best_shift, best_score, near_share(surface(sample), finest),
-                               near_share(surface(sample + best_shift), finest),
+    result = TranslationSearch(best_shift, best_score,
+                               near_share(surface(sample, finest), finest),
+                               near_share(surface(sample + best_shift, finest), finest),
                                np.abs(best_shift) / sigmas, time.perf_counter() - t0)
     logger.info("translation search (%s m): shift %s m (%s GNSS sigma), tie points near the "
                 "model %.0f %% -> %.0f %%, %.1f s",

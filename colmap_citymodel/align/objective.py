@@ -41,7 +41,7 @@ class BlockObjective:
             points = points @ matrix[:, :3].T + matrix[:, 3]
             if antennas is not None:
                 antennas = antennas @ matrix[:, :3].T + matrix[:, 3]
-        value = -near_share(self.surface(points), self.radius)
+        value = -near_share(self.surface(points, self.radius), self.radius)
         if antennas is not None:
             v = self.priors.normalised_residuals(antennas)
             value += self.penalty * float(np.mean(np.sum(v ** 2, axis=1)))

@@ -243,10 +243,11 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
     of iterations (adjust.loop.LoopResult)."""
 
     thresholds = QualityThresholds()
+    near = thresholds.near_distance
     metrics: dict = {
         "assigned_share": assignment.num_assigned / max(len(points), 1),
         "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
-        "near_share": float(np.mean(surface(points) < thresholds.near_distance))
+        "near_share": float(np.mean(surface(points, near) < near))
         if len(points) else 0.0,
         "near_share_gnss_only": None, "diverged": diverged,
         "loop_iterations": (options.workflow.max_iterations if unsettled_shift is not None
@@ -268,11 +269,10 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
     walls = wall_points(points) if len(points) else np.zeros((0, 3))
     metrics["num_wall_points"] = len(walls)
     if len(walls) >= options.assignment.min_points_per_plane:
-        metrics["wall_near_share"] = float(np.mean(surface(walls) < thresholds.near_distance))
+        metrics["wall_near_share"] = float(np.mean(surface(walls, near) < near))
     if gnss_only is not None and priors is not None:
         _, before = tie_points(gnss_only)
-        metrics["near_share_gnss_only"] = (float(np.mean(surface(before)
-                                                         < thresholds.near_distance))
+        metrics["near_share_gnss_only"] = (float(np.mean(surface(before, near) < near))
                                            if len(before) else 0.0)
         # Where GNSS observed: elsewhere (GNSS for part of the block) the GNSS-only result is
         # an extrapolation that the model is there to correct.

@@ -14,12 +14,14 @@
 #include "colmap_citymodel/projection_center_offset_prior.h"
 #include "colmap_citymodel/projection_center_prior.h"
 #include "colmap_citymodel/scalar_prior.h"
+#include "colmap_citymodel/triangle_distance.h"
 
 #include <stdexcept>
 #include <string>
 
 #include <ceres/version.h>
 #include <pybind11/eigen.h>
+#include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 
 namespace py = pybind11;
@@ -242,6 +244,37 @@ PYBIND11_MODULE(_core, m) {
       kTake,
       "Linear conditions on K points observed as zero, residual = A (X - X_0) "
       "with X the stacked points.\nParameter blocks: K points (3 each).");
+
+  py::class_<TriangleDistance>(
+      m, "TriangleDistance",
+      "Unsigned distance from points to a triangle mesh up to `reach` (m): exact "
+      "below it, `reach` where no triangle is closer.")
+      .def(py::init<const TriangleDistance::Points&, const TriangleDistance::Triangles&,
+                    double, int64_t>(),
+           "vertices"_a, "triangles"_a, "reach"_a, "max_cells"_a = 2'000'000,
+           "vertices (V, 3) float64, triangles (T, 3) vertex indices; a model larger "
+           "than max_cells cells of the reach's size gets larger cells.")
+      .def_property_readonly("reach", &TriangleDistance::reach)
+      .def(
+          "__call__",
+          [](const TriangleDistance& self,
+             const py::array_t<double, py::array::c_style | py::array::forcecast>& points,
+             int threads) {
+            if (points.ndim() != 2 || points.shape(1) != 3) {
+              throw std::invalid_argument("points must have shape (N, 3)");
+            }
+            const int64_t n = points.shape(0);
+            py::array_t<double> out(n);
+            const double* in = points.data();
+            double* result = out.mutable_data();
+            {
+              py::gil_scoped_release release;
+              self.Distances(in, n, result, threads);
+            }
+            return out;
+          },
+          "points"_a, "threads"_a = 0,
+          "Distances (N,) of points (N, 3); threads 0: all cores.");
 
   m.attr("__ceres_version__") = CERES_VERSION_STRING;
   m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;
