@@ -162,7 +162,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             changed = assignment_change(solved_faces, assignment.face_index)
             if changed is not None and changed <= o_w.convergence_assignment_change:
                 # The last solve barely moved the cameras and this assignment keeps its
-                # planes and nearly all of its points: a solve would start at its own
+                # planes and nearly all of its points: a solve would start close to its own
                 # solution and move them less again.
                 logger.info("iteration %d assigned %.2f %% of the tie points otherwise than the "
                             "solve of iteration %d, which moved no camera by more than %.4f m: "
