@@ -446,6 +446,12 @@ class WorkflowOptions:
     below were gone (0.22 m from the truth with the hold). Published LOD2 walls are vertical
     (in the Berlin, Den Haag, NRW and TUM files 99 % within 0.1 deg). False: the planes decide
     there, as their f_dTP weigh."""
+    alternating_planes_shift: float = 0.1
+    """Stop when the last four iterations alternated between two sets of planes (a face at the
+    minimum number of points coming and going) and none of the last three moved a camera by
+    more than this (m); the best iterate by the block objective is the result. On the simulated
+    vehicle drive one face did so in every iteration, the cameras moving 3 cm back and forth,
+    until the 10 iterations ran out. 0: never."""
     divergence_tolerance: float = 0.05
     """An iteration whose block objective (share of tie points off the model plus GNSS
     residuals; workflow.BlockObjective) is worse than the best iterate's by more than this

@@ -2,8 +2,8 @@
 the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
 settles, two solves in a row move no camera by more than a few millimetres, a solve that moved
 them that little is followed by an assignment that keeps its planes and nearly all of its points,
-an assignment repeats an earlier one (a cycle), the block objective worsens, or the iterations
-run out.
+an assignment repeats an earlier one (a cycle), the planes alternate between two sets with small
+moves (the best of them is kept), the block objective worsens, or the iterations run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
 never change; the threshold never grows (no flip-flop between two assignments); an f_dTP
@@ -78,7 +78,8 @@ class LoopResult:
     # Out of iterations: the largest camera move of the last iteration (m); None if it stopped.
     unsettled_shift: float | None = None
     # The rule that ended the loop: "rms", "camera_shift", "assignment_change",
-    # "same_assignment", "cycle" or "diverged"; None when the iterations ran out.
+    # "same_assignment", "cycle", "alternating_planes" or "diverged"; None when the iterations
+    # ran out.
     stopped_by: str | None = None
 
 
@@ -122,6 +123,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     reusable: HybridProblem | None = None
     solved = None
     solved_faces = None  # the face of every tie point in the last solve (original weights)
+    face_sets: list[bytes] = []  # the planes of each kept iteration
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
     roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
     value = None  # the block objective after the last kept iteration
@@ -313,6 +315,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                                           dict(assignment.rejected_faces), len(outliers),
                                           robust_report, final_report, change,
                                           camera_shift=moved))
+        face_sets.append(assignment.faces.tobytes())
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
         value = objective(rec)
@@ -353,6 +356,21 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             logger.info("iteration %d assigned as iteration %d did: the loop has converged",
                         iteration, repeats)
             stopped_by = "cycle"
+            break
+        if (alternating(face_sets) and max(it.camera_shift for it in iterations[-3:])
+                < o_w.alternating_planes_shift):
+            # A face at the limits of the assignment (its points just at the minimum count)
+            # comes and goes, the block moving a little back and forth with it: the loop
+            # would swing like that until the iterations run out.
+            warnings.append(
+                f"the assignment alternated between {iterations[-1].num_faces} and "
+                f"{iterations[-2].num_faces} planes in iterations {iterations[-4].iteration}-"
+                f"{iteration}, moving no camera by more than "
+                f"{max(it.camera_shift for it in iterations[-3:]):.3f} m; iteration {best[1]}, "
+                f"the best by the block objective ({best[0]:.4f}), is the result")
+            logger.info(warnings[-1])
+            keep_best = best[1] != iteration  # else the block is where it should stay
+            stopped_by = "alternating_planes"
             break
     else:
         # Out of iterations without settling (a slow creep of the block along what the planes
@@ -413,6 +431,12 @@ def _without_eliminated(assignment: Assignment, eliminated_from: np.ndarray,
     again = (assignment.face_index >= 0) & (assignment.face_index == eliminated_from)
     return assignment.eliminate(again, points, options, kept_faces) if again.any() \
         else assignment
+
+
+def alternating(face_sets: list[bytes]) -> bool:
+    """The last four iterations' sets of planes alternate between two: A, B, A, B."""
+    return (len(face_sets) >= 4 and face_sets[-1] == face_sets[-3]
+            and face_sets[-2] == face_sets[-4] and face_sets[-1] != face_sets[-2])
 
 
 def assignment_change(before: np.ndarray, after: np.ndarray) -> float | None:
