@@ -1,5 +1,6 @@
 // Python bindings of colmap_citymodel._core: factories that return
-// ceres::CostFunction* for pyceres.Problem.add_residual_block.
+// ceres::CostFunction* for pyceres.Problem.add_residual_block, and the distance
+// from points to the city model's triangles (TriangleDistance).
 //
 // The returned pointer is converted through the ceres::CostFunction type that
 // pyceres registers, so this module must share pybind11 internals with
@@ -62,7 +63,8 @@ void CheckSqrtInformation(const Eigen::Matrix3d& sqrt_information) {
 PYBIND11_MODULE(_core, m) {
   m.doc() =
       "Ceres cost functions of colmap-citymodel's hybrid bundle adjustment, "
-      "returned as ceres::CostFunction for pyceres / pycolmap problems.";
+      "returned as ceres::CostFunction for pyceres / pycolmap problems, and the "
+      "distance from points to the city model's triangles.";
 
   // Registers ceres::CostFunction with pybind11; without it the factories
   // below cannot convert their return value.
