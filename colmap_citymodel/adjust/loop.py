@@ -118,11 +118,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
     unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
     stopped_by = None
-    # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem)
-    # with the signature of the assignment it solved.
+    # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem).
     reusable: HybridProblem | None = None
-    solved = None
-    solved_faces = None  # the face of every tie point in the last solve (original weights)
+    solved: Assignment | None = None  # the assignment of the last solve (original weights)
     face_sets: list[bytes] = []  # the planes of each kept iteration
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
     roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
@@ -150,7 +148,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
                                              kept_faces)
         signature = _signature(assignment)
-        if o_w.reuse_problem and signature == solved and last is not None:
+        if (o_w.reuse_problem and solved is not None and signature == _signature(solved)
+                and last is not None):
             # The assignment the last solve used: solving it again would start at its
             # solution. The loop has converged.
             logger.info("iteration %d assigned as iteration %d, whose solution a solve would "
@@ -158,10 +157,10 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             seconds["assignment"] += time.perf_counter() - t0
             stopped_by = "same_assignment"
             break
-        if (o_w.convergence_assignment_change is not None and solved_faces is not None
+        if (o_w.convergence_assignment_change is not None and solved is not None
                 and last is not None and len(iterations) >= 2
                 and iterations[-1].camera_shift < o_w.convergence_camera_shift):
-            changed = assignment_change(solved_faces, assignment.face_index)
+            changed = assignment_change(solved.face_index, assignment.face_index)
             if changed is not None and changed <= o_w.convergence_assignment_change:
                 # The last solve barely moved the cameras and this assignment keeps its
                 # planes and nearly all of its points: a solve would start close to its own
@@ -283,8 +282,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         robust_only = final.robust_planes  # the iteration ended on its robust solve
         if not robust_only:
             reusable = final if o_w.reuse_problem else None
-        solved = None if robust_only else _signature(assignment)
-        solved_faces = None if robust_only else assignment.face_index.copy()
+        solved = None if robust_only else assignment
         if before_solve is not None:
             change = scale_change(gnss_only, rec, priors.image_ids)
             sigmas = abs(np.log1p(change)) / scale_sigma
@@ -301,7 +299,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
-                last = reusable = solved = solved_faces = None  # `rec`: copy from before
+                last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
 
         rms = final_report.rms_total
