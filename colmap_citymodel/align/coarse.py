@@ -29,6 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._ext import load_core
 from ..citymodel.store import PlaneStore
 
 logger = logging.getLogger(__name__)
@@ -72,8 +73,6 @@ class SurfaceDistance:
             return np.zeros(0)
         grid = self._grids.get(within)
         if grid is None:
-            from .._ext import load_core
-
             grid = self._grids[within] = load_core().TriangleDistance(
                 self.vertices, self.triangles, float(within))
         return grid(np.ascontiguousarray(points, np.float64).reshape(-1, 3), self.threads)
@@ -222,23 +221,22 @@ def rotation_about(axis: np.ndarray, angle: float) -> np.ndarray:
 
 
 def point_cloud_planes(points: np.ndarray, distance: float = 0.3, max_planes: int = 12,
-                       min_points: int = 40, with_inliers: bool = False):
-    """Dominant planes of a tie point cloud by sequential RANSAC (Open3D `segment_plane`):
-    (normals (K,3), inlier counts (K,)), and with `with_inliers` the inlier points of each."""
-    import open3d as o3d
-
+                       min_points: int = 40, with_inliers: bool = False, threads: int = 0):
+    """Dominant planes of a tie point cloud by sequential RANSAC (the extension's
+    `segment_plane`, 500 hypotheses at most, seeded: the same planes on every run, on any
+    number of `threads`, 0: all cores): (normals (K,3), inlier counts (K,)), and with
+    `with_inliers` the inlier points of each."""
+    core = load_core()
     rest = subsample(points, 20000)
-    o3d.utility.random.seed(0)  # deterministic RANSAC samples
     normals, counts, members = [], [], []
-    for _ in range(max_planes):
+    for k in range(max_planes):
         if len(rest) < min_points:
             break
-        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(rest))
-        model, inliers = cloud.segment_plane(distance, 3, 500)
+        plane, inliers = core.segment_plane(rest, distance, 500, seed=k,
+                                             threads=max(int(threads), 0))
         if len(inliers) < min_points:
             break
-        inliers = np.asarray(inliers, np.int64)
-        normals.append(np.asarray(model[:3], float) / np.linalg.norm(model[:3]))
+        normals.append(np.asarray(plane[:3], float))
         counts.append(len(inliers))
         members.append(rest[inliers])
         rest = np.delete(rest, inliers, axis=0)
@@ -250,10 +248,10 @@ def point_cloud_planes(points: np.ndarray, distance: float = 0.3, max_planes: in
 WALL_TILT_DEG = 15.0
 
 
-def wall_points(points: np.ndarray) -> np.ndarray:
+def wall_points(points: np.ndarray, threads: int = 0) -> np.ndarray:
     """Tie points on the dominant vertical planes of the cloud (walls): in a city they are
     where a LoD2 model is surely right, unlike the ground (not modelled), trees or cars."""
-    normals, _, members = point_cloud_planes(points, with_inliers=True)
+    normals, _, members = point_cloud_planes(points, with_inliers=True, threads=threads)
     walls = [m for n, m in zip(normals, members)
              if abs(n[2]) < np.sin(np.radians(WALL_TILT_DEG))]
     return np.vstack(walls) if walls else np.zeros((0, 3))

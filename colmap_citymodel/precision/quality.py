@@ -266,7 +266,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
     from ..align.coarse import wall_points
 
-    walls = wall_points(points) if len(points) else np.zeros((0, 3))
+    walls = (wall_points(points, options.adjustment.num_threads) if len(points)
+             else np.zeros((0, 3)))
     metrics["num_wall_points"] = len(walls)
     if len(walls) >= options.assignment.min_points_per_plane:
         metrics["wall_near_share"] = float(np.mean(surface(walls, near) < near))

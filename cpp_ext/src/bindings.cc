@@ -1,6 +1,7 @@
 // Python bindings of colmap_citymodel._core: factories that return
 // ceres::CostFunction* for pyceres.Problem.add_residual_block, and the distance
-// from points to the city model's triangles (TriangleDistance).
+// from points to the city model's triangles (TriangleDistance), and the
+// dominant plane of a point cloud by RANSAC (segment_plane).
 //
 // The returned pointer is converted through the ceres::CostFunction type that
 // pyceres registers, so this module must share pybind11 internals with
@@ -9,6 +10,7 @@
 // and keeps the Python object alive as long as the pyceres.Problem object.
 #include "colmap_citymodel/baseline_length_prior.h"
 #include "colmap_citymodel/linear_points_condition.h"
+#include "colmap_citymodel/plane_ransac.h"
 #include "colmap_citymodel/point_plane_distance.h"
 #include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
@@ -277,6 +279,32 @@ PYBIND11_MODULE(_core, m) {
           },
           "points"_a, "threads"_a = 0,
           "Distances (N,) of points (N, 3); threads 0: all cores.");
+
+  m.def(
+      "segment_plane",
+      [](const py::array_t<double, py::array::c_style | py::array::forcecast>& points,
+         double distance, int iterations, double probability, uint64_t seed, int threads) {
+        if (points.ndim() != 2 || points.shape(1) != 3) {
+          throw std::invalid_argument("points must have shape (N, 3)");
+        }
+        PlaneFit fit;
+        {
+          py::gil_scoped_release release;
+          fit = SegmentPlane(points.data(), points.shape(0), distance, iterations,
+                             probability, seed, threads);
+        }
+        py::array_t<double> plane(4);
+        std::copy(fit.plane.data(), fit.plane.data() + 4, plane.mutable_data());
+        py::array_t<int64_t> inliers(static_cast<py::ssize_t>(fit.inliers.size()));
+        std::copy(fit.inliers.begin(), fit.inliers.end(), inliers.mutable_data());
+        return py::make_tuple(plane, inliers);
+      },
+      "points"_a, "distance"_a, "iterations"_a = 500, "probability"_a = 0.99999999,
+      "seed"_a = 0, "threads"_a = 0,
+      "The dominant plane of points (N, 3) by RANSAC: (plane (4,) with unit normal n and "
+      "d, n.x + d = 0, refit to its inliers; inlier row indices (K,) ascending), inliers "
+      "closer than `distance`. No plane (fewer than 3 points, all collinear): zeros and "
+      "no inliers. The same for a seed on any number of threads (0: all cores).");
 
   m.attr("__ceres_version__") = CERES_VERSION_STRING;
   m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;
