@@ -106,11 +106,12 @@ class TranslationSearch:
                 "near_share_before": self.share_before, "near_share_after": self.share_after}
 
 
-def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, low: np.ndarray,
+def _grid_shares_builder(points: np.ndarray, surface: SurfaceDistance, low: np.ndarray,
                          high: np.ndarray, spacing: float, within: float):
-    """Distances (up to `within`) on a regular grid around `points` shifted by `low`..`high`
-    (nearest-cell lookups) for the coarse level: one distance query per cell instead of one
-    per (point, shift)."""
+    """The smooth near share (`near_share`, radius `within`) of `points` moved by each of a
+    set of shifts within `low`..`high`, for the coarse level: distances on a regular grid
+    around the points (nearest-cell lookups), one distance query per cell instead of one per
+    (point, shift)."""
     lower = points.min(0) + low - 2 * spacing
     upper = points.max(0) + high + 2 * spacing
     cells = np.prod((upper - lower) / spacing)
@@ -120,13 +121,44 @@ def _grid_lookup_builder(points: np.ndarray, surface: SurfaceDistance, low: np.n
     axes = [lower[k] + spacing * np.arange(shape[k]) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     values = surface(grid, within).reshape(shape).astype(np.float32)
+    # Each cell's term of the share, as near_share computes it from a looked-up distance.
+    u = np.clip(values / within, 0.0, 1.0)
+    terms = ((1.0 - u * u) ** 2).ravel()
+    strides = np.array([shape[1] * shape[2], shape[2], 1], np.int64)
+    cells_of_points = (points - lower) / spacing  # fractional cell coordinates
 
-    def lookup(xyz: np.ndarray) -> np.ndarray:
-        index = np.rint((xyz - lower) / spacing).astype(np.int64)
-        np.clip(index, 0, shape - 1, out=index)
-        return values[index[..., 0], index[..., 1], index[..., 2]]
+    def shares(shifts: np.ndarray) -> np.ndarray:
+        out = np.empty(len(shifts))
+        # A shift of whole cells w plus a fraction f puts a point at cell rint(c + f) + w:
+        # the shifts of a regular grid have few fractions, so one flat cell index per point
+        # and fraction plus one per shift replaces rounding every (shift, point).
+        steps = shifts / spacing
+        whole = np.floor(steps)
+        fraction = np.round(steps - whole, 9)
+        kinds, kind_of_shift = np.unique(fraction, axis=0, return_inverse=True)
+        kind_of_shift = kind_of_shift.reshape(-1)
+        if len(kinds) <= 8:
+            bases = [np.rint(cells_of_points + f).astype(np.int64) for f in kinds]
+            lowest = np.min([b.min(0) for b in bases], axis=0) + whole.min(0)
+            highest = np.max([b.max(0) for b in bases], axis=0) + whole.max(0)
+            if np.all(lowest >= 0) and np.all(highest <= shape - 1):
+                offsets = whole.astype(np.int64) @ strides
+                for kind, base in enumerate(bases):
+                    rows = np.flatnonzero(kind_of_shift == kind)
+                    flat = base @ strides
+                    for start in range(0, len(rows), 256):
+                        chunk = rows[start:start + 256]
+                        out[chunk] = np.mean(terms[offsets[chunk, None] + flat[None, :]],
+                                             axis=1)
+                return out
+        for start in range(0, len(shifts), 256):  # any shifts: round each (shift, point)
+            xyz = points[None, :, :] + shifts[start:start + 256, None, :]
+            index = np.rint((xyz - lower) / spacing).astype(np.int64)
+            np.clip(index, 0, shape - 1, out=index)
+            out[start:start + 256] = np.mean(terms[index @ strides], axis=1)
+        return out
 
-    return lookup
+    return shares
 
 
 def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.ndarray,
@@ -157,17 +189,11 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
 
     # Coarse level on a distance grid.
     radius, step = levels[0]
-    lookup = _grid_lookup_builder(pts, surface, low, high, step / 1.5, radius)
+    grid_shares = _grid_shares_builder(pts, surface, low, high, step / 1.5, radius)
     axes = [np.arange(np.ceil(lo / step), np.floor(hi / step) + 1) * step
             for lo, hi in zip(low, high)]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    shares = np.empty(len(shifts))
-    for start in range(0, len(shifts), 256):
-        chunk = shifts[start:start + 256]
-        d = lookup(pts[None, :, :] + chunk[:, None, :])
-        u = np.clip(d / radius, 0.0, 1.0)
-        shares[start:start + 256] = np.mean((1.0 - u * u) ** 2, axis=1)
-    score = objective(shares, shifts)
+    score = objective(grid_shares(shifts), shifts)
     order = np.argsort(-score)
     seeds: list[np.ndarray] = []
     for k in order:  # the best maxima at least two steps apart
