@@ -14,7 +14,9 @@ def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
     # One pass over the points (by id, each lookup took as long again).
     points = rec.points3D
     ids = np.fromiter(points.keys(), np.int64, count=len(points))
-    xyz = np.array([point.xyz for point in points.values()], np.float64).reshape(-1, 3)
+    # (concatenating the (3,) arrays: a third faster than np.array of the list)
+    xyz = (np.concatenate([point.xyz for point in points.values()]).reshape(-1, 3)
+           if len(points) else np.zeros((0, 3)))
     order = np.argsort(ids)  # ascending ids, as point3D_ids() gives them
     ids, xyz = ids[order], xyz[order]
     if exclude:
