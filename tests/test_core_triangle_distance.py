@@ -115,3 +115,34 @@ def test_surface_distance_of_a_real_tile_equals_open3d_below_the_radius():
         np.testing.assert_allclose(got, np.minimum(reference, radius), rtol=0,
                                    atol=1e-6 * scale + 1e-5)
         assert np.count_nonzero(got < radius) > 5000
+
+
+@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
+def test_coarse_grid_shares_are_the_same_for_whole_and_any_shifts_and_near_the_exact_share():
+    """The translation search's coarse level on an official LoD2 tile: shifts of whole and half
+    grid cells (one cell index per point and fraction) give the shares that rounding each
+    shifted point gives, and both are close to the exact smooth share of the shifted points."""
+    from colmap_citymodel.align.coarse import _grid_shares_builder, near_share
+    from colmap_citymodel.citymodel.read import read_city_model
+
+    store = read_city_model(BERLIN)
+    surface = SurfaceDistance(store)
+    rng = np.random.default_rng(2)
+    on = rng.integers(0, len(surface.triangles), 2000)
+    weights = rng.dirichlet([1.0, 1.0, 1.0], 2000)
+    points = np.einsum("nk,nkd->nd", weights, surface.vertices[surface.triangles[on]])
+    points += rng.normal(0.0, 0.3, points.shape) + np.array([1.2, -0.7, 2.1])  # off the model
+    high = np.array([6.0, 6.0, 9.0])
+    shares = _grid_shares_builder(points, surface, -high, high, 1.0, 2.0)
+    axes = [np.arange(-h, h + 1e-9, 1.5) for h in high]
+    shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # whole and half
+    fast = shares(shifts)
+    # Shifts with many different fractions of a cell take the path that rounds each point.
+    odd = rng.uniform(-high, high, (40, 3))
+    general = shares(np.vstack([shifts, odd]))
+    np.testing.assert_array_equal(fast, general[:len(shifts)])
+    exact = np.array([near_share(surface(points + s, 2.0), 2.0) for s in shifts[::50]])
+    # nearest-cell lookups (cells of 1 m): within a few points in a hundred of the exact share
+    assert np.max(np.abs(fast[::50] - exact)) < 0.05
+    best = shifts[int(np.argmax(fast))]
+    np.testing.assert_allclose(best, [-1.5, 0.0, -1.5], atol=1.5)  # back onto the model
