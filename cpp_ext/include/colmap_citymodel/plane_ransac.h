@@ -15,7 +15,6 @@
 #include <algorithm>
 #include <cmath>
 #include <cstdint>
-#include <limits>
 #include <random>
 #include <stdexcept>
 #include <thread>
@@ -23,6 +22,8 @@
 
 #include <Eigen/Core>
 #include <Eigen/Eigenvalues>
+
+#include "colmap_citymodel/parallel_for.h"
 
 namespace colmap_citymodel {
 
@@ -127,18 +128,7 @@ inline PlaneFit SegmentPlane(const double* points, int64_t n, double distance,
         if (valid[h]) scores[h] = score(hypotheses[h]);
       }
     };
-    const int64_t used = std::min<int64_t>(workers, count);
-    if (used <= 1) {
-      run(0, count);
-    } else {
-      std::vector<std::thread> pool;
-      const int64_t chunk = (count + used - 1) / used;
-      for (int64_t w = 0; w < used; ++w) {
-        const int64_t from = w * chunk, to = std::min(count, from + chunk);
-        if (from < to) pool.emplace_back(run, from, to);
-      }
-      for (auto& thread : pool) thread.join();
-    }
+    ParallelFor(count, workers, run);
     // In drawing order, as a sequential run: the stopping count may fall below
     // the hypotheses already scored in this batch.
     for (int64_t h = 0; h < count && drawn < needed; ++h, ++drawn) {

@@ -15,6 +15,8 @@
 
 #include <Eigen/Core>
 
+#include "colmap_citymodel/parallel_for.h"
+
 namespace colmap_citymodel {
 
 // The point of triangle (a, b, c) closest to p (Ericson, Real-Time Collision
@@ -153,17 +155,7 @@ class TriangleDistance {
         out[i] = (*this)(Eigen::Vector3d(points[3 * i], points[3 * i + 1], points[3 * i + 2]));
       }
     };
-    if (workers == 1) {
-      run(0, n);
-      return;
-    }
-    std::vector<std::thread> pool;
-    const int64_t chunk = (n + workers - 1) / workers;
-    for (int w = 0; w < workers; ++w) {
-      const int64_t from = w * chunk, to = std::min(n, from + chunk);
-      if (from < to) pool.emplace_back(run, from, to);
-    }
-    for (auto& thread : pool) thread.join();
+    ParallelFor(n, workers, run);
   }
 
  private:
