@@ -301,16 +301,17 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
                 camera_up: np.ndarray, camera_view: np.ndarray, tolerance_deg: float = 4.0,
                 step_deg: float = 1.0, max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
                 window_deg: float = 180.0,
-                excluded_classes=("GroundSurface", "ClosureSurface")) -> RollSearch | None:
+                excluded_classes=("GroundSurface", "ClosureSurface"),
+                threads: int = 0) -> RollSearch | None:
     """The rotation about `axis` (through `centre`) that makes the tie point planes' normals
     model normals, keeping the cameras upright: `camera_up` (N,3) are the cameras' image "up"
     directions (-y axis), `camera_view` their viewing directions (z axis), in the current
     frame. The mean image up must point above the horizon and the mean view must not rise
     above `max_view_elevation_deg`: walls and flat roofs are both planes of model
     orientations, so a block turned by 90 deg (walls on roofs, cameras looking at the sky)
-    would match as well. Only rolls within +- `window_deg` are searched. None when the tie
-    points hold no plane."""
-    normals, counts = point_cloud_planes(points)
+    would match as well. Only rolls within +- `window_deg` are searched; the tie point planes
+    on `threads` (0: all cores). None when the tie points hold no plane."""
+    normals, counts = point_cloud_planes(points, threads=threads)
     if not len(normals):
         return None
     faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
@@ -414,7 +415,7 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
         cue = float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1)))
         window = ROLL_WINDOW_DEG / cue if cue > 0.5 else 180.0
         roll = search_roll(points, axis, centre, store, camera_up, camera_view,
-                           window_deg=window)
+                           window_deg=window, threads=surface.threads)
         if roll is not None:
             found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
                           "normal_score_unrotated": roll.score_at_zero,
