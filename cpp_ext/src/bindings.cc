@@ -65,8 +65,9 @@ void CheckSqrtInformation(const Eigen::Matrix3d& sqrt_information) {
 PYBIND11_MODULE(_core, m) {
   m.doc() =
       "Ceres cost functions of colmap-citymodel's hybrid bundle adjustment, "
-      "returned as ceres::CostFunction for pyceres / pycolmap problems, and the "
-      "distance from points to the city model's triangles.";
+      "returned as ceres::CostFunction for pyceres / pycolmap problems, the "
+      "distance from points to the city model's triangles, and the dominant plane "
+      "of a point cloud by RANSAC.";
 
   // Registers ceres::CostFunction with pybind11; without it the factories
   // below cannot convert their return value.
