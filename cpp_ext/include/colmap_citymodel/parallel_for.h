@@ -1,6 +1,7 @@
 // run(from, to) over [0, n) split into one contiguous range per worker thread
 // (on the calling thread alone when one worker is asked for): the loops of
-// the distance and RANSAC helpers, whose items are independent.
+// the distance and RANSAC helpers, whose items are independent. Workers()
+// turns a caller's thread count (0 or less: every core) into a count >= 1.
 #pragma once
 
 #include <algorithm>
@@ -9,6 +10,11 @@
 #include <vector>
 
 namespace colmap_citymodel {
+
+inline int64_t Workers(int threads) {
+  const int64_t cores = static_cast<int64_t>(std::thread::hardware_concurrency());
+  return std::max<int64_t>(1, threads > 0 ? threads : cores);
+}
 
 template <typename Run>
 void ParallelFor(int64_t n, int64_t workers, const Run& run) {

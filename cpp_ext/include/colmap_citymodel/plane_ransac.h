@@ -17,7 +17,6 @@
 #include <cstdint>
 #include <random>
 #include <stdexcept>
-#include <thread>
 #include <vector>
 
 #include <Eigen/Core>
@@ -74,9 +73,8 @@ inline PlaneFit SegmentPlane(const double* points, int64_t n, double distance,
 
   std::mt19937_64 random(seed);
   std::uniform_int_distribution<int64_t> pick(0, n - 1);
-  int workers = threads > 0 ? threads : static_cast<int>(std::thread::hardware_concurrency());
-  workers = std::max(1, workers);
-  const int batch = 16 * workers;
+  const int64_t workers = Workers(threads);
+  const int64_t batch = 16 * workers;
 
   struct Score {
     Eigen::Vector4d plane = Eigen::Vector4d::Zero();
@@ -87,7 +85,6 @@ inline PlaneFit SegmentPlane(const double* points, int64_t n, double distance,
     if (a.count != b.count) return a.count > b.count;
     return a.count > 0 && a.sum_squares / a.count < b.sum_squares / b.count;
   };
-  const double threshold = distance;
   auto score = [&](const Eigen::Vector4d& plane) {
     Score s;
     s.plane = plane;
@@ -95,7 +92,7 @@ inline PlaneFit SegmentPlane(const double* points, int64_t n, double distance,
     const Eigen::Vector3d normal = plane.head<3>();
     for (int64_t i = 0; i < n; ++i) {
       const double d = std::abs(normal.dot(local[i]) + plane[3]);
-      if (d < threshold) {
+      if (d < distance) {
         ++s.count;
         s.sum_squares += d * d;
       }
@@ -149,7 +146,7 @@ inline PlaneFit SegmentPlane(const double* points, int64_t n, double distance,
   if (best.count < 3) return fit;  // every triple collinear: no plane
   const Eigen::Vector3d normal = best.plane.head<3>();
   for (int64_t i = 0; i < n; ++i) {
-    if (std::abs(normal.dot(local[i]) + best.plane[3]) < threshold) fit.inliers.push_back(i);
+    if (std::abs(normal.dot(local[i]) + best.plane[3]) < distance) fit.inliers.push_back(i);
   }
   fit.plane = FitPlane(local, fit.inliers);
   fit.plane[3] -= fit.plane.head<3>().dot(origin);  // back to the caller's coordinates

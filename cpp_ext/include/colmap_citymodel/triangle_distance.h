@@ -10,7 +10,6 @@
 #include <cmath>
 #include <cstdint>
 #include <stdexcept>
-#include <thread>
 #include <vector>
 
 #include <Eigen/Core>
@@ -147,9 +146,8 @@ class TriangleDistance {
   // Distances of n points (row-major n x 3) into `out`, on up to `threads`
   // threads (0: all cores).
   void Distances(const double* points, int64_t n, double* out, int threads = 0) const {
-    int workers = threads > 0 ? threads
-                              : static_cast<int>(std::thread::hardware_concurrency());
-    workers = static_cast<int>(std::clamp<int64_t>(n / 20000, 1, std::max(1, workers)));
+    // At least 20,000 points a thread: below that, starting threads costs more.
+    const int64_t workers = std::min(Workers(threads), std::max<int64_t>(n / 20000, 1));
     auto run = [&](int64_t from, int64_t to) {
       for (int64_t i = from; i < to; ++i) {
         out[i] = (*this)(Eigen::Vector3d(points[3 * i], points[3 * i + 1], points[3 * i + 2]));
