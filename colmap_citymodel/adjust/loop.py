@@ -34,7 +34,7 @@ from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import (assign, initial_threshold, next_threshold,
                                without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import camera_centres, tie_points
+from ..block.reconstruction import TiePointReader, camera_centres
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
@@ -124,11 +124,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     face_sets: list[bytes] = []  # the planes of each kept iteration
     eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
     roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
+    read_tie_points = TiePointReader(exclude_point_ids)
     value = None  # the block objective after the last kept iteration
     bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
     for iteration in bar:
         t0 = time.perf_counter()
-        point_ids, points = tie_points(rec, exclude_point_ids)
+        point_ids, points = read_tie_points(rec)
         if assignment is not None:
             # The tie point set does not change inside the loop: same ids in the same order.
             # The threshold never grows again: no flip-flop between two assignments.

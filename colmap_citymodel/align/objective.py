@@ -6,6 +6,7 @@ import numpy as np
 import pycolmap
 
 from ..block.priors import GNSSPriors
+from ..block.reconstruction import TiePointReader
 
 
 class BlockObjective:
@@ -24,10 +25,11 @@ class BlockObjective:
                     rng.choice(point_ids, 2 * MAX_SEARCH_POINTS, replace=False))
         self.surface, self.priors, self.radius = surface, priors, radius
         self.penalty = SHIFT_PENALTY
+        self._read = TiePointReader(ids=self.ids)
 
     def points(self, rec: pycolmap.Reconstruction) -> np.ndarray:
-        return np.array([rec.point3D(int(i)).xyz for i in self.ids if rec.exists_point3D(int(i))]
-                        ).reshape(-1, 3)
+        """The subset's current coordinates (those of its points that `rec` has)."""
+        return self._read(rec)[1]
 
     def __call__(self, rec: pycolmap.Reconstruction, moved: pycolmap.Sim3d | None = None
                  ) -> float:

@@ -25,6 +25,50 @@ def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
     return ids, xyz
 
 
+class TiePointReader:
+    """The tie points of a reconstruction read again and again as it is adjusted: the points
+    (all but `exclude`, or those of `ids` that exist) are looked up once and their coordinates
+    kept as views of COLMAP's own, so that each call only copies the current values (a tenth of
+    the time of `tie_points`). Another reconstruction, or points added or deleted, are looked
+    up anew."""
+
+    def __init__(self, exclude: set[int] | None = None, ids: np.ndarray | None = None):
+        self._exclude, self._wanted = exclude, ids
+        self._rec: pycolmap.Reconstruction | None = None
+        self._count = -1
+        self.ids = np.zeros(0, np.int64)
+        self._views: list[np.ndarray] = []
+
+    def __call__(self, rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
+        """(ids ascending, read-only; (N, 3) coordinates, a copy)."""
+        if rec is not self._rec or rec.num_points3D() != self._count:
+            self._look_up(rec)
+        xyz = (np.concatenate(self._views).reshape(-1, 3) if self._views
+               else np.zeros((0, 3)))
+        return self.ids, xyz
+
+    def _look_up(self, rec: pycolmap.Reconstruction) -> None:
+        if self._wanted is not None:
+            ids = np.array([i for i in np.asarray(self._wanted, np.int64).tolist()
+                            if rec.exists_point3D(i)], np.int64)
+            views = [rec.point3D(i).xyz for i in ids.tolist()]
+        else:
+            points = rec.points3D
+            ids = np.fromiter(points.keys(), np.int64, count=len(points))
+            views = [point.xyz for point in points.values()]
+            order = np.argsort(ids)  # ascending ids, as point3D_ids() gives them
+            ids = ids[order]
+            views = [views[k] for k in order.tolist()]
+            if self._exclude:
+                keep = ~np.isin(ids, np.fromiter(self._exclude, np.int64,
+                                                 count=len(self._exclude)))
+                ids = ids[keep]
+                views = [v for v, k in zip(views, keep.tolist()) if k]
+        ids.flags.writeable = False
+        self.ids, self._views = ids, views
+        self._rec, self._count = rec, rec.num_points3D()
+
+
 def observations(rec: pycolmap.Reconstruction, point_ids: np.ndarray
                  ) -> tuple[np.ndarray, np.ndarray]:
     """Every observation of the tie points `point_ids`: (row of its point in `point_ids`,
