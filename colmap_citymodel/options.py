@@ -235,13 +235,6 @@ class AdjustmentOptions:
     half the chi-square of n normalised residuals, whose own spread is sqrt(2n): a 1e-6
     relative change (~0.1 at n = 4e5) is far below anything statistically visible. COLMAP
     leaves it at 0 and then crawls for 100+ iterations at that level."""
-    step2_function_tolerance: float = 1e-5
-    """The same tolerance for step 2, the bundle adjustment without the model. COLMAP's block is
-    already converged without a robust loss (a non-robust step 2 stops after one iteration);
-    what the Huber loss adds converges slowly and moves the cameras little: short Scn3 took
-    15 iterations at 1e-6 and 5 at 1e-5, whose camera centres were 33 mm RMS from those of a
-    200-iteration solve (the GNSS-only block's own sigma there: decimetres). The hybrid solves
-    that follow adjust every tie point again."""
     initial_trust_region_radius: float = 1e8
     """Levenberg-Marquardt starts close to Gauss-Newton (Ceres: 1e4). The hybrid problem is
     nearly linear around SfM's block; a large first radius halved its iterations (22 -> 9)."""

@@ -5,7 +5,6 @@ after a solve."""
 from __future__ import annotations
 
 import logging
-from dataclasses import replace
 
 import numpy as np
 import pycolmap
@@ -48,9 +47,7 @@ def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | Non
     """BA with GNSS priors and no model, robust on image observations; then eliminate image
     observations with normalised residual > 3 (and points with too small intersection angle)."""
     o = options.adjustment
-    problem = HybridProblem(rec, None, None, gnss,
-                            replace(o, function_tolerance=o.step2_function_tolerance),
-                            robust_images=True, robust_planes=False)
+    problem = HybridProblem(rec, None, None, gnss, o, robust_images=True, robust_planes=False)
     report = problem.solve()
     eliminated = pycolmap.ObservationManager(rec).filter_all_points3D(
         o.elimination_threshold * o.sigma_image, o.min_triangulation_angle)
