@@ -9,7 +9,8 @@ plus white noise 3/3/5 m plus a constant bias of 1, 2, 4, 8 or 12 m in a directi
 run's seed (simulate.simulate_gnss with GNSSOptions.bias_magnitude; stated sigma 3/3/5 m). The
 seed draws both the white noise and the direction, so the levels of one seed share a direction.
 
-Per run: camera-centre RMS (estimated - simulated truth) per axis and 3D of refine's result and of
+Per run: camera-centre RMS (estimated - simulated truth) per axis and 3D of refine's result (its
+default options, as a user runs it) and of
 the GNSS-only adjustment of the same block, and refine's verdict. Summary per block and bias:
 the share of runs whose result ends within 0.25 m (RMS 3D) of the truth, and the number of runs
 that end further away with the verdict "ok" (a wrong result refine vouches for; must be 0).
@@ -219,7 +220,8 @@ def main() -> None:
         "(workspaces/robust_drive.toml, forward-looking vehicle camera, 40 images); each mapped "
         "by COLMAP once. Per run: GNSS = truth + white noise 3/3/5 m + a constant bias of the "
         "given length in a direction drawn from the seed (stated sigma 3/3/5 m). RMS: camera "
-        "centres, estimated - simulated truth (m). refine: refine's result (on verdict "
+        "centres, estimated - simulated truth (m). refine: refine's result with its default "
+        "options (on verdict "
         "\"failed\" the GNSS-only block it returns); GNSS only: the GNSS-only adjustment of the "
         "same block. Within: result RMS 3D <= "
         f"{TRUTH_TOLERANCE} m. Code measured: "

@@ -8,9 +8,11 @@ Measured in one run, on copies of the same input:
   (`pycolmap.bundle_adjustment` with default BundleAdjustmentOptions = `colmap
   bundle_adjuster`), median of 3 runs: the baseline a user already pays for;
 - hybrid_solve_s: one hybrid adjustment as refine's first iteration does it, set-up included:
-  from the georegistered block, assign at 2 m, move the block onto the planes (similarity),
-  assign again, build the problem (COLMAP's problem + GNSS + f_dTP, f_dVT, f_VT), solve;
-- assignment time per iteration and total refine time (refine() as the CLI runs it); with
+  from the georegistered block, assign with refine's default method at its first threshold,
+  move the block onto the planes (similarity), assign again, build the problem (COLMAP's
+  problem + GNSS + f_dTP, f_dVT, f_VT), solve;
+- assignment time per iteration and total refine time (refine() with its default options, as
+  the CLI runs it); with
   `--quick` the median of 3 refines, each after one of COLMAP's adjustments (`--refine_runs`):
   this machine's speed drifts by 20 % from minute to minute, and alternating the two makes
   both see the same drift.
@@ -21,7 +23,7 @@ Prints the figures and, last, the lines `plain_solve_s`, `hybrid_solve_s`, `hybr
 `assignment_fraction`, `refine_ratio` (targets: <= 1.2, <= 0.10, and <= 2.0 with `--quick`,
 <= 1.0 at full size).
 
-Then one refine per assignment method (direct, and `--methods`, default msac roi_msac auto),
+Then one refine per assignment method (the default, and `--methods`, default the others),
 each printing `assignment_fraction_<method>` (target <= 0.10): refine's own assignment seconds
 (`result.seconds["assignment"]`: reading the tie points, the threshold and the assign calls of
 each iteration, not those inside the initial alignment rounds) over the refine's wall time.
@@ -34,7 +36,7 @@ machine's load moves every figure: compare fractions, and runs against a baselin
 alongside.
 
     .venv/bin/python benchmarks/bench_refine.py [--quick | --scenario long_scn3] [--workspace DIR]
-        [--methods msac roi_msac auto] [--refine_runs N] [--assignment_only] [--results FILE]
+        [--methods direct msac roi_msac] [--refine_runs N] [--assignment_only] [--results FILE]
 """
 
 from __future__ import annotations
@@ -52,7 +54,7 @@ from colmap_citymodel import logger
 from colmap_citymodel.adjust.problem import HybridProblem
 from colmap_citymodel.adjust.steps import align_block_to_planes
 from colmap_citymodel.align.block_to_model import crop_to_reconstruction, georegister
-from colmap_citymodel.assign.schedule import assign
+from colmap_citymodel.assign.schedule import assign, initial_threshold
 from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.simulate.synthetic import centre_errors
@@ -192,8 +194,12 @@ def results_table(rows: list[dict]) -> str:
     return "\n".join(lines) + "\n"
 
 
+#: refine's own assignment method, the one refine_ratio times.
+DEFAULT_METHOD = RefineOptions().assignment.method
+
+
 def solve_figures(sfm, store, gnss, truth, workspace: Path, refine_runs: int = 1) -> dict:
-    """The plain and hybrid solve figures and refine with direct assignment (its row: the run
+    """The plain and hybrid solve figures and refine with its default options (its row: the run
     with the median time). With `refine_runs` > 1 the refines alternate with COLMAP's
     adjustments (COLMAP, refine, COLMAP, refine, ...): a machine whose speed drifts slows both
     alike."""
@@ -208,7 +214,7 @@ def solve_figures(sfm, store, gnss, truth, workspace: Path, refine_runs: int = 1
             pycolmap.bundle_adjustment(plain_rec, pycolmap.BundleAdjustmentOptions())
             plain_seconds.append(time.perf_counter() - t)
         if k < refine_runs - 1:
-            refines.append(timed_refine("direct", sfm, store, gnss, truth, workspace))
+            refines.append(timed_refine(DEFAULT_METHOD, sfm, store, gnss, truth, workspace))
     plain_s = float(np.median(plain_seconds))
 
     start = pycolmap.Reconstruction(sfm)
@@ -222,22 +228,21 @@ def solve_figures(sfm, store, gnss, truth, workspace: Path, refine_runs: int = 1
     hybrid_rec = pycolmap.Reconstruction(start)
     t = time.perf_counter()
     ids, xyz = tie_points(hybrid_rec)
-    assignment = assign(xyz, ids, store_near, refine_options.assignment.max_threshold,
-                        refine_options.assignment)
+    first_threshold = initial_threshold(refine_options.assignment)
+    assignment = assign(xyz, ids, store_near, first_threshold, refine_options.assignment)
     first_assignment_s = time.perf_counter() - t
     t = time.perf_counter()
     _, xyz, assignment = align_block_to_planes(  # as refine's iteration 0
-        hybrid_rec, ids, xyz, assignment, store_near, priors,
-        refine_options.assignment.max_threshold, refine_options)
+        hybrid_rec, ids, xyz, assignment, store_near, priors, first_threshold, refine_options)
     hybrid = HybridProblem(hybrid_rec, store_near, assignment, priors,
                            refine_options.adjustment, robust_images=False, robust_planes=False)
     hybrid_report = hybrid.solve()
     hybrid_s = time.perf_counter() - t
 
-    refines.append(timed_refine("direct", sfm, store, gnss, truth, workspace))
+    refines.append(timed_refine(DEFAULT_METHOD, sfm, store, gnss, truth, workspace))
     times = [r["refine_s"] for r in refines]
-    direct = refines[int(np.argsort(times)[len(times) // 2])]  # the median run (upper median)
-    refine_s, iterations, error = direct["refine_s"], direct["iterations"], direct["camera_rms"]
+    median = refines[int(np.argsort(times)[len(times) // 2])]  # the median run (upper median)
+    refine_s, iterations, error = median["refine_s"], median["iterations"], median["camera_rms"]
 
     print(f"plain COLMAP bundle adjustment (defaults): "
           f"{', '.join(f'{v:.2f}' for v in plain_seconds)} s")
@@ -251,18 +256,18 @@ def solve_figures(sfm, store, gnss, truth, workspace: Path, refine_runs: int = 1
     if len(refines) > 1:
         print(f"refines (alternating with COLMAP's adjustments): "
               f"{', '.join(f'{v:.1f}' for v in times)} s, the median run below")
-    print(f"refine: {iterations} iterations, {refine_s:.1f} s "
-          f"({', '.join(f'{k} {v:.1f}' for k, v in direct['seconds'].items())}), "
+    print(f"refine ({DEFAULT_METHOD} assignment): {iterations} iterations, {refine_s:.1f} s "
+          f"({', '.join(f'{k} {v:.1f}' for k, v in median['seconds'].items())}), "
           f"camera centre RMS vs truth {error:.3f} m")
-    print(f"assignment_s_per_iteration {direct['assignment_s'] / iterations:.3f}")
+    print(f"assignment_s_per_iteration {median['assignment_s'] / iterations:.3f}")
     print(f"plain_gnss_solve_s {gnss_report.seconds:.3f}")
     print(f"refine_ratio_vs_plain_gnss_solve {refine_s / gnss_report.seconds:.3f}")
     print(f"plain_solve_s {plain_s:.3f}")
     print(f"hybrid_solve_s {hybrid_s:.3f}")
     print(f"hybrid_solve_ratio {hybrid_s / plain_s:.3f}")
-    print(f"assignment_fraction {direct['fraction']:.4f}")
+    print(f"assignment_fraction {median['fraction']:.4f}")
     print(f"refine_ratio {refine_s / plain_s:.3f}")
-    return direct
+    return median
 
 
 def main() -> None:
@@ -272,11 +277,14 @@ def main() -> None:
     parser.add_argument("--scenario", default="long_scn3",
                         help="workspaces/<scenario>.toml (default long_scn3, the full size)")
     parser.add_argument("--workspace", type=Path, help="a simulated workspace to use instead")
-    parser.add_argument("--methods", nargs="*", default=["msac", "roi_msac", "auto"],
-                        help="assignment methods to time besides direct, each in a full refine "
+    parser.add_argument("--methods", nargs="*",
+                        default=[m for m in ("direct", "msac", "roi_msac", "auto")
+                                 if m != DEFAULT_METHOD],
+                        help="assignment methods to time besides refine's default "
+                             f"({DEFAULT_METHOD}), each in a full refine "
                              "(assignment_fraction_<method>)")
     parser.add_argument("--refine_runs", type=int,
-                        help="refines with direct assignment for refine_ratio, alternating with "
+                        help="refines with the default options for refine_ratio, alternating with "
                              "COLMAP's three adjustments; the median counts (default 3 with "
                              "--quick, else 1)")
     parser.add_argument("--assignment_only", action="store_true",
@@ -309,7 +317,7 @@ def main() -> None:
         rows.append(solve_figures(sfm, store, gnss, truth, workspace, max(1, runs)))
         print(method_line(rows[0]))
     else:
-        rows.append(timed_refine("direct", sfm, store, gnss, truth, workspace))
+        rows.append(timed_refine(DEFAULT_METHOD, sfm, store, gnss, truth, workspace))
         print(method_line(rows[0]))
     for method in args.methods:
         rows.append(timed_refine(method, sfm, store, gnss, truth, workspace))

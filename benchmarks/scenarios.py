@@ -323,9 +323,10 @@ def checkpoint_errors(rec: pycolmap.Reconstruction, workspace: Path, origin: np.
     return {k: r[k] for k in ("rms_x", "rms_y", "rms_z", "rms_3d", "num_checkpoints")}
 
 
-def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct",
+def refine_with_quality(workspace: Path, gnss=None, assignment: str | None = None,
                         model: str | None = None) -> dict:
-    """refine() on the workspace (GNSS from its database unless given): the refined and the
+    """refine() on the workspace (GNSS from its database unless given; `assignment`: the
+    method, None for refine's default): the refined and the
     GNSS-only reconstruction (local frame), their origin, the verdict and its reasons. A refine
     that raises gives verdict "error" and no refined reconstruction. Without a GNSS-only result
     from refine, the GNSS-only block is the 7-parameter fit to GNSS plus the bundle adjustment
@@ -338,7 +339,8 @@ def refine_with_quality(workspace: Path, gnss=None, assignment: str = "direct",
     variant = model or model_variant(workspace)
     options = RefineOptions.preset("detailed" if variant == "detailed" else "generalised")
     options.precision.covariances = "off"
-    options.assignment.method = assignment
+    if assignment is not None:
+        options.assignment.method = assignment
     out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
                  "verdict": "n/a", "reasons": [], "quality_metrics": None, "observability": None}
     start = time.perf_counter()
@@ -412,7 +414,7 @@ def robustness_model(case: str, variant: str) -> dict:
     per axis, verdict, what fixes E/N/U, seconds. Separates the method's error from the given
     model's."""
     workspace, _ = build_robust_workspace(case)
-    run = refine_with_quality(workspace, model=variant)
+    run = refine_with_quality(workspace, assignment="direct", model=variant)
     rec = run["refined"]
     return {"verdict": run["verdict"], "reasons": run["reasons"], "seconds": run["seconds"],
             "observability": run["observability"],
@@ -425,7 +427,7 @@ def robustness_case(case: str) -> dict:
     workspace, sim = build_robust_workspace(case)
     build = time.perf_counter() - start
     truth = truth_centres(workspace)
-    run = refine_with_quality(workspace)
+    run = refine_with_quality(workspace, assignment="direct")
     r: dict = {"workspace": str(workspace.relative_to(ROOT)),
                "num_key_frames": sim["num_key_frames"],
                "num_registered_images": sim.get("num_registered_images"),

@@ -135,9 +135,10 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
                         "default with --preset correct_model")
     p.add_argument("--options", dest="options_file", help="TOML file overriding options")
     p.add_argument("--assignment", choices=["direct", "msac", "roi_msac", "auto"], default=None,
-                   help="tie point to plane assignment: direct (a, default), msac (b: planes "
-                        "extracted from the cloud), roi_msac (c: one plane searched near each "
-                        "model plane), auto (indirect while the threshold is above 1 m)")
+                   help="tie point to plane assignment: auto (default: roi_msac while the "
+                        "threshold is above 1 m, then direct), direct (a: each tie point to its "
+                        "closest plane), msac (b: planes extracted from the cloud), roi_msac "
+                        "(c: one plane searched near each model plane)")
     p.add_argument("--workflow", choices=["global", "sliding_window"], default=None,
                    help="global (default): the whole block at once; sliding_window: windows "
                         "of 100 images in name order moved on by 33, each adjusted with the "

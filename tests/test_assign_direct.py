@@ -47,10 +47,11 @@ def test_faces_with_too_few_points_or_collinear_points_are_rejected():
     few = wall_points(rng, 10)  # below 15
     line = np.column_stack([np.linspace(1, 9, 30), np.full(30, 10.02),
                             np.full(30, 5.0)])  # on the y = 10 wall but a line
-    result = assign(np.vstack([few, line]), np.arange(40), store, 2.0, AssignmentOptions())
+    result = assign(np.vstack([few, line]), np.arange(40), store, 2.0,
+                    AssignmentOptions(method="direct"))
     assert result.num_assigned == 0
     assert result.rejected_faces == {"too_few_points": 1, "not_planar": 1}
-    relaxed = AssignmentOptions(min_points_per_plane=5)
+    relaxed = AssignmentOptions(method="direct", min_points_per_plane=5)
     assert assign(few, np.arange(10), store, 2.0, relaxed).num_assigned == 10
 
 

@@ -293,7 +293,7 @@ def test_weighted_sampling_prefers_points_of_high_quality():
     options.weighted_sampling = False  # unweighted, the poor plane is extracted and matched too
     assert assign(points, ids, store, 3.0, options, weights=weights).assigned[80:].mean() > 0.9
     # direct assignment takes the keyword and ignores it
-    direct = assign(points, ids, store, 3.0, AssignmentOptions(), weights=weights)
+    direct = assign(points, ids, store, 3.0, AssignmentOptions(method="direct"), weights=weights)
     assert direct.num_assigned == 240
 
 
@@ -369,7 +369,7 @@ def test_options_file_selects_the_method():
     options = RefineOptions().mergedict({"assignment": {"method": "roi_msac",
                                                         "weighted_sampling": True}})
     assert options.assignment.method == "roi_msac" and options.assignment.weighted_sampling
-    assert RefineOptions().assignment.method == "direct"
+    assert RefineOptions().assignment.method == "auto"
 
 
 def test_point_quality_weights_from_track_length_and_angle():

@@ -142,6 +142,7 @@ def test_public_api():
     assert api.CityModelError is CityModelError and issubclass(InputError, CityModelError)
     assert set(api.__all__) >= {"refine", "read_city_model", "RefineOptions", "RefineResult",
                                 "CityModelError", "logger", "__version__"}
-    # The default options carry the documented defaults (method.md).
+    # The default options carry the documented defaults (method.md; the assignment method is
+    # the automatic choice between (c) and (a), options.AssignmentOptions.method).
     options = RefineOptions()
-    assert options.adjustment.sigma_dtp == 0.2 and options.assignment.method == "direct"
+    assert options.adjustment.sigma_dtp == 0.2 and options.assignment.method == "auto"

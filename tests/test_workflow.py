@@ -14,6 +14,7 @@ import pytest
 from colmap_citymodel.adjust.datum import check_datum
 from colmap_citymodel.adjust.steps import step2_bundle_adjustment
 from colmap_citymodel.align.block_to_model import georegister
+from colmap_citymodel.assign.schedule import initial_threshold
 from colmap_citymodel.errors import DatumError, NoOverlapError
 from colmap_citymodel.options import RefineOptions
 from colmap_citymodel.output.write import write_refined
@@ -77,8 +78,10 @@ def test_iterations_converge_and_report_groups(refined):
     last = its[-1]
     assert last.num_faces >= 8
     assert last.num_assigned > 500
-    # The threshold schedule starts at the upper limit and ends at or above 2 sigma_dTP.
-    assert its[0].threshold == pytest.approx(2.0)
+    # The threshold schedule starts at the default method's upper limit (3 m for "auto", 2 m
+    # for direct assignment) and ends at or above 2 sigma_dTP.
+    assert its[0].threshold == pytest.approx(initial_threshold(RefineOptions().assignment))
+    assert its[0].threshold == pytest.approx(3.0)
     assert its[-1].threshold >= 0.4 - 1e-12
     for group in ("image", "gnss", "dTP", "dVT", "VT"):
         assert last.final.count[group] > 0
@@ -352,6 +355,9 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     monkeypatch.setattr(loop_module, "_signature",
                         lambda assignment: next(counter).to_bytes(8, "little"))
     options = RefineOptions()
+    # Direct assignment: from its first assignment at 2 m the loop needs several iterations
+    # (the default's first iteration already leaves the cameras within millimetres here).
+    options.assignment.method = "direct"
     options.workflow.max_iterations = 6
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_assignment_change = None
@@ -684,7 +690,11 @@ def test_a_robust_solve_that_leaves_the_model_is_followed_at_once(scene, monkeyp
 
     monkeypatch.setattr(problem_module.HybridProblem, "solve", solve)
     monkeypatch.setattr(objective_module.BlockObjective, "__call__", worse_after_a_robust_solve)
-    result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    options = RefineOptions()
+    # Direct assignment: its first assignment at 2 m takes points that the robust solves
+    # eliminate (on this street the default's first assignment leaves none to eliminate).
+    options.assignment.method = "direct"
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert any(it.num_eliminated for it in result.iterations)
     assert not any(it.todict()["robust_only"] for it in result.iterations)
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
