@@ -29,8 +29,9 @@ class TiePointReader:
     """The tie points of a reconstruction read again and again as it is adjusted: the points
     (all but `exclude`, or those of `ids` that exist) are looked up once and their coordinates
     kept as views of COLMAP's own, so that each call only copies the current values (a tenth of
-    the time of `tie_points`). Another reconstruction, or points added or deleted, are looked
-    up anew."""
+    the time of `tie_points`). Another reconstruction, or a changed number of points, is looked
+    up anew: for a reconstruction whose points are only moved (an adjustment, a transform), as
+    in the refine loop, not one that deletes some points and adds as many."""
 
     def __init__(self, exclude: set[int] | None = None, ids: np.ndarray | None = None):
         self._exclude, self._wanted = exclude, ids
@@ -40,7 +41,8 @@ class TiePointReader:
         self._views: list[np.ndarray] = []
 
     def __call__(self, rec: pycolmap.Reconstruction) -> tuple[np.ndarray, np.ndarray]:
-        """(ids ascending, read-only; (N, 3) coordinates, a copy)."""
+        """(ids, read-only: ascending, or in the order `ids` gave them; (N, 3) coordinates,
+        a copy)."""
         if rec is not self._rec or rec.num_points3D() != self._count:
             self._look_up(rec)
         xyz = (np.concatenate(self._views).reshape(-1, 3) if self._views
