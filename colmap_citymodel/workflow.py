@@ -1,7 +1,8 @@
 """The refine step (`colmap_citymodel.refine`): global workflow of Unger Table 3 with any
-assignment method (direct (a) by default; (b), (c), auto), or the sliding-window workflow
-(`[workflow] mode = "sliding_window"`, Unger Table 5; adjust.sliding_window) whose windows
-run between the coarse alignment and the final global adjustment below.
+assignment method ("auto" by default: (c), then (a); or (a), (b), (c) throughout), or the
+sliding-window workflow (`[workflow] mode = "sliding_window"`, Unger Table 5;
+adjust.sliding_window) whose windows run between the coarse alignment and the final global
+adjustment below.
 
 1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform;
    along a straight line the cameras' upright orientation fixes the roll);
