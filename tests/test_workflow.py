@@ -698,3 +698,17 @@ def test_a_robust_solve_that_leaves_the_model_is_followed_at_once(scene, monkeyp
     assert any(it.num_eliminated for it in result.iterations)
     assert not any(it.todict()["robust_only"] for it in result.iterations)
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_default_assignment_needs_no_more_iterations_than_direct(scene, refined):
+    """The default ("auto": ROI-MSAC first, then direct) starts from tie points that form planes
+    near the model's; it must not need more iterations than direct assignment, nor end
+    further from the truth."""
+    assert RefineOptions().assignment.method == "auto"
+    options = RefineOptions()
+    options.assignment.method = "direct"
+    direct = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert len(refined.iterations) <= len(direct.iterations)
+    assert (rms(centre_errors(refined.reconstruction, scene.truth))
+            <= 1.1 * rms(centre_errors(direct.reconstruction, scene.truth)))
+    assert refined.quality.verdict == direct.quality.verdict == "ok"
