@@ -34,7 +34,7 @@ class AssignmentOptions:
     Default "auto": its first assignment takes only points that form a plane near each model
     plane, where (a) at 2 m also takes the clutter in front of the facades, so the loop needs
     fewer iterations after it: short Scn3 converged in 4 iterations instead of 6 (refine
-    9.6 s instead of 14.7 s in one run), check points 0.259 m instead of 0.264 m; short and
+    12.2 s instead of 17.6 s in one run), check points 0.259 m instead of 0.264 m; short and
     long Scn1-4 within 2.5 % of (a) or better (long Scn3 0.154 / 0.158 m, Scn4 0.169 /
     0.167 m); the robustness blocks and the capture runs as close to the truth as with (a) or
     closer (benchmarks/results/robustness.md, capture.md). Not always faster: long Scn3 took
