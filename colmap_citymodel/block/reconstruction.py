@@ -11,18 +11,9 @@ import pycolmap
 
 def tie_points(rec: pycolmap.Reconstruction, exclude: set[int] | None = None
                ) -> tuple[np.ndarray, np.ndarray]:
-    # One pass over the points (by id, each lookup took as long again).
-    points = rec.points3D
-    ids = np.fromiter(points.keys(), np.int64, count=len(points))
-    # (concatenating the (3,) arrays: a third faster than np.array of the list)
-    xyz = (np.concatenate([point.xyz for point in points.values()]).reshape(-1, 3)
-           if len(points) else np.zeros((0, 3)))
-    order = np.argsort(ids)  # ascending ids, as point3D_ids() gives them
-    ids, xyz = ids[order], xyz[order]
-    if exclude:
-        keep = ~np.isin(ids, np.fromiter(exclude, np.int64, count=len(exclude)))
-        ids, xyz = ids[keep], xyz[keep]
-    return ids, xyz
+    """(ids ascending, (N, 3) coordinates) of every tie point but `exclude`, read once."""
+    ids, xyz = TiePointReader(exclude)(rec)
+    return ids.copy(), xyz  # the caller's own ids (the reader keeps its own read-only)
 
 
 class TiePointReader:
