@@ -211,14 +211,17 @@ class AdjustmentOptions:
     correction_significance: float = 3.0
     """A vertex shift counts as significant when |shift| / sigma (sigma of the corrected
     vertex along the shift, scaled by s0) exceeds this."""
-    image_loss: str = "huber"
-    """Robust loss on image observations in step 2: "huber" or "cauchy" (method.md allows
-    either). Huber is convex: from COLMAP's output it converged in 15 Ceres iterations where
-    Cauchy needed 103 (short Scn3, benchmarks/bench_refine.py); it eliminated 1809 instead of
-    3324 image observations and the refined camera centres stayed as close to the truth
-    (0.346 vs 0.345 m RMS)."""
+    image_loss: str = "none"
+    """How step 2 treats outliers among the image observations. "none": solve with the
+    original weights, eliminate observations beyond `elimination_threshold`, solve again with
+    the original weights (Foerstner and Wrobel's scheme without its reweighting phase, which
+    COLMAP's mapper has already done: it keeps no observation beyond 4 px). "huber" or
+    "cauchy": solve with that robust loss, then eliminate (no second solve). From COLMAP's
+    output of short Scn3 "none" needs 1 + 2 Ceres iterations where Huber needs 15 (its
+    reweighting of the many residuals near 1 px) and leaves the GNSS-only cameras as close to
+    the truth (2.230 vs 2.228 m); Cauchy needed 103."""
     image_loss_scale: float = 1.0
-    """Scale (px) of the robust reprojection loss in step 2."""
+    """Scale (px) of the robust reprojection loss in step 2 ("huber", "cauchy")."""
     plane_loss_scale: float = 2.0
     """Huber scale (in units of sigma_dTP) of the robust f_dTP loss in step 4."""
     elimination_threshold: float = 3.0
@@ -344,7 +347,7 @@ def _check_number(name: str, value, source) -> None:
 
 
 #: Options that take one of a few words.
-CHOICES = {"adjustment.image_loss": ("huber", "cauchy"),
+CHOICES = {"adjustment.image_loss": ("none", "huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
            "assignment.auto_indirect_method": ("msac", "roi_msac"),

@@ -6,8 +6,9 @@ adjustment below.
 
 1. SfM (COLMAP, done before) + 7-parameter similarity to GNSS (or a given initial transform;
    along a straight line the cameras' upright orientation fixes the roll);
-2. bundle adjustment with GNSS priors and no model, robust on image observations; image
-   observations with normalised residual > 3 eliminated. This is the GNSS-only result that
+2. bundle adjustment with GNSS priors and no model; image observations with normalised
+   residual > 3 eliminated and the adjustment repeated without them (AdjustmentOptions.
+   image_loss). This is the GNSS-only result that
    the quality gate compares with and hands back when the model cannot help;
    then coarse alignment: the block's shift (and roll about a straight line) against the
    model surfaces within a few GNSS sigma (align.coarse);

@@ -32,7 +32,7 @@ def test_toml_file_overrides_the_preset(tmp_path):
     ("[adjustment]\nsigma_dpt = 0.1\n", "unknown option adjustment.sigma_dpt"),
     ("[adjustmnet]\nsigma_dtp = 0.1\n", "unknown options section"),
     ('[adjustment]\nsigma_dtp = "big"\n', "must be float"),
-    ('[adjustment]\nimage_loss = "tukey"\n', "must be one of huber, cauchy"),
+    ('[adjustment]\nimage_loss = "tukey"\n', "must be one of none, huber, cauchy"),
     ("[adjustment\n", "not a valid TOML file"),
 ])
 def test_bad_options_file_names_the_file_and_entry(tmp_path, text, message):

@@ -44,13 +44,22 @@ class RoofObservers:
 
 def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
                             options: RefineOptions) -> tuple[SolveReport, int]:
-    """BA with GNSS priors and no model, robust on image observations; then eliminate image
-    observations with normalised residual > 3 (and points with too small intersection angle)."""
+    """BA with GNSS priors and no model; image observations with normalised residual > 3 (and
+    points with too small intersection angle) eliminated, then, with the original weights
+    (`AdjustmentOptions.image_loss` "none"), the adjustment repeated without them; with a
+    robust image loss the robust solve comes first and is not repeated."""
     o = options.adjustment
-    problem = HybridProblem(rec, None, None, gnss, o, robust_images=True, robust_planes=False)
-    report = problem.solve()
+    robust = o.image_loss != "none"
+    report = HybridProblem(rec, None, None, gnss, o, robust_images=robust,
+                           robust_planes=False).solve()
     eliminated = pycolmap.ObservationManager(rec).filter_all_points3D(
         o.elimination_threshold * o.sigma_image, o.min_triangulation_angle)
+    if not robust and eliminated:
+        first = report
+        report = HybridProblem(rec, None, None, gnss, o, robust_images=False,
+                               robust_planes=False).solve()
+        report.ceres_iterations += first.ceres_iterations
+        report.seconds += first.seconds
     logger.info("step 2 (BA without model): %d Ceres iterations, %.1f s, image RMS %.3f px, "
                 "%d image observations eliminated", report.ceres_iterations, report.seconds,
                 report.rms["image"] * o.sigma_image, eliminated)
