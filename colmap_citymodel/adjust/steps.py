@@ -8,6 +8,7 @@ import logging
 
 import numpy as np
 import pycolmap
+from scipy.spatial.transform import Rotation
 
 from ..align.objective import BlockObjective
 from ..assign.assignment import Assignment, Observers
@@ -66,6 +67,11 @@ def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | Non
     return report, int(eliminated)
 
 
+#: Fractions of an alignment round's similarity tried, in this order, when the whole of it
+#: raises the block objective.
+STEP_FRACTIONS = (0.5, 0.25, 0.125)
+
+
 def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                           points: np.ndarray, assignment: Assignment, store: PlaneStore,
                           priors: GNSSPriors | None, threshold: float, options: RefineOptions,
@@ -74,7 +80,8 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                           ) -> tuple[pycolmap.Sim3d, np.ndarray, Assignment]:
     """Refine's initial alignment rounds: fit a similarity to the assigned planes, move `rec`
     by it, assign again at `threshold`, until a fit moves the tie points by less than
-    `alignment_tolerance` on average. With an `objective`, a round that does not lower it is
+    `alignment_tolerance` on average. With an `objective`, a round whose similarity does not
+    lower it tries `STEP_FRACTIONS` of that similarity; when none lowers it the round is
     undone and ends the rounds. Returns the total similarity and the moved `points` (same ids)
     with their last assignment."""
     total = pycolmap.Sim3d()
@@ -84,6 +91,18 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                                       scale_sigma)
         if objective is not None:
             new_value = objective(rec, move)
+            for fraction in STEP_FRACTIONS:
+                if new_value < value:
+                    break
+                # The fit's optimum can overshoot (at the first, wide threshold part of the
+                # assignments are wrong): a shorter step towards it may still help.
+                shorter = partial_similarity(move, fraction, points.mean(0))
+                shorter_value = objective(rec, shorter)
+                if shorter_value < value:
+                    logger.info("alignment round: objective %.4f -> %.4f for the whole move, "
+                                "%.4f for %.3g of it", value, new_value, shorter_value, fraction)
+                    move, new_value = shorter, shorter_value
+                    moved = transformed(points, move)
             if new_value >= value:
                 logger.info("alignment round undone: objective %.4f -> %.4f", value, new_value)
                 break
@@ -96,6 +115,23 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
         if mean_shift < options.workflow.alignment_tolerance or not assignment.num_assigned:
             break
     return total, points, assignment
+
+
+def transformed(points: np.ndarray, sim3: pycolmap.Sim3d) -> np.ndarray:
+    matrix = np.asarray(sim3.matrix())
+    return points @ matrix[:, :3].T + matrix[:, 3]
+
+
+def partial_similarity(move: pycolmap.Sim3d, fraction: float, centre: np.ndarray
+                       ) -> pycolmap.Sim3d:
+    """`fraction` of the similarity `move` (scale, rotation angle and the shift of `centre`
+    each scaled), as a step towards it."""
+    matrix = np.asarray(move.matrix())
+    rotation = Rotation.from_matrix(matrix[:, :3] / move.scale)
+    partial = Rotation.from_rotvec(rotation.as_rotvec() * fraction).as_matrix()
+    scale = move.scale ** fraction
+    target = centre + fraction * (matrix[:, :3] @ centre + matrix[:, 3] - centre)
+    return pycolmap.Sim3d(scale, pycolmap.Rotation3d(partial), target - scale * partial @ centre)
 
 
 def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment: Assignment,
@@ -115,8 +151,7 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
     result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
                                   options.sigma_dtp, options.plane_loss_scale,
                                   scale_sigma=scale_sigma, **gnss)
-    matrix = np.asarray(result.sim3.matrix())
-    moved = points @ matrix[:, :3].T + matrix[:, 3]
+    moved = transformed(points, result.sim3)
     logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
                 "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
                 "%.3f m", int(assigned.sum()), result.iterations,
