@@ -214,8 +214,8 @@ class AdjustmentOptions:
     image_loss: str = "none"
     """How step 2 treats outliers among the image observations. "none": solve with the
     original weights, eliminate observations beyond `elimination_threshold`, solve again with
-    the original weights (Foerstner and Wrobel's scheme without its reweighting phase, which
-    COLMAP's mapper has already done: it keeps no observation beyond 4 px). "huber" or
+    the original weights (Foerstner and Wrobel's scheme without its reweighting phase: COLMAP's
+    mapper already drops observations beyond 4 px, `filter_max_reproj_error`). "huber" or
     "cauchy": solve with that robust loss, then eliminate (no second solve). From COLMAP's
     output of short Scn3 "none" needs 1 + 2 Ceres iterations where Huber needs 15 (its
     reweighting of the many residuals near 1 px) and leaves the GNSS-only cameras as close to
