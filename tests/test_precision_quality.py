@@ -175,8 +175,8 @@ def test_verdict_rules():
     # fit that carried the height along).
     onto_walls = quality_verdict({**height, "near_share_moved_back": {"U": 0.3}})
     assert onto_walls.verdict == "weak" and "10 % -> 80 %" in onto_walls.reasons[0]
-    carried = quality_verdict({**height, "near_share_moved_back": {"U": 0.75}})
-    assert carried.verdict == "failed" and "moved back in U, 75 %" in carried.reasons[0]
+    carried = quality_verdict({**height, "near_share_moved_back": {"U": 0.72}})
+    assert carried.verdict == "failed" and "moved back in U, 72 %" in carried.reasons[0]
     assert quality_verdict({**good, "near_share": 0.05}).verdict == "failed"
     assert quality_verdict({**good, "planes_fix": []}).verdict == "weak"
     one_roof = quality_verdict({**good, "planes_fix": ["E", "N"], "one_plane": ["U"]})

@@ -51,6 +51,13 @@ class QualityThresholds:
     there), not a runaway. On a drive whose GNSS heights were 7.8-11 m off, refine moved the
     height by 7-10 m (9-13 sigma of GNSS there) onto walls and eaves, from 0-12 % to 79-82 % of
     the tie points near the model, and ended 0.3-0.9 m from the truth in height."""
+    axis_evidence_share: float = 0.2
+    """A move along one axis is the model's evidence only when the tie points, moved back
+    along that axis to the GNSS-only level, lose at least this share of the near share the
+    whole move gained: an orbit's height carried 4.8 m by a horizontal fit (8 % -> 56 % near
+    the model) kept 53 % moved back (5 % of the gain); a drive moved 4.0 m across the street
+    (7 % -> 63 %) fell to 46 % (31 %); drives whose heights moved 6.6-10.6 m onto walls and
+    eaves (0-18 % -> 79-81 %) fell to 2-48 % (53-98 %)."""
     scale_failed_sigmas: float = 5.0
     """Scale change from the GNSS-only result beyond this many of its GNSS sigmas: failed."""
     scale_gnss_sigmas: float = 3.0
@@ -160,12 +167,10 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
     def moved_where_gnss_checks(axis: str, sigmas: float, text: str) -> None:
         """A move along a direction that only GNSS checks, beyond `gnss_axis_weak` of its
         sigma: failed beyond `gnss_axis_failed` unless the model's evidence backs it, and
-        backs this move: moved back along the axis, fewer tie points lie near the model by
-        `model_evidence_gain` (an orbit's height moved 4.8 m by a horizontal fit that brought
-        8 % -> 56 % of the tie points near the model kept 53 % moved back; drives whose
-        heights moved 6.6-10.6 m onto walls and eaves fell from 79-81 % to 2-48 %)."""
+        backs this move (`axis_evidence_share`)."""
         beyond = sigmas > t.gnss_axis_failed
-        by_axis = axis not in moved_back or after - moved_back[axis] >= t.model_evidence_gain
+        by_axis = (axis not in moved_back or before is None
+                   or after - moved_back[axis] >= t.axis_evidence_share * (after - before))
         held = backed and by_axis
         (failed if beyond and not held else weak).append(
             text + (evidence if held and beyond else "")
