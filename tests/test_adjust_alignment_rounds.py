@@ -10,8 +10,9 @@ import pytest
 
 from colmap_citymodel.adjust.steps import (STEP_FRACTIONS, align_block_to_planes,
                                            align_to_planes, partial_similarity,
-                                           step2_bundle_adjustment, transformed)
+                                           step2_bundle_adjustment)
 from colmap_citymodel.align.block_to_model import georegister
+from colmap_citymodel.align.georegister import transform_points
 from colmap_citymodel.assign.schedule import assign
 from colmap_citymodel.block.reconstruction import tie_points
 from colmap_citymodel.options import RefineOptions
@@ -36,11 +37,11 @@ def test_a_fraction_of_a_similarity_scales_its_angle_scale_and_the_centres_shift
         angle = rotation_angle(np.asarray(move.rotation.matrix()))
         assert rotation_angle(np.asarray(part.rotation.matrix())) == pytest.approx(
             fraction * angle)
-        shift = transformed(centre[None], move)[0] - centre
-        np.testing.assert_allclose(transformed(centre[None], part)[0] - centre,
+        shift = transform_points(move, centre[None])[0] - centre
+        np.testing.assert_allclose(transform_points(part, centre[None])[0] - centre,
                                    fraction * shift, atol=1e-9)
     points = rng.normal(size=(5, 3))
-    np.testing.assert_allclose(transformed(points, partial_similarity(move, 0.0, centre)),
+    np.testing.assert_allclose(transform_points(partial_similarity(move, 0.0, centre), points),
                                points, atol=1e-12)
 
 
@@ -55,7 +56,7 @@ class CentroidObjective:
         centres = np.array([im.projection_center() for im in rec.images.values()
                             if im.has_pose])
         if moved is not None:
-            centres = transformed(centres, moved)
+            centres = transform_points(moved, centres)
         return float(np.linalg.norm(centres.mean(0) - self.target))
 
 
@@ -89,7 +90,7 @@ def test_a_round_that_overshoots_takes_the_first_shorter_step_that_helps(street_
     centres = np.array([im.projection_center() for im in rec0.images.values()])
     # The best the objective knows lies a fifth of the way: the whole move and half of it are
     # worse than staying, a quarter of it is better.
-    full_shift = transformed(centres, move).mean(0) - centres.mean(0)
+    full_shift = transform_points(move, centres).mean(0) - centres.mean(0)
     assert np.linalg.norm(full_shift) > 0.5
     objective = CentroidObjective(centres.mean(0) + 0.2 * full_shift)
     assert objective(rec0, move) > objective(rec0)

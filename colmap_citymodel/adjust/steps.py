@@ -10,6 +10,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation
 
+from ..align.georegister import transform_points
 from ..align.objective import BlockObjective
 from ..assign.assignment import Assignment, Observers
 from ..assign.schedule import assign
@@ -102,7 +103,7 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
                     logger.info("alignment round: objective %.4f -> %.4f for the whole move, "
                                 "%.4f for %.3g of it", value, new_value, shorter_value, fraction)
                     move, new_value = shorter, shorter_value
-                    moved = transformed(points, move)
+                    moved = transform_points(move, points)
             if new_value >= value:
                 logger.info("alignment round undone: objective %.4f -> %.4f", value, new_value)
                 break
@@ -117,20 +118,14 @@ def align_block_to_planes(rec: pycolmap.Reconstruction, point_ids: np.ndarray,
     return total, points, assignment
 
 
-def transformed(points: np.ndarray, sim3: pycolmap.Sim3d) -> np.ndarray:
-    matrix = np.asarray(sim3.matrix())
-    return points @ matrix[:, :3].T + matrix[:, 3]
-
-
 def partial_similarity(move: pycolmap.Sim3d, fraction: float, centre: np.ndarray
                        ) -> pycolmap.Sim3d:
     """`fraction` of the similarity `move` (scale, rotation angle and the shift of `centre`
     each scaled), as a step towards it."""
-    matrix = np.asarray(move.matrix())
-    rotation = Rotation.from_matrix(matrix[:, :3] / move.scale)
+    rotation = Rotation.from_matrix(np.asarray(move.rotation.matrix()))
     partial = Rotation.from_rotvec(rotation.as_rotvec() * fraction).as_matrix()
     scale = move.scale ** fraction
-    target = centre + fraction * (matrix[:, :3] @ centre + matrix[:, 3] - centre)
+    target = centre + fraction * (transform_points(move, centre[None])[0] - centre)
     return pycolmap.Sim3d(scale, pycolmap.Rotation3d(partial), target - scale * partial @ centre)
 
 
@@ -151,7 +146,7 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
     result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
                                   options.sigma_dtp, options.plane_loss_scale,
                                   scale_sigma=scale_sigma, **gnss)
-    moved = transformed(points, result.sim3)
+    moved = transform_points(result.sim3, points)
     logger.info("block moved onto the planes of its %d assigned tie points by a similarity "
                 "(%d iterations): mean shift %.2f m, scale %.5f, inlier distance RMS %.3f -> "
                 "%.3f m", int(assigned.sum()), result.iterations,

@@ -107,7 +107,8 @@ def _principal_std(points: np.ndarray) -> np.ndarray:
     return np.linalg.svd(centred, compute_uv=False) / np.sqrt(max(len(points), 1))
 
 
-def _transform(sim3, points: np.ndarray) -> np.ndarray:
+def transform_points(sim3, points: np.ndarray) -> np.ndarray:
+    """(N, 3) `points` mapped by the similarity `sim3`."""
     matrix = np.asarray(sim3.matrix())
     return points @ matrix[:, :3].T + matrix[:, 3]
 
@@ -173,7 +174,7 @@ def estimate_georegistration(
     def along_the_line(reason: str) -> Georegistration:
         # GNSS fixes the line but not the rotation about it: take that from the cameras.
         sim3 = upright_line_similarity(source, target, *camera_axes(reconstruction, image_ids))
-        residuals = target - _transform(sim3, source)
+        residuals = target - transform_points(sim3, source)
         rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
         warnings.append(
             f"the camera centres with GNSS deviate only ~{lateral:.1f} m from a line ({reason}): "
@@ -206,7 +207,7 @@ def estimate_georegistration(
             f"RANSAC found no similarity transform from {len(target)} camera centres to GNSS "
             f"within {threshold:.2f} m"
         )
-    inliers = np.linalg.norm(target - _transform(sim3, source), axis=1) <= threshold
+    inliers = np.linalg.norm(target - transform_points(sim3, source), axis=1) <= threshold
     for _ in range(3):
         # Least-squares refit on the inliers (deterministic), re-classify, until stable.
         if inliers.sum() < 3:
@@ -214,14 +215,14 @@ def estimate_georegistration(
         refit = pycolmap.estimate_sim3d(source[inliers], target[inliers])
         if refit is None:
             break
-        new_inliers = np.linalg.norm(target - _transform(refit, source), axis=1) <= threshold
+        new_inliers = np.linalg.norm(target - transform_points(refit, source), axis=1) <= threshold
         if new_inliers.sum() < inliers.sum():
             break
         stable = np.array_equal(new_inliers, inliers)
         sim3, inliers = refit, new_inliers
         if stable:
             break
-    residuals = target - _transform(sim3, source)
+    residuals = target - transform_points(sim3, source)
     num = int(inliers.sum())
     if num < min_inliers:
         raise GeoregistrationError(

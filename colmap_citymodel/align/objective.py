@@ -7,6 +7,7 @@ import pycolmap
 
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import TiePointReader
+from .georegister import transform_points
 
 
 class BlockObjective:
@@ -39,10 +40,9 @@ class BlockObjective:
         if self.priors is not None:
             antennas = self.priors.observed_points(rec)
         if moved is not None:
-            matrix = np.asarray(moved.matrix())
-            points = points @ matrix[:, :3].T + matrix[:, 3]
+            points = transform_points(moved, points)
             if antennas is not None:
-                antennas = antennas @ matrix[:, :3].T + matrix[:, 3]
+                antennas = transform_points(moved, antennas)
         value = -near_share(self.surface(points, self.radius), self.radius)
         if antennas is not None:
             v = self.priors.normalised_residuals(antennas)
