@@ -7,10 +7,12 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
+# libusb-1.0-0, libegl1, libgl1, libx11-6: what the open3d-cpu wheel links against.
+# python3-dev: the headers the extension's build needs for Debian's own python3.
 # proj-data: the worldwide EGM96 geoid (egm96_15.gtx) for GNSS heights where the national
 # geoid grid of the city model's height system is missing.
-APT_PACKAGES=(libceres-dev libeigen3-dev libgoogle-glog-dev libusb-1.0-0 g++ cmake python3-venv
-  proj-data)
+APT_PACKAGES=(libceres-dev libeigen3-dev libgoogle-glog-dev libusb-1.0-0 libegl1 libgl1 libx11-6
+  g++ cmake python3-venv python3-dev proj-data)
 
 missing=()
 for pkg in "${APT_PACKAGES[@]}"; do
@@ -70,8 +72,9 @@ fi
 
 echo "bootstrap: installing colmap-citymodel into .venv (builds the C++ extension)"
 # Build requirements in the venv itself (pinned pybind11 3.0.x: shared internals with
-# pycolmap/pyceres), then build without isolation so the in-place CMake cache stays valid.
-.venv/bin/python -m pip install "scikit-build-core>=0.10" "pybind11>=3.0,<3.1"
+# pycolmap/pyceres; ninja, which a bare Debian lacks as it lacks make), then build without
+# isolation so the in-place CMake cache stays valid.
+.venv/bin/python -m pip install "scikit-build-core>=0.10" "pybind11>=3.0,<3.1" ninja
 .venv/bin/python -m pip install --no-build-isolation -e ".[test]"
 .venv/bin/python -c "from colmap_citymodel._ext import load_core; load_core()"
 echo "$stamp" > "$stamp_file"
