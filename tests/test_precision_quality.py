@@ -212,6 +212,13 @@ def test_verdict_rules():
     far_backed = quality_verdict({**roof, "near_share_gnss_only": 0.1,
                                   "one_plane_shift_sigmas": {"U": 8.0}})
     assert far_backed.verdict == "weak" and any("10 % -> 80 %" in r for r in far_backed.reasons)
+    # Fewer tie points near the model than with GNSS only, however few fewer: failed, with
+    # the two shares printed so that they differ.
+    fewer = quality_verdict({**good, "near_share": 0.8087, "near_share_gnss_only": 0.8112})
+    assert fewer.verdict == "failed" and "(80.9 %) than with GNSS only (81.1 %)" in \
+        fewer.reasons[0]
+    assert "(70 %) than with GNSS only (81 %)" in quality_verdict(
+        {**good, "near_share": 0.7, "near_share_gnss_only": 0.81}).reasons[0]
     t = QualityThresholds()
     assert quality_verdict({**good, "near_share": (t.min_near_share + t.failed_near_share) / 2}
                            ).verdict == "weak"
