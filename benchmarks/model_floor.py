@@ -170,9 +170,9 @@ def model_fit(points_crs: np.ndarray, store, threshold: float) -> dict:
 AXIS_LEVER_M = 10.0
 
 
-def pose_points(rec: pycolmap.Reconstruction, names: list[str], origin: np.ndarray
-                ) -> np.ndarray:
-    """Per image (by name): its projection centre and the points AXIS_LEVER_M along its camera
+def pose_points(rec: pycolmap.Reconstruction, names: list[str], origin: np.ndarray,
+                lever: float = AXIS_LEVER_M) -> np.ndarray:
+    """Per image (by name): its projection centre and the points `lever` along its camera
     axes, model CRS (`origin` added to the reconstruction's frame)."""
     by_name = {image.name: image for image in rec.images.values()}
     out = []
@@ -180,7 +180,7 @@ def pose_points(rec: pycolmap.Reconstruction, names: list[str], origin: np.ndarr
         image = by_name[name]
         centre = image.projection_center() + origin
         axes = np.asarray(image.cam_from_world().rotation.matrix())
-        out += [centre, *(centre + AXIS_LEVER_M * axes)]
+        out += [centre, *(centre + lever * axes)]
     return np.array(out)
 
 
@@ -215,24 +215,29 @@ def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: fl
     options = RefineOptions.preset("generalised")
     options.precision.covariances = "off"
     result = refine(rec, store, gnss, options, progress=False)
-    refined = np.array([p.xyz for p in result.reconstruction.points3D.values()]) + store.origin
-    cameras = centre_errors(result.reconstruction, store.origin, centres)
+
+    def block_of(r):
+        """Refine's own block, also where its verdict "failed" handed back the GNSS-only one."""
+        return r.refined if r.refined is not None else r.reconstruction
+
+    own = block_of(result)
+    refined = np.array([p.xyz for p in own.points3D.values()]) + store.origin
+    cameras = centre_errors(own, store.origin, centres)
     at_truth = refine(rec, store, true_centres_as_gnss(centres, store, gnss_sigma), options,
                       progress=False)
-    started = {"cameras": centre_errors(at_truth.reconstruction, store.origin, centres),
+    started = {"cameras": centre_errors(block_of(at_truth), store.origin, centres),
                "gnss_only": centre_errors(at_truth.gnss_only, store.origin, centres),
-               "verdict": at_truth.quality.verdict}
+               "verdict": at_truth.quality.verdict, "reasons": at_truth.quality.reasons}
     first = {image.name: image.projection_center()
-             for image in result.reconstruction.images.values() if image.has_pose}
+             for image in own.images.values() if image.has_pose}
     apart = np.array([image.projection_center() - first[image.name]
-                      for image in at_truth.reconstruction.images.values()
+                      for image in block_of(at_truth).images.values()
                       if image.has_pose and image.name in first])
     started["apart_rms"] = np.sqrt(np.mean(apart ** 2, axis=0)).tolist()
     truth = pycolmap.Reconstruction(str(workspace / "truth"))
     origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3]
-    names = sorted(image.name for image in result.reconstruction.images.values()
-                   if image.has_pose)
-    pose = helmert_transform(pose_points(result.reconstruction, names, store.origin),
+    names = sorted(image.name for image in own.images.values() if image.has_pose)
+    pose = helmert_transform(pose_points(own, names, store.origin),
                              pose_points(truth, names, origin))
     return {"refine": model_fit(refined, store, threshold),
             "truth": model_fit(block[0], store, threshold),
@@ -242,7 +247,88 @@ def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: fl
             "gnss_only_rms_3d": (centre_errors(result.gnss_only, store.origin,
                                                centres).get("rms_3d")
                                  if result.gnss_only is not None else None),
-            "verdict": result.quality.verdict, "started_at_truth": started}
+            "verdict": result.quality.verdict, "started_at_truth": started,
+            "assignment_at_truth": assignment_at_truth(workspace, result, threshold)}
+
+
+#: Faces whose assigned tie points lie further than this from their plane on average at the
+#: truth are listed, with at least this many points.
+OFF_FACE_M, OFF_FACE_POINTS = 0.3, 50
+
+
+def assignment_at_truth(workspace: Path, result, threshold: float) -> dict:
+    """Refine's last assignment judged at the truth: the SfM block (the workspace's
+    reconstruction, whose shape is within millimetres of the truth's) moved onto the true
+    block by the similarity of their cameras (`pose_points`), and the similarity fit with
+    every point weighted alike and the planes alone (`floor`'s) made twice, with refine's
+    assignment and with the points assigned afresh at `threshold` at the truth; the faces
+    whose points lie further than OFF_FACE_M from their plane on average at the truth."""
+    from colmap_citymodel.precision.checkpoints import helmert_transform
+
+    store = result.store  # the faces refine's assignment indexes (cropped to the block)
+    sfm = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
+    truth = pycolmap.Reconstruction(str(workspace / "truth"))
+    origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3]
+    names = sorted(image.name for image in sfm.images.values() if image.has_pose)
+    true_centres = np.array([truth.find_image_with_name(n).projection_center()
+                             for n in names]) + origin
+    # SfM's frame has its own unit: the axis points at the same distance in metres.
+    unit = helmert_transform(true_centres, [sfm.find_image_with_name(n).projection_center()
+                                            for n in names]).scale
+    onto_truth = helmert_transform(pose_points(truth, names, origin),
+                                   pose_points(sfm, names, np.zeros(3), AXIS_LEVER_M / unit))
+    ids = np.array(list(sfm.points3D.keys()), dtype=np.int64)
+    points = store.to_local(onto_truth.apply(np.array([sfm.points3D[i].xyz for i in ids])))
+    centres = store.to_local(true_centres)
+    row = {point_id: k for k, point_id in enumerate(ids.tolist())}  # point id -> row
+    assignment = result.assignment
+    mask = assignment.assigned & np.isin(assignment.point_ids, ids)
+    refine_rows = np.array([row[int(i)] for i in assignment.point_ids[mask]], dtype=np.int64)
+    refine_faces = assignment.face_index[mask]
+    fresh = assign_direct(points, ids, store, threshold, AssignmentOptions())
+
+    def fit(rows: np.ndarray, faces: np.ndarray) -> dict:
+        weights = np.full(len(rows), 1.0 / SIGMA_DTP ** 2)
+        centre = centres.mean(axis=0)
+        params = fit_similarity(points[rows], store.normals[faces], store.offsets[faces],
+                                weights, centre, LOOSE_PRIORS)
+        error = apply(params, centres, centre) - centres
+        rms = np.sqrt(np.mean(error ** 2, axis=0))
+        return {"points": int(len(rows)), "faces": int(len(np.unique(faces))),
+                "rms": rms.tolist(), "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
+                "scale_ppm": float(params[6] * 1e6)}
+
+    distances = (np.einsum("ij,ij->i", points[refine_rows], store.normals[refine_faces])
+                 + store.offsets[refine_faces])
+    off = []
+    for face in np.unique(refine_faces):
+        d = distances[refine_faces == face]
+        if len(d) >= OFF_FACE_POINTS and abs(d.mean()) > OFF_FACE_M:
+            off.append({"face": int(face), "points": int(len(d)), "mean_m": float(d.mean()),
+                        "normal": np.round(store.normals[face], 2).tolist(),
+                        "beyond_threshold": int(np.sum(np.abs(d) > threshold))})
+    return {"refine": fit(refine_rows, refine_faces),
+            "fresh": fit(np.flatnonzero(fresh.assigned), fresh.face_index[fresh.assigned]),
+            "off_faces": off, "camera_fit_rms": onto_truth.rms_3d}
+
+
+def assignment_table(rows: dict, threshold: float) -> list[str]:
+    lines = ["| case | assignment | points | faces | cameras after the fit: X | Y | Z | 3D "
+             "| scale (ppm) | faces off at the truth (points, mean distance) |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for case, row in rows.items():
+        judged = row.get("assignment_at_truth")
+        if not judged:
+            continue
+        for key, label in (("refine", "refine's last"), ("fresh", f"at the truth, {threshold} m")):
+            f = judged[key]
+            off = ("; ".join(f"{o['points']} on a face with normal {o['normal']}, "
+                             f"{o['mean_m']:+.2f} m" for o in judged["off_faces"]) or "none"
+                   ) if key == "refine" else ""
+            lines.append(f"| {case} | {label} | {f['points']} | {f['faces']} | "
+                         f"{f['rms'][0]:.3f} | {f['rms'][1]:.3f} | {f['rms'][2]:.3f} | "
+                         f"{f['rms_3d']:.3f} | {f['scale_ppm']:.0f} | {off} |")
+    return lines
 
 
 def preference_table(rows: dict) -> list[str]:
@@ -274,6 +360,8 @@ def started_at_truth_table(rows: dict) -> list[str]:
                 ("the workspace's (biased)", r["cameras"], r.get("gnss_only_rms_3d"), r["verdict"]),
                 ("the true centres", start["cameras"], start["gnss_only"]["rms_3d"],
                  start["verdict"])):
+            if verdict == "failed":
+                verdict += " (the GNSS-only block handed back)"
             only = f"{gnss_only:.3f}" if gnss_only is not None else "-"
             lines.append(f"| {case} | {label} | {only} | {cameras['rms_x']:.3f} | "
                          f"{cameras['rms_y']:.3f} | {cameras['rms_z']:.3f} | "
@@ -410,8 +498,19 @@ def main() -> None:
                   "Refine started at the truth: the true projection centres as GNSS (sigma "
                   f"{'/'.join(f'{v:g}' for v in args.gnss_sigma)} m, no bias), against refine "
                   "with the workspace's GNSS (3-5 m bias); camera-centre RMS against the truth "
-                  "(m), and the two results' cameras apart:", "",
-                  *started_at_truth_table(preferences), ""]
+                  "(m) of refine's own block (also where its verdict handed back the GNSS-only "
+                  "one), and the two results' cameras apart:", "",
+                  *started_at_truth_table(preferences), "",
+                  "Refine's last assignment judged at the truth: the SfM block moved onto the "
+                  "true cameras by a similarity, its tie points then fitted onto the planes "
+                  "they were assigned to (every point alike, the planes alone, as `per point, "
+                  "planes alone` above), against the same fit with the points assigned afresh "
+                  "at the truth; and the faces of refine's assignment whose points lie more "
+                  f"than {OFF_FACE_M} m from the plane on average at the truth (at least "
+                  f"{OFF_FACE_POINTS} points): where the first fit ends far from the second, "
+                  "refine's assignment carries the error, and these faces hold points of "
+                  "surfaces other than their own:", "",
+                  *assignment_table(preferences, args.threshold), ""]
     (RESULTS / "model_floor.md").write_text("\n".join(lines))
 
 if __name__ == "__main__":
