@@ -45,9 +45,11 @@ cleanup() {
   for ((i = ${#mounted[@]} - 1; i >= 0; i--)); do umount -R "${mounted[i]}" || true; done
 }
 trap cleanup EXIT
-mount -t proc proc "$root/proc" && mounted+=("$root/proc")
+mount -t proc proc "$root/proc"
+mounted+=("$root/proc")
 for dir in sys dev; do
-  mount --rbind "/$dir" "$root/$dir" && mounted+=("$root/$dir")
+  mount --rbind "/$dir" "$root/$dir"
+  mounted+=("$root/$dir")
 done
 
 commands="bash scripts/run_demo.sh"
