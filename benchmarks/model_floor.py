@@ -107,6 +107,17 @@ def apply(params: np.ndarray, x: np.ndarray, centre: np.ndarray) -> np.ndarray:
     return x + params[:3] + np.cross(params[3:6], r) + params[6] * r
 
 
+def camera_error(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
+                 weights: np.ndarray, centres: np.ndarray, prior_sigmas: np.ndarray
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """`fit_similarity` about the cameras' centroid and what it does to the cameras: the
+    parameters and the (3,) RMS per axis of the moved `centres` against where they were."""
+    centre = centres.mean(axis=0)
+    params = fit_similarity(points, normals, offsets, weights, centre, prior_sigmas)
+    error = apply(params, centres, centre) - centres
+    return params, np.sqrt(np.mean(error ** 2, axis=0))
+
+
 def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray
           ) -> dict:
     """The floor of one model variant; `block` is `true_block(workspace)`."""
@@ -119,7 +130,6 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
     faces = assignment.face_index[mask]
     normals = store.normals[faces]
     offsets = store.offsets[faces]
-    centre = centres.mean(axis=0)
     prior_sigmas = np.concatenate([gnss_sigma / np.sqrt(len(centres)),
                                    np.full(3, ROTATION_SIGMA), [SCALE_SIGMA]])
     counts = np.bincount(faces, minlength=store.num_faces)
@@ -129,9 +139,7 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
     for (name, weights), (suffix, priors) in itertools.product(
             weightings, (("", prior_sigmas), (", planes alone", LOOSE_PRIORS))):
         name += suffix
-        params = fit_similarity(points[mask], normals, offsets, weights, centre, priors)
-        error = apply(params, centres, centre) - centres
-        rms = np.sqrt(np.mean(error ** 2, axis=0))
+        params, rms = camera_error(points[mask], normals, offsets, weights, centres, priors)
         out[name] = {"rms_x": float(rms[0]), "rms_y": float(rms[1]), "rms_z": float(rms[2]),
                      "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
                      "translation": params[:3].tolist(),
@@ -248,7 +256,8 @@ def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: fl
                                                centres).get("rms_3d")
                                  if result.gnss_only is not None else None),
             "verdict": result.quality.verdict, "started_at_truth": started,
-            "assignment_at_truth": assignment_at_truth(workspace, result, threshold)}
+            "assignment_at_truth": assignment_at_truth(workspace, result, threshold, truth,
+                                                       origin)}
 
 
 #: Faces whose assigned tie points lie further than this from their plane on average at the
@@ -256,19 +265,19 @@ def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: fl
 OFF_FACE_M, OFF_FACE_POINTS = 0.3, 50
 
 
-def assignment_at_truth(workspace: Path, result, threshold: float) -> dict:
+def assignment_at_truth(workspace: Path, result, threshold: float,
+                        truth: pycolmap.Reconstruction, origin: np.ndarray) -> dict:
     """Refine's last assignment judged at the truth: the SfM block (the workspace's
     reconstruction, whose shape is within millimetres of the truth's) moved onto the true
     block by the similarity of their cameras (`pose_points`), and the similarity fit with
     every point weighted alike and the planes alone (`floor`'s) made twice, with refine's
     assignment and with the points assigned afresh at `threshold` at the truth; the faces
-    whose points lie further than OFF_FACE_M from their plane on average at the truth."""
+    whose points lie further than OFF_FACE_M from their plane on average at the truth.
+    `truth`, `origin`: the workspace's true block and its origin."""
     from colmap_citymodel.precision.checkpoints import helmert_transform
 
     store = result.store  # the faces refine's assignment indexes (cropped to the block)
     sfm = pycolmap.Reconstruction(str(workspace / "sparse" / "0"))
-    truth = pycolmap.Reconstruction(str(workspace / "truth"))
-    origin = np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3]
     names = sorted(image.name for image in sfm.images.values() if image.has_pose)
     true_centres = np.array([truth.find_image_with_name(n).projection_center()
                              for n in names]) + origin
@@ -288,12 +297,9 @@ def assignment_at_truth(workspace: Path, result, threshold: float) -> dict:
     fresh = assign_direct(points, ids, store, threshold, AssignmentOptions())
 
     def fit(rows: np.ndarray, faces: np.ndarray) -> dict:
-        weights = np.full(len(rows), 1.0 / SIGMA_DTP ** 2)
-        centre = centres.mean(axis=0)
-        params = fit_similarity(points[rows], store.normals[faces], store.offsets[faces],
-                                weights, centre, LOOSE_PRIORS)
-        error = apply(params, centres, centre) - centres
-        rms = np.sqrt(np.mean(error ** 2, axis=0))
+        params, rms = camera_error(points[rows], store.normals[faces], store.offsets[faces],
+                                   np.full(len(rows), 1.0 / SIGMA_DTP ** 2), centres,
+                                   LOOSE_PRIORS)
         return {"points": int(len(rows)), "faces": int(len(np.unique(faces))),
                 "rms": rms.tolist(), "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
                 "scale_ppm": float(params[6] * 1e6)}

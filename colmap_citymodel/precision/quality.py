@@ -202,8 +202,8 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                       + (" although only GNSS determines it" if scale_by_gnss else ""))
     if before is not None and after < before:
         # As many decimals as it takes for the two shares to differ in print.
-        digits = 0 if round(100 * after) != round(100 * before) else 1 \
-            if round(100 * after, 1) != round(100 * before, 1) else 2
+        digits = next((d for d in (0, 1) if round(100 * after, d) != round(100 * before, d)),
+                      2)
         failed.append(f"fewer tie points near the model after refine ({100 * after:.{digits}f} "
                       f"%) than with GNSS only ({100 * before:.{digits}f} %)")
     elif after < t.failed_near_share:
