@@ -229,3 +229,38 @@ def test_nearly_straight_line_trusts_gnss_only_as_far_as_its_scatter_allows(nois
         assert _rotation_angle_deg(recovered, np.eye(3)) < 1.0
     else:
         assert result.cues["roll_about_line"].startswith("images")
+
+
+def test_straight_line_of_tilted_sideways_cameras_takes_the_roll_from_walls_and_ground():
+    """A UAV strip: cameras looking sideways, pitched 35 deg down, at a facade along the line
+    above a level street. Their image "up" would put the block 35 deg off about the line (GNSS
+    cannot fix it: the centres lie on a line); the tie points' wall and ground planes fix it to
+    a degree, and the cue says so."""
+    from colmap_citymodel.align.georegister import LEVEL_ROLL_CUE
+
+    rec = _scene(num_frames=16)
+    ids = np.array(sorted(rec.reg_image_ids()))
+    rng = np.random.default_rng(4)
+    direction = np.array([np.cos(0.4), np.sin(0.4), 0.0])
+    side = np.array([-direction[1], direction[0], 0.0])
+    centres = np.array([k * 3.0 * direction + [0, 0, 25.0] for k in range(len(ids))])
+    for k, image_id in enumerate(ids):
+        frame = rec.frame(rec.image(int(image_id)).frame_id)
+        frame.rig_from_world = _upright_camera(centres[k], side, 35.0 + rng.normal(0, 1),
+                                               rng.normal(0, 1))
+    for point_id in list(rec.points3D):
+        rec.delete_point3D(point_id)
+    along = rng.uniform(-5.0, 50.0, (2, 600))
+    facade = (along[0][:, None] * direction + 18.0 * side
+              + rng.uniform(0.0, 15.0, 600)[:, None] * [0, 0, 1.0])
+    street = along[1][:, None] * direction + rng.uniform(2.0, 17.0, 600)[:, None] * side
+    for xyz in np.vstack([facade, street]) + rng.normal(0, 0.05, (1200, 3)):
+        rec.add_point3D(xyz, pycolmap.Track(), np.zeros(3, np.uint8))
+    truth = _true_sim3(scale=4.0)
+    rec.transform(truth)
+    gnss = centres + rng.normal(0, [3.0, 3.0, 5.0], centres.shape)
+    result = estimate_georegistration(rec, gnss, ids)
+    assert result.cues["roll_about_line"] == LEVEL_ROLL_CUE
+    line = np.asarray(result.sim3.rotation.matrix()) @ np.asarray(truth.rotation.matrix())
+    roll = np.degrees(abs(Rotation.from_matrix(line).as_rotvec() @ direction))
+    assert roll < 1.5

@@ -311,11 +311,46 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
     orientations, so a block turned by 90 deg (walls on roofs, cameras looking at the sky)
     would match as well. Only rolls within +- `window_deg` are searched; the tie point planes
     on `threads` (0: all cores). None when the tie points hold no plane."""
+    faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
+    model = store.normals[faces] if faces else store.normals
+
+    def closeness(normals: np.ndarray) -> np.ndarray:
+        return np.abs(normals @ model.T).max(axis=1)
+
+    return _search_roll(points, axis, centre, closeness, camera_up, camera_view,
+                        tolerance_deg, step_deg, max_view_elevation_deg, window_deg, threads)
+
+
+def level_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray,
+               camera_up: np.ndarray, camera_view: np.ndarray, window_deg: float = 90.0,
+               threads: int = 0) -> RollSearch | None:
+    """`search_roll` without a model: the rotation about `axis` that makes the tie point
+    planes walls (vertical) or level (ground, flat roofs), as a city's planes are, with the
+    same upright cameras. Walls parallel to the line and the ground fix the roll about a
+    straight line wherever the block is, which GNSS cannot and the cameras' image "up" can
+    only to their unknown tilt when they look sideways. A block turned by 90 deg has level
+    and vertical planes too: the cameras' constraints and the `window_deg` about the current
+    roll rule it out."""
+
+    def closeness(normals: np.ndarray) -> np.ndarray:
+        vertical = np.abs(normals[:, 2])
+        return np.maximum(vertical, np.sqrt(np.clip(1.0 - vertical ** 2, 0.0, 1.0)))
+
+    return _search_roll(points, axis, centre, closeness, camera_up, camera_view,
+                        window_deg=window_deg, threads=threads)
+
+
+def _search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, closeness,
+                 camera_up: np.ndarray, camera_view: np.ndarray, tolerance_deg: float = 4.0,
+                 step_deg: float = 1.0,
+                 max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
+                 window_deg: float = 180.0, threads: int = 0) -> RollSearch | None:
+    """The roll search of `search_roll` and `level_roll`: `closeness(normals)` (K,) is the
+    cosine of the angle between each rotated tie point plane normal and the nearest
+    orientation it should have."""
     normals, counts = point_cloud_planes(points, threads=threads)
     if not len(normals):
         return None
-    faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
-    model = store.normals[faces] if faces else store.normals
     cos_tol = np.cos(np.radians(tolerance_deg))
     up_mean = np.mean(camera_up, axis=0)
     view_mean = np.mean(camera_view, axis=0)
@@ -326,9 +361,7 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
         rotation = rotation_about(axis, angle)
         if (rotation @ up_mean)[2] <= 0.0 or (rotation @ view_mean)[2] > max_rise:
             return -1.0
-        rotated = normals @ rotation.T
-        cosines = np.abs(rotated @ model.T).max(axis=1)
-        u = np.clip((1.0 - cosines) / (1.0 - cos_tol), 0.0, 1.0)
+        u = np.clip((1.0 - closeness(normals @ rotation.T)) / (1.0 - cos_tol), 0.0, 1.0)
         return float(np.sum(counts * (1.0 - u) ** 2) / counts.sum())
 
     window = min(float(window_deg), 180.0)

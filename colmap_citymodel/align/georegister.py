@@ -5,7 +5,8 @@ centres to the GNSS positions of the same images in the store's local frame (CRS
 estimated with pycolmap's LO-RANSAC (`pycolmap.estimate_sim3d_robust`) and refined by least
 squares on the inliers. Where the camera centres with GNSS lie (nearly) on a line, GNSS fixes
 the line, its scale and position, and the cameras' upright orientation the rotation about it
-(`upright_line_similarity`). Without GNSS the user gives the transform
+(`upright_line_similarity`), or where they look sideways the tie points' walls and level
+planes (`level_about_line`). Without GNSS the user gives the transform
 (`read_initial_transform`).
 
 Sim3 convention (pycolmap.Sim3d, "tgt_from_src"): x_tgt = scale * R @ x_src + t.
@@ -172,21 +173,28 @@ def estimate_georegistration(
     lateral = spread_src[1] * scale_guess  # metres the centres deviate from a line (std)
 
     def along_the_line(reason: str) -> Georegistration:
-        # GNSS fixes the line but not the rotation about it: take that from the cameras.
+        # GNSS fixes the line but not the rotation about it: take that from the cameras, and
+        # where they look sideways, from the tie points' walls and level planes.
         sim3 = upright_line_similarity(source, target, *camera_axes(reconstruction, image_ids))
+        sim3, levelled = level_about_line(sim3, reconstruction, image_ids, source)
         residuals = target - transform_points(sim3, source)
         rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
+        cues = dict(LINE_CUES)
+        if levelled is not None:
+            cues["roll_about_line"] = LEVEL_ROLL_CUE
         warnings.append(
             f"the camera centres with GNSS deviate only ~{lateral:.1f} m from a line ({reason}): "
-            "the rotation about the flight line comes from the cameras' upright orientation "
-            "until the model planes fix it")
+            "the rotation about the flight line comes from "
+            + ("the cameras' upright orientation" if levelled is None else
+               f"the tie points' walls and level planes (turned {levelled:+.1f} deg from the "
+               "cameras' upright orientation)")
+            + " until the model planes fix it")
         for warning in warnings:
             logger.warning(warning)
         logger.info("Georegistration along a line: scale %.6g, RMS %.3f m", sim3.scale, rms)
         return Georegistration(sim3=sim3, inlier_mask=np.ones(len(target), bool),
                                residuals=residuals, rms=rms, image_ids=image_ids,
-                               max_error=float("nan"), warnings=warnings,
-                               cues=dict(LINE_CUES))
+                               max_error=float("nan"), warnings=warnings, cues=cues)
 
     if spread_src[1] < options.min_noncollinearity * spread_src[0]:
         return along_the_line("collinear")
@@ -272,6 +280,48 @@ def camera_axes(reconstruction, image_ids) -> tuple[np.ndarray, np.ndarray]:
         rotation = np.asarray(reconstruction.image(int(image_id)).cam_from_world().rotation.matrix())
         right[k], up[k] = rotation[0], -rotation[1]
     return right, up
+
+
+#: The cue of the rotation about a straight line when the tie points' planes fixed it.
+LEVEL_ROLL_CUE = "images (tie point walls vertical, ground and flat roofs level)"
+#: Cameras whose image x axes lie this close to across the line (mean |sin| of the angle
+#: between x axis and line) look along it: their horizontal x axes hold the roll.
+LOOKING_ALONG = 0.5
+#: The tie points' planes must fit their orientations better by this much (share of plane
+#: points) than at the cameras' roll for their roll to be taken.
+MIN_LEVEL_GAIN = 0.05
+
+
+def level_about_line(sim3, reconstruction, image_ids, source: np.ndarray):
+    """`sim3` (from `upright_line_similarity`) turned about the flight line so that the tie
+    points' planes are walls or level (align.coarse.level_roll), where the cameras look
+    sideways: their image "up" holds the roll only to their tilt (a UAV camera pitched 35 deg
+    down put the block's walls 35 deg off the vertical). Cameras looking along the line keep
+    their roll (their horizontal x axes fix it to a fraction of a degree). Returns (the
+    similarity, the roll added in degrees or None where none was)."""
+    import pycolmap
+
+    from ..block.reconstruction import tie_points
+    from .coarse import level_roll
+
+    rotation = np.asarray(sim3.rotation.matrix())
+    right, up = camera_axes(reconstruction, image_ids)
+    view = np.cross(right, -up)  # the image z axis: x right, y down
+    right, up, view = right @ rotation.T, up @ rotation.T, view @ rotation.T
+    centres = transform_points(sim3, source)
+    centre = centres.mean(axis=0)
+    axis = np.linalg.svd(centres - centre)[2][0]
+    if float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1))) > LOOKING_ALONG:
+        return sim3, None
+    _, points = tie_points(reconstruction)
+    if not len(points):
+        return sim3, None
+    roll = level_roll(transform_points(sim3, points), axis, centre, up, view)
+    if roll is None or roll.score < roll.score_at_zero + MIN_LEVEL_GAIN:
+        return sim3, None
+    turn = roll.rotation
+    levelled = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(turn), centre - turn @ centre) * sim3
+    return levelled, float(np.degrees(roll.angle))
 
 
 def upright_line_similarity(source: np.ndarray, target: np.ndarray, right: np.ndarray,
