@@ -13,9 +13,9 @@ from .georegister import transform_points
 class BlockObjective:
     """One figure that every start-up move and loop iteration must lower: minus the share of a
     fixed subset of tie points near the model surfaces, plus the mean squared normalised GNSS
-    residual weighted as in the translation search (a one-sigma shift of the whole block
-    costs as much as 1 % of the tie points on the model; none along the axes where a GNSS
-    offset is estimated, GNSSPriors.normalised_residuals)."""
+    residual (a one-sigma shift of the whole block costs as much as 1 % of the tie points on
+    the model; none along the axes where a GNSS offset is estimated,
+    GNSSPriors.normalised_residuals)."""
 
     def __init__(self, surface, priors: GNSSPriors | None, point_ids: np.ndarray,
                  radius: float):
