@@ -182,6 +182,10 @@ def test_verdict_rules():
     one_roof = quality_verdict({**good, "planes_fix": ["E", "N"], "one_plane": ["U"]})
     assert one_roof.verdict == "weak" and "single model plane" in one_roof.reasons[0]
     assert quality_verdict({**good, "position_sigma_m": 0.3}).verdict == "weak"
+    # Half the walls off the model's: maybe the wrong building, whose sigmas say nothing.
+    walls = quality_verdict({**good, "wall_near_share": 0.55})
+    assert walls.verdict == "weak" and "wrong buildings" in walls.reasons[0]
+    assert quality_verdict({**good, "wall_near_share": 0.4}).verdict == "failed"
     # GNSS residuals that grow but stay within their sigmas: the slow GNSS bias exposed.
     assert quality_verdict({**good, "gnss_scatter": 0.4, "gnss_scatter_ratio": 2.5}
                            ).verdict == "ok"
