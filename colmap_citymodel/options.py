@@ -441,9 +441,9 @@ class WorkflowOptions:
     street (stated 3/3/5 m) with a bias of 14 or 18 m (5 seeds each), +- 4 sigma ended 6 of
     10 runs within 0.14 m of the truth, two 11 m off on a neighbouring building and one 3.3 m
     off (all three "weak"), and one "failed"; +- 8 sigma (align.coarse's heavy-tailed penalty)
-    all 10 within 0.14 m (search 0.3 -> 1.0 s). With an initial transform as well, only the shift is searched: the GNSS-only
-    adjustment has moved the block from the transform onto the GNSS. 0 switches the search
-    off."""
+    all 10 within 0.14 m (the search 0.2-0.3 s -> 1.0 s). With an initial transform as well,
+    only the shift is searched: the GNSS-only adjustment has moved the block from the transform
+    onto the GNSS. 0 switches the search off."""
     reuse_problem: bool = True
     """Keep one hybrid problem across the assign/adjust iterations: only the f_dTP blocks of
     tie points whose plane changed are exchanged (HybridProblem.reassign); a new problem is

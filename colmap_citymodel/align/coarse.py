@@ -9,12 +9,15 @@ searches close that gap before any tie point is assigned:
   does not depend on where the block is: the roll that best matches the two sets of normals,
   with the cameras kept upright (their image "up" above the horizon), is searched on a 1 deg grid.
 - `search_translation`: the translation that puts the most tie points near a model surface,
-  within a box that covers the GNSS uncertainty (a few sigma), coarse to fine (kernel radius
-  2 m -> 1 m -> 0.4 m), with a mild, heavy-tailed penalty in units of the GNSS sigma so that
-  a direction the model leaves free stays where GNSS put it. When the GNSS heights carry an unknown offset
-  (`--gnss_height_offset auto`: another height system, heights above take-off) the height is
-  searched over the whole range where the tie points meet the model's heights
-  (`height_search_range`), without penalty: roofs and eaves put the block at its height.
+  within a box that covers the GNSS uncertainty (+- 8 sigma by default), coarse to fine
+  (kernel radius 2 m -> 1 m -> 0.4 m), with a mild, heavy-tailed penalty in units of the GNSS
+  sigma so that a direction the model leaves free stays where GNSS put it. When the GNSS
+  heights carry an unknown offset (`--gnss_height_offset auto`: another height system, heights
+  above take-off) the height is searched over the whole range where the tie points meet the
+  model's heights (`height_search_range`), without penalty: roofs and eaves put the block at
+  its height.
+- `level_roll`: `search_roll` without the model, for the georegistration of a straight line
+  of cameras looking sideways: walls vertical, ground and flat roofs level.
 
 Both use `SurfaceDistance`, the unsigned distance from a point to the model's surfaces that can
 carry tie points (walls, roofs, ...; not ground or closure surfaces) up to the radius a caller
@@ -341,8 +344,8 @@ def level_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray,
     same upright cameras. Walls parallel to the line and the ground fix the roll about a
     straight line wherever the block is, which GNSS cannot and the cameras' image "up" can
     only to their unknown tilt when they look sideways. A block turned by 90 deg has level
-    and vertical planes too: the cameras' constraints and the `window_deg` about the current
-    roll rule it out."""
+    and vertical planes too: the cameras' constraints rule it out, and `window_deg` keeps the
+    search within a quarter turn of the roll the block has."""
 
     def closeness(normals: np.ndarray) -> np.ndarray:
         vertical = np.abs(normals[:, 2])
