@@ -175,8 +175,9 @@ def estimate_georegistration(
     def along_the_line(reason: str) -> Georegistration:
         # GNSS fixes the line but not the rotation about it: take that from the cameras, and
         # where they look sideways, from the tie points' walls and level planes.
-        sim3 = upright_line_similarity(source, target, *camera_axes(reconstruction, image_ids))
-        sim3, levelled = level_about_line(sim3, reconstruction, image_ids, source)
+        right, up = camera_axes(reconstruction, image_ids)
+        sim3 = upright_line_similarity(source, target, right, up)
+        sim3, levelled = level_about_line(sim3, reconstruction, source, right, up)
         residuals = target - transform_points(sim3, source)
         rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
         cues = dict(LINE_CUES)
@@ -292,20 +293,21 @@ LOOKING_ALONG = 0.5
 MIN_LEVEL_GAIN = 0.05
 
 
-def level_about_line(sim3, reconstruction, image_ids, source: np.ndarray):
+def level_about_line(sim3, reconstruction, source: np.ndarray, right: np.ndarray,
+                     up: np.ndarray):
     """`sim3` (from `upright_line_similarity`) turned about the flight line so that the tie
     points' planes are walls or level (align.coarse.level_roll), where the cameras look
     sideways: their image "up" holds the roll only to their tilt (a UAV camera pitched 35 deg
     down put the block's walls 35 deg off the vertical). Cameras looking along the line keep
-    their roll (their horizontal x axes fix it to a fraction of a degree). Returns (the
-    similarity, the roll added in degrees or None where none was)."""
+    their roll (their horizontal x axes fix it to a fraction of a degree). `source`: the
+    camera centres, `right`, `up`: their axes (`camera_axes`), in the reconstruction's frame.
+    Returns (the similarity, the roll added in degrees or None where none was)."""
     import pycolmap
 
     from ..block.reconstruction import tie_points
     from .coarse import level_roll
 
     rotation = np.asarray(sim3.rotation.matrix())
-    right, up = camera_axes(reconstruction, image_ids)
     view = np.cross(right, -up)  # the image z axis: x right, y down
     right, up, view = right @ rotation.T, up @ rotation.T, view @ rotation.T
     centres = transform_points(sim3, source)
