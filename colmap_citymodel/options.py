@@ -27,18 +27,10 @@ class AssignmentOptions:
     method: str = "auto"
     """"direct" = method (a), closest plane; "msac" = (b), planes extracted from the whole tie
     point cloud and matched to the model; "roi_msac" = (c), one plane searched near each model
-    plane; "auto" = (b)/(c) (`auto_indirect_method`) while the threshold exceeds
-    `auto_switch_threshold`, (a) below it. Unger 6.5: (a) and (c) give similar results, (a)
-    slightly better; (b) assigns to far fewer planes but is the only one meant for poor initial
-    values (assign.schedule.ASSIGNERS, assign/indirect.py).
-    Default "auto": its first assignment takes only points that form a plane near each model
-    plane, where (a) at 2 m also takes the clutter in front of the facades, so the loop needs
-    fewer iterations after it: short Scn3 converged in 4 iterations instead of 6 (refine
-    12.2 s instead of 17.6 s in one run), check points 0.259 m instead of 0.264 m; short and
-    long Scn1-4 within 2.5 % of (a) or better (long Scn3 0.154 / 0.158 m, Scn4 0.169 /
-    0.167 m); the robustness blocks and the capture runs as close to the truth as with (a) or
-    closer (benchmarks/results/robustness.md, capture.md). Not always faster: long Scn3 took
-    one iteration more (80.4 s against 59.4 s in one run)."""
+    plane; "auto" = `auto_indirect_method` while the threshold exceeds `auto_switch_threshold`,
+    (a) below it (assign.schedule.ASSIGNERS, assign/indirect.py). Unger 6.5: (a) and (c) give
+    similar results, (b) far fewer planes but suits poor initial values. "auto": the first
+    assignment takes only points that form a plane, not the clutter (a) takes at 2 m."""
     max_threshold: float = 2.0
     """(a): upper limit of the point-to-plane distance threshold in metres (first iteration)."""
     indirect_max_threshold: float = 3.0
@@ -57,28 +49,21 @@ class AssignmentOptions:
     """(l2 - l3) / l1 of the assigned points' covariance must exceed this (not a line)."""
     face_hysteresis: float = 0.5
     """In the refine loop a face that held tie points in the previous iteration keeps them while
-    they pass the planarity test at this fraction of its limit. A face whose points are close
-    to a line otherwise comes and goes from one iteration to the next, each time moving the
-    block (by 1-2 cm on the short simulated sequence, whose cameras then never settled) and
-    forcing a new problem. The minimum count is not relaxed: a face that loses its points as
-    the block moves onto the model (a wrong one) must be able to leave (a 12-image street
-    stayed 1-2 m off on 11 faces when one kept its last 8 points). 1: the same limit for every
-    face."""
+    they pass the planarity test at this fraction of its limit: a face whose points lie close to
+    a line would otherwise come and go between iterations, moving the block each time. The
+    minimum count is not relaxed, so that a wrong face loses its points as the block moves onto
+    the model. 1: the same limit for every face."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
     """Faces no tie point can lie on: a building's ground is under it, closures are virtual."""
     roofs_seen_from_above: bool = True
-    """A tie point goes to a roof face only when most of the images that observe it lie on the
-    roof's outward side (above its plane). A surface is seen from its front only: cameras below a
-    roof see eaves, parapets and the tops of facades near its plane, never the roof (a simulated
-    street drive, camera 2 m above the road: 48 parapet points 0.66 m above a flat roof were
-    its only "roof" points and set the block's height 0.93 m too low). Applied from the first
-    solve on: the first assignment and the similarity rounds before it, which bring the block
-    from metres away, keep such points (without them that drive's start ran 25 m away).
-    Roofs only: their orientation is checked by their class when the model is read; a wall's
-    ring orientation in published models often is not outward. Not in Unger (all his images see
-    the roofs from above)."""
+    """A tie point goes to a roof face only when most of the images that observe it lie above the
+    roof's plane: a surface is seen from its front only, and cameras below a roof see eaves,
+    parapets and facade tops near its plane, never the roof. Applied from the first solve on;
+    the first assignment and the similarity rounds before it, which bring the block from metres
+    away, keep such points. Roofs only: their orientation is checked by class when the model is
+    read, a wall ring's orientation often is not outward. Not in Unger (his images see roofs)."""
     msac_inlier_distance: float = 0.3
     """(b): MSAC inlier distance (m) of the plane extraction in the whole cloud (Unger 5.3:
     tighter than (c)'s because the search is not restricted to the model's vicinity)."""
@@ -108,23 +93,18 @@ class AssignmentOptions:
     """(b): an MSAC inlier also needs its point normal (from its nearest neighbours) within this
     angle (deg) of the plane's, as in Mulder's RANSAC (4.4.3); not in Unger. Without it, once
     the large planes are gone, a horizontal slab cutting every facade of a street holds more
-    points than any one facade and is extracted as strips (synthetic street of 21k points
-    1.5 m off the model: 43 % of the points assigned without the test, 72 % with it, 98 % of
-    them to the right face). 90 switches the test off."""
+    points than any one facade and is extracted as strips. 90 switches the test off."""
     msac_point_normal_neighbours: int = 10
     """(b): nearest neighbours (the point included) whose principal axes give a point's normal
     (Mulder: 6; more are steadier for noisy tie points)."""
     msac_max_planes: int = 1000
     """(b): at most this many planes are extracted (bounds the run time; not from Unger)."""
     msac_keep_segmentation: bool = True
-    """(b): a call with the same tie points as the last extraction, moved (by a solve), keeps
-    that segmentation while no plane, refitted to its moved points, has lost more than 5 % of
-    them from within `msac_inlier_distance` (assign.indirect.MAX_LOST_SHARE); else the planes
-    are extracted anew. A plane of the cloud stays one when the block bends by centimetres, but a
-    new random extraction splits it otherwise and moves the block by decimetres (long Scn3
-    extracted anew in every iteration: 155 to 183 planes from one iteration to the next,
-    cameras moved 4-15 cm each time, no convergence in 10 iterations). Not from Unger. False
-    extracts every time."""
+    """(b): a call with the same tie points as the last extraction, moved by a solve, keeps that
+    segmentation while no plane, refitted to its moved points, has lost more than 5 % of them
+    from within `msac_inlier_distance` (assign.indirect.MAX_LOST_SHARE). A plane of the cloud
+    stays one when the block bends by centimetres; a new random extraction splits the cloud
+    differently and moves the block by decimetres. Not from Unger. False: extract every time."""
     msac_max_failures: int = 3
     """(b): the extraction stops after this many planes in a row whose largest connected
     component has fewer than `min_points_per_plane` points (Unger 4.3.1: "repeatedly
@@ -164,47 +144,33 @@ class AdjustmentOptions:
     """Direct observation of each model vertex (m): the model is "almost fixed" (Unger 3.2.3).
     With `correct_model` it stays so for every vertex the images do not correct."""
     correct_model: bool = False
-    """Model correction (Unger 5.2.2, 6.7.3): after the assign/adjust loop, the vertices of
-    the faces the images see well (`correction_max_sigma`) are
-    observed with `sigma_vt_corrected` only, so their planes follow the tie points; the other
-    vertices keep sigma_vt, a corrected vertex stays on the given plane of every face that is
-    not corrected (that face keeps its plane), and f_dVT keeps every face planar
-    (adjust.model_correction, adjust.correction_loop). Preset "correct_model"."""
+    """Model correction (Unger 5.2.2, 6.7.3): after the assign/adjust loop, the vertices of the
+    faces the images see well (`correction_max_sigma`) are observed with `sigma_vt_corrected`
+    only, so their planes follow the tie points; the other vertices keep sigma_vt, a corrected
+    vertex stays on the plane of every uncorrected face it belongs to, and f_dVT keeps every face
+    planar (adjust.model_correction, adjust.correction_loop). Preset "correct_model"."""
     correction_moves_block: bool = False
-    """False: the block's poses stay as the adjustment left them and the planes are fitted to
-    its tie points (Unger's own model correction used a block's tie points as control points).
+    """False: the block's poses stay as the adjustment left them and the planes are fitted to its
+    tie points (Unger's model correction likewise used a block's tie points as control points).
     True: block and model are estimated together; where the images have systematic errors the
-    block bends back and the planes follow it (simulated, with faces chosen by >= 50 tie points
-    over half the face: long sequence check points 0.161 -> 0.564 m, corrected planes 0.199 ->
-    0.315 m off; short: 0.252 -> 0.162 m, planes 0.232 -> 0.089 m. With the faces chosen by
-    `correction_max_sigma`, short Scn3: check points 0.264 -> 0.256 m, corrected planes
-    0.211 -> 0.134 m, against 0.216 -> 0.108 m with the block held). See
-    adjust.correction_loop."""
+    block bends back and the planes follow it. See adjust.correction_loop."""
     sigma_vt_corrected: float = 0.5
     """Direct observation (m) of the vertices of corrected faces: Unger's 0.5 m "to correct the
     model" (5.3)."""
     sigma_correction_datum: float | None = 0.05
-    """Where block and model are estimated together (`correction_moves_block`, and the
-    problem the corrected vertices' sigmas come from), the corrected model keeps the given
-    one's datum: the similarity (shift, rotation, scale) that the corrected planes' moves imply
-    is observed as zero with this sigma (m; rotation and scale as the displacement they cause;
-    adjust.model_correction.datum_condition). 0.05 m: a LOD2 model's per-plane error (~0.2 m,
-    Unger 5.2.2) averaged over a dozen planes. Moving the block on short Scn3, 0.01 held it too
-    firmly (corrected planes 0.12 m off the truth instead of 0.09, tilted by 0.87 deg RMS
-    instead of 0.47); without it block and planes drifted together (1.2 m) where few planes
-    fixed the block. None: no condition."""
+    """Where block and model are estimated together (`correction_moves_block`, and the problem the
+    corrected vertices' sigmas come from), the similarity that the corrected planes' moves imply
+    is observed as zero with this sigma (m; rotation and scale as the displacement they cause),
+    so the corrected model keeps the given one's datum (adjust.model_correction.datum_condition).
+    0.05 m: a LOD2 model's per-plane error (~0.2 m, Unger 5.2.2) averaged over a dozen planes.
+    None: no condition."""
     correction_max_sigma: float = 0.02
-    """A face is corrected only where its assigned tie points determine its plane to this
-    (m) at every vertex: the a posteriori sigma of a plane fitted to them
-    (adjust.model_correction.plane_fit_sigma: offset and two tilts from the normal equations,
-    scaled by the points' own scatter about the plane). It grows with few points, with points
-    bunched on part of the face (the plane extrapolated to the far vertices) and with points of
-    another surface among them. 0.02 m: a tenth of a LOD2 model's typical plane error (~0.2 m,
-    Unger 5.2.2). The sigma treats the points as independent and so leaves out the block's own
-    error normal to the face, which the corrected plane inherits; a larger threshold lets in
-    faces whose tie points scatter or lie off the true plane (simulated long Scn3, corrected
-    faces against the true planes: 0.01 m 37 faces, 0.184 -> 0.066 m; 0.02 m 50 faces, 0.198
-    -> 0.080 m; 0.03 m 57 faces, 0.200 -> 0.108 m; 0.05 m 59 faces, 0.198 -> 0.123 m)."""
+    """A face is corrected only where its assigned tie points determine its plane to this (m) at
+    every vertex: the a posteriori sigma of a plane fitted to them (model_correction.
+    plane_fit_sigma), which grows with few points, points bunched on part of the face and points
+    of another surface among them. 0.02 m: a tenth of a LOD2 model's plane error (~0.2 m, Unger
+    5.2.2). The sigma leaves out the block's own error normal to the face, which the corrected
+    plane inherits: a larger limit lets in faces whose tie points lie off the true plane."""
     correction_iterations: int = 5
     """At most this many assign + correction solves after the loop (the planes move, so the
     tie points are assigned again to the corrected model)."""
@@ -212,14 +178,12 @@ class AdjustmentOptions:
     """A vertex shift counts as significant when |shift| / sigma (sigma of the corrected
     vertex along the shift, scaled by s0) exceeds this."""
     image_loss: str = "none"
-    """How step 2 treats outliers among the image observations. "none": solve with the
-    original weights, eliminate observations beyond `elimination_threshold`, solve again with
-    the original weights (Foerstner and Wrobel's scheme without its reweighting phase: COLMAP's
-    mapper already drops observations beyond 4 px, `filter_max_reproj_error`). "huber" or
-    "cauchy": solve with that robust loss, then eliminate (no second solve). From COLMAP's
-    output of short Scn3 "none" needs 1 + 2 Ceres iterations where Huber needs 15 (its
-    reweighting of the many residuals near 1 px) and leaves the GNSS-only cameras as close to
-    the truth (2.230 vs 2.228 m); Cauchy needed 103."""
+    """How step 2 treats outliers among the image observations. "none": solve, eliminate
+    observations beyond `elimination_threshold`, solve again, all with the original weights
+    (Foerstner and Wrobel's scheme without its reweighting phase: COLMAP's mapper already drops
+    observations beyond 4 px, `filter_max_reproj_error`). "huber" or "cauchy": solve with that
+    robust loss, then eliminate (no second solve); their reweighting of the many residuals near
+    1 px costs many more Ceres iterations than "none"."""
     image_loss_scale: float = 1.0
     """Scale (px) of the robust reprojection loss in step 2 ("huber", "cauchy")."""
     plane_loss_scale: float = 2.0
@@ -236,49 +200,37 @@ class AdjustmentOptions:
     """Up to this many images every solve (step 2 and the hybrid ones) uses Ceres' direct
     SPARSE_SCHUR solver, above it ITERATIVE_SCHUR (COLMAP's
     `max_num_images_direct_sparse_cpu_solver`, whose default 1,000 refine would otherwise
-    inherit). On a 2,000-image synthetic street step 2 took 26-32 s with the direct solver
-    against 1,120 s with the iterative one, and the whole refine 199-201 s against 1,453 s,
-    cameras 0.010 m off either way: the reduced camera system of a block, where each image
-    shares points with its neighbours only, stays sparse. Memory: 3.4 GB for the whole
-    process at 2,000 images."""
+    inherit). The reduced camera system of a block, where each image shares points with its
+    neighbours only, stays sparse: the direct solver stays far faster at thousands of images."""
     function_tolerance: float = 1e-6
     """A solve ends when a step lowers the cost by less than this fraction of it. The cost is
     half the chi-square of n normalised residuals, whose own spread is sqrt(2n): a 1e-6
     relative change (~0.1 at n = 4e5) is far below anything statistically visible. COLMAP
     leaves it at 0 and then crawls for 100+ iterations at that level."""
     initial_trust_region_radius: float = 1e8
-    """Levenberg-Marquardt starts close to Gauss-Newton (Ceres: 1e4). The hybrid problem is
-    nearly linear around SfM's block; a large first radius halved its iterations (22 -> 9)."""
+    """Levenberg-Marquardt starts close to Gauss-Newton (Ceres: 1e4): the hybrid problem is nearly
+    linear around SfM's block, so a large first radius saves iterations."""
     num_threads: int = -1
+    """Threads of the Ceres solves and the nearest-plane searches; -1: all cores."""
     sigma_generalisation: float | None = None
-    """None: the classical stochastic model only (independent f_dTP, as Unger). A value (m):
-    the generalisation-aware one as well: the f_dTP errors of one plane share an offset
-    o_p ~ N(0, sigma^2) (n.X + d + o_p = 0 on the true surface), so that a plane's systematic
-    deviation does not average out with its number of points (Unger 6.3, Table 12: sigma of
-    check points 3-19x too small), and the tilt the plane has when each of its vertices is off
-    by sigma. By default these are consider parameters (precision.estimate): the estimate stays
-    the classical one and its covariance gains sum_p K_p C_p K_p^T, K_p the estimate's
-    sensitivity to plane p's offset and tilts, C_p their covariance. Recommended:
-    `GENERALISATION_SIGMA` = 0.20 m, Unger's "expected typical size of generalisation effects"
-    (5.3; 0.05 for a detailed model). With PrecisionOptions.variance_components ("gen") the
-    data's own value (from the planes' mean f_dTP residuals) is used instead (simulated short
-    Scn3: 0.22 m, Scn2 with the corrected model: 0.04 m); None with
-    PrecisionOptions.generalisation_from_data (the default) uses it too."""
+    """None: the classical stochastic model only (independent f_dTP, as Unger). A value (m): also
+    the generalisation-aware one, in which the f_dTP of one plane share an offset o_p ~ N(0,
+    sigma^2) and a tilt (each vertex off by sigma), so that a plane's systematic error does not
+    average out over its points (Unger 6.3, Table 12), as consider parameters (precision.estimate:
+    the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
+    VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
     estimate_generalisation: bool = False
     """Experimental: also estimate the o_p (unknowns with that prior, f_dTP becomes
     (n.X + d + o_p) / sigma_dTP) in a re-solve after refine's assignment loop. Off: with the
     plane offsets free, shrinking the block about any point reduces the scatter of the tie
-    points about their planes (their relief is real), and only the priors and GNSS resist; on
-    the simulated short Scn3 the block shrank by 2.2 % and the check point RMS went from 0.25 to
-    0.76 m (benchmarks/results/precision.md); in the assignment loop it collapsed the block."""
+    points about their planes (their relief is real), and only the priors and GNSS resist it."""
     gnss_offset: str = "none"
-    """A constant offset of all GNSS positions as unknowns of the adjustment, fixed by the model
-    planes (roofs and eaves fix the height, walls of several orientations the plan position):
-    "none"; "height" (`--gnss_height_offset auto`: GNSS heights in another height system, e.g.
-    ellipsoidal without the national geoid, EGM96 from a flight controller, above take-off);
-    "all" (`--gnss_bias auto`: a constant 3D bias). Refused where the planes do not fix the
-    directions concerned (adjust.observability). The coarse search then looks for the block's
-    height over the whole height range of the model."""
+    """A constant offset of all GNSS positions as unknowns, fixed by the model planes (roofs and
+    eaves fix the height, walls of several orientations the plan position): "none"; "height"
+    (`--gnss_height_offset auto`: heights in another system, e.g. ellipsoidal without the
+    national geoid, EGM96 from a flight controller, above take-off); "all" (`--gnss_bias auto`:
+    a constant 3D bias). Refused where the planes do not fix those directions
+    (adjust.observability). With an offset the coarse search spans the model's height range."""
     sigma_gnss_offset: float = 3.0
     """A priori sigma (m) of the estimated offset about 0, i.e. about the positions as read and
     converted (national grid, or the fallback geoid EGM96, typically within 2 m of it, plus the
@@ -366,8 +318,8 @@ class WorkflowOptions:
     with the model, the window moved on by `window_new` images; then the global adjustment of
     everything, starting from the windows' result (Unger's final global hybrid adjustment)."""
     window_size: int = 100
-    """N_ws: images per window (Unger Table 4 / 5.3: 100 key frames; windows of fewer than
-    about 50 key frames were found fragile: too few planes to hold them)."""
+    """N_ws: images per window (Unger Table 4 / 5.3: 100 key frames; windows of fewer than about 50
+    key frames see too few planes to hold them)."""
     window_new: int = 33
     """N_new: images each window adds; the N_ws - N_new most recent adjusted ones are kept
     (Unger 5.3: 33)."""
@@ -390,42 +342,33 @@ class WorkflowOptions:
     convergence_rms_change: float = 1e-5
     """Stop when the relative change of the RMS of normalised residuals is below this."""
     convergence_camera_shift: float = 0.005
-    """Stop when two iterations in a row (after the first) move no camera centre by more than
-    this (m). On the short simulated sequence (90 images, check points 0.25 m from the truth)
-    the solves from the third iteration on moved the cameras by at most 24, 4.3, 2.2, 0.4, 0.5
-    and 0.4 mm, each costing a hybrid solve; one small move alone can be a pause in a slow
-    swing (long Scn4: 4 mm between moves of 6 cm). 0 runs until the RMS settles."""
+    """Stop when two iterations in a row (after the first) move no camera centre by more than this
+    (m): late iterations move the cameras by millimetres, each at the cost of a hybrid solve,
+    while one small move alone can be a pause in a slow swing. 0 runs until the RMS settles."""
     convergence_assignment_change: float | None = 0.002
-    """Stop before solving when the last solve (after the second iteration) moved no camera
-    centre by more than convergence_camera_shift and the new assignment keeps the same planes
-    and changes the plane of at most this share of the tie points: the solve would start close
-    to its own solution. One solve fewer on each of the simulated short Scn1-4 and long Scn3,
-    camera centres and check points equal to the millimetre. 0 stops only on an unchanged
-    assignment, None never."""
+    """Stop before solving when the last solve (after the second iteration) moved no camera centre
+    by more than convergence_camera_shift and the new assignment keeps the same planes and
+    changes the plane of at most this share of the tie points: the solve would start close to
+    its own solution. 0 stops only on an unchanged assignment, None never."""
     robust_second_iteration: bool = True
-    """The second iteration, whose threshold falls from the upper limit to one from the data,
-    goes straight to the robust solve. Later iterations first solve with the original weights
-    and solve robustly only if some |v| / sigma exceeds the elimination threshold, which in the
-    second iteration it did on every simulated COLMAP block (short Scn3: 29 f_dTP, long Scn3:
-    23): one solve fewer there. On a block without such outliers (the synthetic test street)
-    it costs one solve more."""
+    """The second iteration, whose threshold falls from the upper limit to one from the data, goes
+    straight to the robust solve: coming from the loose first threshold, its f_dTP hold
+    outliers as a rule. Later iterations first solve with the original weights and solve
+    robustly only if some |v| / sigma exceeds the elimination threshold. On a block without
+    such outliers it costs one solve more."""
     keep_eliminated: bool = True
-    """An f_dTP eliminated as an outlier (|v| / sigma above the elimination threshold after
-    the robust solve) stays eliminated: later assignments do not give its tie point to that
-    face again (another face may take it). Without this every new assignment brought the same
-    few points back, and every iteration solved three times (with the original weights, robust,
-    final) to eliminate them again: on the simulated straight strip 2 f_dTP in each of
-    iterations 2-6, 20 solves in all against 12 with it (cameras 0.382 m RMS either way).
-    Eliminations of the first iteration are not kept: the block still moves by decimetres
-    there."""
+    """An f_dTP eliminated as an outlier (|v| / sigma above the elimination threshold after the
+    robust solve) stays eliminated: later assignments do not give its tie point to that face
+    again (another face may take it), so the same points do not come back to be eliminated with
+    three solves per iteration. Eliminations of the first iteration are not kept: the block
+    still moves by decimetres there."""
     solve_again_after_elimination: bool = False
-    """True: an iteration whose robust solve eliminated f_dTP solves again at once with the
-    original weights (the source's order), and the next iteration assigns from that solution.
-    False (with keep_eliminated): the next iteration's assignment, which leaves those f_dTP
-    out, is solved with the original weights instead; the loop never ends on a robust solve.
-    One solve fewer in each iteration that eliminates (short Scn3: 9 solves -> 7). The sliding
-    window (its windows and the global loop after them) always solves again at once: long Scn4
-    with GNSS for the first 50 images ended at 0.179 m check point RMS otherwise, 0.170 m so."""
+    """True: an iteration whose robust solve eliminated f_dTP solves again at once with the original
+    weights (the source's order), and the next iteration assigns from that solution. False (with
+    keep_eliminated): the next iteration's assignment, which leaves those f_dTP out, is solved
+    with the original weights instead, one solve fewer per eliminating iteration; the loop never
+    ends on a robust solve. The sliding window (its windows and the global loop after them)
+    always solves again at once."""
     alignment_rounds: int = 20
     """At most this many rounds of similarity fit + assignment before the first hybrid
     adjustment (initial_alignment; ICP-like)."""
@@ -434,16 +377,12 @@ class WorkflowOptions:
     overlap_margin: float = 30.0
     """Metres around the reconstruction's footprint in which model buildings are kept."""
     coarse_search_sigmas: float = 8.0
-    """Before the first assignment the block's shift (and, along a straight flight line, its
-    roll) is searched within +- this many GNSS sigmas of the GNSS-only position: GNSS errors
-    are mostly a bias of metres that a 2 m assignment threshold cannot bridge
-    (align.coarse). GNSS in a street is often off by more than its stated sigma: on the demo
-    street (stated 3/3/5 m) with a bias of 14 or 18 m (5 seeds each), +- 4 sigma ended 6 of
-    10 runs within 0.14 m of the truth, two 11 m off on a neighbouring building and one 3.3 m
-    off (all three "weak"), and one "failed"; +- 8 sigma (align.coarse's heavy-tailed penalty)
-    all 10 within 0.14 m (the search 0.2-0.3 s -> 1.0 s). With an initial transform as well,
-    only the shift is searched: the GNSS-only adjustment has moved the block from the transform
-    onto the GNSS. 0 switches the search off."""
+    """Before the first assignment the block's shift (and, along a straight flight line, its roll)
+    is searched within +- this many GNSS sigmas of the GNSS-only position (align.coarse): GNSS
+    errors are mostly a bias of metres, in a street often beyond the stated sigma, which a 2 m
+    assignment threshold cannot bridge; a heavy-tailed penalty weighs the wide box. With an
+    initial transform only the shift is searched (the GNSS-only adjustment has moved the block
+    onto the GNSS). 0 switches the search off."""
     reuse_problem: bool = True
     """Keep one hybrid problem across the assign/adjust iterations: only the f_dTP blocks of
     tie points whose plane changed are exchanged (HybridProblem.reassign); a new problem is
@@ -452,21 +391,16 @@ class WorkflowOptions:
     a new problem every iteration (the same solution, set-up repeated)."""
     hold_gnss_height: bool = True
     """Where the planes' information on the block's height is far weaker than GNSS's
-    (adjust.observability.left_to_gnss: each plane with its generalisation error), the height
-    is held where the coarse search and the similarity rounds of the first assignment put the
-    block (adjust.scale.level_prior), until the assignment gives the planes a say in it. Per
-    tie point, as the adjustment weighs them, walls tilted by a fraction of a degree can seem
-    to fix the height: a street drive along the true (detailed) building planes, walls within
-    0.3 deg of vertical, went 5.7 m up in its first solve once its roof points seen from
-    below were gone (0.22 m from the truth with the hold). Published LOD2 walls are vertical
-    (in the Berlin, Den Haag, NRW and TUM files 99 % within 0.1 deg). False: the planes decide
+    (adjust.observability.left_to_gnss: each plane with its generalisation error), the height is
+    held where the coarse search and the first assignment put it (adjust.scale.level_prior)
+    until the assignment gives the planes a say: per tie point, as the adjustment weighs them,
+    walls tilted by a fraction of a degree can seem to fix the height. False: the planes decide
     there, as their f_dTP weigh."""
     alternating_planes_shift: float = 0.1
     """Stop when the last four iterations alternated between two sets of planes (a face at the
-    minimum number of points coming and going) and none of the last three moved a camera by
-    more than this (m); the best iterate by the block objective is the result. On the simulated
-    vehicle drive one face did so in every iteration, the cameras moving 3 cm back and forth,
-    until the 10 iterations ran out. 0: never."""
+    minimum number of points coming and going) and none of the last three moved a camera by more
+    than this (m); the best iterate by the block objective is the result. Such a loop would
+    otherwise swing back and forth until `max_iterations`. 0: never."""
     divergence_tolerance: float = 0.05
     """An iteration whose block objective (share of tie points off the model plus GNSS
     residuals; workflow.BlockObjective) is worse than the best iterate's by more than this
@@ -488,12 +422,9 @@ class MapperOptions:
     start_at_gnss: bool = False
     """Seek COLMAP's initial image pair among the images with GNSS (those with the most
     correspondences first), unless the pipeline names one. COLMAP otherwise starts where the
-    matches are densest, which with GNSS only at the start of a sequence can be hundreds of
-    images away from it: the block is then georegistered, and held by the model, only once it
-    has grown back to the GNSS part. Off by default: on the long simulated sequence with GNSS
-    for the first 50 of 340 images (Scn4) it put the model into 31 global adjustments from the
-    19th image on, and the block ended 5 % off in scale (check points 9.6 m), against 0.18 m
-    with COLMAP's own initial pair (the model from the 327th image on)."""
+    matches are densest, possibly far from the images with GNSS: the block is then georegistered
+    and held by the model only once it has grown back to them. Off by default: a block held on
+    the model from its first few images can settle at a wrong scale."""
     hybrid_iterations: int = 3
     """At most this many assign + hybrid adjustment iterations in each global bundle adjustment
     during mapping (the block is still growing: the next one follows soon); the final refine
@@ -509,21 +440,17 @@ class PrecisionOptions:
     the camera-side unknowns) only for blocks of fewer than `max_images_auto` images. Without
     them s0 and the global test are still reported, with proportional group redundancies."""
     max_images_auto: int = 200
-    """Image count up to which "auto" computes covariances (~2 s for 72 images / 4k points;
-    at 300 images / 29k points it cost ~2.5 hybrid solves)."""
+    """Image count up to which "auto" computes covariances: the dense camera-side inverse grows
+    with the cube of the images and soon costs more than the solves themselves."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
     generalisation_from_data: bool = True
-    """Without an a priori `AdjustmentOptions.sigma_generalisation`, the covariances are also
-    given under the generalisation-aware stochastic model, with the sigma the planes' mean
-    f_dTP residuals give (a variance component by moments, precision.generalisation_effects;
-    no re-solve, the estimate is unchanged). The classical covariances treat a plane's
-    thousands of f_dTP as independent and state check points too precise (Unger Table 12:
-    3-19x). Simulated short sequence, check points' Delta/sigma per axis: Scn3 (original
-    model; 0.22 m from the data) 1.14 / 0.42 / 0.87 against the classical 15.6 / 3.3 / 14.1,
-    Scn2 (corrected model; 0.02 m) 0.83 / 1.56 / 0.83 against 1.49 / 1.97 / 1.59
-    (benchmarks/results/precision.md, precision_short_scn2.md). False: the classical
-    covariances only, as Unger."""
+    """Without an a priori `AdjustmentOptions.sigma_generalisation`, the covariances are also given
+    under the generalisation-aware stochastic model, with the sigma the planes' mean f_dTP
+    residuals give (a variance component by moments, precision.generalisation_effects; no
+    re-solve, the estimate is unchanged). The classical covariances treat a plane's thousands of
+    f_dTP as independent and state check points too precise (Unger Table 12: 3-19x). False: the
+    classical covariances only, as Unger."""
     variance_components: bool = False
     """Iterated variance component estimation (Foerstner) of `variance_component_groups` after
     the last iteration, re-solving with the estimated sigmas; the covariances are those of that
@@ -543,10 +470,16 @@ class PrecisionOptions:
 
 @dataclass
 class RefineOptions:
+    """All options of refine, one dataclass per section of an options file."""
+
     assignment: AssignmentOptions = field(default_factory=AssignmentOptions)
+    """Tie points to model planes (`[assignment]`)."""
     adjustment: AdjustmentOptions = field(default_factory=AdjustmentOptions)
+    """Stochastic model and solver of the hybrid adjustment (`[adjustment]`)."""
     workflow: WorkflowOptions = field(default_factory=WorkflowOptions)
+    """Global or sliding-window loop and its stopping rules (`[workflow]`)."""
     precision: PrecisionOptions = field(default_factory=PrecisionOptions)
+    """A posteriori precision and the global test (`[precision]`)."""
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":
