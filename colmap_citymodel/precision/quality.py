@@ -39,61 +39,50 @@ class QualityThresholds:
     assignment pulling through the other parameters; weak. Nothing but GNSS determines such
     a direction, so refined and GNSS-only blocks agree there to within that sigma."""
     gnss_axis_failed: float = 5.0
-    """The same, failed: the block has been moved where GNSS alone decides, further than GNSS
-    can have put it; the GNSS-only result is the better one there. Also for a direction that
-    rests on a single model plane (nothing checks it): a real drive whose one facade moved the
-    cameras 0.2 m (16 sigma of a precise GNSS) across the street."""
+    """The same, failed: the block has been moved where GNSS alone decides, further than GNSS can
+    have put it; the GNSS-only result is the better one there. Also for a direction that rests
+    on a single model plane: nothing checks that plane's assignment."""
     model_evidence_gain: float = 0.25
     """A move beyond `gnss_axis_failed` or `shift_failed` is only weak when it has brought at
     least this share of all tie points near the model (within `near_distance`) that were not
-    near it in the GNSS-only block, ending with at least `min_near_share`: the move is the
+    near it in the GNSS-only block, ending with at least `min_near_share`: the move is then the
     model's evidence (the first assignment's search over metres of GNSS bias, the height held
-    there), not a runaway. On a drive whose GNSS heights were 7.8-11 m off, refine moved the
-    height by 7-10 m (9-13 sigma of GNSS there) onto walls and eaves, from 0-12 % to 79-82 % of
-    the tie points near the model, and ended 0.3-0.9 m from the truth in height."""
+    there), not a runaway."""
     axis_evidence_share: float = 0.2
-    """A move along one axis is the model's evidence only when the tie points, moved back
-    along that axis to the GNSS-only level, lose at least this share of the near share the
-    whole move gained: an orbit's height carried 4.8 m by a horizontal fit (8 % -> 56 % near
-    the model) kept 53 % moved back (5 % of the gain); a drive moved 4.0 m across the street
-    (7 % -> 63 %) fell to 46 % (31 %); drives whose heights moved 6.6-10.6 m onto walls and
-    eaves (0-18 % -> 79-81 %) fell to 2-48 % (53-98 %)."""
+    """A move along one axis is the model's evidence only when the tie points, moved back along
+    that axis to the GNSS-only level, lose at least this share of the near share the whole move
+    gained: the move along that axis, not the rest of the move, brought them onto the model."""
     scale_failed_sigmas: float = 5.0
     """Scale change from the GNSS-only result beyond this many of its GNSS sigmas: failed."""
     scale_gnss_sigmas: float = 3.0
     """The same where the planes do not determine the scale (observability): beyond this the
-    model has bent the block against the only observation of its scale (a real drive past
-    arcades: -5.6 %, 4.8 sigma, camera centres 0.24 -> 1.12 m)."""
+    model has bent the block against the only observation of its scale, GNSS."""
     unsettled_shift: float = 0.05
     """The assign/adjust loop ran all its iterations and the last one still moved a camera by
     more than this (m): the assignment had not settled, and the result is one state of a loop
-    still moving; weak. (Loops that settle end with moves of 0-3 mm; a real drive whose pitch
-    rested on three small cross walls that came and went still moved 0.08-1.1 m per
-    iteration at the tenth.)"""
+    still moving; weak. Loops that settle end with moves of millimetres."""
     min_assigned_share: float = 0.02
     """Fewer tie points than this share on planes: the model does not fit the block."""
     min_near_share: float = 0.35
-    """Share of tie points within `near_distance` of the model below which the fit is weak
-    (simulated streets, drives, strips and orbits that fit: 0.6-0.9, with ground and clutter
-    points; part of a model that fits only where it overlaps: 0.27)."""
+    """Share of tie points within `near_distance` of the model below which the fit is weak: a
+    block that fits has most of its tie points near the model, ground and clutter points
+    counted."""
     failed_near_share: float = 0.10
     """Below this share the model does not fit the block at all: failed."""
     near_distance: float = 0.5
+    """Distance (m) from the model within which a tie point counts as near it (2.5 x a LOD2 sigma_dTP)."""
     position_sigma_ok: float = 0.20
     """The a posteriori sigma (3D, m) of the block's position from planes and GNSS (each plane
     with its generalisation error, offset and tilt; observability) up to which the result is
     "ok": the block is then placed as well as the model's own generalisation (0.2 m,
-    sigma_dTP) allows; above it, "weak" says how well it is. (The simulated demo street:
-    0.17 m, its check points 0.164 m off.)"""
+    sigma_dTP) allows; above it, "weak" says how well it is."""
     wall_ok: float = 0.75
     """Share of the tie points on vertical planes of the cloud (walls: the model's surest part)
-    that lie within `near_distance` of the model, below which the fit is weak (every simulated
-    block that fits: 0.90-0.97)."""
+    that lie within `near_distance` of the model, below which the fit is weak: a block that fits
+    has nearly all of them there."""
     wall_failed: float = 0.5
     """Below this share most walls the images see are not the model's: it does not describe the
-    block well enough to be its control; failed (a street model moved 30 m along the street:
-    0.41; a real drive whose model holds the buildings of one side only, and arcades where
-    the model has a facade: 0.38, refined 0.4-1.6 m against GNSS-only 0.24-0.47 m)."""
+    block well enough to be its control; failed."""
     dtp_rms_weak: float = 2.0
     """RMS point-to-plane distance above this many sigma_dTP: weak."""
     gnss_scatter_weak: float = 1.5
@@ -140,7 +129,7 @@ def gnss_axis_shifts(mean_shift: np.ndarray, observability_dict: dict, *,
 
 def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                     ) -> QualityReport:
-    """Verdict from the figures refine measured (keys as written by workflow.measure_quality)."""
+    """Verdict from the figures refine measured (keys as written by measure_quality)."""
     t = thresholds or QualityThresholds()
     failed, weak = [], []
     fixed = metrics.get("planes_fix")
@@ -218,8 +207,8 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
                     "(3D sigma, with the model's generalisation error)")
     walls = metrics.get("wall_near_share")
     if walls is not None and walls < t.wall_ok:
-        # A block put on the wrong building of a regular street still has some of its walls
-        # on model walls (the demo street 11 m off: 53-56 %); its sigmas then say nothing.
+        # A block put on the wrong building of a regular street still has many of its walls
+        # on model walls (a regular street's facades line up); its sigmas then say nothing.
         (failed if walls < t.wall_failed else weak).append(
             f"only {100 * walls:.0f} % of the tie points on walls lie on the model's walls"
             + ("" if walls < t.wall_failed else
