@@ -70,7 +70,8 @@ class QualityThresholds:
     failed_near_share: float = 0.10
     """Below this share the model does not fit the block at all: failed."""
     near_distance: float = 0.5
-    """Distance (m) from the model within which a tie point counts as near it (2.5 x a LOD2 sigma_dTP)."""
+    """Distance (m) from the model within which a tie point counts as near it (2.5 x a LOD2
+    model's sigma_dTP)."""
     position_sigma_ok: float = 0.20
     """The a posteriori sigma (3D, m) of the block's position from planes and GNSS (each plane
     with its generalisation error, offset and tilt; observability) up to which the result is
