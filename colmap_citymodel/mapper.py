@@ -30,10 +30,10 @@ the local window fixed, so a new image enters where the block puts it (the slidi
 prediction step); each hybrid adjustment then holds the whole block by its tie points on the
 planes and the GNSS of the registered images, and the loop keeps the block's scale from its
 state before the adjustment where the planes cannot give it (`gnss_only`/`scale_sigma` of
-adjust.loop). This is not enough yet when the block is georegistered early from few GNSS
-positions: on the long simulated sequence with GNSS for the first 50 of 340 images, started
-among the GNSS images (`start_at_gnss`), the block ended 5 % off in scale. With COLMAP's own
-initial pair there the model enters late and the result matches refine's (0.18 m).
+adjust.loop). This does not hold a block georegistered early from few GNSS positions: started
+among the GNSS images (`start_at_gnss`) with GNSS only at the start, it can settle at a wrong
+scale; with COLMAP's own initial pair the model enters late and the result matches a refine
+of the mapped block (docs/defaults.md, `start_at_gnss`).
 
 Only one model is built (COLMAP's `multiple_models` does not apply): the largest connected
 block is what the model can hold; images that cannot be registered to it are reported. After

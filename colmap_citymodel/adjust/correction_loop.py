@@ -11,16 +11,12 @@ assigned to a plane are re-estimated with the corrected planes (their image obse
 f_dTP) on a copy of the block, so that they are not held where the adjustment to the given
 planes pulled them, and the refined block is handed back unchanged. The tie points are the
 control the planes are fitted to, as Unger corrected the generalised model with a reference
-block's tie points as control points (5.2.2); a corrected plane is then as good as they are
-(simulated, benchmarks/results/model_correction*.md: corrected faces short Scn3 0.216 -> 0.108
-m, their tie points 0.106 m off the true planes; long 0.198 -> 0.080 m, tie points 0.067 m;
-check points unchanged). `correction_moves_block` estimates block and model together instead
-(Unger 6.7.3: sigma_VT released in the global adjustment); where the images have systematic
-errors the block then bends back and the corrected planes follow it (with faces chosen by
->= 50 tie points over half the face: short Scn3 check points 0.252 -> 0.162 m and corrected
-planes 0.232 -> 0.089 m, but on the long sequence the check points went from 0.161 to 0.564 m
-and the corrected planes from 0.199 to 0.315 m; with the faces chosen by their plane sigma,
-short Scn3 check points 0.264 -> 0.256 m, corrected planes 0.211 -> 0.134 m).
+block's tie points as control points (5.2.2); a corrected plane is then as good as they are,
+and the check points stay those of the adjustment. `correction_moves_block` estimates block
+and model together instead (Unger 6.7.3: sigma_VT released in the global adjustment); where
+the images have systematic errors the block then bends back and the corrected planes follow
+it. The measurements on the simulated sequences are in docs/defaults.md
+(`correction_moves_block`) and on the model correction benchmark page.
 
 The sigmas of the corrected vertices come from the joint problem (block and model unknown,
 the model's datum held by the datum condition) at the final state: how well the images and

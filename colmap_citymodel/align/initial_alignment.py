@@ -4,7 +4,7 @@ After georegistration to GNSS the block is metres off the model (method.md secti
 hybrid bundle adjustment would have to carry the whole block there through Levenberg-Marquardt
 steps; most of that move is one 7-parameter similarity, which is cheap to estimate from the
 assigned tie points alone. Applying it first leaves the bundle adjustment only the block's
-deformation (on short Scn3: 3 Ceres iterations instead of 9). A similarity does not change any
+deformation, in a fraction of the Ceres iterations. A similarity does not change any
 reprojection error, so the adjustment's optimum is the same.
 """
 
