@@ -108,8 +108,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
     coarse = None
     # Also after a given initial transform: the bundle adjustment with GNSS has just moved
-    # the block onto the GNSS, by the GNSS's bias (a straight drive put on the model by an
-    # exact transform ended 8.6 m off without the search, 0.96 m with it).
+    # the block onto the GNSS, and with it by the GNSS's bias.
     if priors is not None and o_w.coarse_search_sigmas > 0:
         t_coarse = time.perf_counter()
         coarse, moved = coarse_start(rec, points, store, surface, priors, objective, options,
@@ -122,8 +121,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     loop_options = options
     if o_w.mode == "sliding_window":
         # The windows' iterations and those of the global loop after them each end on a solve
-        # with the original weights: long Scn4 0.170 m, 0.179 with that solve left to the next
-        # iteration.
+        # with the original weights, which ends the sliding window closer to the truth
+        # (docs/defaults.md, `solve_again_after_elimination`).
         loop_options = copy.deepcopy(options)
         loop_options.workflow.solve_again_after_elimination = True
         # Windows along the sequence, each on the model; the loop below is then the final

@@ -50,8 +50,8 @@ logger = logging.getLogger(__name__)
 
 #: The shifts held where the first assignment put the block when the planes leave them to GNSS:
 #: the height only. Vertical walls never fix it; E or N can seem free at the first assignment,
-#: metres from the model, and be fixed by the walls once the height is known (a drive whose E
-#: and N were held in its first solve: the cameras went 1.7 m away and back).
+#: metres from the model, and be fixed by the walls once the height is known; held, they
+#: would keep the block from its walls.
 HEIGHT = np.array([False, False, True])
 
 
@@ -138,8 +138,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         observers = roof_observers(rec, point_ids)
         # Roofs keep only the points seen from above once the block is on the model: while
         # the first assignment and the similarity rounds bring it there from metres away,
-        # parapets and eaves near a roof's plane hold its height (a street drive whose only
-        # roof points were seen from below ran 25 m away without them).
+        # parapets and eaves near a roof's plane hold its height (from a street they are
+        # often the only points near a roof).
         kept_faces = assignment.faces if assignment is not None else None
         assignment = assign(points, point_ids, current, threshold, o_a, weights,
                             observers if iterations else None, kept_faces)
@@ -267,9 +267,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 # robust solve moved the block off the model (its objective rose by more than
                 # divergence_tolerance, as a diverging iteration's does): a wrong start had
                 # assigned points to planes they are not on, and the solve with the original
-                # weights must come at once (a drive moved 20 m by wrong matches of extracted
-                # planes ended 2.9 m off when the next iteration started from there, 0.32 m
-                # else).
+                # weights must come at once, before the next assignment starts from there.
                 final, final_report = robust, robust_report
             else:
                 final = _final_problem(reusable if iteration > 0 else None, rec, store,

@@ -137,10 +137,8 @@ def datum_condition(store: PlaneStore, selection: CorrectionSelection, sigma: fl
     displacement they cause at the vertices' RMS radius). Only the moves along the normals
     count: a vertex sliding within a plane moves no plane. Directions no corrected plane
     fixes (all normals parallel, say) get no condition; the faces that keep their planes
-    hold them. Without it, with the block moving too, block and corrected planes moved
-    together where few planes fixed the block (simulated short Scn3 with 17 faces corrected:
-    1.2 m off along the street; with the condition at 0.05 m and 12 faces the check points
-    ended 0.16 m off, better than the 0.25 m with the model as given)."""
+    hold them. Without it, with the block moving too, block and corrected planes can drift
+    together where few planes fix the block (AdjustmentOptions.sigma_correction_datum)."""
     ids = np.asarray(selection.released, np.int64)
     column = {int(v): k for k, v in enumerate(ids)}
     x0 = store.vertices[ids]

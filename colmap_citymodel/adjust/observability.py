@@ -188,7 +188,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         factor = np.degrees(1.0) if kind == "rotation" else 1.0
         one_plane = bool(s_planes[k] < limit and not p_ok)
         # What a user can rely on: a direction that rests on one unchecked plane is as precise
-        # as GNSS makes it (a forward camera's one roof edge was seen 0.7 m off in height).
+        # as GNSS makes it (nothing shows when that plane's assignment is wrong).
         sigma = s_gnss[k] if one_plane and g_ok else s_both[k]
         out[name] = {"source": source,
                      "one_plane": one_plane,

@@ -23,8 +23,7 @@ SCALE_RUNAWAY_SIGMAS = 3.0
 #: Up to this many sigmas the solve is kept and the next one, with the scale held, takes the
 #: scale back; further, the block may have collapsed onto a few planes and the solve is undone
 #: and repeated from the state before it. Repeating costs the first iteration's two solves
-#: again, the most expensive of a refine (long Scn3, 0.57 % = 3.9 sigma: 47 s of 130 s, check
-#: points 0.159 m either way).
+#: again, the most expensive of a refine, so a moderate change is left to the next solve.
 SCALE_UNDO_SIGMAS = 10.0
 
 
@@ -41,8 +40,8 @@ def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstructio
 
 #: Where the planes do not determine the scale, the baseline priors hold the GNSS-only
 #: block's scale this many times tighter than GNSS's own scale sigma: point-to-plane residuals
-#: shrink with the block (a similarity changes no reprojection error), and 16 GNSS priors do
-#: not hold 2000 of them (a real drive past one facade row: -41 % with GNSS sigma 3 m).
+#: shrink with the block (a similarity changes no reprojection error), and a few GNSS priors
+#: do not hold thousands of them.
 BASELINE_TIGHTENING = 10.0
 
 
@@ -80,8 +79,8 @@ def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
 
 #: Where the planes do not determine the height, the level prior holds it this many times
 #: tighter than the mean of the GNSS heights: the planes' own information there, walls tilted
-#: by a fraction of a degree, would otherwise move the block by metres (a drive along the true
-#: building planes, walls within 0.3 deg of vertical: 5.7 m in the first solve).
+#: by a fraction of a degree, would otherwise move the block by metres
+#: (`WorkflowOptions.hold_gnss_height`).
 LEVEL_TIGHTENING = 10.0
 
 

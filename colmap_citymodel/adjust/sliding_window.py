@@ -15,9 +15,8 @@ images are left out):
    steps 5-6 (new key frames oriented from the last adjusted ones, then a bundle adjustment
    of the window without the model): COLMAP has oriented them already, and an adjustment
    without the model would only let the GNSS bias pull the window off the planes that placed
-   the kept images (on the synthetic street the block objective, about minus the share of
-   tie points near the model, was -0.92 after the prediction and -0.06 after such an
-   adjustment);
+   the kept images (on a synthetic street the prediction leaves most tie points near the
+   model, such an adjustment almost none);
 2. the assign + hybrid adjustment loop of the global workflow (adjust.loop; steps 3-4), the
    first window with its similarity rounds onto the planes, later ones without (their
    position comes from the window before).

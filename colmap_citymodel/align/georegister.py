@@ -297,9 +297,9 @@ def level_about_line(sim3, reconstruction, source: np.ndarray, right: np.ndarray
                      up: np.ndarray):
     """`sim3` (from `upright_line_similarity`) turned about the flight line so that the tie
     points' planes are walls or level (align.coarse.level_roll), where the cameras look
-    sideways: their image "up" holds the roll only to their tilt (a UAV camera pitched 35 deg
-    down put the block's walls 35 deg off the vertical). Cameras looking along the line keep
-    their roll (their horizontal x axes fix it to a fraction of a degree). `source`: the
+    sideways: their image "up" holds the roll only to their tilt (with a UAV camera pitched
+    35 deg down, the block's walls can end 35 deg off the vertical). Cameras looking along the
+    line keep their roll (their horizontal x axes fix it to a fraction of a degree). `source`: the
     camera centres, `right`, `up`: their axes (`camera_axes`), in the reconstruction's frame.
     Returns (the similarity, the roll added in degrees or None where none was)."""
     import pycolmap

@@ -119,7 +119,7 @@ def run_local(fn: Callable, tasks: list, workers: int, threads: int | None = Non
 #: Dask settings of a LocalCluster: no statistical profiling of the running tasks (there is
 #: no dashboard to show it), and glibc's own memory trimming in the workers instead of the
 #: nanny's MALLOC_TRIM_THRESHOLD_=65536, which returns every freed block above 64 KiB to the
-#: system at once (a refine then took 2.6 times the page faults and about 10 % more CPU).
+#: system at once and so multiplies a refine's page faults.
 LOCAL_CLUSTER_CONFIG = {"distributed.worker.profile.enabled": False,
                         "distributed.nanny.pre-spawn-environ.MALLOC_TRIM_THRESHOLD_": None}
 

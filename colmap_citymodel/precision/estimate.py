@@ -895,8 +895,8 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         t0 = time.perf_counter()
         # The response to the planes' errors is the estimator's own: with the holds of what
         # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
-        # sigma, the walls' tilts would seem to move a drive's height by metres (3.1 m
-        # stated against 0.7 m found), which the hold does not let them.
+        # sigma, the walls' tilts would seem to move a block's height by metres, which the
+        # hold does not let them.
         solve_cof = (cofactors(problem, redundancy=False, keep_system=True, points=False,
                                relax_holds=False) if held else cof)
         effects = generalisation_effects(problem, solve_cof, sigma_generalisation,

@@ -85,8 +85,7 @@ class SubsetOptions:
     max_images: int = 500
     """Largest subset whose covariances are computed. The reduced normal matrix is dense
     (6 x images)^2 (500 images: 3000^2, 72 MB) and the marginal point covariances cost
-    points x that. Measured per subset (solve, covariances, inner S-transformation) on 2 busy
-    cores: 90 images / 28k tie points ~6 s; 340 images / 102k tie points ~56 s, 1.8 GB peak."""
+    points x that (timings in docs/defaults.md)."""
     sigma_image: float = 1.0
     """A priori sigma of image coordinates (px)."""
     alpha: float = 0.05

@@ -24,8 +24,8 @@ MODEL_VARIANTS = ("detailed", "corrected", "original", "none")
 FLIGHT_MODES = ("sideways", "forward", "orbit")
 
 
-# Options added after sequences were first cached: left out of the sequence key while they hold
-# these defaults, so that existing sequences keep their keys.
+# Options left out of the sequence key while they hold these defaults, so that sequences
+# cached without them keep their keys.
 _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_radius": 35.0},
                 "gnss": {"bias_magnitude": 0.0}}
 
