@@ -29,8 +29,8 @@ class AssignmentOptions:
     point cloud and matched to the model; "roi_msac" = (c), one plane searched near each model
     plane; "auto" = `auto_indirect_method` while the threshold exceeds `auto_switch_threshold`,
     (a) below it (assign.schedule.ASSIGNERS, assign/indirect.py). Unger 6.5: (a) and (c) give
-    similar results, (b) far fewer planes but suits poor initial values. "auto": the first
-    assignment takes only points that form a plane, not the clutter (a) takes at 2 m."""
+    similar results; (b) assigns far fewer planes but is meant for poor initial values. "auto":
+    the first assignment takes only points that form a plane, not the clutter (a) takes at 2 m."""
     max_threshold: float = 2.0
     """(a): upper limit of the point-to-plane distance threshold in metres (first iteration)."""
     indirect_max_threshold: float = 3.0
