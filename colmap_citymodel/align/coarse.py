@@ -46,11 +46,7 @@ SHIFT_PENALTY = 0.01
 #: to the share of tie points near the model: the square penalty SHIFT_PENALTY * (shift /
 #: sigma)^2 within a sigma, growing only logarithmically beyond (1 sigma costs 0.7 % of the
 #: points, 3 sigma 2.3 %, 6 sigma 3.6 %). Heavy-tailed, because GNSS in a street is often off
-#: by more than its stated sigma (multipath, a bias): the square penalty preferred a wrong fit
-#: 11 m off, 24 % of the points near the model, to the right one 18 m (6 sigma) away with
-#: 45-80 %, on the demo street with an 18 m bias. Three times as strong near the start, it
-#: held a UAV orbit's height 0.4 m lower in the search, and the block ended 0.10 m off in
-#: height instead of 0.014 m.
+#: by more than its stated sigma (multipath, a bias); measurements in docs/defaults.md.
 SEARCH_SHIFT_PENALTY = 0.01
 #: Tie points used by the searches (a random subset of a larger block).
 MAX_SEARCH_POINTS = 2000
@@ -62,22 +58,21 @@ MAX_GRID_CELLS = 4_000_000
 
 
 class SurfaceDistance:
-    """Unsigned distance (m) from points to the model faces that tie points can lie on, up to
+    """Unsigned distance (m) from points to the model surfaces that tie points can lie on (the
+    faces not excluded by class, without what lies inside the city's volume), up to
     a radius: exact below `within`, `within` itself where no face is closer. Every caller
     counts points within a radius of the model, so no distance beyond it is ever computed."""
 
     def __init__(self, store: PlaneStore, excluded_classes=("GroundSurface", "ClosureSurface"),
                  threads: int = 0):
         """`threads`: of each query (0 or less: every core)."""
-        from ..citymodel.mesh import store_to_trimesh
+        from ..citymodel.visibility import visible_triangles
 
-        mesh, triangle_face = store_to_trimesh(store)
-        keep = np.array([store.faces[int(f)].semantic not in excluded_classes
-                         for f in triangle_face], bool)
-        if not keep.any():
-            keep[:] = True
-        self.vertices = np.ascontiguousarray(mesh.vertices, np.float64)
-        self.triangles = np.ascontiguousarray(np.asarray(mesh.faces, np.int64)[keep])
+        vertices, triangles, _ = visible_triangles(store, excluded_classes)
+        if not len(triangles):  # nothing a camera sees: every face rather than none
+            vertices, triangles, _ = visible_triangles(store, ())
+        self.vertices = np.ascontiguousarray(vertices, np.float64)
+        self.triangles = np.ascontiguousarray(triangles, np.int64)
         self.threads = max(int(threads), 0)
         self._grids: dict[float, object] = {}  # one triangle grid per radius asked for
 

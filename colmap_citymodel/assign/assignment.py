@@ -25,6 +25,7 @@ from typing import Protocol
 import numpy as np
 
 from ..citymodel.store import PlaneStore
+from ..citymodel.visibility import class_mask, visibility
 from ..options import AssignmentOptions
 
 logger = logging.getLogger(__name__)
@@ -169,8 +170,23 @@ def filter_faces(points: np.ndarray, face_index: np.ndarray, options: Assignment
 
 
 def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:
-    """Indices of faces whose semantic class takes no tie points."""
-    return np.array([i for i, f in enumerate(store.faces)
-                     if f.semantic in options.excluded_classes], dtype=np.int64)
+    """Indices of faces that take no tie points: their semantic class is excluded, or they lie
+    inside the city's volume as a whole (citymodel.visibility)."""
+    return np.flatnonzero(class_mask(store, options.excluded_classes)
+                          | visibility(store).hidden).astype(np.int64)
+
+
+def hidden_points(points: np.ndarray, face_index: np.ndarray, store: PlaneStore) -> np.ndarray:
+    """(P,) bool: assigned points whose projection onto their face meets a part of it that
+    lies inside the city's volume (citymodel.visibility)."""
+    out = np.zeros(len(points), bool)
+    rows = np.flatnonzero(face_index >= 0)
+    if not len(rows):
+        return out
+    faces = face_index[rows]
+    normals = store.normals[faces]
+    d = np.einsum("ij,ij->i", points[rows], normals) + store.offsets[faces]
+    out[rows] = visibility(store).hidden_at(points[rows] - d[:, None] * normals, faces, normals)
+    return out
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..citymodel.store import PlaneStore
+from ..citymodel.visibility import visibility
 from ..options import AssignmentOptions
 from .assignment import Assignment, excluded_faces, filter_faces
 
@@ -17,11 +18,14 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     """Method (a): each tie point to its closest model face, if closer than `threshold`.
 
     "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
-    contains the point's orthogonal projection (grown by `polygon_margin`). `weights` play no
+    contains the point's orthogonal projection (grown by `polygon_margin`) and that a camera
+    can see there (citymodel.visibility: not inside the city's volume). `weights` play no
     part; `kept_faces`: see `filter_faces`.
     """
-    face_index, distance = store.closest_faces(points, max_distance=threshold,
-                                               margin=options.polygon_margin)
+    vis = visibility(store)
+    face_index, distance = store.closest_faces(
+        points, max_distance=threshold, margin=options.polygon_margin, allowed=~vis.hidden,
+        hidden=lambda feet, faces: vis.hidden_at(feet, faces, store.normals[faces]))
     excluded = excluded_faces(store, options)
     if len(excluded):
         face_index = np.where(np.isin(face_index, excluded), -1, face_index)

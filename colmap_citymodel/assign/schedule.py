@@ -9,7 +9,8 @@ import numpy as np
 
 from ..citymodel.store import PlaneStore
 from ..options import AssignmentOptions
-from .assignment import Assignment, Observers, PlaneAssigner, roof_points_seen_from_below
+from .assignment import (Assignment, Observers, PlaneAssigner, hidden_points,
+                         roof_points_seen_from_below)
 from .direct import assign_direct
 from .indirect import assign_msac, assign_roi_msac
 
@@ -51,6 +52,11 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     result = assigner(points, point_ids, store, threshold, options, weights=weights,
                       kept_faces=kept_faces)
     result.method = method
+    hidden = hidden_points(points, result.face_index, store)
+    if np.any(hidden):
+        logger.debug("%d points on hidden parts of faces left unassigned",
+                     int(np.count_nonzero(hidden)))
+        result = result.eliminate(hidden, points, options, kept_faces)
     if observers is not None:
         result = without_roof_points_seen_from_below(result, points, store, observers, options,
                                                      kept_faces)

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 from .read import city_model_files, read_city_model
+from .visibility import visibility
 
 
 def _fmt_range(lo: float, hi: float) -> str:
@@ -31,6 +32,8 @@ def format_summary(info: dict) -> str:
         f"holes       {info.get('num_holes', 0)} in {info.get('faces_with_holes', 0)} faces",
         f"vertices    {info['num_vertices']}",
         f"bbox        x {_fmt_range(x0, x1)}  y {_fmt_range(y0, y1)}  z {_fmt_range(z0, z1)}",
+        f"hidden      {info.get('hidden_faces', 0)} faces inside the city's volume, "
+        f"{info.get('partly_hidden_faces', 0)} partly (no tie point is put there)",
         f"dropped     {info['num_dropped_degenerate']} degenerate faces",
         f"non-planar  {info['num_nonplanar']} faces flagged "
         f"(max RMS out of plane {info['max_rms_out_of_plane']:.4f} m)",
@@ -56,6 +59,7 @@ def main(
     files = city_model_files(paths)
     store = read_city_model(files, lod=lod, crs=crs, target_crs=target_crs)
     info = store.summary()
+    info.update(visibility(store).summary())
     info["files"] = [str(f) for f in files]
     info["lod"] = lod
     if as_json:

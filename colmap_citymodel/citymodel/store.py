@@ -369,10 +369,14 @@ class PlaneStore:
         max_distance: float,
         margin: float = 0.1,
         candidates: int | None = 8,
+        allowed: np.ndarray | None = None,
+        hidden=None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """For each point: the face with the smallest |distance to plane| among faces whose
         polygon (with holes, grown by `margin` m) contains the point's orthogonal projection,
-        only if |d| <= max_distance.
+        only if |d| <= max_distance. `allowed` ((F,) bool): the faces that may be chosen (None:
+        all); `hidden(feet, faces)` ((K,) bool): the candidate pairs whose face is hidden where
+        the point's projection meets it (citymodel.visibility), which are not chosen either.
 
         Returns (face_index int64, -1 for none; signed_distance float64, nan for none).
         `candidates` caps how many planes (nearest first) per point are tested for containment
@@ -388,6 +392,8 @@ class PlaneStore:
             return best, dist
         d = np.einsum("ki,ki->k", pts[point], self.normals[face]) + self.offsets[face]
         keep = np.abs(d) <= max_distance
+        if allowed is not None:
+            keep &= allowed[face]
         point, face, d = point[keep], face[keep], d[keep]
         u, v = self._to_face_2d(face, pts[point])
         E = self._edges2d()
@@ -405,6 +411,9 @@ class PlaneStore:
             point, face, d, u, v = point[keep], face[keep], d[keep], u[keep], v[keep]
         inside = self._inside_pairs(face, u, v, margin)
         point, face, d = point[inside], face[inside], d[inside]
+        if hidden is not None and len(point):
+            seen = ~hidden(pts[point] - d[:, None] * self.normals[face], face)
+            point, face, d = point[seen], face[seen], d[seen]
         first = np.r_[True, point[1:] != point[:-1]] if len(point) else np.zeros(0, bool)
         best[point[first]] = face[first]
         dist[point[first]] = d[first]
@@ -426,7 +435,9 @@ class PlaneStore:
             rms_out_of_plane=planes["rms"],
             nonplanar=planes["rms"] > self.tolerances.nonplanar,
             warnings=list(self.warnings),
-            _cache={},
+            # What lies inside the city's volume does not change when vertices move by a
+            # model's corrections (decimetres): the same faces stay hidden.
+            _cache={k: v for k, v in self._cache.items() if k == "visibility"},
         )
 
     def subset_bbox(self, bbox_local_min, bbox_local_max) -> PlaneStore:
