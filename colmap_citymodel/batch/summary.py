@@ -36,6 +36,8 @@ COLUMNS = [
     ("seconds", "seconds"),
     ("error", "error"),
 ]
+#: The anchor of report.html's 3D view (output.view3d.ANCHOR).
+VIEW3D_ANCHOR = "view-3d"
 #: Statuses: refined in this run, refined in an earlier one (resume), failed, not run
 #: (interrupted before it started).
 STATUSES = ("done", "skipped", "error", "not run")
@@ -143,7 +145,10 @@ def _html(rows: list[dict]) -> str:
         for key, _ in COLUMNS:
             text = html.escape(cell(row, key))
             if key == "workspace" and row.get("status") in ("done", "skipped"):
-                text = f'<a href="{html.escape(row["workspace"])}/report.html">{text}</a>'
+                report = f'{html.escape(row["workspace"])}/report.html'
+                text = (f'<a href="{report}">{text}</a> '
+                        f'<a href="{report}#{VIEW3D_ANCHOR}" title="the block on the city model '
+                        'in 3D">3D</a>')
             elif key == "status" and row.get("status") in ("done", "error"):
                 text = f'<a href="{html.escape(row["workspace"])}.log">{text}</a>'
             style = ""
@@ -161,7 +166,8 @@ def _html(rows: list[dict]) -> str:
             f"<body><h1>colmap-citymodel batch</h1><p>{html.escape(counts(rows))}</p>"
             "<p>near model: tie points within 0.5 m of the city model; shift: mean camera "
             "shift of the refined block from the GNSS-only adjustment. Hover a verdict for "
-            f"its reasons.</p><table><tr>{head}</tr>\n" + "\n".join(body)
+            "its reasons; 3D: the block on the city model in report.html's 3D view.</p>"
+            f"<table><tr>{head}</tr>\n" + "\n".join(body)
             + "</table></body></html>\n")
 
 

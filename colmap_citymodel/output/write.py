@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import json
 import logging
+import time
 from pathlib import Path
 
 import numpy as np
@@ -284,10 +285,22 @@ def write_refined(result: RefineResult, output_path: str | Path, *, output_type:
         summary = report_markdown(report) + correction_md + precision_md
         (tmp / "report.json").write_text(json.dumps(report, indent=2, default=_json_default))
         (tmp / "report.md").write_text(summary)
-        (tmp / "report.html").write_text(html_page("colmap-citymodel refine report", plots,
-                                                   summary))
+        page = html_page("colmap-citymodel refine report", plots, summary)
+        (tmp / "report.html").write_text(with_view3d(page, result))
     logger.info("wrote the refined model and report to %s", output_path)
     return output_path
+
+
+def with_view3d(page: str, result: RefineResult) -> str:
+    """report.html's page with the interactive 3D view (output.view3d) after its heading."""
+    from .view3d import insert_section, view_section
+
+    t_view = time.perf_counter()
+    section, facts = view_section(result, face_colours(len(result.store.faces)))
+    logger.info("report.html: 3D view of %d of %d tie points, %d model faces (%.1f s)",
+                facts["num_drawn"], facts["num_points"], facts["num_faces"],
+                time.perf_counter() - t_view)
+    return insert_section(page, section)
 
 
 def _json_default(value):

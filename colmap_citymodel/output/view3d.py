@@ -1,0 +1,423 @@
+"""The interactive 3D view in report.html: the block on the city model, in the browser.
+
+One plotly figure (WebGL, plotly.js embedded in the page, so it opens offline):
+
+- the city model faces near the block as triangles, one trace per class (walls, roofs,
+  ground, other) in muted colours; the faces that took tie points in stronger colours of their
+  class; the face outlines as thin lines;
+- the tie points of the assignment, at most `MAX_POINTS` of them (a fixed random subset, the
+  same points in both blocks): assigned points in the colour of their face (the palette of
+  assignments.ply), unassigned points grey; a second colouring by the signed distance of each
+  assigned point to the plane of its face;
+- the cameras as small frusta with a line along their track;
+- buttons that show the GNSS-only block (step 2, before the model took part), the refined one,
+  or both, and buttons for the colouring.
+
+Coordinates are in the plane store's local frame (model CRS minus `store.origin`), so that the
+browser's 32-bit floats keep centimetres; the caption gives the origin. After plotly has drawn,
+the page sets `window.viewReady = true` and `document.body.dataset.traces` (traces in the
+figure), `dataset.drawn` (objects in the WebGL scene) and `dataset.readyMs` (milliseconds from
+the start of loading).
+"""
+
+from __future__ import annotations
+
+import html
+
+import numpy as np
+import pycolmap
+
+from ..citymodel.mesh import triangulate_face
+from ..citymodel.store import PlaneStore
+from .result import RefineResult
+
+#: Most tie points drawn per block (a fixed random subset beyond that).
+MAX_POINTS = 30_000
+#: Most model faces drawn (those nearest the block's centre beyond that).
+MAX_FACES = 20_000
+#: Metres around the cameras and tie points within which model faces are drawn.
+FACE_MARGIN = 15.0
+#: The anchor of the view in report.html (the batch index links to it).
+ANCHOR = "view-3d"
+PLOT_ID = "view3d-plot"
+
+#: (name, classes, colour of faces without tie points, colour of faces with tie points).
+CLASS_GROUPS = (
+    ("walls", ("WallSurface",), "#ececec", "#b4bccb"),
+    ("roofs", ("RoofSurface",), "#f3e0d9", "#d7a595"),
+    ("ground", ("GroundSurface",), "#ebe3cf", "#c4b27f"),
+    ("other", None, "#dde8f3", "#9fbfdc"),
+)
+UNASSIGNED = "#a0a0a0"
+#: Signed distance to the face: blue behind it, near-black on it, red in front of it (pale
+#: faces behind the points stay readable, unlike a scale that is white in the middle).
+RESIDUAL_COLOURS = [[0.0, "#2166ac"], [0.5, "#202020"], [1.0, "#d6301d"]]
+BLOCK_STYLE = {"gnss_only": ("GNSS-only", "#e6550d"), "refined": ("refined", "#08306b")}
+
+#: Sets the page's ready flag once plotly's newPlot promise has resolved.
+READY_SCRIPT = """
+var gd = document.getElementById('{plot_id}');
+var scene = gd._fullLayout.scene && gd._fullLayout.scene._scene;
+document.body.dataset.traces = String(gd.data.length);
+document.body.dataset.drawn = String(scene && scene.glplot ? scene.glplot.objects.length : 0);
+document.body.dataset.readyMs = String(Math.round(performance.now()));
+window.viewReady = true;
+"""
+
+
+def _hex(rgb) -> str:
+    return "#%02x%02x%02x" % tuple(int(v) for v in rgb)
+
+
+def sample_indices(n: int, max_points: int, seed: int = 0) -> np.ndarray:
+    """Sorted indices of at most `max_points` of `n` items (all of them when n is small)."""
+    if n <= max_points:
+        return np.arange(n)
+    return np.sort(np.random.default_rng(seed).choice(n, max_points, replace=False))
+
+
+def point_positions(rec: pycolmap.Reconstruction, point_ids: np.ndarray
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """(xyz (P, 3), present (P,) bool): the points of `rec` by id (nan where it has none)."""
+    xyz = np.full((len(point_ids), 3), np.nan)
+    present = np.zeros(len(point_ids), bool)
+    for k, pid in enumerate(point_ids):
+        pid = int(pid)
+        if rec.exists_point3D(pid):
+            xyz[k] = rec.point3D(pid).xyz
+            present[k] = True
+    return xyz, present
+
+
+def camera_centres(rec: pycolmap.Reconstruction) -> tuple[list, np.ndarray]:
+    """(images ordered by name, their centres (N, 3))."""
+    images = sorted((rec.image(i) for i in rec.reg_image_ids()), key=lambda im: im.name)
+    centres = np.array([im.projection_center() for im in images]).reshape(-1, 3)
+    return images, centres
+
+
+def frustum_size(centres: np.ndarray) -> float:
+    """Depth (m) of the drawn frusta: 0.8 times the median step between neighbouring cameras
+    of the track, at least 0.3 m, at most 1/50 of the block's extent."""
+    if len(centres) < 2:
+        return 1.0
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    steps = steps[steps > 1e-6]
+    extent = float(np.linalg.norm(np.ptp(centres, axis=0)))
+    size = 0.8 * float(np.median(steps)) if len(steps) else 1.0
+    return float(np.clip(size, 0.3, max(0.3, extent / 50.0)))
+
+
+def frusta_lines(rec: pycolmap.Reconstruction, images: list, size: float) -> np.ndarray:
+    """(K, 3) polyline vertices, nan rows between pieces: each camera's centre to its image
+    corners at depth `size` and the image rectangle."""
+    pieces = []
+    nan = np.full((1, 3), np.nan)
+    corners_px = {}
+    for image in images:
+        camera = rec.camera(image.camera_id)
+        if image.camera_id not in corners_px:
+            w, h = float(camera.width), float(camera.height)
+            normalised = np.asarray(camera.cam_from_img(
+                np.array([[0.0, 0.0], [w, 0.0], [w, h], [0.0, h]])))
+            corners_px[image.camera_id] = np.c_[normalised, np.ones(4)]
+        rotation = np.asarray(image.cam_from_world().rotation.matrix())
+        centre = np.asarray(image.projection_center())
+        corners = centre + size * (corners_px[image.camera_id] @ rotation)
+        for c in corners:
+            pieces += [centre[None], c[None], nan]
+        pieces += [corners, corners[:1], nan]
+    return np.vstack(pieces) if pieces else np.zeros((0, 3))
+
+
+def track_line(centres: np.ndarray) -> np.ndarray:
+    """The camera centres in name order, broken (nan) where a step is more than 10 times the
+    median step (another sequence)."""
+    if len(centres) < 2:
+        return centres
+    steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
+    limit = 10.0 * max(float(np.median(steps)), 1e-3)
+    rows = [centres[:1]]
+    for step, centre in zip(steps, centres[1:]):
+        if step > limit:
+            rows.append(np.full((1, 3), np.nan))
+        rows.append(centre[None])
+    return np.vstack(rows)
+
+
+def faces_near(store: PlaneStore, lo: np.ndarray, hi: np.ndarray, max_faces: int) -> np.ndarray:
+    """Indices of the faces whose bounding box meets the box [lo, hi] (local frame), at most
+    `max_faces` of them (those with centroids nearest the box's centre)."""
+    if store.num_faces == 0:
+        return np.zeros(0, np.int64)
+    faces = store.faces
+    ring_face = np.repeat(np.arange(store.num_faces), np.diff(faces.face_ring))
+    entry_ring = np.repeat(np.arange(len(faces.ring_ptr) - 1), np.diff(faces.ring_ptr))
+    entry_face = ring_face[entry_ring]
+    xyz = store.vertices[faces.ring_vertex]
+    fmin = np.full((store.num_faces, 3), np.inf)
+    fmax = np.full((store.num_faces, 3), -np.inf)
+    np.minimum.at(fmin, entry_face, xyz)
+    np.maximum.at(fmax, entry_face, xyz)
+    near = np.flatnonzero(np.all((fmax >= lo) & (fmin <= hi), axis=1))
+    if len(near) > max_faces:
+        distance = np.linalg.norm(store.centroids[near] - 0.5 * (lo + hi), axis=1)
+        near = np.sort(near[np.argsort(distance)[:max_faces]])
+    return near
+
+
+def _class_of(store: PlaneStore, faces: np.ndarray) -> np.ndarray:
+    """Per face of `faces`, the index of its group in CLASS_GROUPS."""
+    semantic = np.asarray(store.faces.semantic.categories, dtype=object)[
+        store.faces.semantic.codes[faces]] if len(faces) else np.zeros(0, object)
+    group = np.full(len(faces), len(CLASS_GROUPS) - 1)
+    for g, (_, classes, _, _) in enumerate(CLASS_GROUPS[:-1]):
+        group[np.isin(semantic, classes)] = g
+    return group
+
+
+def mesh_traces(store: PlaneStore, faces: np.ndarray, used: set[int]) -> list[dict]:
+    """Mesh3d traces of `faces`: per class group, faces without tie points and faces with."""
+    group = _class_of(store, faces)
+    triangles = {int(f): triangulate_face(store, int(f)) for f in faces}
+    traces = []
+    for g, (name, _, plain, strong) in enumerate(CLASS_GROUPS):
+        for with_points in (False, True):
+            chosen = [int(f) for f, k in zip(faces, group) if k == g
+                      and (int(f) in used) == with_points]
+            tri = [triangles[f] for f in chosen if len(triangles[f])]
+            if not tri:
+                continue
+            tri = np.concatenate(tri)
+            ids, inverse = np.unique(tri, return_inverse=True)
+            xyz = store.vertices[ids].astype(np.float32)
+            ijk = inverse.reshape(-1, 3).astype(np.int32)
+            label = f"{name} with tie points" if with_points else name
+            traces.append(dict(type="mesh3d", 
+                x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], i=ijk[:, 0], j=ijk[:, 1], k=ijk[:, 2],
+                color=strong if with_points else plain, opacity=1.0 if with_points else 0.55,
+                flatshading=True, name=f"{label} ({len(chosen)})", showlegend=True,
+                hoverinfo="name", lighting={"ambient": 0.75, "diffuse": 0.45, "specular": 0.05},
+                legendgroup="model"))
+    return traces
+
+
+def outline_trace(store: PlaneStore, faces: np.ndarray):
+    """The faces' rings as one line trace (nan between rings)."""
+    fl = store.faces
+    rows = []
+    nan = np.full((1, 3), np.nan)
+    for f in faces:
+        for r in range(fl.face_ring[f], fl.face_ring[f + 1]):
+            ring = fl.ring_vertex[fl.ring_ptr[r]:fl.ring_ptr[r + 1]]
+            rows += [store.vertices[ring], store.vertices[ring[:1]], nan]
+    xyz = (np.vstack(rows) if rows else np.zeros((0, 3))).astype(np.float32)
+    return dict(type="scatter3d", x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="lines",
+                        line={"color": "#525252", "width": 1}, name="face outlines",
+                        hoverinfo="skip", legendgroup="model")
+
+
+def point_residuals(result: RefineResult, xyz: np.ndarray, face: np.ndarray) -> np.ndarray:
+    """Signed distance (m) of each point to the plane of its face: the adjusted plane where the
+    face was an unknown of the last solve, the face's own plane otherwise (nan: no face)."""
+    normals = result.adjusted_store.normals.copy() if result.adjusted_store.num_faces else \
+        np.zeros((0, 3))
+    offsets = result.adjusted_store.offsets.copy() if result.adjusted_store.num_faces else \
+        np.zeros(0)
+    if len(result.plane_faces):
+        normals[result.plane_faces] = result.plane_normals
+        offsets[result.plane_faces] = result.plane_offsets
+    out = np.full(len(xyz), np.nan)
+    ok = face >= 0
+    out[ok] = np.einsum("ij,ij->i", normals[face[ok]], xyz[ok]) + offsets[face[ok]]
+    return out
+
+
+def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int = MAX_POINTS,
+                 max_faces: int = MAX_FACES, seed: int = 0):
+    """(plotly figure as a dict of data and layout, facts about it: numbers drawn, the traces of each block, the residual
+    colour range). `palette`: (F, 3) uint8 colour of each store face (assignments.ply's)."""
+    a = result.assignment
+    refined = result.refined if result.refined is not None else result.reconstruction
+    blocks = [(key, rec) for key, rec in (("gnss_only", result.gnss_only), ("refined", refined))
+              if rec is not None]
+    shown = result.handed_back if result.handed_back in dict(blocks) else blocks[-1][0]
+    pick = sample_indices(len(a.point_ids), max_points, seed)
+    point_ids, face = a.point_ids[pick], a.face_index[pick]
+    face_hex = np.array([_hex(c) for c in palette], dtype=object)
+
+    per_block = {}
+    everything = []
+    for key, rec in blocks:
+        xyz, present = point_positions(rec, point_ids)
+        images, centres = camera_centres(rec)
+        per_block[key] = (xyz, present, images, centres)
+        everything += [xyz[present], centres]
+    everything = np.vstack(everything) if everything else np.zeros((0, 3))
+    if len(everything):
+        lo, hi = everything.min(0) - FACE_MARGIN, everything.max(0) + FACE_MARGIN
+    else:
+        lo = hi = np.zeros(3)
+    store = result.adjusted_store
+    faces = faces_near(store, lo, hi, max_faces)
+    used = {int(f) for f in np.unique(face[face >= 0])}
+
+    traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)]
+    num_model = len(traces)
+    refined_res = None
+    if "refined" in per_block:
+        xyz, present = per_block["refined"][:2]
+        r = point_residuals(result, xyz, face)
+        r = r[present & np.isfinite(r)]
+        refined_res = float(np.sqrt(np.mean(r ** 2))) if len(r) else None
+    scale = float(np.clip(3.0 * refined_res, 0.1, 2.0)) if refined_res else 0.5
+    scale = float(f"{scale:.2g}")
+
+    block_traces: dict[str, list[int]] = {}
+    colour_traces, by_face, by_residual = [], [], []
+    size = frustum_size(per_block[blocks[-1][0]][3]) if blocks else 1.0
+    for key, _ in blocks:
+        xyz, present, images, centres = per_block[key]
+        label, colour = BLOCK_STYLE[key]
+        visible = key == shown
+        ids = []
+        unassigned = present & (face < 0)
+        p = xyz[unassigned].astype(np.float32)
+        ids.append(len(traces))
+        traces.append(dict(type="scatter3d", 
+            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers", visible=visible,
+            marker={"size": 1.5, "color": UNASSIGNED}, hoverinfo="skip",
+            name=f"{label}: unassigned tie points ({int(unassigned.sum())})"))
+        assigned = present & (face >= 0)
+        p = xyz[assigned].astype(np.float32)
+        residual = point_residuals(result, xyz[assigned], face[assigned]).astype(np.float32)
+        ids.append(len(traces))
+        colour_traces.append(len(traces))
+        by_face.append(face_hex[face[assigned]].tolist())
+        by_residual.append(residual)
+        traces.append(dict(type="scatter3d", 
+            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers", visible=visible,
+            marker={"size": 2, "color": by_face[-1], "colorscale": RESIDUAL_COLOURS,
+                    "cmin": -scale, "cmax": scale, "showscale": False,
+                    "colorbar": {"title": {"text": "distance to<br>its face (m)"},
+                                 "len": 0.5}},
+            customdata=np.c_[face[assigned], residual].astype(np.float32),
+            hovertemplate="face %{customdata[0]:.0f}<br>distance %{customdata[1]:.2f} m"
+                          "<extra></extra>",
+            name=f"{label}: tie points on faces ({int(assigned.sum())})"))
+        lines = np.vstack([frusta_lines(rec_of(result, key), images, size),
+                           np.full((1, 3), np.nan), track_line(centres)]).astype(np.float32)
+        ids.append(len(traces))
+        traces.append(dict(type="scatter3d", 
+            x=lines[:, 0], y=lines[:, 1], z=lines[:, 2], mode="lines", visible=visible,
+            line={"color": colour, "width": 2}, hoverinfo="skip",
+            name=f"{label}: cameras ({len(images)})"))
+        block_traces[key] = ids
+
+    buttons = []
+    options = [[k] for k, _ in blocks] + ([[k for k, _ in blocks]] if len(blocks) > 1 else [])
+    for keys in options:
+        visible = [True] * num_model + [False] * (len(traces) - num_model)
+        for k in keys:
+            for t in block_traces[k]:
+                visible[t] = True
+        text = " + ".join(BLOCK_STYLE[k][0] for k in keys) if len(keys) > 1 else \
+            f"{BLOCK_STYLE[keys[0]][0]} block"
+        buttons.append({"label": "both blocks" if len(keys) > 1 else text, "method": "restyle",
+                        "args": [{"visible": visible}]})
+    active = [i for i, keys in enumerate(options) if keys == [shown]][0] if blocks else 0
+    colour_buttons = [
+        {"label": "colour by face", "method": "restyle",
+         "args": [{"marker.color": by_face, "marker.showscale": False}, colour_traces]},
+        {"label": "colour by distance to face", "method": "restyle",
+         "args": [{"marker.color": [r.tolist() for r in by_residual],
+                   "marker.showscale": True},
+                  colour_traces]},
+    ]
+    num_points = len(a.point_ids)
+    title = (f"{len(pick):,} of {num_points:,} tie points drawn"
+             + (" (a random subset)" if len(pick) < num_points else "")
+             + f", {len(faces):,} model faces, local frame (m)")
+    layout = dict(
+        title={"text": title, "x": 0.01, "font": {"size": 14}},
+        height=720, margin={"l": 0, "r": 0, "t": 40, "b": 0},
+        legend={"x": 1.0, "xanchor": "right", "y": 0.92, "bgcolor": "rgba(255,255,255,0.7)",
+                "font": {"size": 11}},
+        scene={"aspectmode": "data", "xaxis": {"title": {"text": "E"}},
+               "yaxis": {"title": {"text": "N"}}, "zaxis": {"title": {"text": "up"}},
+               "camera": scene_camera(per_block[shown][3] if blocks else np.zeros((0, 3)))},
+        updatemenus=[
+            {"type": "buttons", "direction": "right", "buttons": buttons, "active": active,
+             "x": 0.0, "xanchor": "left", "y": 1.0, "yanchor": "top", "pad": {"l": 8},
+             "showactive": True},
+            {"type": "buttons", "direction": "right", "buttons": colour_buttons, "active": 0,
+             "x": 0.0, "xanchor": "left", "y": 0.95, "yanchor": "top", "pad": {"l": 8},
+             "showactive": True},
+        ])
+    facts = {"num_points": num_points, "num_drawn": int(len(pick)),
+             "num_faces": int(len(faces)), "num_faces_with_points": len(used & set(faces.tolist())),
+             "num_traces": len(traces), "num_model_traces": num_model,
+             "blocks": {k: v for k, v in block_traces.items()}, "shown": shown,
+             "residual_scale_m": scale,
+             "num_drawn_visible": num_model + (len(block_traces[shown]) if blocks else 0)}
+    return {"data": traces, "layout": layout}, facts
+
+
+def rec_of(result: RefineResult, key: str) -> pycolmap.Reconstruction:
+    if key == "gnss_only":
+        return result.gnss_only
+    return result.refined if result.refined is not None else result.reconstruction
+
+
+def scene_camera(centres: np.ndarray) -> dict:
+    """A view from above one end of the block, along its long axis and a little across, for
+    plotly's scene camera (which is in units of the scene's extent when aspectmode is "data")."""
+    if len(centres) >= 2:
+        horizontal = centres[:, :2] - centres[:, :2].mean(0)
+        _, _, vt = np.linalg.svd(horizontal, full_matrices=False)
+        across = np.array([-vt[0, 1], vt[0, 0]])
+        along = vt[0]
+    else:
+        across, along = np.array([0.0, -1.0]), np.array([1.0, 0.0])
+    if across[1] > 0:  # from the south side
+        across = -across
+    if along[0] > 0:  # from the west end
+        along = -along
+    eye = 1.7 * along + 1.0 * across
+    return {"eye": {"x": float(eye[0]), "y": float(eye[1]), "z": 1.2},
+            "up": {"x": 0, "y": 0, "z": 1}}
+
+
+def view_section(result: RefineResult, palette: np.ndarray, *, max_points: int = MAX_POINTS,
+                 max_faces: int = MAX_FACES) -> tuple[str, dict]:
+    """(HTML section with the 3D view and its caption, facts of build_figure). plotly.js is
+    embedded in the section: the page needs no network."""
+    figure, facts = build_figure(result, palette, max_points=max_points, max_faces=max_faces)
+    origin = result.origin
+    crs = result.store.crs.label
+    caption = (
+        f"Coordinates in metres in the local frame: model CRS ({crs}) minus the origin E "
+        f"{origin[0]:.3f}, N {origin[1]:.3f}, H {origin[2]:.3f}. Buttons at the top left: "
+        "the GNSS-only block (the bundle adjustment with GNSS, before the model took part), "
+        "the refined block, or both; tie points coloured by the face they were assigned to "
+        "(grey: unassigned) or by their signed distance to that face's plane (+- "
+        f"{facts['residual_scale_m']:g} m full scale). Faces that took tie points are drawn "
+        "in stronger colours. Drag to turn, scroll to zoom, click a legend entry to hide it.")
+    import plotly.io
+
+    # A plain dict, not validated: plotly's validation of 2 x 30k colours takes seconds.
+    div = plotly.io.to_html(figure, validate=False, full_html=False, include_plotlyjs=True,
+                            div_id=PLOT_ID, post_script=READY_SCRIPT,
+                            config={"displaylogo": False, "responsive": True})
+    section = (f"<h2 id='{ANCHOR}'>3D view</h2>\n<p>{html.escape(caption)}</p>\n{div}\n")
+    return section, facts
+
+
+def insert_section(page: str, section: str) -> str:
+    """`page` with `section` after its first heading (before </body> if it has none)."""
+    at = page.find("</h1>")
+    if at >= 0:
+        at += len("</h1>")
+        return page[:at] + "\n" + section + page[at:]
+    at = page.rfind("</body>")
+    return page[:at] + section + page[at:] if at >= 0 else page + section
