@@ -2,7 +2,8 @@
 # Idempotent set-up on a Debian machine (run from anywhere; as root, or with sudo):
 #  1. Debian packages for the C++ extension and Open3D, installed only when missing;
 #  2. .venv with Python >= 3.11 (set PYTHON=/path/to/python3.x to choose the interpreter);
-#  3. this package installed editable with its test extras. Skipped when pyproject.toml and
+#  3. this package installed editable with its test and docs extras (pytest, mkdocs), and
+#     `build` for scripts/check_wheel.sh. Skipped when pyproject.toml and
 #     cpp_ext/ are unchanged since the last successful install and the extension loads.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -73,9 +74,10 @@ fi
 echo "bootstrap: installing colmap-citymodel into .venv (builds the C++ extension)"
 # Build requirements in the venv itself (pinned pybind11 3.0.x: shared internals with
 # pycolmap/pyceres; ninja, which a bare Debian lacks as it lacks make), then build without
-# isolation so the in-place CMake cache stays valid.
-.venv/bin/python -m pip install "scikit-build-core>=0.10" "pybind11>=3.0,<3.1" ninja
-.venv/bin/python -m pip install --no-build-isolation -e ".[test]"
+# isolation so the in-place CMake cache stays valid; `build` makes the sdist and wheel that
+# scripts/check_wheel.sh installs.
+.venv/bin/python -m pip install "scikit-build-core>=0.10" "pybind11>=3.0,<3.1" ninja build
+.venv/bin/python -m pip install --no-build-isolation -e ".[test,docs]"
 .venv/bin/python -c "from colmap_citymodel._ext import load_core; load_core()"
 echo "$stamp" > "$stamp_file"
 echo "bootstrap: done"
