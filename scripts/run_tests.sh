@@ -14,7 +14,7 @@ if [ "$status" -eq 5 ]; then
 fi
 echo "run_tests: mkdocs build --strict"
 docs_status=0
-NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict --quiet || docs_status=$?
+NO_MKDOCS_2_WARNING=1 .venv/bin/mkdocs build --strict || docs_status=$?
 if [ "$docs_status" -ne 0 ]; then
   echo "error: the documentation does not build (mkdocs build --strict)" >&2
   [ "$status" -ne 0 ] || status=$docs_status
