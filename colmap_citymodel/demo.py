@@ -97,8 +97,8 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     print(f"outputs in {out.resolve()}:")
     print(f"  workspace/   simulated COLMAP workspace (database.db, sparse/0, given_model.gml, truth/)")
     print(f"  gnss_only/   GNSS-only bundle adjustment (COLMAP model in the model CRS)")
-    print(f"  refined/     refined COLMAP model in the model CRS, report.md, assignments.ply, "
-          f"model_mesh.ply")
+    print(f"  refined/     refined COLMAP model in the model CRS, report.md, report.html "
+          f"(with a 3D view), assignments.ply, model_mesh.ply")
     print(f"  summary.md   the table above")
     return {k: float(v["rms_3d"]) for k, v in results.items()}
 

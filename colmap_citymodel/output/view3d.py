@@ -97,15 +97,15 @@ def camera_centres(rec: pycolmap.Reconstruction) -> tuple[list, np.ndarray]:
 
 
 def frustum_size(centres: np.ndarray) -> float:
-    """Depth (m) of the drawn frusta: 0.8 times the median step between neighbouring cameras
-    of the track, at least 0.3 m, at most 1/50 of the block's extent."""
+    """Depth (m) of the drawn frusta: 0.4 times the median step between neighbouring cameras
+    of the track, at least 0.3 m, at most 1/80 of the block's extent."""
     if len(centres) < 2:
         return 1.0
     steps = np.linalg.norm(np.diff(centres, axis=0), axis=1)
     steps = steps[steps > 1e-6]
     extent = float(np.linalg.norm(np.ptp(centres, axis=0)))
-    size = 0.8 * float(np.median(steps)) if len(steps) else 1.0
-    return float(np.clip(size, 0.3, max(0.3, extent / 50.0)))
+    size = 0.4 * float(np.median(steps)) if len(steps) else 1.0
+    return float(np.clip(size, 0.3, max(0.3, extent / 80.0)))
 
 
 def frusta_lines(rec: pycolmap.Reconstruction, images: list, size: float) -> np.ndarray:
@@ -197,7 +197,7 @@ def mesh_traces(store: PlaneStore, faces: np.ndarray, used: set[int]) -> list[di
                 x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], i=ijk[:, 0], j=ijk[:, 1], k=ijk[:, 2],
                 color=strong if with_points else plain, opacity=1.0 if with_points else 0.55,
                 flatshading=True, name=f"{label} ({len(chosen)})", showlegend=True,
-                hoverinfo="name", lighting={"ambient": 0.75, "diffuse": 0.45, "specular": 0.05},
+                hoverinfo="name", lighting={"ambient": 0.85, "diffuse": 0.35, "specular": 0.05},
                 legendgroup="model"))
     return traces
 
@@ -345,7 +345,9 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
                 "font": {"size": 11}},
         scene={"aspectmode": "data", "xaxis": {"title": {"text": "E"}},
                "yaxis": {"title": {"text": "N"}}, "zaxis": {"title": {"text": "up"}},
-               "camera": scene_camera(per_block[shown][3] if blocks else np.zeros((0, 3)))},
+               "camera": scene_camera(*(
+                   (per_block[shown][3], per_block[shown][0][per_block[shown][1]]) if blocks
+                   else (np.zeros((0, 3)), np.zeros((0, 3)))))},
         updatemenus=[
             {"type": "buttons", "direction": "right", "buttons": buttons, "active": active,
              "x": 0.0, "xanchor": "left", "y": 1.0, "yanchor": "top", "pad": {"l": 8},
@@ -369,22 +371,27 @@ def rec_of(result: RefineResult, key: str) -> pycolmap.Reconstruction:
     return result.refined if result.refined is not None else result.reconstruction
 
 
-def scene_camera(centres: np.ndarray) -> dict:
-    """A view from above one end of the block, along its long axis and a little across, for
-    plotly's scene camera (which is in units of the scene's extent when aspectmode is "data")."""
+def scene_camera(centres: np.ndarray, points: np.ndarray) -> dict:
+    """plotly's scene camera: from above the cameras' side of the tie points (`points`),
+    looking across the block's long axis and a little along it. (The eye is in units of the
+    scene's extent when aspectmode is "data".)"""
     if len(centres) >= 2:
         horizontal = centres[:, :2] - centres[:, :2].mean(0)
         _, _, vt = np.linalg.svd(horizontal, full_matrices=False)
-        across = np.array([-vt[0, 1], vt[0, 0]])
         along = vt[0]
     else:
-        across, along = np.array([0.0, -1.0]), np.array([1.0, 0.0])
-    if across[1] > 0:  # from the south side
+        along = np.array([1.0, 0.0])
+    across = np.array([-along[1], along[0]])
+    if len(centres) and len(points):
+        side = centres[:, :2].mean(0) - points[:, :2].mean(0)
+        if side @ across < 0:
+            across = -across
+    elif across[1] > 0:  # from the south
         across = -across
-    if along[0] > 0:  # from the west end
+    if along[0] > 0:  # and a little from the west
         along = -along
-    eye = 1.7 * along + 1.0 * across
-    return {"eye": {"x": float(eye[0]), "y": float(eye[1]), "z": 1.2},
+    eye = 1.5 * across + 0.6 * along
+    return {"eye": {"x": float(eye[0]), "y": float(eye[1]), "z": 1.1},
             "up": {"x": 0, "y": 0, "z": 1}}
 
 
