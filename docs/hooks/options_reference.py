@@ -1,10 +1,12 @@
-"""MkDocs hook: the options-file reference, written from `colmap_citymodel.options` at build time.
+"""MkDocs hook: option tables written from the package's dataclasses at build time.
 
 `docs/reference/options.md` holds the line `<!-- options-reference -->`; this hook replaces it
 with one section per field of `RefineOptions` (`[assignment]`, `[adjustment]`, ...): the
 section's class docstring and a table of its options with their defaults (from the
 dataclasses) and their attribute docstrings (read from the module's source, where Python keeps
 them). The page therefore lists exactly the keys an options file may set.
+`docs/verdict.md` holds `<!-- quality-thresholds -->`, replaced by the table of the quality
+gate's limits (`precision.quality.QualityThresholds`) made the same way.
 """
 
 from __future__ import annotations
@@ -15,6 +17,8 @@ import inspect
 
 MARKER = "<!-- options-reference -->"
 PAGE = "reference/options.md"
+QUALITY_MARKER = "<!-- quality-thresholds -->"
+QUALITY_PAGE = "verdict.md"
 
 
 def _cell(text: str) -> str:
@@ -57,6 +61,14 @@ def _default(f: dataclasses.Field) -> str:
     return f"`{value}`"
 
 
+def _table(cls, docs: dict[str, dict[str, str]], head: str = "option") -> list[str]:
+    lines = [f"| {head} | default | description |", "|---|---|---|"]
+    for f in dataclasses.fields(cls):
+        text = docs.get(cls.__name__, {}).get(f.name, "")
+        lines.append(f"| `{f.name}` | {_default(f)} | {_cell(text)} |")
+    return lines + [""]
+
+
 def options_reference_markdown() -> str:
     from colmap_citymodel import options as module
 
@@ -67,17 +79,23 @@ def options_reference_markdown() -> str:
         lines += [f"## `[{section.name}]`", ""]
         if cls.__doc__:
             lines += [inspect.cleandoc(cls.__doc__), ""]
-        lines += ["| option | default | description |", "|---|---|---|"]
-        for f in dataclasses.fields(cls):
-            text = docs.get(cls.__name__, {}).get(f.name, "")
-            lines.append(f"| `{f.name}` | {_default(f)} | {_cell(text)} |")
-        lines.append("")
+        lines += _table(cls, docs)
     return "\n".join(lines)
 
 
+def quality_thresholds_markdown() -> str:
+    from colmap_citymodel.precision import quality as module
+
+    docs = _attribute_docstrings(inspect.getsource(module))
+    return "\n".join(_table(module.QualityThresholds, docs, head="limit"))
+
+
 def on_page_markdown(markdown: str, page, config, files) -> str:
-    if page.file.src_uri != PAGE:
-        return markdown
-    if MARKER not in markdown:
-        raise ValueError(f"docs/{PAGE} lacks the line {MARKER} that the options reference replaces")
-    return markdown.replace(MARKER, options_reference_markdown())
+    for page_uri, marker, make in ((PAGE, MARKER, options_reference_markdown),
+                                   (QUALITY_PAGE, QUALITY_MARKER, quality_thresholds_markdown)):
+        if page.file.src_uri != page_uri:
+            continue
+        if marker not in markdown:
+            raise ValueError(f"docs/{page_uri} lacks the line {marker} that this hook replaces")
+        markdown = markdown.replace(marker, make())
+    return markdown
