@@ -4,6 +4,7 @@ page's ready flag, the expected number of traces and no console errors or networ
 
 from __future__ import annotations
 
+import base64
 import json
 import os
 import re
@@ -98,6 +99,23 @@ def synthetic_result(num_points: int = 2000) -> RefineResult:
         quality=QualityReport("ok"), refined=refined)
 
 
+def values(spec: dict) -> np.ndarray:
+    """The numbers of a plotly typed-array spec."""
+    dtype = np.dtype(spec["dtype"]).newbyteorder("<")
+    return np.frombuffer(base64.b64decode(spec["bdata"]), dtype)
+
+
+def colour_at(marker: dict, value: float) -> str:
+    """The colour that `marker`'s colourscale gives `value` (at a stop pair of one colour)."""
+    t = (value - marker["cmin"]) / (marker["cmax"] - marker["cmin"])
+    scale = marker["colorscale"]
+    for (t0, c0), (t1, c1) in zip(scale, scale[1:]):
+        if t0 <= t <= t1:
+            assert c0 == c1, f"{value} falls between two colours"
+            return c0
+    raise AssertionError(f"{value} is outside the colourscale")
+
+
 def palette(result):
     return face_colours(result.store.num_faces)
 
@@ -131,29 +149,37 @@ def test_the_figure_holds_the_model_both_blocks_and_their_toggle(result):
     a = result.assignment
     refined_points = figure["data"][9]
     assigned = a.face_index >= 0
+    marker = refined_points["marker"]
+    np.testing.assert_array_equal(values(marker["color"]), a.face_index[assigned])
     colours = face_colours(store.num_faces)
-    expected = ["#%02x%02x%02x" % tuple(colours[f]) for f in a.face_index[assigned]]
-    assert list(refined_points["marker"]["color"]) == expected
-    xyz = np.c_[refined_points["x"], refined_points["y"], refined_points["z"]]
+    for f in np.unique(a.face_index[assigned]):
+        assert colour_at(marker, f) == "#%02x%02x%02x" % tuple(colours[f])
+    xyz = np.c_[values(refined_points["x"]), values(refined_points["y"]),
+                values(refined_points["z"])]
     np.testing.assert_allclose(xyz, [result.refined.point3D(int(i)).xyz
                                      for i in a.point_ids[assigned]], atol=1e-4)
     residual_button = menus[1]["buttons"][1]
     assert list(residual_button["args"][1]) == [6, 9]
-    gnss_residuals = np.array(residual_button["args"][0]["marker.color"][0])
-    refined_residuals = np.array(residual_button["args"][0]["marker.color"][1])
+    # restyle reads a list as one value per trace: the colourscale is given for each of both
+    assert residual_button["args"][0]["marker.colorscale"] == [view3d.RESIDUAL_COLOURS] * 2
+    face_button = menus[1]["buttons"][0]["args"][0]
+    assert face_button["marker.colorscale"] == [marker["colorscale"]] * 2
+    np.testing.assert_array_equal(values(face_button["marker.color"][1]), values(marker["color"]))
+    gnss_residuals = values(residual_button["args"][0]["marker.color"][0])
+    refined_residuals = values(residual_button["args"][0]["marker.color"][1])
     assert np.abs(refined_residuals).max() < 1e-3  # the refined points lie on their faces
     assert np.sqrt(np.mean(gnss_residuals ** 2)) > 0.5  # the GNSS-only ones 1-2 m off
     # the cameras: 12 frusta (4 rays + a rectangle each) and the track
     cameras = figure["data"][10]
     assert cameras["name"] == "refined: cameras (12)"
-    assert np.count_nonzero(np.isnan(np.asarray(cameras["x"], float))) == 12 * 5 + 1
+    assert np.count_nonzero(np.isnan(values(cameras["x"]))) == 12 * 5 + 1
 
 
 def test_the_view_is_in_the_local_frame_and_says_the_origin(result):
     section, facts = view3d.view_section(result, palette(result))
     figure, _ = view3d.build_figure(result, palette(result))
     for trace in figure["data"]:
-        x = np.asarray(trace["x"], float)
+        x = values(trace["x"])
         assert np.nanmax(np.abs(x)) < 100.0  # metres from the origin, not CRS coordinates
     assert "E 690000.000, N 5336000.000, H 500.000" in section
     assert f"id='{view3d.ANCHOR}'" in section
@@ -168,7 +194,7 @@ def test_a_large_block_is_subsampled_and_stays_small():
     section, facts = view3d.view_section(result, palette(result), max_points=30_000)
     seconds = time.perf_counter() - t0
     figure, _ = view3d.build_figure(result, palette(result), max_points=30_000)
-    drawn = sum(len(t["x"]) for t in figure["data"][facts["num_model_traces"]:]
+    drawn = sum(len(values(t["x"])) for t in figure["data"][facts["num_model_traces"]:]
                 if t["mode"] == "markers")
     assert facts["num_drawn"] == 30_000
     assert drawn == 2 * 30_000  # the same subset in both blocks
@@ -177,7 +203,7 @@ def test_a_large_block_is_subsampled_and_stays_small():
     assert seconds < 20.0
     # the subset is the same in every run
     again, _ = view3d.build_figure(result, palette(result), max_points=30_000)
-    np.testing.assert_array_equal(again["data"][9]["x"], figure["data"][9]["x"])
+    assert again["data"][9]["x"] == figure["data"][9]["x"]
 
 
 def test_faces_far_from_the_block_are_left_out():

@@ -22,6 +22,7 @@ the start of loading).
 
 from __future__ import annotations
 
+import base64
 import html
 
 import numpy as np
@@ -176,6 +177,18 @@ def _class_of(store: PlaneStore, faces: np.ndarray) -> np.ndarray:
     return group
 
 
+def typed(values, dtype: str = "f4") -> dict:
+    """A numeric array as plotly.js's typed-array spec (little-endian bytes in base64): a
+    quarter of the size of JSON numbers, and decoded without parsing."""
+    array = np.ascontiguousarray(values, dtype=np.dtype(dtype).newbyteorder("<"))
+    return {"dtype": dtype, "bdata": base64.b64encode(array.tobytes()).decode("ascii")}
+
+
+def xyz_arrays(xyz: np.ndarray) -> dict:
+    xyz = np.asarray(xyz, np.float32).reshape(-1, 3)
+    return {"x": typed(xyz[:, 0]), "y": typed(xyz[:, 1]), "z": typed(xyz[:, 2])}
+
+
 def mesh_traces(store: PlaneStore, faces: np.ndarray, used: set[int]) -> list[dict]:
     """Mesh3d traces of `faces`: per class group, faces without tie points and faces with."""
     group = _class_of(store, faces)
@@ -183,26 +196,26 @@ def mesh_traces(store: PlaneStore, faces: np.ndarray, used: set[int]) -> list[di
     traces = []
     for g, (name, _, plain, strong) in enumerate(CLASS_GROUPS):
         for with_points in (False, True):
-            chosen = [int(f) for f, k in zip(faces, group) if k == g
-                      and (int(f) in used) == with_points]
+            chosen = [int(f) for f, k in zip(faces, group)
+                      if k == g and (int(f) in used) == with_points]
             tri = [triangles[f] for f in chosen if len(triangles[f])]
             if not tri:
                 continue
-            tri = np.concatenate(tri)
-            ids, inverse = np.unique(tri, return_inverse=True)
-            xyz = store.vertices[ids].astype(np.float32)
-            ijk = inverse.reshape(-1, 3).astype(np.int32)
+            ids, inverse = np.unique(np.concatenate(tri), return_inverse=True)
+            ijk = inverse.reshape(-1, 3)
             label = f"{name} with tie points" if with_points else name
-            traces.append(dict(type="mesh3d", 
-                x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], i=ijk[:, 0], j=ijk[:, 1], k=ijk[:, 2],
-                color=strong if with_points else plain, opacity=1.0 if with_points else 0.55,
-                flatshading=True, name=f"{label} ({len(chosen)})", showlegend=True,
-                hoverinfo="name", lighting={"ambient": 0.85, "diffuse": 0.35, "specular": 0.05},
-                legendgroup="model"))
+            traces.append({
+                "type": "mesh3d", **xyz_arrays(store.vertices[ids]),
+                "i": typed(ijk[:, 0], "i4"), "j": typed(ijk[:, 1], "i4"),
+                "k": typed(ijk[:, 2], "i4"), "color": strong if with_points else plain,
+                "opacity": 1.0 if with_points else 0.55, "flatshading": True,
+                "lighting": {"ambient": 0.85, "diffuse": 0.35, "specular": 0.05},
+                "name": f"{label} ({len(chosen)})", "showlegend": True, "hoverinfo": "name",
+                "legendgroup": "model"})
     return traces
 
 
-def outline_trace(store: PlaneStore, faces: np.ndarray):
+def outline_trace(store: PlaneStore, faces: np.ndarray) -> dict:
     """The faces' rings as one line trace (nan between rings)."""
     fl = store.faces
     rows = []
@@ -211,19 +224,17 @@ def outline_trace(store: PlaneStore, faces: np.ndarray):
         for r in range(fl.face_ring[f], fl.face_ring[f + 1]):
             ring = fl.ring_vertex[fl.ring_ptr[r]:fl.ring_ptr[r + 1]]
             rows += [store.vertices[ring], store.vertices[ring[:1]], nan]
-    xyz = (np.vstack(rows) if rows else np.zeros((0, 3))).astype(np.float32)
-    return dict(type="scatter3d", x=xyz[:, 0], y=xyz[:, 1], z=xyz[:, 2], mode="lines",
-                        line={"color": "#525252", "width": 1}, name="face outlines",
-                        hoverinfo="skip", legendgroup="model")
+    return {"type": "scatter3d", **xyz_arrays(np.vstack(rows) if rows else np.zeros((0, 3))),
+            "mode": "lines", "line": {"color": "#525252", "width": 1},
+            "name": "face outlines", "hoverinfo": "skip", "legendgroup": "model"}
 
 
 def point_residuals(result: RefineResult, xyz: np.ndarray, face: np.ndarray) -> np.ndarray:
     """Signed distance (m) of each point to the plane of its face: the adjusted plane where the
     face was an unknown of the last solve, the face's own plane otherwise (nan: no face)."""
-    normals = result.adjusted_store.normals.copy() if result.adjusted_store.num_faces else \
-        np.zeros((0, 3))
-    offsets = result.adjusted_store.offsets.copy() if result.adjusted_store.num_faces else \
-        np.zeros(0)
+    store = result.adjusted_store
+    normals = np.array(store.normals).reshape(-1, 3)
+    offsets = np.array(store.offsets).reshape(-1)
     if len(result.plane_faces):
         normals[result.plane_faces] = result.plane_normals
         offsets[result.plane_faces] = result.plane_offsets
@@ -233,27 +244,76 @@ def point_residuals(result: RefineResult, xyz: np.ndarray, face: np.ndarray) -> 
     return out
 
 
+def face_colourscale(palette: np.ndarray, faces: np.ndarray) -> tuple[list, float]:
+    """(plotly colourscale, cmax) that gives marker colour value f the palette colour of face
+    f, for each f of `faces` (piecewise constant around each of them; cmin is 0)."""
+    cmax = float(max(len(palette) - 1, 1))
+    scale = []
+    for f in np.unique(faces):
+        colour = _hex(palette[f])
+        lo, hi = max(f - 0.4, 0.0) / cmax, min(f + 0.4, cmax) / cmax
+        scale += [[lo, colour], [hi, colour]]
+    if not scale:
+        return [[0.0, UNASSIGNED], [1.0, UNASSIGNED]], cmax
+    scale[0][0], scale[-1][0] = 0.0, 1.0
+    return scale, cmax
+
+
+def block_traces(key: str, rec: pycolmap.Reconstruction, xyz: np.ndarray, present: np.ndarray,
+                 face: np.ndarray, images: list, centres: np.ndarray, frustum: float,
+                 visible: bool, colours: dict) -> list[dict]:
+    """A block's traces: unassigned tie points, tie points on faces (coloured by face), the
+    cameras (frusta and track)."""
+    label, colour = BLOCK_STYLE[key]
+    unassigned = present & (face < 0)
+    assigned = present & (face >= 0)
+    lines = np.vstack([frusta_lines(rec, images, frustum), np.full((1, 3), np.nan),
+                       track_line(centres)])
+    return [
+        {"type": "scatter3d", **xyz_arrays(xyz[unassigned]), "mode": "markers",
+         "visible": visible, "marker": {"size": 1.5, "color": UNASSIGNED}, "hoverinfo": "skip",
+         "name": f"{label}: unassigned tie points ({int(unassigned.sum())})"},
+        {"type": "scatter3d", **xyz_arrays(xyz[assigned]), "mode": "markers",
+         "visible": visible,
+         "marker": {"size": 2, "color": typed(face[assigned]), **colours["face"],
+                    "showscale": False,
+                    "colorbar": {"title": {"text": "distance to<br>its face (m)"}, "len": 0.5}},
+         "customdata": typed(face[assigned], "i4"),
+         "hovertemplate": "face %{customdata}<extra></extra>",
+         "name": f"{label}: tie points on faces ({int(assigned.sum())})"},
+        {"type": "scatter3d", **xyz_arrays(lines), "mode": "lines", "visible": visible,
+         "line": {"color": colour, "width": 2}, "hoverinfo": "skip",
+         "name": f"{label}: cameras ({len(images)})"},
+    ]
+
+
+def restyle_marker(values: dict, num_traces: int) -> dict:
+    """Marker attributes as restyle arguments: a list value (a colourscale) is given once per
+    trace, as restyle reads a list as one value per trace."""
+    return {f"marker.{k}": [v] * num_traces if isinstance(v, list) else v
+            for k, v in values.items()}
+
+
 def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int = MAX_POINTS,
-                 max_faces: int = MAX_FACES, seed: int = 0):
-    """(plotly figure as a dict of data and layout, facts about it: numbers drawn, the traces of each block, the residual
-    colour range). `palette`: (F, 3) uint8 colour of each store face (assignments.ply's)."""
+                 max_faces: int = MAX_FACES, seed: int = 0) -> tuple[dict, dict]:
+    """(plotly figure as a dict of data and layout, facts about it: numbers drawn, the traces
+    of each block, the residual colour range). `palette`: (F, 3) uint8 colour of each store
+    face (assignments.ply's)."""
     a = result.assignment
-    refined = result.refined if result.refined is not None else result.reconstruction
+    refined = rec_of(result, "refined")
     blocks = [(key, rec) for key, rec in (("gnss_only", result.gnss_only), ("refined", refined))
               if rec is not None]
     shown = result.handed_back if result.handed_back in dict(blocks) else blocks[-1][0]
     pick = sample_indices(len(a.point_ids), max_points, seed)
     point_ids, face = a.point_ids[pick], a.face_index[pick]
-    face_hex = np.array([_hex(c) for c in palette], dtype=object)
 
-    per_block = {}
-    everything = []
+    geometry = {}
     for key, rec in blocks:
         xyz, present = point_positions(rec, point_ids)
         images, centres = camera_centres(rec)
-        per_block[key] = (xyz, present, images, centres)
-        everything += [xyz[present], centres]
-    everything = np.vstack(everything) if everything else np.zeros((0, 3))
+        geometry[key] = (xyz, present, images, centres, point_residuals(result, xyz, face))
+    everything = np.vstack([np.zeros((0, 3))] + [g[0][g[1]] for g in geometry.values()]
+                           + [g[3] for g in geometry.values()])
     if len(everything):
         lo, hi = everything.min(0) - FACE_MARGIN, everything.max(0) + FACE_MARGIN
     else:
@@ -261,107 +321,80 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
     store = result.adjusted_store
     faces = faces_near(store, lo, hi, max_faces)
     used = {int(f) for f in np.unique(face[face >= 0])}
-
     traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)]
     num_model = len(traces)
-    refined_res = None
-    if "refined" in per_block:
-        xyz, present = per_block["refined"][:2]
-        r = point_residuals(result, xyz, face)
-        r = r[present & np.isfinite(r)]
-        refined_res = float(np.sqrt(np.mean(r ** 2))) if len(r) else None
-    scale = float(np.clip(3.0 * refined_res, 0.1, 2.0)) if refined_res else 0.5
-    scale = float(f"{scale:.2g}")
 
-    block_traces: dict[str, list[int]] = {}
-    colour_traces, by_face, by_residual = [], [], []
-    size = frustum_size(per_block[blocks[-1][0]][3]) if blocks else 1.0
-    for key, _ in blocks:
-        xyz, present, images, centres = per_block[key]
-        label, colour = BLOCK_STYLE[key]
-        visible = key == shown
-        ids = []
-        unassigned = present & (face < 0)
-        p = xyz[unassigned].astype(np.float32)
-        ids.append(len(traces))
-        traces.append(dict(type="scatter3d", 
-            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers", visible=visible,
-            marker={"size": 1.5, "color": UNASSIGNED}, hoverinfo="skip",
-            name=f"{label}: unassigned tie points ({int(unassigned.sum())})"))
-        assigned = present & (face >= 0)
-        p = xyz[assigned].astype(np.float32)
-        residual = point_residuals(result, xyz[assigned], face[assigned]).astype(np.float32)
-        ids.append(len(traces))
-        colour_traces.append(len(traces))
-        by_face.append(face_hex[face[assigned]].tolist())
-        by_residual.append(residual)
-        traces.append(dict(type="scatter3d", 
-            x=p[:, 0], y=p[:, 1], z=p[:, 2], mode="markers", visible=visible,
-            marker={"size": 2, "color": by_face[-1], "colorscale": RESIDUAL_COLOURS,
-                    "cmin": -scale, "cmax": scale, "showscale": False,
-                    "colorbar": {"title": {"text": "distance to<br>its face (m)"},
-                                 "len": 0.5}},
-            customdata=np.c_[face[assigned], residual].astype(np.float32),
-            hovertemplate="face %{customdata[0]:.0f}<br>distance %{customdata[1]:.2f} m"
-                          "<extra></extra>",
-            name=f"{label}: tie points on faces ({int(assigned.sum())})"))
-        lines = np.vstack([frusta_lines(rec_of(result, key), images, size),
-                           np.full((1, 3), np.nan), track_line(centres)]).astype(np.float32)
-        ids.append(len(traces))
-        traces.append(dict(type="scatter3d", 
-            x=lines[:, 0], y=lines[:, 1], z=lines[:, 2], mode="lines", visible=visible,
-            line={"color": colour, "width": 2}, hoverinfo="skip",
-            name=f"{label}: cameras ({len(images)})"))
-        block_traces[key] = ids
+    # residual colours: full scale at 3 x the refined block's RMS, within 0.1-2 m
+    scale = 0.5
+    if "refined" in geometry:
+        r = geometry["refined"][4]
+        r = r[geometry["refined"][1] & np.isfinite(r)]
+        if len(r):
+            scale = float(f"{np.clip(3.0 * np.sqrt(np.mean(r ** 2)), 0.1, 2.0):.2g}")
+    face_scale, cmax = face_colourscale(palette, face[face >= 0])
+    colours = {"face": {"colorscale": face_scale, "cmin": 0.0, "cmax": cmax},
+               "residual": {"colorscale": RESIDUAL_COLOURS, "cmin": -scale, "cmax": scale}}
+
+    frustum = frustum_size(geometry[shown][3]) if blocks else 1.0
+    per_block: dict[str, list[int]] = {}
+    for key, rec in blocks:
+        xyz, present, images, centres, _ = geometry[key]
+        per_block[key] = list(range(len(traces), len(traces) + 3))
+        traces += block_traces(key, rec, xyz, present, face, images, centres, frustum,
+                               key == shown, colours)
 
     buttons = []
     options = [[k] for k, _ in blocks] + ([[k for k, _ in blocks]] if len(blocks) > 1 else [])
     for keys in options:
         visible = [True] * num_model + [False] * (len(traces) - num_model)
         for k in keys:
-            for t in block_traces[k]:
+            for t in per_block[k]:
                 visible[t] = True
-        text = " + ".join(BLOCK_STYLE[k][0] for k in keys) if len(keys) > 1 else \
-            f"{BLOCK_STYLE[keys[0]][0]} block"
-        buttons.append({"label": "both blocks" if len(keys) > 1 else text, "method": "restyle",
-                        "args": [{"visible": visible}]})
-    active = [i for i, keys in enumerate(options) if keys == [shown]][0] if blocks else 0
+        buttons.append({"label": "both blocks" if len(keys) > 1
+                        else f"{BLOCK_STYLE[keys[0]][0]} block",
+                        "method": "restyle", "args": [{"visible": visible}]})
+    active = options.index([shown]) if blocks else 0
+    coloured = [per_block[k][1] for k, _ in blocks]
+    on_faces = [geometry[k][1] & (face >= 0) for k, _ in blocks]
     colour_buttons = [
         {"label": "colour by face", "method": "restyle",
-         "args": [{"marker.color": by_face, "marker.showscale": False}, colour_traces]},
+         "args": [{"marker.color": [typed(face[m]) for m in on_faces],
+                   **restyle_marker(colours["face"], len(coloured)),
+                   "marker.showscale": False}, coloured]},
         {"label": "colour by distance to face", "method": "restyle",
-         "args": [{"marker.color": [r.tolist() for r in by_residual],
-                   "marker.showscale": True},
-                  colour_traces]},
+         "args": [{"marker.color": [typed(geometry[k][4][m]) for (k, _), m
+                                    in zip(blocks, on_faces)],
+                   **restyle_marker(colours["residual"], len(coloured)),
+                   "marker.showscale": True}, coloured]},
     ]
     num_points = len(a.point_ids)
     title = (f"{len(pick):,} of {num_points:,} tie points drawn"
              + (" (a random subset)" if len(pick) < num_points else "")
              + f", {len(faces):,} model faces, local frame (m)")
-    layout = dict(
-        title={"text": title, "x": 0.01, "font": {"size": 14}},
-        height=720, margin={"l": 0, "r": 0, "t": 40, "b": 0},
-        legend={"x": 1.0, "xanchor": "right", "y": 0.92, "bgcolor": "rgba(255,255,255,0.7)",
-                "font": {"size": 11}},
-        scene={"aspectmode": "data", "xaxis": {"title": {"text": "E"}},
-               "yaxis": {"title": {"text": "N"}}, "zaxis": {"title": {"text": "up"}},
-               "camera": scene_camera(*(
-                   (per_block[shown][3], per_block[shown][0][per_block[shown][1]]) if blocks
-                   else (np.zeros((0, 3)), np.zeros((0, 3)))))},
-        updatemenus=[
+    layout = {
+        "title": {"text": title, "x": 0.01, "font": {"size": 14}},
+        "height": 720, "margin": {"l": 0, "r": 0, "t": 40, "b": 0},
+        "legend": {"x": 1.0, "xanchor": "right", "y": 0.92,
+                   "bgcolor": "rgba(255,255,255,0.7)", "font": {"size": 11}},
+        "scene": {"aspectmode": "data", "xaxis": {"title": {"text": "E"}},
+                  "yaxis": {"title": {"text": "N"}}, "zaxis": {"title": {"text": "up"}},
+                  "camera": scene_camera(geometry[shown][3] if blocks else np.zeros((0, 3)),
+                                         geometry[shown][0][geometry[shown][1]] if blocks
+                                         else np.zeros((0, 3)))},
+        "updatemenus": [
             {"type": "buttons", "direction": "right", "buttons": buttons, "active": active,
              "x": 0.0, "xanchor": "left", "y": 1.0, "yanchor": "top", "pad": {"l": 8},
              "showactive": True},
             {"type": "buttons", "direction": "right", "buttons": colour_buttons, "active": 0,
              "x": 0.0, "xanchor": "left", "y": 0.95, "yanchor": "top", "pad": {"l": 8},
              "showactive": True},
-        ])
+        ]}
     facts = {"num_points": num_points, "num_drawn": int(len(pick)),
-             "num_faces": int(len(faces)), "num_faces_with_points": len(used & set(faces.tolist())),
-             "num_traces": len(traces), "num_model_traces": num_model,
-             "blocks": {k: v for k, v in block_traces.items()}, "shown": shown,
-             "residual_scale_m": scale,
-             "num_drawn_visible": num_model + (len(block_traces[shown]) if blocks else 0)}
+             "num_faces": int(len(faces)),
+             "num_faces_with_points": len(used & set(faces.tolist())),
+             "num_traces": len(traces), "num_model_traces": num_model, "blocks": per_block,
+             "shown": shown, "residual_scale_m": scale,
+             "num_drawn_visible": num_model + (len(per_block[shown]) if blocks else 0)}
     return {"data": traces, "layout": layout}, facts
 
 
@@ -412,7 +445,7 @@ def view_section(result: RefineResult, palette: np.ndarray, *, max_points: int =
         "in stronger colours. Drag to turn, scroll to zoom, click a legend entry to hide it.")
     import plotly.io
 
-    # A plain dict, not validated: plotly's validation of 2 x 30k colours takes seconds.
+    # A plain dict with typed arrays, not validated (validation takes seconds on 30k points).
     div = plotly.io.to_html(figure, validate=False, full_html=False, include_plotlyjs=True,
                             div_id=PLOT_ID, post_script=READY_SCRIPT,
                             config={"displaylogo": False, "responsive": True})
