@@ -5,6 +5,7 @@ page's ready flag, the expected number of traces and no console errors or networ
 from __future__ import annotations
 
 import base64
+import dataclasses
 import json
 import os
 import re
@@ -204,6 +205,23 @@ def test_a_large_block_is_subsampled_and_stays_small():
     # the subset is the same in every run
     again, _ = view3d.build_figure(result, palette(result), max_points=30_000)
     assert again["data"][9]["x"] == figure["data"][9]["x"]
+
+
+def test_without_gnss_only_the_refined_block_and_after_a_failed_gate_gnss_only_first():
+    result = synthetic_result(300)
+    failed = dataclasses.replace(result, quality=QualityReport("failed", ["no help"]))
+    figure, facts = view3d.build_figure(failed, palette(failed))
+    assert facts["shown"] == "gnss_only"
+    assert [t.get("visible", True) for t in figure["data"]] == [True] * 8 + [False] * 3
+    assert figure["layout"]["updatemenus"][0]["active"] == 0
+    section, _ = view3d.view_section(failed, palette(failed))
+    assert "the GNSS-only block is what was written" in section
+    alone = dataclasses.replace(result, gnss_only=None)
+    figure, facts = view3d.build_figure(alone, palette(alone))
+    assert facts["blocks"] == {"refined": [5, 6, 7]} and len(figure["data"]) == 8
+    assert [b["label"] for b in figure["layout"]["updatemenus"][0]["buttons"]] == \
+        ["refined block"]
+    assert "there is no GNSS-only one" in view3d.view_section(alone, palette(alone))[0]
 
 
 def test_faces_far_from_the_block_are_left_out():

@@ -435,14 +435,19 @@ def view_section(result: RefineResult, palette: np.ndarray, *, max_points: int =
     figure, facts = build_figure(result, palette, max_points=max_points, max_faces=max_faces)
     origin = result.origin
     crs = result.store.crs.label
+    blocks = ("the GNSS-only block (the bundle adjustment with GNSS, before the model took "
+              "part), the refined block, or both" if "gnss_only" in facts["blocks"] else
+              "the refined block (there is no GNSS-only one without GNSS)")
+    handed_back = (" The quality gate failed: the GNSS-only block is what was written, and it "
+                   "shows first." if facts["shown"] == "gnss_only" else "")
     caption = (
         f"Coordinates in metres in the local frame: model CRS ({crs}) minus the origin E "
         f"{origin[0]:.3f}, N {origin[1]:.3f}, H {origin[2]:.3f}. Buttons at the top left: "
-        "the GNSS-only block (the bundle adjustment with GNSS, before the model took part), "
-        "the refined block, or both; tie points coloured by the face they were assigned to "
-        "(grey: unassigned) or by their signed distance to that face's plane (+- "
+        f"{blocks}; tie points coloured by the face they were assigned to (grey: unassigned) "
+        "or by their signed distance to that face's plane (+- "
         f"{facts['residual_scale_m']:g} m full scale). Faces that took tie points are drawn "
-        "in stronger colours. Drag to turn, scroll to zoom, click a legend entry to hide it.")
+        "in stronger colours. Drag to turn, scroll to zoom, click a legend entry to hide it."
+        + handed_back)
     import plotly.io
 
     # A plain dict with typed arrays, not validated (validation takes seconds on 30k points).
