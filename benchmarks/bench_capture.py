@@ -1,6 +1,6 @@
 """Refine against GNSS bias: how far from the truth does a block end, and does the verdict know?
 
-Two blocks: the demo street (workspaces/demo.toml, a UAV along a procedural street) and the
+Two blocks: the demo street (colmap_citymodel/simulate/demo.toml, a UAV along a procedural street) and the
 vehicle drive (workspaces/robust_drive.toml, a forward-looking camera at 2 m along one side of a
 Berlin street). Each is simulated and mapped by COLMAP once (workspaces/generated/capture/demo,
 workspaces/generated/robust/drive, the robustness benchmark's); every
@@ -52,7 +52,7 @@ from scenarios import (  # noqa: E402  (the benchmarks directory is not a packag
     update_json,
 )
 
-CASES = {"demo": "demo.toml", "drive": "robust_drive.toml"}
+CASES = {"demo": "colmap_citymodel/simulate/demo.toml", "drive": "workspaces/robust_drive.toml"}
 LEVELS = (1.0, 2.0, 4.0, 8.0, 12.0)
 NUM_SEEDS = 5
 QUICK_LEVELS = (2.0, 8.0)
@@ -64,10 +64,10 @@ STATED_SIGMA = (3.0, 3.0, 5.0)
 def build_block(case: str) -> tuple[Path, dict]:
     """The block's workspace: the robustness workspace of the same toml when there is one
     (workspaces/generated/robust/), else workspaces/generated/capture/<case>."""
-    toml = CASES[case]
-    if toml.startswith("robust_"):
-        return build_robust_workspace(toml.removeprefix("robust_").removesuffix(".toml"))
-    return build_from_toml(ROOT / "workspaces" / toml, GENERATED / "capture" / case)
+    toml = Path(CASES[case])
+    if toml.name.startswith("robust_"):
+        return build_robust_workspace(toml.name.removeprefix("robust_").removesuffix(".toml"))
+    return build_from_toml(ROOT / toml, GENERATED / "capture" / case)
 
 
 def biased_gnss(gnss, truth: dict, level: float, seed: int):
@@ -204,7 +204,7 @@ def main() -> None:
                 update_json(json_path, ["capture", "settings"], {
                     "command": command, "white_sigma": WHITE_SIGMA, "stated_sigma": STATED_SIGMA,
                     "tolerance_m": TRUTH_TOLERANCE,
-                    "blocks": {c: f"workspaces/{t}" for c, t in CASES.items()}})
+                    "blocks": dict(CASES)})
     everything = json.loads(json_path.read_text()) if json_path.exists() else {}
     section = everything.get("capture")
     if not section:
@@ -216,7 +216,7 @@ def main() -> None:
         "in scenarios.json, section `capture`)\n\n"
         + section.get("settings", {}).get("command", "    .venv/bin/python "
                                           "benchmarks/bench_capture.py") + "\n\nBlocks: "
-        "`demo` (workspaces/demo.toml, UAV along a procedural street, 60 images) and `drive` "
+        "`demo` (colmap_citymodel/simulate/demo.toml, UAV along a procedural street, 60 images) and `drive` "
         "(workspaces/robust_drive.toml, forward-looking vehicle camera, 40 images); each mapped "
         "by COLMAP once. Per run: GNSS = truth + white noise 3/3/5 m + a constant bias of the "
         "given length in a direction drawn from the seed (stated sigma 3/3/5 m). RMS: camera "

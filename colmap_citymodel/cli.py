@@ -266,7 +266,7 @@ def _add_demo(subparsers) -> None:
     p = subparsers.add_parser(
         "demo", help="simulate a flight, refine it with the city model, evaluate check points")
     p.add_argument("--output_path", default="demo_output", help="directory for all outputs")
-    p.add_argument("--scenario", default=None, help="scenario TOML (default workspaces/demo.toml)")
+    p.add_argument("--scenario", default=None, help="scenario TOML (default: the packaged demo street, colmap_citymodel/simulate/demo.toml)")
     p.add_argument("--no_progress", action="store_true")
 
     def run(args):

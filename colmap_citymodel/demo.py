@@ -1,6 +1,6 @@
 """`colmap-citymodel demo`: the whole job on a built-in workspace with known truth.
 
-1. simulate `workspaces/demo.toml` (a procedural street, COLMAP's own incremental mapper);
+1. simulate the packaged scenario `simulate/demo.toml` (a procedural street, COLMAP's own incremental mapper);
 2. the baseline a user has without a city model: 7-parameter fit to GNSS + bundle adjustment
    with GNSS priors (what COLMAP's pose-prior BA does);
 3. `refine` with the given LOD2 model (systematic errors like a real generalised model);
@@ -18,7 +18,7 @@ import pycolmap
 from . import logger
 from .errors import InputError
 
-DEMO_SCENARIO = Path(__file__).resolve().parents[1] / "workspaces" / "demo.toml"
+DEMO_SCENARIO = Path(__file__).resolve().parent / "simulate" / "demo.toml"
 MARKER = ".colmap_citymodel_demo"
 
 

@@ -1,5 +1,5 @@
 """GNSS heights in other height systems against a German LoD2 model (EPSG:25832 + DHHN2016), on
-the demo workspace (`workspaces/demo.toml`, simulated by COLMAP) through refine's CLI entry.
+the demo workspace (`colmap_citymodel/simulate/demo.toml`, simulated by COLMAP) through refine's CLI entry.
 
 The demo's GNSS (model heights, 3/3/5 m noise) is rewritten as EPSG:4979 latitude, longitude and
 ellipsoidal height h = H + N_EGM96 + DELTA_GEOID, DELTA_GEOID standing in for the difference
@@ -24,7 +24,7 @@ import pytest
 
 from colmap_citymodel.citymodel import crs as crs_module
 
-DEMO = Path(__file__).resolve().parents[1] / "workspaces" / "demo.toml"
+DEMO = Path(__file__).resolve().parents[1] / "colmap_citymodel" / "simulate" / "demo.toml"
 #: The stand-in for "national quasigeoid minus EGM96" at the demo site (m).
 DELTA_GEOID = 0.8
 #: Heights above take-off instead of ellipsoidal heights (m).
