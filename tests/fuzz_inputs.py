@@ -45,7 +45,8 @@ from contextlib import nullcontext, redirect_stderr, redirect_stdout
 from dataclasses import dataclass, field
 from pathlib import Path
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from data_paths import CITYGML, CITYJSON, LUND
+
 CASE_TIMEOUT = 10.0  # seconds a case may take (worker side) before it counts as a hang
 
 # ---------------------------------------------------------------------------------------------
@@ -217,9 +218,9 @@ class Corpus:
     lund: Path  # a few EXIF images, odd-EXIF variants and a box model around them
 
 
-# model-info arguments a base file needs to read cleanly (see ../shared/data/README.md)
+# model-info arguments a base file needs to read cleanly (see tests/data/README.md)
 EXTRA_ARGS = {
-    "LYON_1ER_BATI_2015_small_house.gml": ["--crs", "EPSG:3946"],
+    "no_crs_house_part.gml": ["--crs", "EPSG:3946"],
     "53394517_bldg_6697_op_CityGML2.gml": ["--target_crs", "EPSG:6677"],
     "DH_01_subs.city.json": ["--crs", "EPSG:7415"],
     "rotterdam_subset.json": ["--crs", "EPSG:7415"],
@@ -426,17 +427,17 @@ def build_corpus(root: Path, num_stations: int = 8) -> Corpus:
 
     root.mkdir(parents=True, exist_ok=True)
     citygml = [(p, EXTRA_ARGS.get(p.name, []))
-               for p in sorted((SHARED_DATA / "citygml").rglob("*.gml"))]
+               for p in sorted(CITYGML.rglob("*.gml"))]
     cityjson = [(p, EXTRA_ARGS.get(p.name, []))
-                for p in sorted((SHARED_DATA / "cityjson").glob("*.json"))]
+                for p in sorted(CITYJSON.glob("*.json"))]
     seq = root / "3dbag_b2.city.jsonl"
-    _cityjson_seq(SHARED_DATA / "cityjson" / "3dbag_b2.city.json", seq)
+    _cityjson_seq(CITYJSON / "3dbag_b2.city.json", seq)
     cityjson.append((seq, []))
     ws = build_workspace(root / "workspace", num_stations)
 
     lund = root / "lund"
     (lund / "images").mkdir(parents=True, exist_ok=True)
-    photos = sorted((SHARED_DATA / "images" / "lund").glob("*.jpg"))[:4]
+    photos = sorted(LUND.glob("*.jpg"))[:4]
     for p in photos:
         shutil.copyfile(p, lund / "images" / p.name)
     (lund / "odd").mkdir(exist_ok=True)

@@ -2,8 +2,6 @@
 tie points share its offset and its tilt, so many points on a few faces fix the block's
 rotations only as well as those faces' orientations are known."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -12,10 +10,10 @@ from colmap_citymodel.adjust.observability import face_tilts, observability
 from colmap_citymodel.align.initial_alignment import similarity_to_planes
 from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.citymodel.read import read_city_model
+from data_paths import CITYGML
 
 GENERALISATION = 0.2
-BERLIN = Path(__file__).resolve().parents[2] / "shared" / "data" / "citygml" / "berlin" / \
-    "3910_5819.gml"
+BERLIN = CITYGML / "berlin" / "3910_5819.gml"
 
 
 def street_store():
@@ -93,7 +91,6 @@ def test_rotation_sigmas_cover_what_tilted_faces_do_to_the_block():
             offsets_only[name]["sigma_planes"], rel=0.05)
 
 
-@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
 def test_the_walls_of_a_real_tile_tilt_by_the_generalisation_over_their_length():
     """Berlin's official LoD2 tile (867 walls): every face gets a finite tilt about in-plane
     axes; a wall's azimuth (its tilt about the vertical) is uncertain by about g over its

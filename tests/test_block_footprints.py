@@ -5,7 +5,6 @@ from __future__ import annotations
 
 import json
 import math
-from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -16,9 +15,10 @@ from shapely.geometry import Polygon, box
 from colmap_citymodel.block.eo import FLIP, rotation_opk
 from colmap_citymodel.block.footprints import FootprintOptions, GroundSurface, footprint, footprints, overlapping_pairs
 from colmap_citymodel.cli import main as cli_main
+from data_paths import CITYGML
 
 F, W, H = 5000.0, 4000, 3000
-BERLIN = Path(__file__).resolve().parents[2] / "shared" / "data" / "citygml" / "berlin" / "3920_5820.gml"
+BERLIN = CITYGML / "berlin" / "3920_5820.gml"
 
 
 def _image(centre, omega=0.0, phi=0.0, kappa=0.0, name="a.jpg", camera_id=1):
@@ -97,7 +97,6 @@ def test_pairs_along_a_strip():
     assert shares[("0.jpg", "2.jpg")] == pytest.approx(120 / 320, rel=1e-6)
 
 
-@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
 def test_pairs_command_on_an_imported_block(tmp_path):
     """Two strips of five-head exposures over Berlin: the pairs command with the city model
     writes a pair list naming database images, far fewer than exhaustive."""

@@ -6,7 +6,6 @@ import logging
 import sqlite3
 import struct
 import warnings
-from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -16,9 +15,7 @@ import pytest
 from colmap_citymodel.block.gnss import GNSSObservations, _crs_info, apply_lever_arm, match_to_reconstruction, read_gnss_database, read_gnss_exif, read_gnss_text, reproject_with_report, rotations_from_reconstruction
 from colmap_citymodel.citymodel import crs
 from colmap_citymodel.errors import GNSSError
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-LUND = SHARED_DATA / "images" / "lund"
+from data_paths import LUND
 
 SWEREF = _crs_info("EPSG:3006")
 UTM32_DHHN = _crs_info("EPSG:25832+7837")
@@ -183,7 +180,6 @@ def test_text_missing_file(tmp_path):
         read_gnss_text(tmp_path / "nope.txt", "EPSG:25832", UTM32_DHHN)
 
 
-@pytest.mark.skipif(not LUND.is_dir(), reason=f"shared Lund photos not found at {LUND}")
 def test_exif_lund_photos():
     files = sorted(p for p in LUND.iterdir() if p.suffix.lower() == ".jpg")
     gnss = read_gnss_exif(LUND, SWEREF)

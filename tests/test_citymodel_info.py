@@ -11,11 +11,9 @@ from pathlib import Path
 import pytest
 
 from colmap_citymodel.cli import main as cli_main
+from data_paths import CITYGML
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-CITYGML = SHARED_DATA / "citygml"
 REPO = Path(__file__).resolve().parents[1]
-needs_data = pytest.mark.skipif(not CITYGML.is_dir(), reason=f"shared test data not found at {CITYGML}")
 
 UNRESOLVED_XLINK = """<?xml version="1.0" encoding="UTF-8"?>
 <CityModel xmlns="http://www.opengis.net/citygml/2.0" xmlns:gml="http://www.opengis.net/gml"
@@ -50,13 +48,12 @@ def bad_inputs(tmp_path: Path) -> dict[str, tuple[list[str], str]]:
         "malformed": ([str(truncated)], "malformed XML"),
         "foreign": ([str(foreign)], "not a CityGML file"),
         "missing": ([str(tmp_path / "missing.gml")], "no such file"),
-        "lyon_no_crs": ([str(CITYGML / "lyon/LYON_1ER_BATI_2015_small_house.gml")], "no CRS in the file; pass --crs EPSG:N"),
+        "no_crs": ([str(CITYGML / "synthetic/no_crs_house_part.gml")], "no CRS in the file; pass --crs EPSG:N"),
         "unresolved_xlink": ([str(xlink)], "wall_that_is_missing"),
         "plateau_geographic": ([str(CITYGML / "plateau/53394517_bldg_6697_op_CityGML2.gml")], "--target_crs"),
     }
 
 
-@needs_data
 def test_model_info_json_berlin_block(capsys):
     assert cli_main(["model-info", str(CITYGML / "berlin/3910_5819.gml"), "--json"]) == 0
     out = capsys.readouterr().out.strip().splitlines()
@@ -75,9 +72,8 @@ def test_model_info_json_berlin_block(capsys):
     assert 391_000 <= x0 < x1 <= 392_100 and 5_818_900 <= y0 < y1 <= 5_820_000
 
 
-@needs_data
 def test_model_info_human_summary_and_options(capsys):
-    path = CITYGML / "lyon/LYON_1ER_BATI_2015_small_house.gml"
+    path = CITYGML / "synthetic/no_crs_house_part.gml"
     assert cli_main(["model-info", str(path), "--crs", "EPSG:3946"]) == 0
     out = capsys.readouterr().out
     assert "CityGML 2.0" in out and "EPSG:3946" in out
@@ -90,7 +86,6 @@ def test_model_info_human_summary_and_options(capsys):
     assert info["num_faces"] + info["num_dropped_degenerate"] == 134
 
 
-@needs_data
 def test_model_info_directory(capsys):
     assert cli_main(["model-info", str(CITYGML / "tum2twin"), "--json"]) == 0
     info = json.loads(capsys.readouterr().out)
@@ -98,7 +93,6 @@ def test_model_info_directory(capsys):
     assert info["num_holes"] == 6
 
 
-@needs_data
 def test_bad_input_through_cli_main(tmp_path, capsys):
     for name, (args, fragment) in bad_inputs(tmp_path).items():
         assert cli_main(["model-info", *args, "--json"]) == 2, name
@@ -110,10 +104,9 @@ def test_bad_input_through_cli_main(tmp_path, capsys):
         assert "Traceback" not in captured.err
 
 
-@needs_data
 def test_bad_input_as_subprocess(tmp_path):
     cases = bad_inputs(tmp_path)
-    for name in ("malformed", "foreign", "missing", "lyon_no_crs", "unresolved_xlink"):
+    for name in ("malformed", "foreign", "missing", "no_crs", "unresolved_xlink"):
         args, fragment = cases[name]
         run = subprocess.run(
             [sys.executable, "-m", "colmap_citymodel", "model-info", *args, "--json"],
@@ -127,7 +120,6 @@ def test_bad_input_as_subprocess(tmp_path):
         assert run.stdout == ""
 
 
-@needs_data
 def test_subprocess_success(tmp_path):
     run = subprocess.run(
         [sys.executable, "-m", "colmap_citymodel", "model-info",

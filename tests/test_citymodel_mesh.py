@@ -3,8 +3,6 @@ round trips with full float64 precision in the CRS frame."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 import trimesh
@@ -13,9 +11,7 @@ from colmap_citymodel.citymodel.mesh import SEMANTIC_COLOURS, store_to_trimesh, 
 from colmap_citymodel.citymodel.read_cityjson import read_cityjson
 from colmap_citymodel.citymodel.build import build_store, store_from_polygons
 from colmap_citymodel.errors import InputError
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-CJ = SHARED_DATA / "cityjson"
+from data_paths import CITYJSON
 
 CUBE_V = np.array(
     [[0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0], [0, 0, 1], [1, 0, 1], [1, 1, 1], [0, 1, 1]],
@@ -128,9 +124,8 @@ def test_ply_and_obj_round_trip_float64_in_crs_frame(tmp_path):
         write_mesh(store, tmp_path / "m.stl")
 
 
-@pytest.mark.skipif(not CJ.is_dir(), reason=f"shared test data not found at {CJ}")
 def test_real_model_mesh_areas_and_closed_solids(tmp_path):
-    store = build_store(read_cityjson(CJ / "3dbag_b2.city.json"))
+    store = build_store(read_cityjson(CITYJSON / "3dbag_b2.city.json"))
     mesh, tri_face = store_to_trimesh(store)
     per_face = np.bincount(tri_face, mesh.area_faces, store.num_faces)
     # faces are planar to 0.3 mm here: triangle areas match the projected (Newell) areas

@@ -1,17 +1,17 @@
-"""CityGML reader: every real file in ../shared/data/citygml plus small synthetic files for the
+"""CityGML reader: every file in tests/data/citygml plus small synthetic files for the
 cases the real files do not show (ring xlinks, references across buildings, bbox filter, ...).
 
-Expected counts of the real files come from inspecting them independently of the reader
+Expected counts of the files come from inspecting them independently of the reader
 (grep for `<gml:Polygon`, `<gml:interior`, `<bldg:Building`, `<bldg:BuildingPart`, and the
-files' README in ../shared/data). Real files: openNRW (dl-de/zero-2.0), Berlin (dl-de/by-2.0),
-tum-gis Berlin Moabit (MIT), OGC CityGML examples, VCityTeam Lyon, val3dity Den Haag,
-PLATEAU (CC BY 4.0), tum2twin (CC BY 4.0).
+files' README in tests/data). Real files: openNRW (dl-de/zero-2.0), Berlin (dl-de/by-2.0),
+tum-gis Berlin Moabit (MIT), OGC CityGML examples (MIT), PLATEAU (CC BY 4.0), tum2twin
+(CC BY 4.0); synthetic files (tests/data/citygml/synthetic, written by its make_synthetic.py):
+a building of three parts with xlinked solids (CityGML 1.0), a house part with no CRS.
 """
 
 from __future__ import annotations
 
 from collections import Counter
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -20,10 +20,8 @@ from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.citymodel.read_citygml import read_citygml
 from colmap_citymodel.citymodel.build import build_store
 from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
+from data_paths import CITYGML
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-CITYGML = SHARED_DATA / "citygml"
-needs_data = pytest.mark.skipif(not CITYGML.is_dir(), reason=f"shared test data not found at {CITYGML}")
 
 # file -> (reader kwargs, version, crs label, buildings, parts, polygons, holes, {semantic: n})
 REAL = {
@@ -47,14 +45,6 @@ REAL = {
         {}, "3.0", "EPSG:25833+5783", 1, 0, 6, 0,
         {"WallSurface": 4, "RoofSurface": 1, "GroundSurface": 1},
     ),
-    "denhaag/DenHaag_1BwBP.gml": (
-        {}, "1.0", "EPSG:28992", 1, 6, 39, 0,
-        {"WallSurface": 26, "RoofSurface": 7, "GroundSurface": 6},
-    ),
-    "lyon/LYON_1ER_BATI_2015_small_house.gml": (
-        {"crs": "EPSG:3946"}, "2.0", "EPSG:3946", 1, 1, 7, 0,
-        {"WallSurface": 4, "RoofSurface": 2, "GroundSurface": 1},
-    ),
     "ogc/Building_CityGML3.0_LOD2_with_several_attributes.gml": (
         {}, "3.0", "EPSG:31468+5783", 1, 0, 11, 0,
         {"WallSurface": 8, "RoofSurface": 2, "GroundSurface": 1},
@@ -73,6 +63,14 @@ REAL = {
         {"target_crs": "EPSG:6677"}, "2.0", "EPSG:6677+6695", 1, 0, 650, 0,
         {"WallSurface": 370, "RoofSurface": 279, "GroundSurface": 1},
     ),
+    "synthetic/parts_xlinked_solids_v1.gml": (
+        {}, "1.0", "EPSG:28992", 1, 3, 19, 0,
+        {"WallSurface": 12, "RoofSurface": 4, "GroundSurface": 3},
+    ),
+    "synthetic/no_crs_house_part.gml": (
+        {"crs": "EPSG:3946"}, "2.0", "EPSG:3946", 1, 1, 7, 0,
+        {"WallSurface": 4, "RoofSurface": 2, "GroundSurface": 1},
+    ),
     "tum2twin/DEBY_LOD2_4906970.gml": ({}, "2.0", "EPSG:25832", 1, 0, 13, 0, None),
     "tum2twin/DEBY_LOD2_4906972.gml": ({}, "2.0", "EPSG:25832", 1, 0, 24, 0, None),
     "tum2twin/DEBY_LOD2_4959321.gml": ({}, "2.0", "EPSG:25832", 1, 0, 8, 0, None),
@@ -83,19 +81,16 @@ REAL = {
 }
 
 # max distance of a store vertex to its face's plane, per file (the producers' rounding is 1 mm;
-# merging moves corners by up to 1 mm; Berlin 3910 and Lyon hold a few genuinely warped faces)
-PLANE_TOLERANCE = {"berlin/3910_5819.gml": 0.05, "lyon/LYON_1ER_BATI_2015_small_house.gml": 0.03}
+# merging moves corners by up to 1 mm; Berlin 3910 holds a few genuinely warped faces)
+PLANE_TOLERANCE = {"berlin/3910_5819.gml": 0.05}
 DEFAULT_PLANE_TOLERANCE = 0.004
 
 
 def test_every_real_file_is_covered():
-    if not CITYGML.is_dir():
-        pytest.skip(f"shared test data not found at {CITYGML}")
     on_disk = {str(p.relative_to(CITYGML)) for p in CITYGML.rglob("*.gml")}
     assert on_disk == set(REAL)
 
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(REAL))
 def test_real_file_counts(name):
     kwargs, version, label, buildings, parts, polygons, holes, classes = REAL[name]
@@ -118,7 +113,6 @@ def test_real_file_counts(name):
         assert p.part_id == "" or p.part_id in raw.part_ids
 
 
-@needs_data
 def test_berlin_block_has_exactly_one_face_with_a_hole():
     store = read_city_model(CITYGML / "berlin/3910_5819.gml")
     assert store.num_buildings == 35
@@ -127,16 +121,14 @@ def test_berlin_block_has_exactly_one_face_with_a_hole():
     assert store.num_faces + store.num_dropped_degenerate == 1207
 
 
-@needs_data
-def test_denhaag_one_building_six_parts_all_from_xlinked_solids():
-    raw = read_citygml(CITYGML / "denhaag/DenHaag_1BwBP.gml")
-    assert len(raw.building_ids) == 1 and len(raw.part_ids) == 6
+def test_building_parts_all_from_xlinked_solids():
+    raw = read_citygml(CITYGML / "synthetic/parts_xlinked_solids_v1.gml")
+    assert len(raw.building_ids) == 1 and len(raw.part_ids) == 3
     assert {p.part_id for p in raw.polygons} == set(raw.part_ids)
     # every thematic polygon is referenced by its part's lod2Solid: one face each, in the solid
     assert all(p.from_solid for p in raw.polygons)
 
 
-@needs_data
 def test_nrw_solid_made_only_of_references():
     raw = read_citygml(CITYGML / "nrw/LoD2_32_328_5725_1_NW.gml")
     assert all(p.from_solid for p in raw.polygons)
@@ -145,7 +137,6 @@ def test_nrw_solid_made_only_of_references():
     assert np.all((x[:, 0] >= 328000) & (x[:, 0] <= 329000) & (x[:, 1] >= 5725000) & (x[:, 1] <= 5726000))
 
 
-@needs_data
 def test_tum2twin_holes():
     raw = read_citygml(CITYGML / "tum2twin/DEBY_LOD2_4959457.gml")
     holes = [h for p in raw.polygons for h in p.holes]
@@ -153,20 +144,18 @@ def test_tum2twin_holes():
     assert all(len(h) >= 3 for h in holes)
 
 
-@needs_data
-def test_lyon_needs_a_crs():
-    path = CITYGML / "lyon/LYON_1ER_BATI_2015_small_house.gml"
+def test_no_crs_needs_a_crs():
+    path = CITYGML / "synthetic/no_crs_house_part.gml"
     with pytest.raises(CRSError) as info:
         read_citygml(path)
     assert "no CRS in the file; pass --crs EPSG:N" in str(info.value)
     assert info.value.path == path
     raw = read_citygml(path, crs="EPSG:3946")
     x = np.concatenate([p.exterior for p in raw.polygons])
-    # Lyon 1er arrondissement in CC46: E ~1.84e6, N ~5.18e6
+    # Lyon in CC46: E ~1.84e6, N ~5.18e6
     assert np.all((x[:, 0] > 1.84e6) & (x[:, 0] < 1.85e6) & (x[:, 1] > 5.17e6) & (x[:, 1] < 5.18e6))
 
 
-@needs_data
 def test_plateau_needs_a_projected_target_and_lands_in_tokyo():
     path = CITYGML / "plateau/53394517_bldg_6697_op_CityGML2.gml"
     with pytest.raises(CRSError) as info:
@@ -196,7 +185,6 @@ def test_plateau_needs_a_projected_target_and_lands_in_tokyo():
     assert len(lod1.polygons) == 134 and all(p.from_solid and p.lod == 1 for p in lod1.polygons)
 
 
-@needs_data
 def test_missing_lod_names_the_available_ones():
     with pytest.raises(CityGMLError, match=r"no building geometry at LOD 3 \(it has LOD 2"):
         read_citygml(CITYGML / "nrw/LoD2_32_328_5725_1_NW.gml", lod=3)
@@ -211,7 +199,6 @@ def _store(name):
     return read_city_model(CITYGML / name, **REAL[name][0])
 
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(REAL))
 def test_real_file_planes(name):
     store = _store(name)
@@ -238,10 +225,9 @@ def test_real_file_planes(name):
     assert np.count_nonzero(sem == "WallSurface") > 0
 
 
-@needs_data
 @pytest.mark.parametrize(
     "name",
-    ["nrw/LoD2_32_328_5725_1_NW.gml", "denhaag/DenHaag_1BwBP.gml",
+    ["nrw/LoD2_32_328_5725_1_NW.gml", "synthetic/parts_xlinked_solids_v1.gml",
      "ogc/Building_and_garage_LOD2-EPSG25832_v2.gml", "berlin/Berlin_Moabit_1Bldg_v2.gml"],
 )
 def test_closed_solids_share_every_corner(name):
@@ -251,7 +237,6 @@ def test_closed_solids_share_every_corner(name):
     assert np.all(np.diff(indptr) >= 3)
 
 
-@needs_data
 def test_tum2twin_corners_are_shared_after_merging():
     """tum2twin walls and roofs disagree by 1 mm at shared corners: merged within 1 mm they share
     vertex indices, unmerged they do not (DEBY_LOD2_4959457: 278 distinct corners, 272 merged)."""
@@ -278,7 +263,6 @@ def _sorted_vertices(store):
     return v[np.lexsort(np.round(v, 3).T[::-1])]
 
 
-@needs_data
 @pytest.mark.parametrize(
     "v2, v3",
     [
@@ -300,7 +284,6 @@ def test_citygml_2_and_3_give_the_same_store(v2, v3):
     np.testing.assert_allclose(a.normals[ka], b.normals[kb], atol=1e-6)
 
 
-@needs_data
 def test_directory_of_tiles_and_crs_mismatch():
     store = read_city_model(CITYGML / "tum2twin")
     assert store.num_buildings == 7
@@ -311,7 +294,6 @@ def test_directory_of_tiles_and_crs_mismatch():
         read_city_model(CITYGML / "nope.gml")
 
 
-@needs_data
 def test_bbox_filter_on_real_block():
     path = CITYGML / "berlin/3910_5819.gml"
     full = read_citygml(path)
@@ -334,7 +316,6 @@ def test_bbox_filter_on_real_block():
         read_citygml(path, bbox_crs=np.array([[0.0, 0.0, 0.0], [1.0, 1.0, 1.0]]))
 
 
-@needs_data
 def test_malformed_and_foreign_xml(tmp_path):
     src = (CITYGML / "berlin/3920_5820.gml").read_bytes()
     truncated = tmp_path / "truncated.gml"

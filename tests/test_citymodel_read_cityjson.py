@@ -1,4 +1,4 @@
-"""CityJSON reader on the real files in ../shared/data/cityjson (3DBAG 2.0, Rotterdam 2.0,
+"""CityJSON reader on the real files in tests/data/cityjson (3DBAG 2.0, Rotterdam 2.0,
 Den Haag 1.1) and on small synthetic documents (1.0, CityJSONSeq, MultiSolid, LOD choice).
 Expected counts are computed here straight from the JSON, independently of the reader."""
 
@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import copy
 import json
-from pathlib import Path
 
 import numpy as np
 import pyproj
@@ -15,10 +14,9 @@ import pytest
 from colmap_citymodel.citymodel.read_cityjson import read_cityjson
 from colmap_citymodel.citymodel.build import build_store
 from colmap_citymodel.errors import CityGMLError, CRSError, InputError, NoOverlapError
+from data_paths import CITYJSON
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-CJ = SHARED_DATA / "cityjson"
-needs_data = pytest.mark.skipif(not CJ.is_dir(), reason=f"shared test data not found at {CJ}")
+CJ = CITYJSON
 
 FILES = {  # file -> CRS to give (None: the file names one)
     "3dbag_b2.city.json": None,
@@ -64,7 +62,6 @@ def independent_counts(doc, lod=2):
     return len(buildings), len(parts), surfaces, degenerate
 
 
-@needs_data
 @pytest.mark.parametrize("name", list(FILES))
 def test_real_files_load_with_independent_counts(name):
     doc = json.loads((CJ / name).read_text())
@@ -94,7 +91,6 @@ def test_real_files_load_with_independent_counts(name):
     assert np.median(store.rms_out_of_plane) < 1e-3
 
 
-@needs_data
 @pytest.mark.parametrize("name", ["3dbag_b2.city.json", "DH_01_subs.city.json"])
 def test_solids_are_closed_and_outward(name):
     """Closed solids: every edge used twice in opposite directions; positive volume per part."""
@@ -117,7 +113,6 @@ def test_solids_are_closed_and_outward(name):
         assert sorted(e) == sorted((b, a) for a, b in e), key
 
 
-@needs_data
 def test_no_crs_is_a_clear_error():
     with pytest.raises(CRSError) as info:
         read_cityjson(CJ / "rotterdam_subset.json")
@@ -156,7 +151,6 @@ def to_cityjsonseq(doc):
     return "\n".join(lines) + "\n"
 
 
-@needs_data
 def test_cityjsonseq_gives_the_same_store(tmp_path):
     doc = json.loads((CJ / "DH_01_subs.city.json").read_text())
     jsonl = tmp_path / "dh.jsonl"
@@ -172,7 +166,6 @@ def test_cityjsonseq_gives_the_same_store(tmp_path):
     assert read_cityjson(jsonl, crs="EPSG:7415").format == "CityJSONSeq"
 
 
-@needs_data
 def test_cityjson_1_0_float_vertices_and_urn_crs(tmp_path):
     doc = json.loads((CJ / "DH_01_subs.city.json").read_text())
     tr = doc.pop("transform")

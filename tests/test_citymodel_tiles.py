@@ -1,4 +1,4 @@
-"""The tile index on real tiles from ../shared/data (Berlin, PLATEAU, CityJSON from 3DBAG and
+"""The tile index on real tiles from tests/data (Berlin, PLATEAU, CityJSON from 3DBAG and
 Rotterdam): boxes equal to what the readers read, exactly the overlapping tiles selected (also
 across CRSs), and the cache next to the data or, for a read-only directory, elsewhere."""
 
@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import shutil
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -14,12 +13,10 @@ import pytest
 from colmap_citymodel.citymodel.crs import reproject_points, user_crs
 from colmap_citymodel.citymodel.read_citygml import read_citygml
 from colmap_citymodel.citymodel.tiles import INDEX_NAME, build_tile_index, scan_tile
+from data_paths import CITYGML, CITYJSON
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-BERLIN = SHARED_DATA / "citygml" / "berlin"
-CITYJSON = SHARED_DATA / "cityjson"
-PLATEAU = SHARED_DATA / "citygml" / "plateau"
-pytestmark = pytest.mark.skipif(not BERLIN.is_dir(), reason=f"shared data not found at {BERLIN}")
+BERLIN = CITYGML / "berlin"
+PLATEAU = CITYGML / "plateau"
 
 UTM33 = user_crs("EPSG:25833")
 
@@ -31,10 +28,10 @@ def names(tiles):
 @pytest.fixture(scope="module")
 def mixed(tmp_path_factory):
     """One index over the Berlin CityGML tiles and the CityJSON files (mixed formats and CRSs;
-    the shared data directories are read-only, so the cache goes to a scratch directory)."""
+    the test data must stay as committed, so the cache goes to a scratch directory)."""
     before = sorted(os.listdir(BERLIN))
     index = build_tile_index([BERLIN, CITYJSON], cache_dir=tmp_path_factory.mktemp("cache"))
-    assert sorted(os.listdir(BERLIN)) == before  # nothing written into the shared data
+    assert sorted(os.listdir(BERLIN)) == before  # nothing written into the test data
     return index
 
 
@@ -49,7 +46,7 @@ def test_box_is_what_the_reader_reads(name):
 
 def test_geometry_in_another_crs_is_not_in_the_box():
     # a Gauss-Krueger building whose address point is in EPSG:4326
-    tile = scan_tile(SHARED_DATA / "citygml" / "ogc"
+    tile = scan_tile(CITYGML / "ogc"
                      / "Building_CityGML3.0_LOD2_with_several_attributes.gml")
     assert tile.bbox[0] > 4e6 and tile.bbox[1] > 5e6
 
@@ -144,7 +141,7 @@ def test_refine_reads_only_the_tiles_near_its_block(tmp_path):
 
     tiles = tmp_path / "berlin"
     shutil.copytree(BERLIN, tiles)
-    tiles.chmod(0o755)  # the shared data is read-only, a user's tile directory is not
+    tiles.chmod(0o755)  # writable, as a user's tile directory is, whatever the checkout's modes
     drive = np.array([[390993.0, 5818973.0], [391273.0, 5818995.0]]) + [[-250.0], [250.0]]
     assert [p.name for p in files_near(tiles, drive, UTM33)] == ["3910_5819.gml"]
     assert (tiles / INDEX_NAME).is_file()  # the next refine reads the index, not the tiles

@@ -1,7 +1,5 @@
 """write_citygml: CityGML 2.0 output that round-trips through read_city_model."""
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 from lxml import etree
@@ -10,8 +8,7 @@ from colmap_citymodel.citymodel.raw_model import RawPolygon
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
-
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+from data_paths import CITYGML
 
 
 def _same_store(a, b, tol=1e-9):
@@ -84,10 +81,7 @@ def test_store_round_trip_synthetic(tmp_path):
 @pytest.mark.parametrize("name", ["berlin/3910_5819.gml", "tum2twin",
                                   "ogc/Building_and_garage_LOD2-EPSG25832_v2.gml"])
 def test_real_models_round_trip(tmp_path, name):
-    src = SHARED_DATA / "citygml" / name
-    if not src.exists():
-        pytest.skip(f"shared test data not found: {src}")
-    store = read_city_model(src)
+    store = read_city_model(CITYGML / name)
     path = write_citygml(tmp_path / "out.gml", raw_from_store(store))
     back = read_city_model(path)
     _same_store(store, back)

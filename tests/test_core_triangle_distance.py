@@ -4,16 +4,14 @@ real CityGML tile, and SurfaceDistance with it."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from colmap_citymodel import _ext
 from colmap_citymodel.align.coarse import SurfaceDistance
+from data_paths import CITYGML
 
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
-BERLIN = SHARED_DATA / "citygml" / "berlin" / "3920_5820.gml"
+BERLIN = CITYGML / "berlin" / "3920_5820.gml"
 
 
 @pytest.fixture(scope="module")
@@ -87,7 +85,6 @@ def test_bad_input_is_refused(core):
         core.TriangleDistance(vertices, np.array([[0, 1, 2]]), 1.0)(np.zeros((4, 2)))
 
 
-@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
 def test_surface_distance_of_a_real_tile_equals_open3d_below_the_radius():
     """SurfaceDistance of an official LoD2 tile against Open3D's RaycastingScene of the same
     triangles (float32 there: agreement to its precision at the tile's local coordinates)."""
@@ -117,7 +114,6 @@ def test_surface_distance_of_a_real_tile_equals_open3d_below_the_radius():
         assert np.count_nonzero(got < radius) > 5000
 
 
-@pytest.mark.skipif(not BERLIN.is_file(), reason=f"shared test data not found at {BERLIN}")
 def test_coarse_grid_shares_are_the_same_for_whole_and_any_shifts_and_near_the_exact_share():
     """The translation search's coarse level on an official LoD2 tile: shifts of whole and half
     grid cells (one cell index per point and fraction) give the shares that rounding each

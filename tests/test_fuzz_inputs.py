@@ -15,7 +15,6 @@ from pathlib import Path
 import pytest
 from fuzz_inputs import (
     KINDS,
-    SHARED_DATA,
     Case,
     Runner,
     _selftest_worker,
@@ -26,8 +25,6 @@ from fuzz_inputs import (
     run_fuzz,
 )
 
-needs_data = pytest.mark.skipif(not (SHARED_DATA / "citygml").is_dir(),
-                                reason=f"shared test data not found at {SHARED_DATA}")
 QUICK_SEED = 20240917
 QUICK_CASES = 800
 
@@ -83,7 +80,6 @@ def test_runner_reports_hangs_and_crashes():
         assert runner.restarts == 2
 
 
-@needs_data
 @pytest.mark.parametrize("kind", [k for k, _ in KINDS])
 def test_undamaged_inputs_are_read(corpus, runner, tmp_path, kind):
     """Every kind of case reaches the end when nothing is damaged, so damage is what fails."""
@@ -94,7 +90,6 @@ def test_undamaged_inputs_are_read(corpus, runner, tmp_path, kind):
         assert problem is None and outcome in ("exit 0", "inputs read"), (case.argv, result)
 
 
-@needs_data
 def test_fuzz_quick(corpus, runner, tmp_path):
     report = run_fuzz(corpus, QUICK_SEED, QUICK_CASES, tmp_path / "cases", runner=runner)
     print(report.summary())
@@ -106,7 +101,6 @@ def test_fuzz_quick(corpus, runner, tmp_path):
     assert report.outcomes["exit 0"] + report.outcomes["inputs read"] > QUICK_CASES // 20
 
 
-@needs_data
 @pytest.mark.fuzz
 def test_fuzz_full(corpus, tmp_path):
     seed = int(os.environ.get("FUZZ_SEED", "20250101"))

@@ -1,7 +1,7 @@
 """Bad inputs found by hand: each ends the CLI with exit 2 and one line naming the file and what is
 wrong with it (through `colmap_citymodel.cli.main`, as a user runs it).
 
-Real city model files from ../shared/data (tum2twin CC BY 4.0, PLATEAU CC BY 4.0, 3DBAG CC BY 4.0);
+Real city model files from tests/data (tum2twin CC BY 4.0, PLATEAU CC BY 4.0, 3DBAG CC BY 4.0);
 the COLMAP model, GNSS and city model of the refine cases are the synthetic street of
 fuzz_inputs.build_workspace.
 """
@@ -15,7 +15,8 @@ import struct
 
 import numpy as np
 import pytest
-from fuzz_inputs import SHARED_DATA, build_workspace
+from data_paths import CITYGML, CITYJSON, LUND
+from fuzz_inputs import build_workspace
 
 from colmap_citymodel.block.colmap_files import check_model
 from colmap_citymodel.citymodel.raw_model import coordinate_problem
@@ -23,10 +24,9 @@ from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import CityGMLError, InputError
 
-TUM = SHARED_DATA / "citygml" / "tum2twin" / "DEBY_LOD2_4959324.gml"
-PLATEAU = SHARED_DATA / "citygml" / "plateau" / "53394517_bldg_6697_op_CityGML2.gml"
-BAG = SHARED_DATA / "cityjson" / "3dbag_b2.city.json"
-needs_data = pytest.mark.skipif(not TUM.is_file(), reason=f"shared test data not found at {SHARED_DATA}")
+TUM = CITYGML / "tum2twin" / "DEBY_LOD2_4959324.gml"
+PLATEAU = CITYGML / "plateau" / "53394517_bldg_6697_op_CityGML2.gml"
+BAG = CITYJSON / "3dbag_b2.city.json"
 
 
 def run(argv, capsys) -> tuple[int, str]:
@@ -68,7 +68,6 @@ def _first_poslist_number(text: str, after: str = "") -> re.Match:
     return re.compile(r"(<gml:posList[^>]*>\s*)([-\d.]+)").search(text, text.index(after))
 
 
-@needs_data
 @pytest.mark.parametrize("value, why", [("1e308", "beyond 1e+08 m"), ("nan", "not finite"),
                                          ("-inf", "not finite")])
 def test_citygml_coordinate_no_crs_can_hold(tmp_path, capsys, value, why):
@@ -86,7 +85,6 @@ def test_citygml_coordinate_no_crs_can_hold(tmp_path, capsys, value, why):
         read_city_model(bad)
 
 
-@needs_data
 def test_citygml_height_beyond_any_datum(tmp_path, capsys):
     text = TUM.read_text(encoding="utf-8")
     m = re.search(r"(<gml:posList[^>]*>\s*\S+\s+\S+\s+)([-\d.]+)", text)
@@ -96,7 +94,6 @@ def test_citygml_height_beyond_any_datum(tmp_path, capsys):
     assert code == 2 and str(bad) in err and "height beyond" in err
 
 
-@needs_data
 def test_citygml_geographic_latitude_out_of_range(tmp_path, capsys):
     # PLATEAU writes latitude first (EPSG:6697); 95 is no latitude
     text = PLATEAU.read_text(encoding="utf-8")
@@ -108,7 +105,6 @@ def test_citygml_geographic_latitude_out_of_range(tmp_path, capsys):
     assert code == 2 and str(bad) in err and "not a latitude/longitude" in err
 
 
-@needs_data
 def test_cityjson_vertex_1e308_names_vertex_and_object(tmp_path, capsys):
     import json
 
@@ -121,7 +117,6 @@ def test_cityjson_vertex_1e308_names_vertex_and_object(tmp_path, capsys):
     assert "vertex 5" in err and "CityObject" in err and "beyond 1e+08 m" in err
 
 
-@needs_data
 def test_cityjson_float_vertex_index(tmp_path, capsys):
     import json
 
@@ -353,10 +348,6 @@ def test_citygml_coordinates_that_do_not_line_up(tmp_path, capsys, ring, expecte
     assert code == 2 and str(bad) in err and "polygon p1" in err and expected in err
 
 
-LUND = SHARED_DATA / "images" / "lund"
-
-
-@pytest.mark.skipif(not LUND.is_dir(), reason=f"shared Lund photos not found at {LUND}")
 def test_exif_of_a_huge_image_is_read(workspace, tmp_path, capsys):
     """The frame header of a 65000 x 65000 pixel image (a 4 GP aerial camera, or damage) made
     Pillow refuse to open it before its EXIF was read."""

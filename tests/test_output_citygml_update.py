@@ -1,4 +1,4 @@
-"""output.citygml_update and output.cityjson_update on every shared real file: written without
+"""output.citygml_update and output.cityjson_update on every file of tests/data: written without
 a correction, the file has the same XML / JSON content and reads back to the same store; with
 vertices moved, only their coordinates change, by their shift, and nothing else."""
 
@@ -16,22 +16,19 @@ from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.output.citygml_update import Moves, update_citygml
 from colmap_citymodel.output.cityjson_update import read_vertex_indices, update_cityjson
-
-DATA = Path("/work/shared/data")
-CITYGML = DATA / "citygml"
-CITYJSON = DATA / "cityjson"
-needs_data = pytest.mark.skipif(not CITYGML.is_dir(), reason=f"shared test data not at {DATA}")
+from data_paths import CITYGML, CITYJSON
 
 #: read_city_model arguments per file (the files that name no CRS, the geographic one)
 CITYGML_FILES = {
     "berlin/3910_5819.gml": {}, "berlin/3920_5820.gml": {},
     "berlin/Berlin_Moabit_1Bldg_v2.gml": {}, "berlin/Berlin_Moabit_1Bldg_v3.gml": {},
-    "denhaag/DenHaag_1BwBP.gml": {}, "lyon/LYON_1ER_BATI_2015_small_house.gml":
-        {"crs": "EPSG:3946"}, "nrw/LoD2_32_328_5725_1_NW.gml": {},
+    "nrw/LoD2_32_328_5725_1_NW.gml": {},
     "ogc/Building_CityGML3.0_LOD2_with_several_attributes.gml": {},
     "ogc/Building_and_garage_LOD2-EPSG25832_v2.gml": {},
     "ogc/Building_and_garage_LOD2-EPSG25832_v3.gml": {},
     "plateau/53394517_bldg_6697_op_CityGML2.gml": {"target_crs": "EPSG:6677"},
+    "synthetic/no_crs_house_part.gml": {"crs": "EPSG:3946"},
+    "synthetic/parts_xlinked_solids_v1.gml": {},
     "tum2twin/DEBY_LOD2_4906970.gml": {}, "tum2twin/DEBY_LOD2_4906972.gml": {},
     "tum2twin/DEBY_LOD2_4959321.gml": {}, "tum2twin/DEBY_LOD2_4959322.gml": {},
     "tum2twin/DEBY_LOD2_4959323.gml": {}, "tum2twin/DEBY_LOD2_4959324.gml": {},
@@ -76,7 +73,6 @@ def _numbers(text: str) -> list[str]:
     return re.findall(r"[^\s,]+", text or "")
 
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(CITYGML_FILES))
 def test_citygml_written_unchanged_is_the_same_document_and_model(name, tmp_path):
     kwargs = CITYGML_FILES[name]
@@ -93,7 +89,6 @@ def test_citygml_written_unchanged_is_the_same_document_and_model(name, tmp_path
     _same_store(store, read_city_model(target, **kwargs), 0.0)
 
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(CITYGML_FILES))
 def test_citygml_corrected_differs_only_in_the_moved_coordinates(name, tmp_path):
     kwargs = CITYGML_FILES[name]
@@ -136,7 +131,6 @@ def test_citygml_corrected_differs_only_in_the_moved_coordinates(name, tmp_path)
                 2e-3 if geographic else 0.5e-3 + 1e-9, moved=np.arange(len(store.vertices)))
 
 
-@needs_data
 def test_citygml_numbers_keep_the_file_s_decimals(tmp_path):
     name = "nrw/LoD2_32_328_5725_1_NW.gml"  # millimetres
     store = read_city_model(CITYGML / name)
@@ -150,7 +144,6 @@ def test_citygml_numbers_keep_the_file_s_decimals(tmp_path):
 
 # -- CityJSON -------------------------------------------------------------------------------------
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(CITYJSON_FILES))
 def test_cityjson_written_unchanged_is_the_same_document_and_model(name, tmp_path):
     kwargs = CITYJSON_FILES[name]
@@ -163,7 +156,6 @@ def test_cityjson_written_unchanged_is_the_same_document_and_model(name, tmp_pat
     _same_store(store, read_city_model(target, **kwargs), 0.0)
 
 
-@needs_data
 @pytest.mark.parametrize("name", sorted(CITYJSON_FILES))
 def test_cityjson_corrected_differs_only_in_the_moved_vertices(name, tmp_path):
     kwargs = CITYJSON_FILES[name]
@@ -187,7 +179,6 @@ def test_cityjson_corrected_differs_only_in_the_moved_vertices(name, tmp_path):
                 moved=np.arange(len(store.vertices)))
 
 
-@needs_data
 def test_cityjson_sequence_round_trip(tmp_path):
     doc = json.loads((CITYJSON / "DH_01_subs.city.json").read_text())
     header = {k: v for k, v in doc.items() if k not in ("CityObjects", "vertices")}
@@ -208,7 +199,6 @@ def test_cityjson_sequence_round_trip(tmp_path):
 
 # -- tiles in, tiles out --------------------------------------------------------------------------
 
-@needs_data
 def test_tiles_in_tiles_out(tmp_path):
     from colmap_citymodel.adjust.model_correction import ModelCorrection
     from colmap_citymodel.output.corrected_model import write_corrected_model

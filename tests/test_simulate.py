@@ -18,7 +18,6 @@ from colmap_citymodel.simulate.flight import plan_flight
 from colmap_citymodel.simulate.observations import sample_surface_points, simulate_checkpoints, simulate_observations, visibility
 
 REPO = Path(__file__).resolve().parents[1]
-SHARED_DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
 def tiny_options(**flight) -> SimulationOptions:
@@ -499,8 +498,6 @@ def test_new_options_keep_existing_sequence_keys():
 @pytest.mark.parametrize("name", ["drive", "orbit", "strip", "short"])
 def test_robustness_workspaces_load(name):
     path = REPO / "workspaces" / f"robust_{name}.toml"
-    if name != "short" and not (SHARED_DATA / "citygml").is_dir():
-        pytest.skip("needs ../shared/data next to the repository")
     o = load_scenario(path)
     assert tuple(o.gnss.sigma) == (3.0, 3.0, 5.0) and tuple(o.gnss.white_sigma) == (3.0, 3.0, 5.0)
     assert 3.0 <= o.gnss.bias_magnitude <= 5.0

@@ -12,8 +12,9 @@ import pytest
 
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.simulate.oblique import ObliqueOptions, simulate_matching, simulate_oblique_block
+from data_paths import CITYGML
 
-CITY = Path(__file__).resolve().parents[2] / "shared" / "data" / "citygml" / "berlin" / "3910_5819.gml"
+CITY = CITYGML / "berlin" / "3910_5819.gml"
 
 
 def _origin(path: Path) -> np.ndarray:
