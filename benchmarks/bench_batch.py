@@ -2,7 +2,7 @@
 the local process pool and on a Dask LocalCluster of 2 workers.
 
 City model (benchmarks/cache/batch/tiles/, built once): the real Berlin LoD2 tile 3910_5819
-(CityGML 2.0, EPSG:25833, dl-de/by-2.0; ../shared/data/citygml/berlin) split into 250 m columns
+(CityGML 2.0, EPSG:25833, dl-de/by-2.0; tests/data/citygml/berlin) split into 250 m columns
 (each building whole in the column of its centroid: `3910_5819_x<easting>.gml`), so that blocks
 lie on tile borders, plus the tiles 3920_5820 and the two Moabit files as they are: 7 tiles,
 of which a workspace reads the ones within workflow.GNSS_READ_MARGIN (250 m) of its GNSS.
@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-BERLIN = ROOT.parent / "shared" / "data" / "citygml" / "berlin"
+BERLIN = ROOT / "tests" / "data" / "citygml" / "berlin"
 CACHE = ROOT / "benchmarks" / "cache" / "batch"
 TILES, WORKSPACES, SCENARIOS, RUNS = (CACHE / d for d in ("tiles", "workspaces", "scenarios",
                                                           "runs"))

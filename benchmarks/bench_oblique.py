@@ -34,7 +34,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 RESULTS = ROOT / "benchmarks" / "results"
-CITY = ROOT.parent / "shared" / "data" / "citygml" / "berlin" / "3910_5819.gml"
+CITY = ROOT / "tests" / "data" / "citygml" / "berlin" / "3910_5819.gml"
 CRS = "EPSG:25833"
 SUBSETS = ["nadir=N/*", "oblique=F/*,B/*,L/*,R/*", "both=*"]
 #: Mulder Table 5.2: median sigma X, Y, Z (cm) of tie points, nadir / oblique / both.

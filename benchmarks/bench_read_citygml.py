@@ -1,7 +1,7 @@
 """Streaming read of a large CityGML file: throughput and peak memory against the store's size.
 
 Builds a synthetic city (>= 200 MB; `--quick` ~20 MB) by tiling the 35 real Berlin buildings of
-`../shared/data/citygml/berlin/3910_5819.gml` on a grid with shifted coordinates and new gml:ids
+`tests/data/citygml/berlin/3910_5819.gml` on a grid with shifted coordinates and new gml:ids
 (xlinks renamed with them), writes it to a temporary file, then reads it in a fresh subprocess
 (so nothing of the generation is in its memory) and prints
 
@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-SOURCE = Path(__file__).resolve().parents[2] / "shared" / "data" / "citygml" / "berlin" / "3910_5819.gml"
+SOURCE = Path(__file__).resolve().parents[1] / "tests" / "data" / "citygml" / "berlin" / "3910_5819.gml"
 
 _COORDS = re.compile(r"(<gml:(?:posList|pos|lowerCorner|upperCorner)\b[^>]*>)([^<]*)(<)")
 _IDS = re.compile(r'(gml:id="|xlink:href="#)([^"]+)(")')

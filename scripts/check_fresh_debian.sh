@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # Check the two README commands on a bare Debian 12: debootstrap a minimal bookworm, clone this
-# checkout's committed HEAD into it (with ../shared beside it when present, for the tests' real
-# files) and run `bash scripts/run_demo.sh` there, and with --tests also
+# checkout's committed HEAD into it (the tests' real files come with it, in tests/data) and run
+# `bash scripts/run_demo.sh` there, and with --tests also
 # `bash scripts/run_tests.sh`. Needs root and the network (Debian mirror, PyPI). Usage:
 #   sudo bash scripts/check_fresh_debian.sh [--tests] [ROOT]
 # ROOT defaults to /tmp/colmap-citymodel-bookworm; one from an earlier run is reused as it is
@@ -35,10 +35,6 @@ cp /etc/resolv.conf "$root/etc/resolv.conf"
 rm -rf "$root/work/colmap-citymodel"
 mkdir -p "$root/work"
 git clone -q "$repo" "$root/work/colmap-citymodel"
-if [ -d ../shared ]; then
-  rm -rf "$root/work/shared"
-  cp -a ../shared "$root/work/shared"
-fi
 
 mounted=()
 cleanup() {
