@@ -312,14 +312,10 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
         xyz, present = point_positions(rec, point_ids)
         images, centres = camera_centres(rec)
         geometry[key] = (xyz, present, images, centres, point_residuals(result, xyz, face))
-    everything = np.vstack([np.zeros((0, 3))] + [g[0][g[1]] for g in geometry.values()]
-                           + [g[3] for g in geometry.values()])
-    if len(everything):
-        lo, hi = everything.min(0) - FACE_MARGIN, everything.max(0) + FACE_MARGIN
-    else:
-        lo = hi = np.zeros(3)
+    lo, hi = block_box([g[0][g[1]] for g in geometry.values()],
+                       [g[3] for g in geometry.values()])
     store = result.adjusted_store
-    faces = faces_near(store, lo, hi, max_faces)
+    faces = faces_near(store, lo - FACE_MARGIN, hi + FACE_MARGIN, max_faces)
     used = {int(f) for f in np.unique(face[face >= 0])}
     traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)]
     num_model = len(traces)
@@ -376,8 +372,7 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
         "height": 720, "margin": {"l": 0, "r": 0, "t": 40, "b": 0},
         "legend": {"x": 1.0, "xanchor": "right", "y": 0.92,
                    "bgcolor": "rgba(255,255,255,0.7)", "font": {"size": 11}},
-        "scene": {"aspectmode": "data", "xaxis": {"title": {"text": "E"}},
-                  "yaxis": {"title": {"text": "N"}}, "zaxis": {"title": {"text": "up"}},
+        "scene": {**scene_box(store, faces, lo, hi),
                   "camera": scene_camera(geometry[shown][3] if blocks else np.zeros((0, 3)),
                                          geometry[shown][0][geometry[shown][1]] if blocks
                                          else np.zeros((0, 3)))},
@@ -396,6 +391,43 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
              "shown": shown, "residual_scale_m": scale,
              "num_drawn_visible": num_model + (len(per_block[shown]) if blocks else 0)}
     return {"data": traces, "layout": layout}, facts
+
+
+def block_box(points: list[np.ndarray], centres: list[np.ndarray]) -> tuple[np.ndarray,
+                                                                          np.ndarray]:
+    """(lo, hi) corners of the box around the cameras and the bulk of the tie points (their
+    0.5 and 99.5 percentiles: a few stray points far off do not shrink the block)."""
+    corners = [np.zeros((0, 3))] + [c for c in centres if len(c)]
+    points = np.vstack([np.zeros((0, 3))] + list(points))
+    if len(points):
+        corners.append(np.percentile(points, [0.5, 99.5], axis=0))
+    corners = np.vstack(corners)
+    if not len(corners):
+        return np.zeros(3), np.zeros(3)
+    return corners.min(0), corners.max(0)
+
+
+def scene_box(store: PlaneStore, faces: np.ndarray, lo: np.ndarray, hi: np.ndarray) -> dict:
+    """Fixed axis ranges and true proportions for the scene: the block's box grown by the
+    drawn faces and a margin. Fixed, so that switching blocks keeps the view; plotly's own
+    "data" aspect mode scales the scene to its volume, which puts a long street's ends out of
+    the picture."""
+    if len(faces):
+        vertices = store.vertices[np.unique(np.concatenate(
+            [store.faces.ring_vertex[store.faces.ring_ptr[store.faces.face_ring[f]]:
+                                     store.faces.ring_ptr[store.faces.face_ring[f + 1]]]
+             for f in faces]))]
+        lo, hi = np.minimum(lo, vertices.min(0)), np.maximum(hi, vertices.max(0))
+    margin = 0.03 * max(float(np.max(hi - lo)), 1.0)
+    lo, hi = lo - margin, hi + margin
+    size = hi - lo
+    ratio = size / size.max()
+    axes = {}
+    for name, title, a, b in zip("xyz", ("E", "N", "up"), lo, hi):
+        axes[f"{name}axis"] = {"title": {"text": title}, "range": [float(a), float(b)],
+                               "autorange": False}
+    return {"aspectmode": "manual", **axes,
+            "aspectratio": {k: float(v) for k, v in zip("xyz", ratio)}}
 
 
 def rec_of(result: RefineResult, key: str) -> pycolmap.Reconstruction:
@@ -423,8 +455,8 @@ def scene_camera(centres: np.ndarray, points: np.ndarray) -> dict:
         across = -across
     if along[0] > 0:  # and a little from the west
         along = -along
-    eye = 1.5 * across + 0.6 * along
-    return {"eye": {"x": float(eye[0]), "y": float(eye[1]), "z": 1.1},
+    eye = 0.7 * across + 0.28 * along
+    return {"eye": {"x": float(eye[0]), "y": float(eye[1]), "z": 0.5},
             "up": {"x": 0, "y": 0, "z": 1}}
 
 
