@@ -170,6 +170,16 @@ def test_the_figure_holds_the_model_both_blocks_and_their_toggle(result):
     refined_residuals = values(residual_button["args"][0]["marker.color"][1])
     assert np.abs(refined_residuals).max() < 1e-3  # the refined points lie on their faces
     assert np.sqrt(np.mean(gnss_residuals ** 2)) > 0.5  # the GNSS-only ones 1-2 m off
+    # fixed axis ranges in true proportions, around both blocks' cameras and the model
+    scene = figure["layout"]["scene"]
+    ranges = np.array([scene[f"{axis}axis"]["range"] for axis in "xyz"])
+    size = ranges[:, 1] - ranges[:, 0]
+    np.testing.assert_allclose([scene["aspectratio"][axis] for axis in "xyz"], size / size.max())
+    for rec in (result.refined, result.gnss_only):
+        centres = np.array([im.projection_center() for im in rec.images.values()])
+        assert np.all((centres > ranges[:, 0]) & (centres < ranges[:, 1]))
+    assert np.all(ranges[:, 0] <= store.vertices.min(0)) and np.all(
+        ranges[:, 1] >= store.vertices.max(0))
     # the cameras: 12 frusta (4 rays + a rectangle each) and the track
     cameras = figure["data"][10]
     assert cameras["name"] == "refined: cameras (12)"
