@@ -27,11 +27,20 @@ def names(tiles):
 
 @pytest.fixture(scope="module")
 def mixed(tmp_path_factory):
-    """One index over the Berlin CityGML tiles and the CityJSON files (mixed formats and CRSs;
-    the test data must stay as committed, so the cache goes to a scratch directory)."""
-    before = sorted(os.listdir(BERLIN))
-    index = build_tile_index([BERLIN, CITYJSON], cache_dir=tmp_path_factory.mktemp("cache"))
-    assert sorted(os.listdir(BERLIN)) == before  # nothing written into the test data
+    """One index over the Berlin CityGML tiles and the CityJSON files (mixed formats and CRSs),
+    read from read-only copies of tests/data, so the cache goes to a scratch directory."""
+    root = tmp_path_factory.mktemp("data")
+    dirs = [root / "berlin", root / "cityjson"]
+    for source, copy in zip((BERLIN, CITYJSON), dirs):
+        shutil.copytree(source, copy, ignore=shutil.ignore_patterns(INDEX_NAME))
+        copy.chmod(0o555)
+    try:
+        before = [sorted(os.listdir(d)) for d in dirs]
+        index = build_tile_index(dirs, cache_dir=tmp_path_factory.mktemp("cache"))
+        assert [sorted(os.listdir(d)) for d in dirs] == before  # nothing written into the data
+    finally:
+        for d in dirs:
+            d.chmod(0o755)
     return index
 
 
@@ -89,7 +98,9 @@ def test_selects_across_crs_and_formats(mixed):
 
 
 def test_geographic_tile_is_selected_in_a_projected_crs(tmp_path):
-    index = build_tile_index(PLATEAU, cache_dir=tmp_path)
+    data = tmp_path / "plateau"  # a copy: the index caches next to a writable directory
+    shutil.copytree(PLATEAU, data, ignore=shutil.ignore_patterns(INDEX_NAME))
+    index = build_tile_index(data, cache_dir=tmp_path)
     (tile,) = index.tiles
     assert tile.bbox[0] < 90  # latitude first, as the file writes it
     jgd = user_crs("EPSG:6677")  # Japan plane rectangular CS IX
@@ -140,7 +151,7 @@ def test_refine_reads_only_the_tiles_near_its_block(tmp_path):
     from colmap_citymodel.citymodel.tiles import files_near
 
     tiles = tmp_path / "berlin"
-    shutil.copytree(BERLIN, tiles)
+    shutil.copytree(BERLIN, tiles, ignore=shutil.ignore_patterns(INDEX_NAME))
     tiles.chmod(0o755)  # writable, as a user's tile directory is, whatever the checkout's modes
     drive = np.array([[390993.0, 5818973.0], [391273.0, 5818995.0]]) + [[-250.0], [250.0]]
     assert [p.name for p in files_near(tiles, drive, UTM33)] == ["3910_5819.gml"]
