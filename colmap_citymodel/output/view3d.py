@@ -2,14 +2,15 @@
 
 One plotly figure (WebGL, plotly.js embedded in the page, so it opens offline):
 
-- the city model faces near the block as triangles, one trace per class (walls, roofs,
-  ground, other) in muted colours; the faces that took tie points in stronger colours of their
-  class; the face outlines as thin lines;
+- the city model faces near the block as triangles, per class (walls, roofs, ground, other):
+  faces without tie points pale and half transparent, faces that took tie points opaque in a
+  stronger shade of their class; the face outlines as thin lines;
 - the tie points of the assignment, at most `MAX_POINTS` of them (a fixed random subset, the
   same points in both blocks): assigned points in the colour of their face (the palette of
   assignments.ply), unassigned points grey; a second colouring by the signed distance of each
   assigned point to the plane of its face;
 - the cameras as small frusta with a line along their track;
+- fixed axis ranges in true proportions around the block, seen from the cameras' side;
 - buttons that show the GNSS-only block (step 2, before the model took part), the refined one,
   or both, and buttons for the colouring.
 
