@@ -53,6 +53,17 @@ class AssignmentOptions:
     a line would otherwise come and go between iterations, moving the block each time. The
     minimum count is not relaxed, so that a wrong face loses its points as the block moves onto
     the model. 1: the same limit for every face."""
+    point_normal_angle: float = 30.0
+    """(a): a tie point whose neighbourhood is flat goes to a face only if its neighbourhood's
+    normal is within this angle (deg) of the face's: the eave of a roof, a window reveal or a
+    balcony's side lie near a wall's plane but are not on it. 180: no test."""
+    point_normal_neighbours: int = 12
+    """(a): tie points (the point itself included) whose plane gives a point's normal; the
+    neighbourhood is flat where its smallest eigenvalue is below 5 % of their sum."""
+    ambiguity_margin: float = 0.2
+    """(a): a tie point goes to its nearest face only if every other face that contains its
+    projection, off that face's plane, is at least this much (m) further away: a point between
+    a facade and a set-back storey or an arcade goes to neither. sigma_dtp's size; 0: off."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
@@ -219,6 +230,16 @@ class AdjustmentOptions:
     average out over its points (Unger 6.3, Table 12), as consider parameters (precision.estimate:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
+    face_weighting: str = "face"
+    """How the f_dTP of one face weigh. "per_point": each an independent observation at
+    sigma_dtp (Unger). "face" (adjust.faces): a face's model error is one error shared by its n
+    points, so each gets sigma^2 = sigma_dtp^2 + n sigma_face^2, scaled so that all tie points
+    together weigh as per point: a face counts as one observation of its offset, and a face whose
+    points sit further off than sigma_face explains is weighed less (Huber on its mean offset)."""
+    sigma_face: float | None = None
+    """With `face_weighting` "face": the sigma (m) of a face's offset error, shared by all its
+    tie points. None: estimated from the faces' mean offsets after each solve (adjust.faces),
+    starting from 0.20 m, Unger's typical size of a LOD2 model's generalisation effects (5.3)."""
     estimate_generalisation: bool = False
     """Experimental: also estimate the o_p (unknowns with that prior, f_dTP becomes
     (n.X + d + o_p) / sigma_dTP) in a re-solve after refine's assignment loop. Off: with the
@@ -301,6 +322,7 @@ def _check_number(name: str, value, source) -> None:
 #: Options that take one of a few words.
 CHOICES = {"adjustment.image_loss": ("none", "huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
+           "adjustment.face_weighting": ("per_point", "face"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
            "assignment.auto_indirect_method": ("msac", "roi_msac"),
            "workflow.mode": ("global", "sliding_window")}

@@ -20,10 +20,33 @@ from colmap_citymodel.workflow import refine
 GNSS_SIGMA = np.array([0.5, 0.5, 0.8])
 
 
-def _options() -> AdjustmentOptions:
+def _options(face_weighting: str = "per_point") -> AdjustmentOptions:
     # Tight tolerances: both problems end at the optimum, not where a tolerance stops them.
+    # Per point: the faces' weights do not follow their numbers of points, so a kept problem
+    # is exactly the new one.
     return AdjustmentOptions(sigma_dtp=0.05, function_tolerance=1e-14,
-                             max_solver_iterations=100)
+                             max_solver_iterations=100, face_weighting=face_weighting)
+
+
+def test_faces_weighed_as_units_refuse_reuse_when_a_face_weight_changes(scene):
+    """With each face one observation of its offset, a face's f_dTP sigma follows its number of
+    points: a problem is kept only while no face's sigma moves by more than the tolerance."""
+    from colmap_citymodel.adjust.problem import REWEIGHT_TOLERANCE, face_sigmas
+
+    scene, rec, priors, first, second = scene
+    options = _options("face")
+    kept = HybridProblem(pycolmap.Reconstruction(rec), scene.store, first, priors, options,
+                         robust_images=False, robust_planes=False)
+    slots = np.searchsorted(first.faces, second.face_index[second.assigned])
+    changed = np.abs(face_sigmas(options, slots, len(first.faces)) / kept.face_sigmas - 1)
+    assert kept.reassign(second, scene.store) == bool(np.all(changed <= REWEIGHT_TOLERANCE))
+    # Half of one face's points gone: its sigma drops by about 1 - sqrt(1/2).
+    face = int(first.faces[0])
+    drop = np.flatnonzero(first.face_index == face)[::2]
+    halved = first.without(np.isin(np.arange(len(first.point_ids)), drop))
+    fresh = HybridProblem(pycolmap.Reconstruction(rec), scene.store, first, priors, options,
+                          robust_images=False, robust_planes=False)
+    assert not fresh.reassign(halved, scene.store)
 
 
 @pytest.fixture(scope="module")

@@ -188,3 +188,50 @@ def test_observations_list_every_image_of_every_tie_point(street_scene):
     centres = observer_centres(rec, image_ids)
     np.testing.assert_allclose(centres[k], rec.image(int(image_ids[k])).projection_center())
     assert np.all(np.isnan(observer_centres(rec, np.array([10**6]))))
+
+
+def facade_with_setback(depth: float):
+    """A 10 x 10 m facade (y = 0, normal -y) over its lower half and, `depth` m behind it, a
+    set-back storey's facade over its upper half; roofs not needed."""
+    from colmap_citymodel.citymodel.build import store_from_polygons
+
+    lower = np.array([(0, 0, 0), (10, 0, 0), (10, 0, 5), (0, 0, 5)], float)
+    upper = np.array([(0, depth, 5), (10, depth, 5), (10, depth, 10), (0, depth, 10)], float)
+    return store_from_polygons([lower, upper], origin=np.zeros(3),
+                               semantics=["WallSurface", "WallSurface"])
+
+
+def test_a_point_between_two_surfaces_goes_to_neither():
+    # The faces overlap where the storey's projection meets the facade's (margin): near z = 5
+    # a point 0.15 m behind the facade is 0.15 m from one and 0.15 m from the other.
+    store = facade_with_setback(0.3)
+    options = AssignmentOptions(min_points_per_plane=1, planarity_threshold=-1.0,
+                                point_normal_angle=180.0)
+    points = np.array([[5.0, -0.02, 5.05],  # on the facade, 0.28 m nearer than the storey
+                       [5.0, 0.15, 5.05],  # half way: ambiguous
+                       [5.0, 0.28, 5.05]])  # on the storey's facade
+    a = assign(points, np.arange(3), store, 1.0, options)
+    lower, upper = (int(np.argmin(np.abs(store.centroids[:, 2] - z))) for z in (2.5, 7.5))
+    assert a.face_index.tolist() == [lower, -1, upper]
+    off = assign(points, np.arange(3), store, 1.0,
+                 AssignmentOptions(min_points_per_plane=1, planarity_threshold=-1.0,
+                                   point_normal_angle=180.0, ambiguity_margin=0.0))
+    assert off.face_index.tolist() == [lower, lower, upper]
+
+
+def test_points_on_a_surface_turned_from_the_face_are_not_its_points():
+    # A balcony slab 0.3 m in front of the y = 0 wall: its points lie within the threshold of
+    # the wall's plane, but their neighbourhood is horizontal.
+    rng = np.random.default_rng(5)
+    store = box_store()
+    wall = int(np.argmin(np.linalg.norm(store.normals - [0, -1, 0], axis=1)))
+    facade = wall_points(rng, 200, offset_sigma=0.02)
+    slab = np.column_stack([rng.uniform(2, 8, 200), rng.uniform(-0.45, -0.15, 200),
+                            5.0 + rng.normal(0, 0.005, 200)])
+    points = np.vstack([facade, slab])
+    a = assign(points, np.arange(len(points)), store, 1.0, AssignmentOptions(method="direct"))
+    assert np.mean(a.face_index[:200] == wall) > 0.9
+    assert np.mean(a.face_index[200:] == wall) < 0.1
+    plain = assign(points, np.arange(len(points)), store, 1.0,
+                   AssignmentOptions(method="direct", point_normal_angle=180.0))
+    assert np.mean(plain.face_index[200:] == wall) > 0.9

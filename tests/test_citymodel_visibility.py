@@ -83,7 +83,8 @@ def test_assignment_takes_only_visible_surfaces(tower_and_annex):
         [-0.2, 5.0, 10.0],  # on the tower's outer -x wall
         [15.0, -0.1, 4.0],  # on the annex's front wall
     ])
-    options = AssignmentOptions(min_points_per_plane=1, planarity_threshold=-1.0)
+    options = AssignmentOptions(min_points_per_plane=1, planarity_threshold=-1.0,
+                                point_normal_angle=180.0)
     a = assign_direct(points, np.arange(4), store, 1.0, options)
     assert a.face_index[0] == tower_inner
     assert a.face_index[1] == -1
@@ -124,3 +125,31 @@ def test_real_tile_tower_with_its_lower_part():
     assert vis.hidden_share[by_id["GEOM_634177"]] == 0  # the main part's outer +x facade
     summary = vis.summary()
     assert summary["hidden_faces"] > 50 and summary["partly_hidden_faces"] > 20
+
+
+def test_facade_points_pushed_onto_an_inner_wall_are_found_on_the_facade():
+    """A block whose facade points ended 7.5 m deep in the building, on the wall between the
+    main part and the tower (Berlin 3910_5819), is moved back onto the facade by the coarse
+    search: the inner wall is no surface a tie point can lie on."""
+    from colmap_citymodel.align.coarse import search_translation
+
+    store = read_city_model(BERLIN)
+    by_id = {store.faces[f].gml_id: f for f in range(store.num_faces)}
+    facade, inner = by_id["GEOM_634177"], by_id["GEOM_634164"]  # x = 447 and x = 439.5
+    rng = np.random.default_rng(3)
+    R, c = store.rotations[facade], store.centroids[facade]
+    # Points on the facade where the inner wall stands behind it (its y and z range).
+    ys = rng.uniform(12.0, 34.0, 3000)
+    zs = rng.uniform(8.0, 70.0, 3000)
+    xs = c[0] + (ys - c[1]) * (-store.normals[facade][1] / store.normals[facade][0])
+    points = np.column_stack([xs, ys, zs]) + rng.normal(0, 0.03, (3000, 3))
+    assert np.abs(points @ store.normals[facade] + store.offsets[facade]).max() < 0.2
+    shift = store.centroids[inner] - c
+    shift = (shift @ store.normals[facade]) * store.normals[facade]  # onto the inner wall
+    assert 7.0 < np.linalg.norm(shift) < 8.0
+    moved = points + shift
+    assert np.median(np.abs(moved @ store.normals[inner] + store.offsets[inner])) < 0.3
+    result = search_translation(moved, SurfaceDistance(store), np.array([3.0, 3.0, 5.0]))
+    # Back along the facade's normal (along the facade, a wall fixes nothing).
+    normal = store.normals[facade]
+    assert result.shift @ normal == pytest.approx(-shift @ normal, abs=0.5)

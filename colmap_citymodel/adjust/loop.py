@@ -39,6 +39,7 @@ from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
 from .datum import check_datum
+from .faces import DEFAULT_SIGMA_FACE, estimate_sigma_face, face_offsets, outlier_factors
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
@@ -118,6 +119,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
     unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
     stopped_by = None
+    face_factors: dict[int, float] = {}  # faces the adjustment weighs less (adjust.faces)
+    # The sigma of the faces' offsets (m): given, or estimated from them after each solve.
+    sigma_face = o_adj.sigma_face if o_adj.sigma_face is not None else DEFAULT_SIGMA_FACE
     # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem).
     reusable: HybridProblem | None = None
     solved: Assignment | None = None  # the assignment of the last solve (original weights)
@@ -148,6 +152,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if o_w.keep_eliminated:
             assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
                                              kept_faces)
+        assignment.face_factors = dict(face_factors)
+        assignment.face_sigma = sigma_face
         signature = _signature(assignment)
         if (o_w.reuse_problem and solved is not None and signature == _signature(solved)
                 and last is not None):
@@ -278,6 +284,14 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         seconds["hybrid_solves"] += time.perf_counter() - t1
         current = model_after_solve(current, final)
         last = final
+        if o_adj.face_weighting == "face" and o_adj.sigma_face is None:
+            estimated = estimate_sigma_face(face_offsets(final, o_adj, sigma_face), o_adj)
+            sigma_face = estimated if estimated is not None else sigma_face
+        face_factors = outlier_factors(final, o_adj, sigma_face)
+        if face_factors:
+            logger.info("iteration %d: %d faces weighed less, their mean offsets beyond the "
+                        "generalisation error (sigma x %s)", iteration, len(face_factors),
+                        ", ".join(f"{v:.2f}" for v in face_factors.values()))
         robust_only = final.robust_planes  # the iteration ended on its robust solve
         if not robust_only:
             reusable = final if o_w.reuse_problem else None
@@ -449,7 +463,10 @@ def assignment_change(before: np.ndarray, after: np.ndarray) -> float | None:
 
 
 def _signature(assignment: Assignment) -> bytes:
-    return assignment.face_index.tobytes() + np.float64(assignment.threshold).tobytes()
+    """What a solve depends on: the points' faces, the threshold and the faces' weights."""
+    factors = sorted((f, round(v, 2)) for f, v in assignment.face_factors.items())
+    return (assignment.face_index.tobytes() + np.float64(assignment.threshold).tobytes()
+            + repr(factors).encode())
 
 
 def offset_name(priors: GNSSPriors) -> str:

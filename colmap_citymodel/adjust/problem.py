@@ -50,6 +50,7 @@ from ..block.priors import GNSSPriors
 from ..block.reconstruction import position_in_rig
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
+from .faces import DEFAULT_SIGMA_FACE
 from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
@@ -130,9 +131,9 @@ class PosePriors:
 class SolveReport:
     """Figures of one solve, all residuals normalised by their a priori sigma."""
 
-    rms: dict[str, float]  # per group: RMS of normalised residuals
+    rms: dict[str, float]  # per group: RMS of normalised residuals (f_dTP: by sigma_dtp)
     count: dict[str, int]  # per group: number of scalar observations
-    sum_squares: dict[str, float]
+    sum_squares: dict[str, float]  # as the problem weighs them (f_dTP: by their faces' sigmas)
     num_unknowns: int
     ceres_iterations: int
     seconds: float
@@ -243,6 +244,43 @@ def bundle_adjustment_options(options: AdjustmentOptions, robust_images: bool
     return ba
 
 
+#: A problem is reused for a new assignment only while no face's f_dTP sigma changes by more
+#: than this share (with `face_weighting` "face" it follows the face's number of points).
+REWEIGHT_TOLERANCE = 0.1
+
+
+def slot_factors(assignment: Assignment, faces: np.ndarray) -> np.ndarray | None:
+    """The assignment's outlier factor of each face of `faces` (None: none downweighted)."""
+    if not assignment.face_factors:
+        return None
+    return np.array([assignment.face_factors.get(int(f), 1.0) for f in faces])
+
+
+def face_sigmas(options: AdjustmentOptions, rows: np.ndarray, num_faces: int,
+                factors: np.ndarray | None = None, sigma_face: float | None = None
+                ) -> np.ndarray:
+    """(num_faces,) the sigma (m) of each face's f_dTP: sigma_dtp, or with `face_weighting`
+    "face" sqrt(sigma_dtp^2 + n sigma_face^2) times the face's outlier factor (`factors`, 1:
+    none), n the face's points (`rows`: the face slot of each assigned point); sigma_face:
+    `sigma_face`, else the option's, else DEFAULT_SIGMA_FACE."""
+    if sigma_face is None:
+        sigma_face = (options.sigma_face if options.sigma_face is not None
+                      else DEFAULT_SIGMA_FACE)
+    sigmas = np.full(num_faces, float(options.sigma_dtp))
+    if options.face_weighting == "face":
+        counts = np.bincount(rows, minlength=num_faces)
+        sigmas = np.sqrt(options.sigma_dtp ** 2 + counts * sigma_face ** 2)
+        if factors is not None:
+            sigmas = sigmas * factors
+        # Scaled so that the tie points together weigh as in the classical model: the balance
+        # between the model and GNSS stays; only the faces' shares change.
+        total = np.sum(counts) / options.sigma_dtp ** 2
+        weighted = np.sum(counts / sigmas ** 2)
+        if weighted > 0:
+            sigmas = sigmas * np.sqrt(weighted / total)
+    return sigmas
+
+
 class HybridProblem:
     """One hybrid adjustment problem built from the current state; solve() updates in place.
 
@@ -287,6 +325,7 @@ class HybridProblem:
         self.pose_priors = pose_priors
         self.point_ids = np.zeros(0, np.int64)
         self.point_faces = np.zeros(0, np.int64)  # the face of each f_dTP row
+        self.face_sigmas = np.zeros(0)  # the sigma of each face's f_dTP (blocks.faces order)
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
         self._generalisation_offsets = generalisation_offsets
         self.gnss = gnss
@@ -450,17 +489,22 @@ class HybridProblem:
                 problem.add_parameter_block(blocks.generalisation[-1], 1)
 
         # f_dTP (added last, `_add_tie_distances`): one residual per assigned tie point, in
-        # the order of `point_ids`.
-        tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
-                       else core.PointPlaneDistanceCost)
-        self._tie_costs = [tie_factory(o.sigma_dtp / o.sigma_image, r)
-                           for r in blocks.references]
-        self._tie_loss = pyceres.HuberLoss(o.plane_loss_scale) if robust_planes else None
-        self._with_offsets = with_offsets
-        self._slot_of_face = slot_of_face
+        # the order of `point_ids`; one cost (its sigma) and loss per face.
         assigned = assignment.assigned
         self.point_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
+        self.face_sigmas = face_sigmas(o, np.searchsorted(faces, self.point_faces), len(faces),
+                                       slot_factors(assignment, faces), assignment.face_sigma)
+        tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
+                       else core.PointPlaneDistanceCost)
+        self._tie_costs = [tie_factory(sigma / o.sigma_image, r)
+                           for sigma, r in zip(self.face_sigmas, blocks.references)]
+        # The robust loss bends at the same distance (m) on every face.
+        self._tie_losses = ([pyceres.HuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma)
+                             for sigma in self.face_sigmas] if robust_planes
+                            else [None] * len(faces))
+        self._with_offsets = with_offsets
+        self._slot_of_face = slot_of_face
         rec = self.reconstruction
 
         # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
@@ -540,7 +584,7 @@ class HybridProblem:
         k = self._slot_of_face[face]
         blocks = self.blocks
         return self.problem.add_residual_block(
-            self._tie_costs[k], self._tie_loss,
+            self._tie_costs[k], self._tie_losses[k],
             [self.reconstruction.point3D(point_id).xyz, blocks.normals[k], blocks.offsets[k]]
             + ([blocks.generalisation[k]] if self._with_offsets else []))
 
@@ -568,6 +612,11 @@ class HybridProblem:
         assigned = assignment.assigned
         new_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         new_faces = np.asarray(assignment.face_index[assigned], np.int64)
+        sigmas = face_sigmas(self.options, np.searchsorted(self.blocks.faces, new_faces),
+                             len(self.blocks.faces), slot_factors(assignment, self.blocks.faces),
+                             assignment.face_sigma)
+        if np.any(np.abs(sigmas / self.face_sigmas - 1.0) > REWEIGHT_TOLERANCE):
+            return False  # the faces' weights changed: their costs must be made anew
         # Blocks that stay: the same tie point on the same plane (point ids are unique).
         stays = np.zeros(len(self.point_ids), bool)
         match = np.zeros(len(self.point_ids), np.int64)
@@ -625,7 +674,8 @@ class HybridProblem:
         return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
     def group_residuals(self) -> dict[str, np.ndarray]:
-        """Normalised residuals per observation group (loss functions not applied)."""
+        """Normalised residuals per observation group as the problem weighs them (loss
+        functions not applied; f_dTP by their faces' sigmas, `dtp_sigmas`)."""
         evaluate = pyceres.EvaluateOptions()
         evaluate.apply_loss_function = False
         # As many threads as the solves (Ceres evaluates on one by default). Most of the
@@ -640,6 +690,12 @@ class HybridProblem:
             start += n
         out = {group: r / self.options.sigma_image for group, r in out.items()}
         return out
+
+    def dtp_sigmas(self) -> np.ndarray:
+        """(dTP rows,) the sigma (m) each f_dTP row was weighted with."""
+        if not len(self.point_faces):
+            return np.zeros(0)
+        return self.face_sigmas[np.searchsorted(self.blocks.faces, self.point_faces)]
 
     def solve(self) -> SolveReport:
         import time
@@ -657,13 +713,18 @@ class HybridProblem:
             offset = np.array(self.gnss.offset, dtype=np.float64)
             offset[axes] = self.gnss_offset
             self.gnss.offset = offset
-        residuals = self.group_residuals()
-        self.residuals = residuals  # at the solution, until the next solve
+        whitened = self.group_residuals()
+        # At the solution, until the next solve; every f_dTP in units of sigma_dtp, whatever
+        # weight its face gave it (outlier tests and reports read distances).
+        residuals = dict(whitened)
+        if len(residuals.get("dTP", ())):
+            residuals["dTP"] = whitened["dTP"] * self.dtp_sigmas() / self.options.sigma_dtp
+        self.residuals = residuals
         return SolveReport(
             rms={g: float(np.sqrt(np.mean(r ** 2))) if len(r) else float("nan")
                  for g, r in residuals.items()},
             count={g: len(r) for g, r in residuals.items()},
-            sum_squares={g: float(np.sum(r ** 2)) for g, r in residuals.items()},
+            sum_squares={g: float(np.sum(r ** 2)) for g, r in whitened.items()},
             num_unknowns=self.num_unknowns(),
             ceres_iterations=iterations,
             seconds=seconds,

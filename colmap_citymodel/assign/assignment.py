@@ -41,6 +41,12 @@ class Assignment:
     threshold: float
     rejected_faces: dict[str, int] = field(default_factory=dict)  # reason -> number of faces
     method: str = "direct"  # the method that made it ("auto" resolves to one)
+    # Faces whose f_dTP the adjustment weighs less (face -> sigma factor >= 1): their points'
+    # mean offset lies further from the model than its generalisation error explains
+    # (adjust.faces.outlier_factors).
+    face_factors: dict[int, float] = field(default_factory=dict)
+    # The sigma (m) of the faces' offsets the adjustment weighs them with (None: the option's).
+    face_sigma: float | None = None
 
     @property
     def assigned(self) -> np.ndarray:
@@ -69,7 +75,8 @@ class Assignment:
         face_index[point_mask] = -1
         distance[point_mask] = np.nan
         return Assignment(self.point_ids, face_index, distance, self.threshold,
-                          dict(self.rejected_faces), self.method)
+                          dict(self.rejected_faces), self.method, dict(self.face_factors),
+                          self.face_sigma)
 
     def eliminate(self, point_mask: np.ndarray, points: np.ndarray,
                   options: AssignmentOptions, kept_faces: np.ndarray | None = None
@@ -174,6 +181,31 @@ def excluded_faces(store: PlaneStore, options: AssignmentOptions) -> np.ndarray:
     inside the city's volume as a whole (citymodel.visibility)."""
     return np.flatnonzero(class_mask(store, options.excluded_classes)
                           | visibility(store).hidden).astype(np.int64)
+
+
+#: A neighbourhood is flat where its smallest covariance eigenvalue is below this share of
+#: their sum (its "surface variation"; 1/3 for points without structure).
+FLAT_VARIATION = 0.05
+
+
+def local_surfaces(points: np.ndarray, neighbours: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: the unit normal of its `neighbours` nearest points (itself included) and
+    whether they form a flat surface (`FLAT_VARIATION`; spread along two directions)."""
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    if n < 3:
+        return np.zeros((n, 3)), np.zeros(n, bool)
+    k = min(int(neighbours), n)
+    _, index = cKDTree(points).query(points, k=k)
+    near = points[index]  # (n, k, 3)
+    centred = near - near.mean(axis=1, keepdims=True)
+    cov = np.einsum("nki,nkj->nij", centred, centred) / k
+    values, vectors = np.linalg.eigh(cov)
+    total = np.maximum(values.sum(axis=1), 1e-18)
+    # Flat: thin across, and spread along two directions (a line has no normal).
+    flat = (values[:, 0] / total < FLAT_VARIATION) & (values[:, 1] / total > 2 * FLAT_VARIATION)
+    return vectors[:, :, 0], flat
 
 
 def hidden_points(points: np.ndarray, face_index: np.ndarray, store: PlaneStore) -> np.ndarray:

@@ -8,7 +8,7 @@ import numpy as np
 from ..citymodel.store import PlaneStore
 from ..citymodel.visibility import visibility
 from ..options import AssignmentOptions
-from .assignment import Assignment, excluded_faces, filter_faces
+from .assignment import Assignment, excluded_faces, filter_faces, local_surfaces
 
 
 def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
@@ -19,13 +19,28 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
 
     "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
     contains the point's orthogonal projection (grown by `polygon_margin`) and that a camera
-    can see there (citymodel.visibility: not inside the city's volume). `weights` play no
+    can see there (citymodel.visibility: not inside the city's volume). A point whose next face
+    off that plane is not `ambiguity_margin` further away, or whose flat neighbourhood turns
+    more than `point_normal_angle` from the face, is not assigned. `weights` play no
     part; `kept_faces`: see `filter_faces`.
     """
     vis = visibility(store)
+    runner_up = np.full(len(points), np.inf)
     face_index, distance = store.closest_faces(
         points, max_distance=threshold, margin=options.polygon_margin, allowed=~vis.hidden,
-        hidden=lambda feet, faces: vis.hidden_at(feet, faces, store.normals[faces]))
+        hidden=lambda feet, faces: vis.hidden_at(feet, faces, store.normals[faces]),
+        runner_up=runner_up)
+    assigned = face_index >= 0
+    if options.ambiguity_margin > 0:
+        ambiguous = assigned & (runner_up - np.abs(np.nan_to_num(distance))
+                                < options.ambiguity_margin)
+        face_index[ambiguous] = -1
+    if options.point_normal_angle < 180 and np.any(face_index >= 0):
+        rows = np.flatnonzero(face_index >= 0)
+        normals, flat = local_surfaces(points, options.point_normal_neighbours)
+        cos = np.abs(np.einsum("ij,ij->i", normals[rows], store.normals[face_index[rows]]))
+        off = flat[rows] & (cos < np.cos(np.radians(options.point_normal_angle)))
+        face_index[rows[off]] = -1
     excluded = excluded_faces(store, options)
     if len(excluded):
         face_index = np.where(np.isin(face_index, excluded), -1, face_index)

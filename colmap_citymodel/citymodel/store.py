@@ -125,6 +125,12 @@ class VertexProvenance:
         return VertexProvenance(self.points[keep], new[keep])
 
 
+#: Two faces whose normals agree to this cosine (about 5 deg) and whose planes pass a point
+#: within SAME_PLANE_DISTANCE (m) of each other continue one surface.
+SAME_PLANE_COS = 0.996
+SAME_PLANE_DISTANCE = 0.05
+
+
 @dataclass
 class PlaneStore:
     origin: np.ndarray
@@ -371,12 +377,15 @@ class PlaneStore:
         candidates: int | None = 8,
         allowed: np.ndarray | None = None,
         hidden=None,
+        runner_up: np.ndarray | None = None,
     ) -> tuple[np.ndarray, np.ndarray]:
         """For each point: the face with the smallest |distance to plane| among faces whose
         polygon (with holes, grown by `margin` m) contains the point's orthogonal projection,
         only if |d| <= max_distance. `allowed` ((F,) bool): the faces that may be chosen (None:
         all); `hidden(feet, faces)` ((K,) bool): the candidate pairs whose face is hidden where
         the point's projection meets it (citymodel.visibility), which are not chosen either.
+        `runner_up` ((P,) float, filled in): |distance| to the nearest other candidate face not
+        on the chosen face's plane (inf: none).
 
         Returns (face_index int64, -1 for none; signed_distance float64, nan for none).
         `candidates` caps how many planes (nearest first) per point are tested for containment
@@ -417,6 +426,15 @@ class PlaneStore:
         first = np.r_[True, point[1:] != point[:-1]] if len(point) else np.zeros(0, bool)
         best[point[first]] = face[first]
         dist[point[first]] = d[first]
+        if runner_up is not None:
+            # The next face of each point that is not on its best face's plane (faces that
+            # continue one plane are one surface).
+            runner_up[:] = np.inf
+            lead = np.maximum.accumulate(np.where(first, np.arange(len(point)), 0))
+            same = ((np.abs(np.einsum("ki,ki->k", self.normals[face], self.normals[face[lead]]))
+                     > SAME_PLANE_COS) & (np.abs(d - d[lead]) < SAME_PLANE_DISTANCE))
+            other = ~first & ~same
+            np.minimum.at(runner_up, point[other], np.abs(d[other]))
         return best, dist
 
     # -- derived stores ---------------------------------------------------------------------

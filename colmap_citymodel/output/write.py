@@ -86,6 +86,41 @@ def plane_table(result: RefineResult) -> list[dict]:
     return rows
 
 
+#: Why a face near the block took no tie points though a camera could have seen it.
+HIDDEN_REASON = "inside the city's volume: solid on both sides (a wall shared with another solid)"
+
+
+def face_table(result: RefineResult) -> list[dict]:
+    """report.json `faces`: each face that held tie points, as one observation of its offset:
+    its points, their mean signed distance from the adjusted plane (`offset_m`), the sigma of
+    that offset in the adjustment (`sigma_m`: sqrt(sigma_face^2 + sigma_dtp^2 / points), times
+    the face's outlier factor), and "kept" or "downweighted" (adjust.faces); then the faces near
+    the block that lie inside the city's volume, "dropped" (citymodel.visibility)."""
+    from ..adjust.faces import DEFAULT_SIGMA_FACE, FACE_HUBER_K
+    from ..citymodel.visibility import visibility
+
+    o = result.options.adjustment
+    store, factors = result.store, result.assignment.face_factors
+    sigma_face = next((s for s in (result.assignment.face_sigma, o.sigma_face)
+                       if s is not None), DEFAULT_SIGMA_FACE)
+    rows = []
+    for face, d in sorted(result.plane_residuals().items()):
+        factor = factors.get(face, 1.0)
+        sigma = float(np.sqrt(sigma_face ** 2 + o.sigma_dtp ** 2 / len(d)) * factor)
+        row = {"face": face, "id": store.faces[face].gml_id, "points": int(len(d)),
+               "offset_m": float(np.mean(d)), "sigma_m": sigma,
+               "status": "downweighted" if factor > 1 else "kept"}
+        if factor > 1:
+            row["why"] = (f"its points' mean offset lies {factor ** 2 * FACE_HUBER_K:.1f} sigma "
+                          "from the model, beyond its generalisation error")
+        rows.append(row)
+    vis = visibility(store)
+    for face in np.flatnonzero(vis.hidden):
+        rows.append({"face": int(face), "id": store.faces[int(face)].gml_id, "points": 0,
+                     "status": "dropped", "why": HIDDEN_REASON})
+    return rows
+
+
 def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
     last = result.iterations[-1] if result.iterations else None
     return {
@@ -107,6 +142,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "num_assigned_points": result.assignment.num_assigned,
         "num_planes": result.assignment.num_faces,
         "planes": plane_table(result),
+        "faces": face_table(result),
         "warnings": result.warnings,
         "seconds": result.seconds,
         "result": result.handed_back,

@@ -433,9 +433,9 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     slot = {int(f): k for k, f in enumerate(faces)}
     rows = first + np.arange(len(problem.point_faces))
     columns = np.array([slot[int(f)] for f in problem.point_faces], np.int64)
-    sigma_dtp = problem.options.sigma_dtp  # the weight the rows were whitened with
+    row_sigma = problem.dtp_sigmas()  # the weight each row was whitened with
     tilt_rows, tilt_columns, tilt_values = _tilt_entries(problem, faces, columns)
-    unit = sp.csr_matrix((np.concatenate([np.full(len(rows), 1.0), tilt_values]) / sigma_dtp,
+    unit = sp.csr_matrix((np.concatenate([1.0 / row_sigma, tilt_values / row_sigma[tilt_rows]]),
                           (np.concatenate([rows, first + tilt_rows]),
                            np.concatenate([columns, len(faces) + tilt_columns]))),
                          shape=(j_c.shape[0], 3 * len(faces)))
@@ -453,16 +453,18 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
         d_p = d_p.reshape(hi - lo, 3, -1)
         points_cov[lo:hi] = np.einsum("kif,kjf->kij", d_p, d_p)
     counts = np.bincount(columns, minlength=len(faces))
-    v = problem.group_residuals()["dTP"]
-    t = np.bincount(columns, weights=v / sigma_dtp, minlength=len(faces))
+    metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
+    t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
     # The offsets' variance component (the tilt columns take no part in it).
     cross = cross[:len(faces), :len(faces)]
-    m = np.diag(counts / sigma_dtp ** 2) - 0.5 * (cross + cross.T)
+    m = (np.diag(np.bincount(columns, weights=1.0 / row_sigma ** 2, minlength=len(faces)))
+         - 0.5 * (cross + cross.T))
     estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
     if estimate or sigma is None:
         sigma = estimated
+    mean_offsets = np.bincount(columns, weights=metres, minlength=len(faces))
     return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
-                                 estimated, counts, t * sigma_dtp ** 2 / np.maximum(counts, 1))
+                                 estimated, counts, mean_offsets / np.maximum(counts, 1))
 
 
 def _tilt_entries(problem: HybridProblem, faces: np.ndarray, columns: np.ndarray

@@ -1,0 +1,89 @@
+"""Faces as units: a face's model error is one error shared by all its tie points.
+
+With `AdjustmentOptions.face_weighting` "face" each face counts as one observation of its
+offset (adjust.problem.face_sigmas). A face whose points sit further from it on average than
+the model's generalisation error explains (an arcade behind a facade, a set-back storey, a
+plane the model got wrong) is weighed less, by Huber's rule applied to the face's mean offset:
+with z = |mean offset| / sqrt(sigma_face^2 + sigma_dtp^2 / n), the face's weight is
+min(1, FACE_HUBER_K / z), i.e. its sigma grows by sqrt(z / FACE_HUBER_K).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..options import AdjustmentOptions
+
+#: The faces' offset sigma (m) until their offsets give their own: Unger's typical size of a LOD2
+#: model's generalisation effects (5.3).
+DEFAULT_SIGMA_FACE = 0.20
+
+#: Huber's constant for a face's mean offset, in sigmas of what the model's generalisation
+#: error and the points' own noise allow: within it a face keeps its full weight (2: a face
+#: further off happens by chance about once in twenty).
+FACE_HUBER_K = 2.0
+
+
+@dataclass
+class FaceOffsets:
+    """Per face of a solved problem: its number of tie points, their mean signed distance from
+    the adjusted plane (m) and that mean in sigmas of its expected spread."""
+
+    faces: np.ndarray
+    counts: np.ndarray
+    offsets: np.ndarray
+    z: np.ndarray
+    sigmas: np.ndarray  # the f_dTP sigma (m) each face was weighted with
+
+
+def face_offsets(problem, options: AdjustmentOptions, sigma_face: float | None = None
+                 ) -> FaceOffsets:
+    """The faces' mean offsets at `problem`'s solution (adjust.problem.HybridProblem); their
+    z with the faces' offset sigma `sigma_face` (default `options.sigma_face`)."""
+    sigma_face = options.sigma_face if sigma_face is None else sigma_face
+    faces = np.asarray(problem.blocks.faces, np.int64)
+    if not len(faces) or not len(problem.point_faces):
+        return FaceOffsets(faces, np.zeros(len(faces), np.int64), np.zeros(len(faces)),
+                           np.zeros(len(faces)), np.asarray(problem.face_sigmas, float))
+    slots = np.searchsorted(faces, problem.point_faces)
+    metres = problem.residuals["dTP"] * options.sigma_dtp
+    counts = np.bincount(slots, minlength=len(faces))
+    offsets = np.bincount(slots, weights=metres, minlength=len(faces)) / np.maximum(counts, 1)
+    spread = np.sqrt(sigma_face ** 2 + options.sigma_dtp ** 2 / np.maximum(counts, 1))
+    return FaceOffsets(faces, counts, offsets, np.abs(offsets) / spread,
+                       np.asarray(problem.face_sigmas, float))
+
+
+#: Fewest faces from whose mean offsets their sigma is estimated: the seven parameters of the
+#: block's datum absorb part of their spread, and fewer faces leave too little of it.
+MIN_FACES_FOR_SIGMA = 12
+
+#: The estimated sigma of the faces' offsets is kept at least this (m): a model does not fit
+#: its city better than a tie point's own position (a few centimetres).
+SIGMA_FACE_FLOOR = 0.02
+
+
+def estimate_sigma_face(found: FaceOffsets, options: AdjustmentOptions) -> float | None:
+    """The faces' offset sigma (m) from their mean offsets by moments: the mean of the
+    squared offsets less their points' noise (sigma_dtp^2 / n), over the faces' number less the
+    block's seven datum parameters; None with fewer than MIN_FACES_FOR_SIGMA faces."""
+    faces = len(found.faces)
+    if faces < MIN_FACES_FOR_SIGMA:
+        return None
+    noise = options.sigma_dtp ** 2 / np.maximum(found.counts, 1)
+    variance = (np.sum(found.offsets ** 2) - np.sum(noise)) / (faces - 7)
+    return float(max(np.sqrt(max(variance, 0.0)), SIGMA_FACE_FLOOR))
+
+
+def outlier_factors(problem, options: AdjustmentOptions, sigma_face: float
+                    ) -> dict[int, float]:
+    """{face: sigma factor > 1} for the faces beyond FACE_HUBER_K (empty unless
+    `options.face_weighting` is "face"), their offsets' sigma `sigma_face`."""
+    if options.face_weighting != "face":
+        return {}
+    found = face_offsets(problem, options, sigma_face)
+    beyond = found.z > FACE_HUBER_K
+    return {int(f): float(np.sqrt(z / FACE_HUBER_K))
+            for f, z in zip(found.faces[beyond], found.z[beyond])}
