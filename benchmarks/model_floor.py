@@ -43,8 +43,9 @@ near the truth, and how far that lies from where refine ends with the workspace'
 says whether the start matters.
 
 Writes benchmarks/results/model_floor.md (with refine's own figures and the per-direction
-target from the `robustness` section of scenarios.json beside the floor) and the `model_floor`
-section of scenarios.json.
+target from the `robustness` section of scenarios.json beside the floor), the `model_floor`
+section of scenarios.json and benchmarks/results/model_floor.json (per case: the planes-alone
+floors of the given model, every point alike and each face once, and refine's own result).
 
     .venv/bin/python benchmarks/model_floor.py [--cases drive orbit strip short]
         [--variants original corrected detailed] [--threshold 0.45] [--no_refine]
@@ -518,6 +519,33 @@ def main() -> None:
                   "surfaces other than their own:", "",
                   *assignment_table(preferences, args.threshold), ""]
     (RESULTS / "model_floor.md").write_text("\n".join(lines))
+    floors = floor_summary(rows, everything.get("robustness", {}))
+    (RESULTS / "model_floor.json").write_text(json.dumps(floors, indent=1) + "\n")
+
+
+def floor_summary(rows: dict, robustness: dict, variant: str = "original") -> dict:
+    """model_floor.json: per case, the planes-alone floors of the given model (every point
+    alike, each face once; camera-centre RMS 3D and per axis) and refine's own result with its
+    defaults on that model (the `robustness` section of scenarios.json, None if not run)."""
+    out = {}
+    for case, variants in rows.items():
+        if variant not in variants:
+            continue
+        f = variants[variant]
+        point, face = f["per point, planes alone"], f["per face, planes alone"]
+        cameras = (robustness.get(case, {}).get("refine") or {}).get("cameras") or {}
+        out[case] = {
+            "floor_planes_per_point_3d": point["rms_3d"],
+            "floor_planes_per_face_3d": face["rms_3d"],
+            "refine_3d": cameras.get("rms_3d"),
+            "per_axis": {"E": [point["rms_x"], face["rms_x"], cameras.get("rms_x")],
+                         "N": [point["rms_y"], face["rms_y"], cameras.get("rms_y")],
+                         "U": [point["rms_z"], face["rms_z"], cameras.get("rms_z")],
+                         "columns": ["floor_planes_per_point", "floor_planes_per_face",
+                                     "refine"]},
+            "refine_code": robustness.get(case, {}).get("code"),
+        }
+    return out
 
 if __name__ == "__main__":
     main()
