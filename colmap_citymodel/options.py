@@ -230,12 +230,12 @@ class AdjustmentOptions:
     average out over its points (Unger 6.3, Table 12), as consider parameters (precision.estimate:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
-    face_weighting: str = "face"
+    face_weighting: str = "per_point"
     """How the f_dTP of one face weigh. "per_point": each an independent observation at
-    sigma_dtp (Unger). "face" (adjust.faces): a face's model error is one error shared by its n
-    points, so each gets sigma^2 = sigma_dtp^2 + n sigma_face^2, scaled so that all tie points
-    together weigh as per point: a face counts as one observation of its offset, and a face whose
-    points sit further off than sigma_face explains is weighed less (Huber on its mean offset)."""
+    sigma_dtp (Unger). "face" (adjust.faces): a face's error is one error shared by its n points,
+    each at sigma^2 = sigma_dtp^2 + n sigma_face^2 (scaled so all tie points weigh together as per
+    point), a face further off than sigma_face explains weighed less. Better where one face
+    dominates a direction, worse where many faces fit well (docs/method.md, "Faces as units")."""
     sigma_face: float | None = None
     """With `face_weighting` "face": the sigma (m) of a face's offset error, shared by all its
     tie points. None: estimated from the faces' mean offsets after each solve (adjust.faces),

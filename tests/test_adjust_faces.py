@@ -70,9 +70,16 @@ def arcade(street_scene):
     return store.with_vertices(vertices), face
 
 
+def faces_as_units(sigma_face=None) -> RefineOptions:
+    options = RefineOptions()
+    options.adjustment.face_weighting = "face"
+    options.adjustment.sigma_face = sigma_face
+    return options
+
+
 def test_a_face_off_its_true_surface_does_not_pull_the_block(street_scene, arcade):
     store, face = arcade
-    result = refine(street_scene.sfm, store, street_scene.gnss(), RefineOptions(),
+    result = refine(street_scene.sfm, store, street_scene.gnss(), faces_as_units(),
                     progress=False)
     rms = float(np.sqrt(np.mean(np.square(centre_errors(result.reconstruction,
                                                           street_scene.truth)))))
@@ -82,9 +89,8 @@ def test_a_face_off_its_true_surface_does_not_pull_the_block(street_scene, arcad
     assert face in result.assignment.face_factors or points < 0.02 * result.assignment.num_assigned
     # With its offset sigma fixed at a LOD2 model's 0.2 m, the face pulls: the estimate is what
     # tells it apart.
-    fixed = RefineOptions()
-    fixed.adjustment.sigma_face = 0.2
-    pulled = refine(street_scene.sfm, store, street_scene.gnss(), fixed, progress=False)
+    pulled = refine(street_scene.sfm, store, street_scene.gnss(), faces_as_units(0.2),
+                    progress=False)
     rms_fixed = float(np.sqrt(np.mean(np.square(centre_errors(pulled.reconstruction,
                                                                 street_scene.truth)))))
     assert rms_fixed > 2 * rms
