@@ -38,7 +38,7 @@ def test_a_face_counts_as_one_observation_of_its_offset():
 def offsets(values, counts):
     values = np.asarray(values, float)
     return FaceOffsets(np.arange(len(values)), np.asarray(counts), values,
-                       np.zeros(len(values)), np.zeros(len(values)))
+                       np.zeros(len(values)))
 
 
 def test_the_faces_offset_sigma_comes_from_their_spread():

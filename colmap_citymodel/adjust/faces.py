@@ -35,7 +35,6 @@ class FaceOffsets:
     counts: np.ndarray
     offsets: np.ndarray
     z: np.ndarray
-    sigmas: np.ndarray  # the f_dTP sigma (m) each face was weighted with
 
 
 def face_offsets(problem, options: AdjustmentOptions, sigma_face: float | None = None
@@ -46,14 +45,13 @@ def face_offsets(problem, options: AdjustmentOptions, sigma_face: float | None =
     faces = np.asarray(problem.blocks.faces, np.int64)
     if not len(faces) or not len(problem.point_faces):
         return FaceOffsets(faces, np.zeros(len(faces), np.int64), np.zeros(len(faces)),
-                           np.zeros(len(faces)), np.asarray(problem.face_sigmas, float))
+                           np.zeros(len(faces)))
     slots = np.searchsorted(faces, problem.point_faces)
     metres = problem.residuals["dTP"] * options.sigma_dtp
     counts = np.bincount(slots, minlength=len(faces))
     offsets = np.bincount(slots, weights=metres, minlength=len(faces)) / np.maximum(counts, 1)
     spread = np.sqrt(sigma_face ** 2 + options.sigma_dtp ** 2 / np.maximum(counts, 1))
-    return FaceOffsets(faces, counts, offsets, np.abs(offsets) / spread,
-                       np.asarray(problem.face_sigmas, float))
+    return FaceOffsets(faces, counts, offsets, np.abs(offsets) / spread)
 
 
 #: Fewest faces from whose mean offsets their sigma is estimated: the seven parameters of the
