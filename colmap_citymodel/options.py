@@ -53,10 +53,11 @@ class AssignmentOptions:
     a line would otherwise come and go between iterations, moving the block each time. The
     minimum count is not relaxed, so that a wrong face loses its points as the block moves onto
     the model. 1: the same limit for every face."""
-    point_normal_angle: float = 30.0
+    point_normal_angle: float = 180.0
     """(a): a tie point whose neighbourhood is flat goes to a face only if its neighbourhood's
-    normal is within this angle (deg) of the face's: the eave of a roof, a window reveal or a
-    balcony's side lie near a wall's plane but are not on it. 180: no test."""
+    normal is within this angle (deg) of the face's (30 is typical): eaves, window reveals and
+    balcony slabs lie near a wall's plane but are not on it. 180 (default): no test, as sparse
+    tie points can drop whole small faces with it (docs/method.md)."""
     point_normal_neighbours: int = 12
     """(a): tie points (the point itself included) whose plane gives a point's normal; the
     neighbourhood is flat where its smallest eigenvalue is below 5 % of their sum."""

@@ -20,8 +20,8 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     "Closest" is the smallest absolute distance to a face's plane among the faces whose polygon
     contains the point's orthogonal projection (grown by `polygon_margin`) and that a camera
     can see there (citymodel.visibility: not inside the city's volume). A point whose next face
-    off that plane is not `ambiguity_margin` further away, or whose flat neighbourhood turns
-    more than `point_normal_angle` from the face, is not assigned. `weights` play no
+    off that plane is not `ambiguity_margin` further away, or (an option) whose flat
+    neighbourhood turns more than `point_normal_angle` from the face, is not assigned. `weights` play no
     part; `kept_faces`: see `filter_faces`.
     """
     vis = visibility(store)
