@@ -62,9 +62,10 @@ class AssignmentOptions:
     """(a): tie points (the point itself included) whose plane gives a point's normal; the
     neighbourhood is flat where its smallest eigenvalue is below 5 % of their sum."""
     ambiguity_margin: float = 0.2
-    """(a): a tie point goes to its nearest face only if every other face that contains its
-    projection, off that face's plane, is at least this much (m) further away: a point between
-    a facade and a set-back storey or an arcade goes to neither. sigma_dtp's size; 0: off."""
+    """(a): a tie point goes to its nearest face only if every other face parallel to it (within
+    30 deg) that contains its projection, off its plane, is at least this much (m) further away:
+    a point between a facade and a set-back storey or an arcade goes to neither. sigma_dtp's
+    size; 0: off."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")

@@ -129,6 +129,9 @@ class VertexProvenance:
 #: within SAME_PLANE_DISTANCE (m) of each other continue one surface.
 SAME_PLANE_COS = 0.996
 SAME_PLANE_DISTANCE = 0.05
+#: Faces whose normals agree to this cosine (30 deg) are parallel surfaces: a point between
+#: two of them could lie on either.
+PARALLEL_COS = 0.866
 
 
 @dataclass
@@ -384,8 +387,8 @@ class PlaneStore:
         only if |d| <= max_distance. `allowed` ((F,) bool): the faces that may be chosen (None:
         all); `hidden(feet, faces)` ((K,) bool): the candidate pairs whose face is hidden where
         the point's projection meets it (citymodel.visibility), which are not chosen either.
-        `runner_up` ((P,) float, filled in): |distance| to the nearest other candidate face not
-        on the chosen face's plane (inf: none).
+        `runner_up` ((P,) float, filled in): |distance| to the nearest other candidate face
+        parallel to the chosen one (PARALLEL_COS) but not on its plane (inf: none).
 
         Returns (face_index int64, -1 for none; signed_distance float64, nan for none).
         `candidates` caps how many planes (nearest first) per point are tested for containment
@@ -427,13 +430,14 @@ class PlaneStore:
         best[point[first]] = face[first]
         dist[point[first]] = d[first]
         if runner_up is not None:
-            # The next face of each point that is not on its best face's plane (faces that
-            # continue one plane are one surface).
+            # The next face of each point parallel to its best face but not on its plane: a
+            # surface the point could as well lie on (faces that continue one plane are one
+            # surface; a face at an angle meets the best one at an edge, where either is near).
             runner_up[:] = np.inf
             lead = np.maximum.accumulate(np.where(first, np.arange(len(point)), 0))
-            same = ((np.abs(np.einsum("ki,ki->k", self.normals[face], self.normals[face[lead]]))
-                     > SAME_PLANE_COS) & (np.abs(d - d[lead]) < SAME_PLANE_DISTANCE))
-            other = ~first & ~same
+            cos = np.abs(np.einsum("ki,ki->k", self.normals[face], self.normals[face[lead]]))
+            same = (cos > SAME_PLANE_COS) & (np.abs(d - d[lead]) < SAME_PLANE_DISTANCE)
+            other = ~first & ~same & (cos > PARALLEL_COS)
             np.minimum.at(runner_up, point[other], np.abs(d[other]))
         return best, dist
 
