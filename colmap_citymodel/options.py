@@ -254,6 +254,11 @@ class AdjustmentOptions:
     national geoid, EGM96 from a flight controller, above take-off); "all" (`--gnss_bias auto`:
     a constant 3D bias). Refused where the planes do not fix those directions
     (adjust.observability). With an offset the coarse search spans the model's height range."""
+    gnss_bias_share: float = 0.5
+    """The share of the GNSS positions' stated sigma that is a bias common to the block
+    (receiver, multipath along a street, datum) and does not average out over its images: every
+    stated datum sigma includes it, sqrt(sigma^2 / n + (share sigma)^2). Half: a consumer
+    receiver's stated accuracy is mostly such errors. 0: independent positions."""
     sigma_gnss_offset: float = 3.0
     """A priori sigma (m) of the estimated offset about 0, i.e. about the positions as read and
     converted (national grid, or the fallback geoid EGM96, typically within 2 m of it, plus the

@@ -126,3 +126,32 @@ def test_the_walls_of_a_real_tile_tilt_by_the_generalisation_over_their_length()
     # Median wall 6 m: 2.1 deg; facades over 20 m to 0.2-0.75 deg, short segments by degrees.
     assert np.all(sigmas[lengths > 20.0] < 0.9)
     assert np.all(sigmas[lengths < 2.0] > 5.0)
+
+
+def test_a_gnss_bias_common_to_the_block_does_not_average_out():
+    """Where GNSS alone fixes a direction, its datum sigma is sqrt(sigma^2 / n + b^2) with a
+    bias b common to all positions, not sigma / sqrt(n); where planes fix it, the bias hardly
+    matters; `sigma_gnss` (refined against GNSS-only, which share the bias) stays without it."""
+    from colmap_citymodel.adjust.observability import observability
+
+    rng = np.random.default_rng(4)
+    # Facades facing +-y only: they fix N, nothing fixes E or U but GNSS.
+    left = np.column_stack([rng.uniform(-50, 50, 400), np.full(400, 10.0),
+                            rng.uniform(0, 15, 400)])
+    points = np.vstack([left, left * [1, -1, 1]])
+    normals = np.repeat([[0, 1.0, 0], [0, -1.0, 0]], 400, axis=0)
+    groups = np.repeat([0, 1], 400)
+    cams = np.column_stack([np.linspace(-50, 50, 40), np.zeros(40), np.full(40, 2.0)])
+    sigmas = np.tile([3.0, 3.0, 5.0], (40, 1))
+    bias = np.array([1.5, 1.5, 2.5])
+    plain = observability(points, normals, groups, cams, sigmas, 0.2, 0.2)
+    biased = observability(points, normals, groups, cams, sigmas, 0.2, 0.2,
+                           gnss_bias_sigmas=bias)
+    for axis, k in (("E", 0), ("U", 2)):
+        expected = np.sqrt(sigmas[0, k] ** 2 / 40 + bias[k] ** 2)
+        assert biased[axis]["sigma_gnss_with_bias"] == pytest.approx(expected, rel=1e-6)
+        assert biased[axis]["sigma"] == pytest.approx(expected, rel=0.05)
+        assert plain[axis]["sigma"] == pytest.approx(sigmas[0, k] / np.sqrt(40), rel=0.05)
+        assert biased[axis]["sigma_gnss"] == pytest.approx(plain[axis]["sigma_gnss"])
+        assert biased[axis]["source"] == plain[axis]["source"] == "gnss"
+    assert biased["N"]["sigma"] == pytest.approx(plain["N"]["sigma"], rel=0.05)

@@ -103,22 +103,27 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
 
 
 def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray,
-                     free_axes=None) -> np.ndarray:
+                     free_axes=None, bias_sigmas=None) -> np.ndarray:
     """7x7 information of the datum from GNSS. Along `free_axes` (bool (3,)) a constant offset
     of all positions is an unknown too (GNSSPriors.offset_axes): it is eliminated, so GNSS
-    keeps only the differences between its positions there (tilts, scale), not their level."""
+    keeps only the differences between its positions there (tilts, scale), not their level.
+    `bias_sigmas` ((3,) m): a bias common to all positions with this sigma per axis, which does
+    not average out over them (the positions' covariance sigma_i^2 I + b^2 1 1^T)."""
     info = np.zeros((7, 7))
     free = np.zeros(3, bool) if free_axes is None else np.asarray(free_axes, bool)
+    bias = np.zeros(3) if bias_sigmas is None else np.asarray(bias_sigmas, float)
     for axis in range(3):
         directions = np.zeros_like(positions)
         directions[:, axis] = 1.0
         jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
         info += jac.T @ jac
+        a = 1.0 / sigmas[:, axis]  # the common offset's column (whitened, sign irrelevant)
+        g = jac.T @ a
         if free[axis]:
-            a = 1.0 / sigmas[:, axis]  # the offset's column (whitened, sign irrelevant)
-            g = jac.T @ a
             info -= np.outer(g, g) / float(a @ a)
             info[axis, :] = info[:, axis] = 0.0  # exactly: no information on that level
+        elif bias[axis] > 0:  # the bias eliminated with its prior (Woodbury)
+            info -= np.outer(g, g) / float(a @ a + 1.0 / bias[axis] ** 2)
     return info
 
 
@@ -148,11 +153,15 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
 def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
                   sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
-                  tilts: dict[int, FaceTilt] | None = None) -> dict:
+                  tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
-    `tilts`: the tilt errors of the planes (`face_tilts`, by group), else offsets only."""
+    `tilts`: the tilt errors of the planes (`face_tilts`, by group), else offsets only;
+    `gnss_bias_sigmas` ((3,) m): the part of the GNSS error common to the block. `sigma` (what
+    a user can rely on) includes it; `sigma_gnss` is the GNSS positions' mean without it (how
+    far refined and GNSS-only blocks, which share the bias, may differ), and the sources are
+    decided on it; `sigma_gnss_with_bias` is GNSS alone with it."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
@@ -160,10 +169,14 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
                                    sigma_generalisation, tilts) if len(points) else [])
     planes = sum(per_plane, np.zeros((7, 7)))
+    has_gnss = gnss_positions is not None and len(gnss_positions)
     gnss = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes)
-            if gnss_positions is not None and len(gnss_positions) else np.zeros((7, 7)))
+            if has_gnss else np.zeros((7, 7)))
+    biased = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
+                               gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
     # Our order is (shift, log scale, rotation); DATUM's is the same.
-    s_planes, s_gnss, s_both = _sigmas(planes), _sigmas(gnss), _sigmas(planes + gnss)
+    s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
+    s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
     # A direction that only one plane fixes rests on that plane's assignment being right (one
     # roof among facades): it counts for the planes only if it survives leaving any one out
     # (judged with the other parameters held, so that two parallel facades, which together
@@ -189,12 +202,13 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         one_plane = bool(s_planes[k] < limit and not p_ok)
         # What a user can rely on: a direction that rests on one unchecked plane is as precise
         # as GNSS makes it (nothing shows when that plane's assignment is wrong).
-        sigma = s_gnss[k] if one_plane and g_ok else s_both[k]
+        sigma = s_biased[k] if one_plane and g_ok else s_both[k]
         out[name] = {"source": source,
                      "one_plane": one_plane,
                      "sigma": _finite(sigma * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
-                     "sigma_gnss": _finite(s_gnss[k] * factor)}
+                     "sigma_gnss": _finite(s_gnss[k] * factor),
+                     "sigma_gnss_with_bias": _finite(s_biased[k] * factor)}
     return out
 
 
@@ -250,7 +264,16 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          priors.sigmas if priors is not None else None,
                          options.adjustment.sigma_dtp, sigma_gen,
                          priors.offset_axes if priors is not None else None,
-                         face_tilts(store, faces, sigma_gen))
+                         face_tilts(store, faces, sigma_gen),
+                         gnss_bias_sigmas(priors, options.adjustment.gnss_bias_share))
+
+
+def gnss_bias_sigmas(priors: GNSSPriors | None, share: float) -> np.ndarray | None:
+    """(3,) sigma (m) of the GNSS error common to the block: `share` of the positions' median
+    stated sigma per axis (AdjustmentOptions.gnss_bias_share); None without GNSS."""
+    if priors is None or not len(priors.sigmas) or not share > 0:
+        return None
+    return share * np.median(np.asarray(priors.sigmas, float), axis=0)
 
 
 def offset_refusal(observability_dict: dict, offset_axes) -> str | None:
