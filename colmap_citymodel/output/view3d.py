@@ -321,13 +321,7 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
     traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)]
     num_model = len(traces)
 
-    # residual colours: full scale at 3 x the refined block's RMS, within 0.1-2 m
-    scale = 0.5
-    if "refined" in geometry:
-        r = geometry["refined"][4]
-        r = r[geometry["refined"][1] & np.isfinite(r)]
-        if len(r):
-            scale = float(f"{np.clip(3.0 * np.sqrt(np.mean(r ** 2)), 0.1, 2.0):.2g}")
+    scale = residual_scale(geometry)
     face_scale, cmax = face_colourscale(palette, face[face >= 0])
     colours = {"face": {"colorscale": face_scale, "cmin": 0.0, "cmax": cmax},
                "residual": {"colorscale": RESIDUAL_COLOURS, "cmin": -scale, "cmax": scale}}
@@ -340,30 +334,10 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
         traces += block_traces(key, rec, xyz, present, face, images, centres, frustum,
                                key == shown, colours)
 
-    buttons = []
-    options = [[k] for k, _ in blocks] + ([[k for k, _ in blocks]] if len(blocks) > 1 else [])
-    for keys in options:
-        visible = [True] * num_model + [False] * (len(traces) - num_model)
-        for k in keys:
-            for t in per_block[k]:
-                visible[t] = True
-        buttons.append({"label": "both blocks" if len(keys) > 1
-                        else f"{BLOCK_STYLE[keys[0]][0]} block",
-                        "method": "restyle", "args": [{"visible": visible}]})
-    active = options.index([shown]) if blocks else 0
-    coloured = [per_block[k][1] for k, _ in blocks]
-    on_faces = [geometry[k][1] & (face >= 0) for k, _ in blocks]
-    colour_buttons = [
-        {"label": "colour by face", "method": "restyle",
-         "args": [{"marker.color": [typed(face[m]) for m in on_faces],
-                   **restyle_marker(colours["face"], len(coloured)),
-                   "marker.showscale": False}, coloured]},
-        {"label": "colour by distance to face", "method": "restyle",
-         "args": [{"marker.color": [typed(geometry[k][4][m]) for (k, _), m
-                                    in zip(blocks, on_faces)],
-                   **restyle_marker(colours["residual"], len(coloured)),
-                   "marker.showscale": True}, coloured]},
-    ]
+    buttons, active = block_buttons([k for k, _ in blocks], per_block, num_model, len(traces),
+                                    shown)
+    colour_buttons = colour_by_buttons([k for k, _ in blocks], geometry, face, per_block,
+                                       colours)
     num_points = len(a.point_ids)
     title = (f"{len(pick):,} of {num_points:,} tie points drawn"
              + (" (a random subset)" if len(pick) < num_points else "")
@@ -392,6 +366,51 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
              "shown": shown, "residual_scale_m": scale,
              "num_drawn_visible": num_model + (len(per_block[shown]) if blocks else 0)}
     return {"data": traces, "layout": layout}, facts
+
+
+def residual_scale(geometry: dict) -> float:
+    """Full scale (m) of the distance colours: 3 x the refined block's RMS distance to its
+    faces, within 0.1-2 m (0.5 without a refined block)."""
+    if "refined" not in geometry:
+        return 0.5
+    r = geometry["refined"][4]
+    r = r[geometry["refined"][1] & np.isfinite(r)]
+    if not len(r):
+        return 0.5
+    return float(f"{np.clip(3.0 * np.sqrt(np.mean(r ** 2)), 0.1, 2.0):.2g}")
+
+
+def block_buttons(keys: list[str], per_block: dict, num_model: int, num_traces: int,
+                  shown: str) -> tuple[list[dict], int]:
+    """The buttons that show one block (or both) with the model, and the active one."""
+    buttons = []
+    options = [[k] for k in keys] + ([list(keys)] if len(keys) > 1 else [])
+    for chosen in options:
+        visible = [True] * num_model + [False] * (num_traces - num_model)
+        for k in chosen:
+            for t in per_block[k]:
+                visible[t] = True
+        buttons.append({"label": "both blocks" if len(chosen) > 1
+                        else f"{BLOCK_STYLE[chosen[0]][0]} block",
+                        "method": "restyle", "args": [{"visible": visible}]})
+    return buttons, (options.index([shown]) if keys else 0)
+
+
+def colour_by_buttons(keys: list[str], geometry: dict, face: np.ndarray, per_block: dict,
+                      colours: dict) -> list[dict]:
+    """The buttons that colour every block's tie points by face or by distance to it."""
+    coloured = [per_block[k][1] for k in keys]
+    on_faces = [geometry[k][1] & (face >= 0) for k in keys]
+    return [
+        {"label": "colour by face", "method": "restyle",
+         "args": [{"marker.color": [typed(face[m]) for m in on_faces],
+                   **restyle_marker(colours["face"], len(coloured)),
+                   "marker.showscale": False}, coloured]},
+        {"label": "colour by distance to face", "method": "restyle",
+         "args": [{"marker.color": [typed(geometry[k][4][m]) for k, m in zip(keys, on_faces)],
+                   **restyle_marker(colours["residual"], len(coloured)),
+                   "marker.showscale": True}, coloured]},
+    ]
 
 
 def block_box(points: list[np.ndarray], centres: list[np.ndarray]) -> tuple[np.ndarray,
