@@ -1,7 +1,9 @@
 """How close to the truth a block can get on a given model: the floor set by the model's errors.
 
 For a simulated workspace the true tie points are known. Assigned to a model variant (direct
-assignment, the final threshold refine reaches) and moved onto its planes by the
+assignment, the final threshold refine reaches, visible surfaces only, each point to the nearer
+of two parallel surfaces however close: at the truth the nearer is right) and moved onto its
+planes by the
 least-squares similarity (7 parameters about the cameras' centroid), they take the true cameras
 with them: the camera-centre error after that fit is what a method that trusts the model's
 planes inherits from the model, however good its tie points and GNSS are. With exact planes
@@ -119,6 +121,11 @@ def camera_error(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
     return params, np.sqrt(np.mean(error ** 2, axis=0))
 
 
+#: The assignment at the truth: every point to its nearest visible face, also where a parallel
+#: surface is near (at the true pose the nearer one is right): the floor keeps all information.
+AT_TRUTH = AssignmentOptions(ambiguity_margin=0.0)
+
+
 def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray
           ) -> dict:
     """The floor of one model variant; `block` is `true_block(workspace)`."""
@@ -126,7 +133,7 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
     points_crs, ids, centres_crs = block
     points = store.to_local(points_crs)
     centres = store.to_local(centres_crs)
-    assignment = assign_direct(points, ids, store, threshold, AssignmentOptions())
+    assignment = assign_direct(points, ids, store, threshold, AT_TRUTH)
     mask = assignment.assigned
     faces = assignment.face_index[mask]
     normals = store.normals[faces]
@@ -295,7 +302,7 @@ def assignment_at_truth(workspace: Path, result, threshold: float,
     mask = assignment.assigned & np.isin(assignment.point_ids, ids)
     refine_rows = np.array([row[int(i)] for i in assignment.point_ids[mask]], dtype=np.int64)
     refine_faces = assignment.face_index[mask]
-    fresh = assign_direct(points, ids, store, threshold, AssignmentOptions())
+    fresh = assign_direct(points, ids, store, threshold, AT_TRUTH)
 
     def fit(rows: np.ndarray, faces: np.ndarray) -> dict:
         params, rms = camera_error(points[rows], store.normals[faces], store.offsets[faces],
