@@ -90,44 +90,54 @@ def _parts_xlinked_solids() -> str:
         out += [
             "      <bldg:consistsOfBuildingPart>",
             f'        <bldg:BuildingPart gml:id="{pid}">',
-            "          <bldg:lod2Solid>",
-            "            <gml:Solid>",
-            "              <gml:exterior>",
-            "                <gml:CompositeSurface>",
         ]
-        out += [f'                  <gml:surfaceMember xlink:href="#{i}"/>' for i in ids]
-        out += [
-            "                </gml:CompositeSurface>",
-            "              </gml:exterior>",
-            "            </gml:Solid>",
-            "          </bldg:lod2Solid>",
-        ]
+        out += _xlinked_solid(ids)
         for (semantic, ring), gid in zip(faces, ids):
-            out += [
-                "          <bldg:boundedBy>",
-                f"            <bldg:{semantic}>",
-                "              <bldg:lod2MultiSurface>",
-                "                <gml:MultiSurface>",
-                "                  <gml:surfaceMember>",
-                f'                    <gml:Polygon gml:id="{gid}">',
-                "                      <gml:exterior>",
-                "                        <gml:LinearRing>",
-            ]
-            for x, y, z in ring + ring[:1]:
-                out.append(f"                          <gml:pos>{_fmt(ox + x)} {_fmt(oy + y)} {_fmt(oz + z)}</gml:pos>")
-            out += [
-                "                        </gml:LinearRing>",
-                "                      </gml:exterior>",
-                "                    </gml:Polygon>",
-                "                  </gml:surfaceMember>",
-                "                </gml:MultiSurface>",
-                "              </bldg:lod2MultiSurface>",
-                f"            </bldg:{semantic}>",
-                "          </bldg:boundedBy>",
-            ]
+            positions = [f"                          <gml:pos>{_fmt(ox + x)} {_fmt(oy + y)} "
+                         f"{_fmt(oz + z)}</gml:pos>" for x, y, z in ring + ring[:1]]
+            out += _bounded_by(semantic, gid, positions, "<gml:MultiSurface>")
         out += ["        </bldg:BuildingPart>", "      </bldg:consistsOfBuildingPart>"]
     out += ["    </bldg:Building>", "  </cityObjectMember>", "</CityModel>", ""]
     return "\n".join(out)
+
+
+def _xlinked_solid(ids: list[str]) -> list[str]:
+    """A part's lod2Solid whose surfaces are xlinks to its boundary polygons `ids`."""
+    return [
+        "          <bldg:lod2Solid>",
+        "            <gml:Solid>",
+        "              <gml:exterior>",
+        "                <gml:CompositeSurface>",
+        *[f'                  <gml:surfaceMember xlink:href="#{i}"/>' for i in ids],
+        "                </gml:CompositeSurface>",
+        "              </gml:exterior>",
+        "            </gml:Solid>",
+        "          </bldg:lod2Solid>",
+    ]
+
+
+def _bounded_by(semantic: str, gid: str, ring_lines: list[str], multi_surface: str
+                ) -> list[str]:
+    """One thematic surface holding polygon `gid`, its exterior ring given as `ring_lines`."""
+    return [
+        "          <bldg:boundedBy>",
+        f"            <bldg:{semantic}>",
+        "              <bldg:lod2MultiSurface>",
+        f"                {multi_surface}",
+        "                  <gml:surfaceMember>",
+        f'                    <gml:Polygon gml:id="{gid}">',
+        "                      <gml:exterior>",
+        "                        <gml:LinearRing>",
+        *ring_lines,
+        "                        </gml:LinearRing>",
+        "                      </gml:exterior>",
+        "                    </gml:Polygon>",
+        "                  </gml:surfaceMember>",
+        "                </gml:MultiSurface>",
+        "              </bldg:lod2MultiSurface>",
+        f"            </bldg:{semantic}>",
+        "          </bldg:boundedBy>",
+    ]
 
 
 def _no_crs_house_part() -> str:
@@ -162,39 +172,13 @@ def _no_crs_house_part() -> str:
         "      <bldg:consistsOfBuildingPart>",
         '        <bldg:BuildingPart gml:id="SYN_H1_1">',
         '          <bldg:measuredHeight uom="#m">10.400</bldg:measuredHeight>',
-        "          <bldg:lod2Solid>",
-        "            <gml:Solid>",
-        "              <gml:exterior>",
-        "                <gml:CompositeSurface>",
     ]
-    out += [f'                  <gml:surfaceMember xlink:href="#{i}"/>' for i in ids]
-    out += [
-        "                </gml:CompositeSurface>",
-        "              </gml:exterior>",
-        "            </gml:Solid>",
-        "          </bldg:lod2Solid>",
-    ]
+    out += _xlinked_solid(ids)
     for (semantic, ring), gid in zip(faces, ids):
         coords = " ".join(f"{_fmt(x)} {_fmt(y)} {_fmt(oz + z)}" for x, y, z in ring + ring[:1])
-        out += [
-            "          <bldg:boundedBy>",
-            f"            <bldg:{semantic}>",
-            "              <bldg:lod2MultiSurface>",
-            '                <gml:MultiSurface srsDimension="3">',
-            "                  <gml:surfaceMember>",
-            f'                    <gml:Polygon gml:id="{gid}">',
-            "                      <gml:exterior>",
-            "                        <gml:LinearRing>",
-            f"                          <gml:posList>{coords}</gml:posList>",
-            "                        </gml:LinearRing>",
-            "                      </gml:exterior>",
-            "                    </gml:Polygon>",
-            "                  </gml:surfaceMember>",
-            "                </gml:MultiSurface>",
-            "              </bldg:lod2MultiSurface>",
-            f"            </bldg:{semantic}>",
-            "          </bldg:boundedBy>",
-        ]
+        out += _bounded_by(semantic, gid,
+                           [f"                          <gml:posList>{coords}</gml:posList>"],
+                           '<gml:MultiSurface srsDimension="3">')
     out += [
         "        </bldg:BuildingPart>",
         "      </bldg:consistsOfBuildingPart>",
