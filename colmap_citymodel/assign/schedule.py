@@ -52,7 +52,9 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
     result = assigner(points, point_ids, store, threshold, options, weights=weights,
                       kept_faces=kept_faces)
     result.method = method
-    hidden = hidden_points(points, result.face_index, store)
+    # Direct assignment chooses among the visible parts of faces already.
+    hidden = (hidden_points(points, result.face_index, store) if method != "direct"
+              else np.zeros(len(points), bool))
     if np.any(hidden):
         logger.debug("%d points on hidden parts of faces left unassigned",
                      int(np.count_nonzero(hidden)))
