@@ -332,7 +332,8 @@ CHOICES = {"adjustment.image_loss": ("none", "huber", "cauchy"),
            "adjustment.face_weighting": ("per_point", "face"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
            "assignment.auto_indirect_method": ("msac", "roi_msac"),
-           "workflow.mode": ("global", "sliding_window")}
+           "workflow.mode": ("global", "sliding_window"),
+           "terrain.source": ("auto", "none")}
 
 
 @dataclass
@@ -498,6 +499,33 @@ class PrecisionOptions:
 
 
 @dataclass
+class TerrainOptions:
+    """The ground beside the buildings as control (citymodel.terrain, citymodel.ground_faces):
+    ground tie points held to a terrain surface from DTM files (`--terrain FILE ...`), the
+    model files' TIN relief, or the buildings' feet."""
+
+    source: str = "auto"
+    """"auto": the DTM files given, else the model's relief, else the buildings' feet; "none":
+    no terrain (`--terrain none`): the ground tie points stay unused."""
+    sigma: float = 0.15
+    """The DTM's (or relief's) stated height accuracy (m), taken as one offset per tile: a
+    tile's ground points together weigh as one observation of it (`--terrain_sigma`). DGM1 and
+    AHN state 0.05-0.15 m on open ground."""
+    feet_sigma: float = 0.30
+    """Sigma (m) of the terrain interpolated from the buildings' feet, at a foot: a LOD2
+    model's ground heights are its generalised outline's, decimetres off a kerb."""
+    feet_sigma_growth: float = 0.02
+    """Metres the feet terrain's sigma grows per metre from the nearest foot: a street's
+    cross slope and camber (2 %) are not in the feet."""
+    cell: float = 6.0
+    """Side (m) of the square terrain cells that become planar faces: a few metres, so that a
+    cell takes enough tie points, and its plane follows the slope of the street."""
+    feet_tolerance: float = 1.0
+    """A DTM tile whose median height stands further than this (m) from the buildings' feet
+    is left out (another height system or georeference): followed, it would move the block."""
+
+
+@dataclass
 class RefineOptions:
     """All options of refine, one dataclass per section of an options file."""
 
@@ -509,6 +537,8 @@ class RefineOptions:
     """Global or sliding-window loop and its stopping rules (`[workflow]`)."""
     precision: PrecisionOptions = field(default_factory=PrecisionOptions)
     """A posteriori precision and the global test (`[precision]`)."""
+    terrain: TerrainOptions = field(default_factory=TerrainOptions)
+    """The ground as control: terrain source and sigma (`[terrain]`)."""
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":
