@@ -507,6 +507,9 @@ class TerrainOptions:
     source: str = "auto"
     """"auto": the DTM files given, else the model's relief, else the buildings' feet; "none":
     no terrain (`--terrain none`): the ground tie points stay unused."""
+    files: tuple[str, ...] = ()
+    """DTM rasters (GeoTIFF / COG tiles, any CRS, heights in the model's height system) to
+    take the terrain from (`--terrain FILE ...`); empty: the model's relief or feet."""
     sigma: float = 0.15
     """The DTM's (or relief's) stated height accuracy (m), taken as one offset per tile: a
     tile's ground points together weigh as one observation of it (`--terrain_sigma`). DGM1 and
