@@ -47,6 +47,7 @@ from .align.objective import BlockObjective
 from .block.gnss import read_gnss
 from .block.priors import scale_sigma_from_gnss
 from .block.reconstruction import camera_up_and_view, read_reconstruction, tie_points
+from .citymodel.ground_faces import block_terrain, terrain_residuals
 from .citymodel.read import peek_crs
 from .citymodel.store import PlaneStore
 from .errors import NoOverlapError
@@ -88,6 +89,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
+    # The ground beside the buildings as faces of their own (citymodel.ground_faces).
+    store, terrain_record = block_terrain(store, tie_points(rec, exclude_point_ids)[1],
+                                          options.terrain)
     timer["georegistration"] = time.perf_counter() - timer["start"]
 
     warnings: list[str] = []
@@ -174,6 +178,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                     corrected.assignment
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options)
+    if terrain_record.get("num_faces"):
+        terrain_record["residuals"] = terrain_residuals(current, assignment, np.array(
+            [rec.point3D(int(i)).xyz for i in assignment.point_ids]).reshape(-1, 3))
     gnss_offset = (offset_report(priors, observability, offset_start, gnss)
                    if estimate_offset else None)
     if gnss_offset is not None:
@@ -203,7 +210,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     blocks = last.blocks
     timer["total"] = time.perf_counter() - timer["start"]
     del timer["start"]
-    return RefineResult(
+    result = RefineResult(
         reconstruction=rec, store=store, adjusted_store=current, assignment=assignment,
         plane_faces=blocks.faces, plane_normals=blocks.normal_array,
         plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
@@ -217,6 +224,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         gnss_offset=gnss_offset, model_correction=correction,
         sliding_window=windows.todict(options) if windows is not None else None,
         loop_stopped_by=loop.stopped_by)
+    result.terrain = terrain_record
+    return result
 
 
 def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneStore, surface,

@@ -48,6 +48,7 @@ from .._ext import load_core
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import position_in_rig
+from ..citymodel.ground_faces import terrain_face_sigmas
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
 from .faces import DEFAULT_SIGMA_FACE
@@ -495,6 +496,9 @@ class HybridProblem:
         self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
         self.face_sigmas = face_sigmas(o, np.searchsorted(faces, self.point_faces), len(faces),
                                        slot_factors(assignment, faces), assignment.face_sigma)
+        # Terrain faces weigh as one observation per terrain unit (citymodel.ground_faces).
+        self.face_sigmas = terrain_face_sigmas(store, faces, np.searchsorted(
+            faces, self.point_faces), self.face_sigmas, o.sigma_dtp)
         tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
                        else core.PointPlaneDistanceCost)
         self._tie_costs = [tie_factory(sigma / o.sigma_image, r)
@@ -615,6 +619,8 @@ class HybridProblem:
         sigmas = face_sigmas(self.options, np.searchsorted(self.blocks.faces, new_faces),
                              len(self.blocks.faces), slot_factors(assignment, self.blocks.faces),
                              assignment.face_sigma)
+        sigmas = terrain_face_sigmas(current, self.blocks.faces, np.searchsorted(
+            self.blocks.faces, new_faces), sigmas, self.options.sigma_dtp)
         if np.any(np.abs(sigmas / self.face_sigmas - 1.0) > REWEIGHT_TOLERANCE):
             return False  # the faces' weights changed: their costs must be made anew
         # Blocks that stay: the same tie point on the same plane (point ids are unique).

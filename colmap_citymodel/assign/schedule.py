@@ -12,6 +12,7 @@ from ..options import AssignmentOptions
 from .assignment import (Assignment, Observers, PlaneAssigner, hidden_points,
                          roof_points_seen_from_below)
 from .direct import assign_direct
+from .ground import without_clutter_on_terrain
 from .indirect import assign_msac, assign_roi_msac
 
 logger = logging.getLogger(__name__)
@@ -59,6 +60,7 @@ def assign(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore, thresho
         logger.debug("%d points on hidden parts of faces left unassigned",
                      int(np.count_nonzero(hidden)))
         result = result.eliminate(hidden, points, options, kept_faces)
+    result = without_clutter_on_terrain(result, points, store, options, kept_faces)
     if observers is not None:
         result = without_roof_points_seen_from_below(result, points, store, observers, options,
                                                      kept_faces)

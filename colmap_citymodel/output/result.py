@@ -51,6 +51,9 @@ class RefineResult:
     observability_before: dict = field(default_factory=dict)  # the same at the first assignment
     refined: pycolmap.Reconstruction | None = None  # the refined block, even when not handed back
     datum_cues: dict = field(default_factory=dict)  # which input fixed each datum parameter
+    # The terrain the ground tie points were held to (citymodel.ground_faces.block_terrain:
+    # source, tiles, cells, warnings; "residuals" per terrain unit after the last solve).
+    terrain: dict = field(default_factory=dict)
     coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
     # The estimated constant GNSS offset (--gnss_height_offset auto, --gnss_bias auto) with its
     # sigma, start value, prior and the geoid the heights came through; None when not estimated.

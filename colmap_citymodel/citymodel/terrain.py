@@ -1,0 +1,442 @@
+"""The ground beside the buildings: a terrain surface the street-level and aerial tie points on
+road, pavement and open ground can be held to.
+
+A LOD2 city model holds walls and roofs; the ground between the buildings is not in it. This
+module builds a `Terrain` (a regular height grid in the model CRS with a sigma and a tile id
+per node) from, in order of preference:
+
+1. DTM rasters (`read_dtm`): GeoTIFF / Cloud-Optimised GeoTIFF tiles in any CRS, read with
+   rasterio, only the block's window of each, reprojected onto the model CRS grid, nodata left
+   out, tiles mosaicked (each node keeps the tile it came from: one random offset per tile);
+2. relief in the city model files (`read_relief`): CityGML `dem:TINRelief` triangles and
+   CityJSON `TINRelief` objects;
+3. the buildings' own feet (`feet_terrain`): the lowest edges of the walls and the ground
+   surfaces, interpolated over the open ground between them, the sigma growing with the
+   distance from the nearest foot.
+
+A DTM is checked against the buildings' feet before it is used (`check_against_feet`): a tile
+whose heights stand more than a tolerance off the feet (another tile's georeference, another
+height system) is dropped with a warning, not followed. citymodel.ground_faces turns the
+terrain near the tie points into planar faces of the plane store.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from ..errors import InputError
+from .raw_model import CRSInfo
+
+logger = logging.getLogger(__name__)
+
+#: Spacing (m) of the grid every source is resampled onto: a DGM1's own spacing.
+GRID_SPACING = 1.0
+
+#: Metres by which the block's area is grown before a raster window is read.
+READ_MARGIN = 20.0
+
+
+@dataclass
+class Terrain:
+    """Heights on a regular grid in the model CRS: node (i, j) lies at x = x0 + j * spacing,
+    y = y0 + i * spacing; nan where no source covers it."""
+
+    source: str  # "dtm", "relief" or "building_feet"
+    x0: float
+    y0: float
+    spacing: float
+    heights: np.ndarray  # (ny, nx) CRS heights (m), nan: no data
+    sigmas: np.ndarray  # (ny, nx) stated sigma of each height (m)
+    tiles: np.ndarray  # (ny, nx) int32 index into tile_names, -1: no data
+    tile_names: list[str] = field(default_factory=list)
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return self.heights.shape
+
+    def _fractional(self, xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return (xy[:, 1] - self.y0) / self.spacing, (xy[:, 0] - self.x0) / self.spacing
+
+    def height(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) bilinear heights at CRS `xy` (N, 2); nan outside or next to missing data."""
+        fi, fj = self._fractional(xy)
+        ny, nx = self.shape
+        i0 = np.clip(np.floor(fi).astype(np.int64), 0, max(ny - 2, 0))
+        j0 = np.clip(np.floor(fj).astype(np.int64), 0, max(nx - 2, 0))
+        inside = (fi >= 0) & (fi <= ny - 1) & (fj >= 0) & (fj <= nx - 1) & (ny > 1) & (nx > 1)
+        i1, j1 = np.minimum(i0 + 1, ny - 1), np.minimum(j0 + 1, nx - 1)
+        u, v = fj - j0, fi - i0
+        h = self.heights
+        z = ((1 - u) * (1 - v) * h[i0, j0] + u * (1 - v) * h[i0, j1]
+             + (1 - u) * v * h[i1, j0] + u * v * h[i1, j1])
+        return np.where(inside, z, np.nan)
+
+    def normal(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 3) upward unit normals from the height differences half a spacing around `xy`."""
+        xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        d = 0.5 * self.spacing
+        gx = (self.height(xy + [d, 0]) - self.height(xy - [d, 0])) / (2 * d)
+        gy = (self.height(xy + [0, d]) - self.height(xy - [0, d])) / (2 * d)
+        n = np.stack([-gx, -gy, np.ones(len(xy))], axis=1)
+        return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+    def _nearest(self, values: np.ndarray, xy: np.ndarray, fill):
+        fi, fj = self._fractional(xy)
+        i, j = np.round(fi).astype(np.int64), np.round(fj).astype(np.int64)
+        ny, nx = self.shape
+        ok = (i >= 0) & (i < ny) & (j >= 0) & (j < nx)
+        out = np.full(len(fi), fill, dtype=values.dtype)
+        out[ok] = values[i[ok], j[ok]]
+        return out
+
+    def sigma(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) the stated sigma (m) of the height at `xy` (nearest node; nan outside)."""
+        return self._nearest(self.sigmas, xy, np.nan)
+
+    def tile(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) the tile index at `xy` (nearest node; -1 outside or without data)."""
+        return self._nearest(self.tiles, xy, -1)
+
+    def node_xy(self) -> tuple[np.ndarray, np.ndarray]:
+        ny, nx = self.shape
+        return (self.x0 + self.spacing * np.arange(nx), self.y0 + self.spacing * np.arange(ny))
+
+    def summary(self) -> dict:
+        """report.json `terrain.surface`: source, tiles, grid and coverage."""
+        valid = np.isfinite(self.heights)
+        return {"source": self.source, "tiles": list(self.tile_names),
+                "grid_spacing_m": self.spacing, "grid_shape": list(self.shape),
+                "covered_share": float(valid.mean()) if valid.size else 0.0,
+                "sigma_m": float(np.nanmedian(self.sigmas[valid])) if valid.any() else None,
+                "notes": list(self.notes)}
+
+
+def empty_grid(bbox_xy: np.ndarray, spacing: float = GRID_SPACING):
+    """(x0, y0, nx, ny) of the grid of `spacing` covering bbox [[xmin, ymin], [xmax, ymax]]."""
+    lo = np.floor(np.asarray(bbox_xy[0], float) / spacing) * spacing
+    hi = np.ceil(np.asarray(bbox_xy[1], float) / spacing) * spacing
+    nx, ny = (np.round((hi - lo) / spacing).astype(int) + 1)
+    return float(lo[0]), float(lo[1]), int(nx), int(ny)
+
+
+# -- 1. DTM rasters ------------------------------------------------------------------------------
+
+
+def _raster_crs(crs: CRSInfo):
+    """The model CRS's horizontal part as rasterio takes it."""
+    from rasterio.crs import CRS
+
+    from .crs import _horizontal
+
+    return CRS.from_wkt(_horizontal(crs).to_wkt())
+
+
+def read_dtm(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
+             spacing: float = GRID_SPACING) -> Terrain:
+    """The DTM tiles `paths` resampled (bilinear) onto the model CRS grid over `bbox_xy`
+    ([[xmin, ymin], [xmax, ymax]], model CRS, grown by READ_MARGIN); only each file's window
+    over that area is read. Heights are taken as in the model's height system. Nodes no tile
+    covers stay nan; where tiles overlap the first file given wins. Unreadable files and files
+    without a CRS are an InputError naming the file."""
+    bbox = np.asarray(bbox_xy, float) + [[-READ_MARGIN, -READ_MARGIN], [READ_MARGIN, READ_MARGIN]]
+    x0, y0, nx, ny = empty_grid(bbox, spacing)
+    heights = np.full((ny, nx), np.nan)
+    tiles = np.full((ny, nx), -1, np.int32)
+    names: list[str] = []
+    for path in [Path(p) for p in paths]:
+        mosaic = _warp_tile(path, crs, x0, y0, nx, ny, spacing)
+        if mosaic is None:
+            continue
+        fill = np.isnan(heights) & np.isfinite(mosaic)
+        if fill.any():
+            heights[fill] = mosaic[fill]
+            tiles[fill] = len(names)
+            names.append(path.name)
+    if not names:
+        raise InputError("no DTM tile covers the block's area "
+                         f"({np.round(bbox.ravel(), 1).tolist()} in {crs.label}); check the "
+                         "DTM's extent and CRS", Path(list(paths)[0]))
+    sigmas = np.where(np.isfinite(heights), float(sigma), np.nan)
+    logger.info("terrain: DTM from %d of %d tile(s), %.0f %% of %d x %d m covered", len(names),
+                len(list(paths)), 100 * np.isfinite(heights).mean(), nx * spacing, ny * spacing)
+    return Terrain("dtm", x0, y0, spacing, heights, sigmas, tiles, names)
+
+
+def _warp_tile(path: Path, crs: CRSInfo, x0, y0, nx, ny, spacing) -> np.ndarray | None:
+    """One tile's heights on the grid (nan where it has none), or None when it misses it."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+    from rasterio.transform import Affine
+    from rasterio.warp import Resampling, reproject, transform_bounds
+    from rasterio.windows import from_bounds
+
+    if not path.is_file():
+        raise InputError("DTM file does not exist", path)
+    try:
+        src = rasterio.open(path)
+    except RasterioIOError as error:
+        raise InputError(f"not a readable raster: {error}", path) from None
+    with src:
+        if src.crs is None:
+            raise InputError("the DTM names no CRS (a GeoTIFF needs its georeference)", path)
+        dst_crs = _raster_crs(crs)
+        half = 0.5 * spacing
+        bounds = (x0 - half, y0 - half, x0 + (nx - 0.5) * spacing, y0 + (ny - 0.5) * spacing)
+        left, bottom, right, top = transform_bounds(dst_crs, src.crs, *bounds, densify_pts=21)
+        s = src.bounds
+        if right < s.left or left > s.right or top < s.bottom or bottom > s.top:
+            logger.info("terrain: %s lies outside the block's area", path.name)
+            return None
+        window = from_bounds(max(left, s.left), max(bottom, s.bottom), min(right, s.right),
+                             min(top, s.top), src.transform).round_offsets().round_lengths()
+        window = window.intersection(rasterio.windows.Window(0, 0, src.width, src.height))
+        data = src.read(1, window=window, out_dtype="float64", masked=True)
+        values = np.where(np.ma.getmaskarray(data), np.nan, np.ma.getdata(data))
+        # North-up destination grid: row 0 at the top (largest y); flipped below.
+        transform = Affine(spacing, 0, x0 - half, 0, -spacing, y0 + (ny - 0.5) * spacing)
+        out = np.full((ny, nx), np.nan)
+        reproject(values, out, src_transform=src.window_transform(window), src_crs=src.crs,
+                  src_nodata=np.nan, dst_transform=transform, dst_crs=dst_crs,
+                  dst_nodata=np.nan, resampling=Resampling.bilinear)
+    return out[::-1]
+
+
+# -- 2. relief in the city model -----------------------------------------------------------------
+
+
+def read_relief(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
+                spacing: float = GRID_SPACING) -> Terrain | None:
+    """The TIN relief of the city model files (CityGML `dem:TINRelief`, CityJSON
+    `TINRelief`) interpolated onto the grid over `bbox_xy`; None when the files hold none."""
+    from scipy.interpolate import LinearNDInterpolator
+
+    from .crs import same_crs
+
+    triangles = []
+    for path in [Path(p) for p in np.atleast_1d(paths)]:
+        found, file_crs = _relief_triangles(path)
+        if len(found) and file_crs is not None and not same_crs(file_crs, crs):
+            from .crs import reproject_points
+
+            found = reproject_points(found.reshape(-1, 3), file_crs, crs).reshape(-1, 3, 3)
+        if len(found):
+            triangles.append(found)
+    if not triangles:
+        return None
+    points = np.unique(np.concatenate(triangles).reshape(-1, 3), axis=0)
+    bbox = np.asarray(bbox_xy, float) + [[-READ_MARGIN, -READ_MARGIN], [READ_MARGIN, READ_MARGIN]]
+    x0, y0, nx, ny = empty_grid(bbox, spacing)
+    near = np.all((points[:, :2] >= bbox[0] - 50) & (points[:, :2] <= bbox[1] + 50), axis=1)
+    if np.count_nonzero(near) < 3:
+        return None
+    gx, gy = np.meshgrid(x0 + spacing * np.arange(nx), y0 + spacing * np.arange(ny))
+    heights = LinearNDInterpolator(points[near, :2], points[near, 2])(gx, gy)
+    if not np.isfinite(heights).any():
+        return None
+    sigmas = np.where(np.isfinite(heights), float(sigma), np.nan)
+    tiles = np.where(np.isfinite(heights), 0, -1).astype(np.int32)
+    logger.info("terrain: TIN relief of the city model, %d triangles", sum(map(len, triangles)))
+    return Terrain("relief", x0, y0, spacing, heights, sigmas, tiles,
+                   [Path(p).name for p in np.atleast_1d(paths)][:1])
+
+
+def _relief_triangles(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
+    """(T, 3, 3) relief triangles of one city model file and the CRS it names."""
+    if path.suffix.lower() in (".json", ".cityjson", ".jsonl"):
+        return _cityjson_relief(path)
+    return _citygml_relief(path)
+
+
+def _citygml_relief(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
+    from lxml import etree
+
+    from .crs import resolve_crs
+
+    triangles, srs = [], None
+    for _, element in etree.iterparse(str(path), events=("end",), huge_tree=True):
+        if not isinstance(element.tag, str):
+            continue
+        name = etree.QName(element).localname
+        if srs is None and element.get("srsName"):
+            srs = element.get("srsName")
+        if name != "TINRelief":
+            continue
+        for ring in element.iter("{*}LinearRing"):
+            coords = _ring_coordinates(ring)
+            if len(coords) >= 3:
+                triangles.append(coords[:3])
+        element.clear()
+    crs = resolve_crs(srs, path=path) if srs else None
+    return np.array(triangles, float).reshape(-1, 3, 3), crs
+
+
+def _ring_coordinates(ring) -> np.ndarray:
+    pos_list = ring.find("{*}posList")
+    if pos_list is not None and pos_list.text:
+        values = np.array(pos_list.text.split(), float)
+    else:
+        values = np.array([v for p in ring.iter("{*}pos") for v in (p.text or "").split()], float)
+    return values.reshape(-1, 3) if len(values) % 3 == 0 else np.zeros((0, 3))
+
+
+def _cityjson_relief(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
+    import json
+
+    from .crs import resolve_crs
+
+    try:
+        doc = json.loads(path.read_text())
+    except (OSError, ValueError) as error:
+        raise InputError(f"not a readable CityJSON file: {error}", path) from None
+    transform = doc.get("transform", {})
+    scale = np.asarray(transform.get("scale", [1, 1, 1]), float)
+    translate = np.asarray(transform.get("translate", [0, 0, 0]), float)
+    vertices = np.asarray(doc.get("vertices", []), float).reshape(-1, 3) * scale + translate
+    triangles = []
+    for obj in doc.get("CityObjects", {}).values():
+        if obj.get("type") != "TINRelief":
+            continue
+        for geometry in obj.get("geometry", []):
+            for surface in geometry.get("boundaries", []):
+                ring = surface[0] if surface and isinstance(surface[0], list) else surface
+                if len(ring) >= 3:
+                    triangles.append(vertices[np.asarray(ring[:3], np.int64)])
+    srs = doc.get("metadata", {}).get("referenceSystem")
+    crs = resolve_crs(srs, path=path) if srs else None
+    return np.array(triangles, float).reshape(-1, 3, 3), crs
+
+
+# -- 3. the buildings' feet ----------------------------------------------------------------------
+
+
+@dataclass
+class Feet:
+    """Where the buildings meet the ground: points (CRS) along the walls' lowest edges and the
+    ground surfaces' rings, each with its building's index; the footprints (shapely, CRS xy)."""
+
+    points: np.ndarray  # (K, 3)
+    building: np.ndarray  # (K,) int64
+    building_ids: list[str]
+    footprints: object  # shapely geometry, the union of the footprints
+
+
+#: Spacing (m) of the foot points along the lowest edges.
+FOOT_SPACING = 2.0
+
+#: A wall vertex within this height (m) of its face's lowest vertex lies on its lowest edge.
+LOWEST_EDGE = 0.05
+
+
+def building_feet(store) -> Feet:
+    """The feet of the buildings of `store` (citymodel.store.PlaneStore)."""
+    import shapely
+
+    walls = store.faces.semantic.mask("WallSurface")
+    grounds = store.faces.semantic.mask("GroundSurface")
+    points, owner, rings = [], [], []
+    codes = store.faces.building_id.codes
+    for f in np.flatnonzero(walls | grounds):
+        ring = store.vertices[store.faces[int(f)].exterior]
+        if grounds[f]:
+            low = ring
+            if len(ring) >= 3:
+                rings.append(shapely.Polygon(ring[:, :2]).buffer(0))
+        else:
+            low = ring[ring[:, 2] <= ring[:, 2].min() + LOWEST_EDGE]
+        dense = _densify(low) if grounds[f] else _densify_edge(low)
+        points.append(dense)
+        owner.append(np.full(len(dense), codes[f], np.int64))
+    if not points:
+        return Feet(np.zeros((0, 3)), np.zeros(0, np.int64), [], shapely.Polygon())
+    if not rings:  # no ground surfaces: the roofs' outlines stand for the footprints
+        for f in np.flatnonzero(store.faces.semantic.mask("RoofSurface")):
+            ring = store.vertices[store.faces[int(f)].exterior]
+            if len(ring) >= 3:
+                rings.append(shapely.Polygon(ring[:, :2]).buffer(0))
+    footprints = shapely.unary_union(rings) if rings else shapely.Polygon()
+    pts = np.concatenate(points) + store.origin
+    return Feet(pts, np.concatenate(owner), list(store.faces.building_id.categories),
+                shapely.transform(footprints, lambda xy: xy + store.origin[:2]))
+
+
+def _densify(ring: np.ndarray) -> np.ndarray:
+    closed = np.vstack([ring, ring[:1]])
+    return np.concatenate([_densify_edge(closed[k:k + 2]) for k in range(len(ring))])
+
+
+def _densify_edge(points: np.ndarray) -> np.ndarray:
+    """The points and, between the two furthest apart, one every FOOT_SPACING."""
+    if len(points) < 2:
+        return points
+    d = np.linalg.norm(points[:, None, :2] - points[None, :, :2], axis=2)
+    a, b = np.unravel_index(np.argmax(d), d.shape)
+    n = int(np.ceil(d[a, b] / FOOT_SPACING))
+    t = np.linspace(0.0, 1.0, n + 1)[:, None]
+    return np.vstack([points, points[a] + t * (points[b] - points[a])])
+
+
+def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
+                 spacing: float = GRID_SPACING, feet: Feet | None = None) -> Terrain | None:
+    """The buildings' feet interpolated (linear between them, nearest beyond) over the grid on
+    `bbox_xy`; the sigma `sigma` at a foot, growing by `growth` per metre of distance from the
+    nearest one; one tile per building (the nearest foot's). None without feet."""
+    from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
+    from scipy.spatial import cKDTree
+
+    feet = feet or building_feet(store)
+    if len(feet.points) < 3:
+        return None
+    x0, y0, nx, ny = empty_grid(np.asarray(bbox_xy, float), spacing)
+    gx, gy = np.meshgrid(x0 + spacing * np.arange(nx), y0 + spacing * np.arange(ny))
+    xy = np.c_[gx.ravel(), gy.ravel()]
+    heights = np.full(len(xy), np.nan)
+    unique, index = np.unique(np.round(feet.points[:, :2], 3), axis=0, return_index=True)
+    if len(unique) >= 3 and np.ptp(unique[:, 0]) > 1 and np.ptp(unique[:, 1]) > 1:
+        heights = LinearNDInterpolator(unique, feet.points[index, 2])(xy)
+    missing = ~np.isfinite(heights)
+    if missing.any():
+        heights[missing] = NearestNDInterpolator(unique, feet.points[index, 2])(xy[missing])
+    distance, nearest = cKDTree(feet.points[:, :2]).query(xy)
+    tiles = feet.building[nearest].astype(np.int32)
+    sigmas = sigma + growth * distance
+    note = f"interpolated from {len(unique)} points on the feet of {len(set(feet.building))} buildings"
+    logger.info("terrain: from the buildings' feet (%s)", note)
+    return Terrain("building_feet", x0, y0, spacing, heights.reshape(ny, nx),
+                   sigmas.reshape(ny, nx), tiles.reshape(ny, nx), list(feet.building_ids), [note])
+
+
+def check_against_feet(terrain: Terrain, feet: Feet, tolerance: float,
+                       min_points: int = 5) -> list[str]:
+    """Drops (sets to nan) the tiles of `terrain` whose median height difference from the
+    buildings' feet they cover exceeds `tolerance` (m): a tile with another georeference or in
+    another height system is caught, not followed. Returns one warning per dropped tile."""
+    warnings = []
+    if not len(feet.points):
+        return warnings
+    diff = terrain.height(feet.points[:, :2]) - feet.points[:, 2]
+    tile = terrain.tile(feet.points[:, :2])
+    for k, name in enumerate(terrain.tile_names):
+        mine = (tile == k) & np.isfinite(diff)
+        if np.count_nonzero(mine) < min_points:
+            continue
+        median = float(np.median(diff[mine]))
+        if abs(median) > tolerance:
+            message = (f"terrain tile {name} stands {median:+.2f} m off the buildings' feet "
+                       f"({np.count_nonzero(mine)} foot points; tolerance {tolerance:g} m): "
+                       "left out (another height system or a wrong tile?)")
+            logger.warning(message)
+            warnings.append(message)
+            drop = terrain.tiles == k
+            terrain.heights[drop] = np.nan
+            terrain.sigmas[drop] = np.nan
+            terrain.tiles[drop] = -1
+        else:
+            terrain.notes.append(f"tile {name}: {median:+.2f} m from the buildings' feet "
+                                 f"(median of {np.count_nonzero(mine)})")
+    return warnings
