@@ -143,6 +143,14 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
                    help="global (default): the whole block at once; sliding_window: windows "
                         "of 100 images in name order moved on by 33, each adjusted with the "
                         "model, then the global adjustment ([workflow] options)")
+    p.add_argument("--terrain", nargs="+", default=None, metavar="FILE|none",
+                   help="DTM rasters (GeoTIFF/COG tiles, any CRS; heights in the model's "
+                        "height system) that hold the ground tie points (road, pavement); "
+                        "default: the model's TIN relief, else the buildings' feet; none: no "
+                        "terrain (docs/terrain.md)")
+    p.add_argument("--terrain_sigma", type=float, default=None, metavar="M",
+                   help="the DTM's stated height accuracy (m, default 0.15), one offset per "
+                        "tile")
     p.add_argument("--lod", type=int, default=2, help="level of detail of the model to use")
     p.add_argument("--crs", dest="model_crs", help="CRS of a model file that names none")
     p.add_argument("--target_crs", help="projected CRS to reproject a geographic model to")
@@ -179,7 +187,8 @@ def _citymodel_kwargs(args) -> dict:
                checkpoint_observations=args.checkpoint_observations,
                sigma_generalisation=args.sigma_generalisation,
                variance_components=args.variance_components, assignment=args.assignment,
-               write_model=args.write_model, workflow=args.workflow)
+               write_model=args.write_model, workflow=args.workflow, terrain=args.terrain,
+               terrain_sigma=args.terrain_sigma)
     for name in ("database", "initial_transform"):
         if hasattr(args, name):
             out[name] = getattr(args, name)

@@ -370,6 +370,7 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
                 gnss_height_offset=None, gnss_bias=None, lever_arm=None, checkpoints=None,
                 checkpoint_observations=None, sigma_generalisation=None,
                 variance_components=None, assignment=None, write_model=None, num_threads=None,
+                terrain=None, terrain_sigma=None,
                 workflow=None) -> RefineInputs:
     """Options, city model, GNSS and check points as `main` takes them, and the reconstruction
     of `input_path` if given; fails on a taken `output_path` before any expensive work."""
@@ -390,6 +391,10 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         options.assignment.method = assignment
     if workflow is not None:  # --workflow overrides the options file
         options.mergedict({"workflow": {"mode": workflow}}, source="--workflow")
+    if terrain is not None or terrain_sigma is not None:  # --terrain FILE ... | none
+        from .citymodel.terrain import terrain_options
+
+        terrain_options(options.terrain, terrain, terrain_sigma)
     if gnss_bias == "auto":
         options.adjustment.gnss_offset = "all"
     elif gnss_bias is not None:

@@ -207,6 +207,43 @@ def _warp_tile(path: Path, crs: CRSInfo, x0, y0, nx, ny, spacing) -> np.ndarray 
     return out[::-1]
 
 
+def terrain_options(options, terrain, sigma) -> None:
+    """Sets options.TerrainOptions `options` from the command line: `terrain` ["none"] or DTM
+    files (each opened here, so that a missing or unreadable file fails before any work),
+    `sigma` the DTM's stated accuracy (m)."""
+    if sigma is not None:
+        if not (np.isfinite(sigma) and sigma > 0):
+            raise InputError(f"--terrain_sigma must be a positive number of metres, got {sigma}")
+        options.sigma = float(sigma)
+    if terrain is None:
+        return
+    terrain = [str(t) for t in np.atleast_1d(terrain)]
+    if [t.lower() for t in terrain] == ["none"]:
+        options.source, options.files = "none", ()
+        return
+    for path in map(Path, terrain):
+        check_dtm_file(path)
+    options.source, options.files = "auto", tuple(terrain)
+
+
+def check_dtm_file(path: Path) -> None:
+    """InputError naming `path` unless it is a raster with a CRS and one band of heights."""
+    import rasterio
+    from rasterio.errors import RasterioIOError
+
+    if not path.is_file():
+        raise InputError("DTM file does not exist", path)
+    try:
+        with rasterio.open(path) as src:
+            if src.crs is None:
+                raise InputError("the DTM names no CRS (a GeoTIFF needs its georeference)",
+                                 path)
+            if src.count < 1:
+                raise InputError("the DTM raster has no band", path)
+    except RasterioIOError as error:
+        raise InputError(f"not a readable raster: {error}", path) from None
+
+
 # -- 2. relief in the city model -----------------------------------------------------------------
 
 

@@ -59,6 +59,14 @@ class StreetSceneOptions:
     gnss_bias_wave: float = 0.5  # amplitude of the slowly varying part (m)
     drift: float = 0.01  # bend of the SfM input at the far end per metre of street
     seed: int = 0
+    # The ground between the facades (`street_ground`): tie points on it about one per
+    # ground_spacing^2 (0: none, the ground is not seen); the street rises by ground_slope
+    # per metre along x (each building stands at the height of its centre); pavements
+    # sidewalk_width wide along the facades stand kerb_height above the road.
+    ground_spacing: float = 0.0
+    ground_slope: float = 0.0
+    kerb_height: float = 0.0
+    sidewalk_width: float = 3.0
 
 
 @dataclass
@@ -163,6 +171,7 @@ def make_street_scene(options: StreetSceneOptions | None = None,
     rng = np.random.default_rng(o.seed)
     rings, semantics, buildings = street_polygons(o, rng)
     crs_origin = np.asarray(crs_origin, float)
+    rings = _on_slope(rings, buildings, o.ground_slope)
     store = store_from_polygons([r + crs_origin for r in rings], semantics=semantics,
                                 building_ids=buildings, crs=crs)
     shift = crs_origin - store.origin  # model (street) frame -> store local frame
@@ -178,6 +187,10 @@ def make_street_scene(options: StreetSceneOptions | None = None,
     clutter = rng.random(len(points)) < o.clutter_fraction
     offsets[clutter] = rng.uniform(0.3, 1.0, clutter.sum())
     points = points + normals * offsets[:, None]
+    if o.ground_spacing > 0:
+        ground = street_ground(o, rng)
+        points = np.vstack([points, ground + shift])
+        normals = np.vstack([normals, np.tile([0.0, 0.0, 1.0], (len(ground), 1))])
 
     camera = pycolmap.Camera(model="PINHOLE", width=o.width, height=o.height,
                              params=[o.focal_length, o.focal_length, o.width / 2, o.height / 2],
@@ -226,6 +239,38 @@ def make_street_scene(options: StreetSceneOptions | None = None,
     return StreetScene(store=store, truth=truth, sfm=sfm, gnss_names=names,
                        gnss_positions_crs=gnss + store.origin,
                        gnss_sigmas=np.tile([3.0, 3.0, 5.0], (len(names), 1)))
+
+
+def ground_height(options: StreetSceneOptions, xy: np.ndarray) -> np.ndarray:
+    """The true ground (street frame: x along the street, y across, z up) at `xy` (N, 2): the
+    street's slope along x plus the kerb of the pavements along both facades."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    pavement = np.abs(xy[:, 1]) > options.street_half_width - options.sidewalk_width
+    return options.ground_slope * xy[:, 0] + options.kerb_height * pavement
+
+
+def street_ground(options: StreetSceneOptions, rng: np.random.Generator) -> np.ndarray:
+    """Tie points on the ground between the facades (street frame), one per ground_spacing^2
+    on average, with the facades' relief sigma as their roughness."""
+    length = options.num_stations * options.station_spacing
+    x0, x1 = -15.0, length + 15.0
+    half = options.street_half_width - 0.2
+    n = rng.poisson((x1 - x0) * 2 * half / options.ground_spacing ** 2)
+    xy = np.c_[rng.uniform(x0, x1, n), rng.uniform(-half, half, n)]
+    z = ground_height(options, xy) + rng.normal(0.0, options.relief_sigma, n)
+    return np.c_[xy, z]
+
+
+def _on_slope(rings: list, buildings: list, slope: float) -> list:
+    """Each building's rings raised to the street's height at its centre (x * slope)."""
+    if not slope:
+        return rings
+    out = []
+    centre = {b: np.mean([r[:, 0].mean() for r, c in zip(rings, buildings) if c == b])
+              for b in set(buildings)}
+    for ring, b in zip(rings, buildings):
+        out.append(ring + [0.0, 0.0, slope * centre[b]])
+    return out
 
 
 def _ring_normal(ring: np.ndarray) -> np.ndarray:
