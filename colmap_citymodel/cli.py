@@ -200,14 +200,29 @@ def _add_refine(subparsers) -> None:
         "refine", help="georeference and refine a COLMAP model with a city building model",
         epilog="exit status: 0 refined (quality ok or weak: see the quality line and "
                "report.json), 2 bad input, 3 the quality gate failed: the model could not help "
-               "and the output holds the GNSS-only adjustment")
+               "and the output holds the GNSS-only adjustment (or, when the block fits two "
+               "places of the model about equally well, report.json alone)")
     p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
     _add_citymodel_arguments(p, database=True, initial_transform=True)
+    hint = p.add_argument_group("no GNSS: register from the model alone (docs/no-gnss.md)")
+    hint.add_argument("--location", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                      help="rough position of the block (model CRS): without GNSS, or with "
+                           "GNSS whose stated sigma exceeds 20 m, the block is found on the "
+                           "model near it and refined with the model as the only datum")
+    hint.add_argument("--location_radius", type=float, default=100.0, metavar="M",
+                      help="metres around --location within which the block's centre is "
+                           "searched (default 100)")
 
     def run(args):
         from .workflow import main
 
-        result = main(args.input_path, **_citymodel_kwargs(args))
+        if args.location is not None and not (
+                all(math.isfinite(v) for v in args.location)
+                and math.isfinite(args.location_radius) and args.location_radius > 0):
+            raise CityModelError("--location needs finite X Y and --location_radius a "
+                                 "positive number of metres")
+        result = main(args.input_path, **_citymodel_kwargs(args), location=args.location,
+                      location_radius=args.location_radius)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 

@@ -61,8 +61,8 @@ logger = logging.getLogger(__name__)
 def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
            options: RefineOptions | None = None, *, initial_transform: pycolmap.Sim3d | None = None,
            exclude_point_ids: set[int] | None = None, progress: bool = True,
-           checkpoints: dict | None = None, checkpoint_observations: list | None = None
-           ) -> RefineResult:
+           checkpoints: dict | None = None, checkpoint_observations: list | None = None,
+           location=None, location_radius: float = 100.0) -> RefineResult:
     """Georeference `reconstruction` and adjust it together with `city_model`.
 
     `gnss` is a `block.gnss.GNSSObservations` (model CRS) or None; `initial_transform` maps the
@@ -72,7 +72,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     quality gate fails, the GNSS-only adjustment (`result.quality`, `result.gnss_only`).
     `checkpoints` ({id: XYZ} model CRS) and `checkpoint_observations` ([(image, id, x, y)],
     precision.checkpoints.read_*) are only evaluated at the end (Delta, and sigma when
-    covariances are on).
+    covariances are on). `location` (x, y, model CRS): without GNSS (or with GNSS whose stated
+    sigma is useless) the block is found on the model within `location_radius` m of it
+    (align.locate) and refined with the model as the only datum.
     """
     from .align.coarse import SurfaceDistance
 
@@ -84,6 +86,14 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
     details: dict = {}
+    located = None
+    if initial_transform is None:
+        from .align.locate import start_from_model
+
+        start, gnss, located = start_from_model(rec, city_model, gnss, location,
+                                                location_radius)
+        if start is not None:
+            initial_transform = start
     sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details,
                                         options.adjustment.gnss_offset)
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
@@ -93,6 +103,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     store, terrain_record = block_terrain(store, tie_points(rec, exclude_point_ids)[1],
                                           options.terrain)
     timer["georegistration"] = time.perf_counter() - timer["start"]
+    if located is not None:
+        details["cues"] = {k: "model only" for k in ("translation", "scale", "rotation")}
 
     warnings: list[str] = []
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
@@ -188,6 +200,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma,
                               loop.unsettled_shift)
+    if located is not None and isinstance(quality.metrics, dict):
+        quality.metrics["location_score_ratio"] = located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
     precision = evaluation = None
@@ -223,7 +237,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         coarse_alignment=coarse.todict() if coarse is not None else None,
         gnss_offset=gnss_offset, model_correction=correction,
         sliding_window=windows.todict(options) if windows is not None else None,
-        loop_stopped_by=loop.stopped_by)
+        loop_stopped_by=loop.stopped_by, georegistration=located)
     result.terrain = terrain_record
     return result
 
@@ -371,7 +385,7 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
                 checkpoint_observations=None, sigma_generalisation=None,
                 variance_components=None, assignment=None, write_model=None, num_threads=None,
                 terrain=None, terrain_sigma=None,
-                workflow=None) -> RefineInputs:
+                workflow=None, location=None, location_radius=100.0) -> RefineInputs:
     """Options, city model, GNSS and check points as `main` takes them, and the reconstruction
     of `input_path` if given; fails on a taken `output_path` before any expensive work."""
     from .align.georegister import read_initial_transform
@@ -438,6 +452,10 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
     if observations is not None:
         bbox = np.array([observations.positions.min(0) - GNSS_READ_MARGIN,
                          observations.positions.max(0) + GNSS_READ_MARGIN])
+    elif location is not None:  # no GNSS: the model around the location hint
+        reach = float(location_radius) + GNSS_READ_MARGIN
+        bbox = np.array([[location[0] - reach, location[1] - reach, -1e5],
+                         [location[0] + reach, location[1] + reach, 1e5]])
     if bbox is not None:  # of a directory of tiles, only those near the block are read
         from .citymodel.tiles import files_near
 
@@ -447,6 +465,11 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         store = read_city_model(citymodel, lod=lod, crs=model_crs, target_crs=target_crs,
                                 bbox_crs=bbox)
     except NoOverlapError as error:
+        if observations is None:
+            raise NoOverlapError(
+                f"the city model has no building within {reach:.0f} m of the location hint "
+                f"({location[0]:.1f}, {location[1]:.1f}): {error.message}; check the hint's "
+                "coordinates (model CRS) and the model tiles", error.path) from None
         raise NoOverlapError(
             "the city model does not overlap the GNSS positions "
             f"({observations.path or observations.source}, {GNSS_READ_MARGIN:.0f} m margin): "
@@ -510,6 +533,21 @@ def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, outp
           f"{'' if output_frame == 'crs' else ' minus origin'}, report.md, assignments.ply)")
 
 
+def write_failed_report(output_path, inputs: dict, error) -> None:
+    """`output_path`/report.json of a refine that ended before any result (an ambiguous
+    model-only georegistration): the inputs, the search's findings, the verdict "failed"."""
+    import json
+
+    from .files import atomic_directory
+
+    report = {"inputs": inputs, "georegistration": error.report,
+              "quality": {"verdict": "failed", "reasons": [error.message],
+                          "metrics": {"location_score_ratio": error.report.get("score_ratio")}}}
+    with atomic_directory(output_path) as directory:
+        (Path(directory) / "report.json").write_text(json.dumps(report, indent=2))
+    print(f"output: {output_path} (report.json only: no result)")
+
+
 def main(input_path, citymodel, output_path, *, output_type="bin", output_frame="crs",
          progress=True, lod=2, model_crs=None, **kwargs) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
@@ -520,13 +558,23 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     model, AdjustmentOptions.gnss_offset "height"); `gnss_bias` "auto": a 3D bias ("all").
     `write_model`: correct the model and write it back in its own format (default: with the
     correct_model preset). `workflow`: "global" or "sliding_window" (overrides the options
-    file's `[workflow] mode`)."""
+    file's `[workflow] mode`). `location` (x, y) and `location_radius`: without GNSS, the
+    block is found on the model near the hint (align.locate); when two places fit it about
+    equally well only report.json is written and AmbiguousLocationError raised (exit 3)."""
     read = read_inputs(citymodel, output_path, input_path=input_path, lod=lod,
                        model_crs=model_crs, **kwargs)
-    result = refine(read.reconstruction, read.store, read.observations, read.options,
-                    initial_transform=read.initial_transform, progress=progress,
-                    checkpoints=read.checkpoints,
-                    checkpoint_observations=read.checkpoint_observations)
+    from .align.locate import AmbiguousLocationError
+
+    try:
+        result = refine(read.reconstruction, read.store, read.observations, read.options,
+                        initial_transform=read.initial_transform, progress=progress,
+                        checkpoints=read.checkpoints,
+                        checkpoint_observations=read.checkpoint_observations,
+                        location=kwargs.get("location"),
+                        location_radius=kwargs.get("location_radius", 100.0))
+    except AmbiguousLocationError as error:  # no result: the report says why
+        write_failed_report(output_path, read.inputs, error)
+        raise
     write_outputs(result, output_path, read, output_type=output_type,
                   output_frame=output_frame, lod=lod, model_crs=model_crs)
     return result

@@ -65,6 +65,9 @@ class RefineResult:
     # The rule that ended the assign/adjust loop (adjust.loop.LoopResult.stopped_by): None when
     # its iterations ran out or when it did not run.
     loop_stopped_by: str | None = None
+    # The model-only georegistration's search (align.locate: method, hypotheses, best and
+    # runner-up scores, the hint's distance, seconds); None when GNSS or a transform gave it.
+    georegistration: dict | None = None
 
     @property
     def handed_back(self) -> str:

@@ -126,7 +126,8 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
     return {
         "inputs": inputs or {},
         "georegistration": {"rms_m": result.georegistration_rms,
-                            "sim3": sim3_dict(result.input_to_local)},
+                            "sim3": sim3_dict(result.input_to_local),
+                            **(result.georegistration or {})},
         "step2": {**(result.step2.todict() if result.step2 else {}),
                   "eliminated_image_observations": result.step2_eliminated},
         "iterations": [it.todict() for it in result.iterations],
@@ -218,6 +219,12 @@ def report_markdown(report: dict) -> str:
     if geo["rms_m"] is not None:
         lines.append(f"Georegistration to GNSS: RMS {geo['rms_m']:.2f} m, "
                      f"scale {geo['sim3']['scale']:.5f}.")
+    if geo.get("method") == "model only":
+        lines.append(f"Georegistration from the model alone: {geo['hypotheses_2d']} placements "
+                     f"searched, best share {geo['best_score']:.2f}, distinct runner-up "
+                     f"{geo['runner_up_score']:.2f} (ratio {geo['score_ratio']:.2f}), "
+                     f"{geo['hint_distance_m']:.1f} m from the location hint, "
+                     f"{geo['seconds']:.1f} s.")
     s2 = report["step2"]
     if s2:
         lines.append(f"Step 2 (BA without model): image RMS {s2['rms']['image']:.3f} px "

@@ -1,0 +1,155 @@
+"""Georegistration without GNSS: the city model as the only control, from a location hint.
+
+The synthetic street's SfM input lies in an arbitrary frame (a random rotation, a scale of
+0.2-0.6 and a drift): the search must recover heading, tilt, scale and position from the
+model alone. A street of identical houses fits several places equally well and must fail
+with the ambiguity reported; a hint far from any building must fail with a clear message.
+"""
+
+import json
+
+import numpy as np
+import pycolmap
+import pytest
+
+from colmap_citymodel.align.locate import AmbiguousLocationError, LocateOptions, locate
+from colmap_citymodel.citymodel.crs import user_crs
+from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
+from colmap_citymodel.cli import main as cli_main
+from colmap_citymodel.errors import GeoregistrationError
+from colmap_citymodel.options import RefineOptions
+from colmap_citymodel.simulate import synthetic
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors
+from colmap_citymodel.workflow import refine
+
+
+def rms(values):
+    return float(np.sqrt(np.mean(np.square(values))))
+
+
+def true_centre(scene) -> np.ndarray:
+    """Mean true camera centre, model CRS."""
+    return np.mean([im.projection_center() for im in scene.truth.images.values()],
+                   axis=0) + scene.store.origin
+
+
+@pytest.fixture(scope="module")
+def turned_scene(street_scene):
+    """The street's SfM block turned by another 137 deg about a tilted axis and scaled by 7.3
+    on top of its random similarity."""
+    sfm = pycolmap.Reconstruction(street_scene.sfm)
+    axis = np.array([0.2, -0.1, 1.0])
+    axis *= np.radians(137.0) / np.linalg.norm(axis)
+    sfm.transform(pycolmap.Sim3d(7.3, pycolmap.Rotation3d(axis), [12.0, -40.0, 3.0]))
+    return street_scene, sfm
+
+
+def test_a_turned_and_scaled_block_is_registered_from_a_hint_40_m_off(turned_scene):
+    scene, sfm = turned_scene
+    hint = true_centre(scene)[:2] + 40.0 * np.array([np.cos(2.0), np.sin(2.0)])
+    result = refine(sfm, scene.store, None, RefineOptions(), location=hint, progress=False)
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+    assert result.quality.verdict != "failed"
+    geo = result.georegistration
+    assert geo["method"] == "model only"
+    assert geo["hypotheses_2d"] > 1 and geo["best_score"] > geo["runner_up_score"]
+    assert geo["score_ratio"] < LocateOptions().max_ratio
+    assert 30.0 < geo["hint_distance_m"] < 50.0
+    assert result.iterations[-1].final.count["gnss"] == 0  # the model is the only datum
+    assert result.datum_cues["scale"] == "model only"
+
+
+def test_useless_gnss_is_replaced_by_the_model_search(street_scene):
+    """GNSS stated at 50 m (and 30 m off): the search runs around its mean, without it."""
+    gnss = street_scene.gnss()
+    gnss.positions = np.asarray(gnss.positions) + [30.0, -20.0, 0.0]
+    gnss.sigmas = np.full_like(np.asarray(gnss.sigmas, float), 50.0)
+    result = refine(street_scene.sfm, street_scene.store, gnss, RefineOptions(),
+                    progress=False)
+    assert result.georegistration["gnss_ignored"] is True
+    assert result.gnss_priors is None
+    assert rms(centre_errors(result.reconstruction, street_scene.truth)) < 0.10
+
+
+def identical_houses(options, rng):
+    """Both sides of the street: the same gabled house every 16 m, far beyond the block."""
+    rings, semantics, buildings = [], [], []
+    for side in (1.0, -1.0):
+        near = side * options.street_half_width
+        y0, y1 = sorted((near, side * (options.street_half_width + 10.0)))
+        for k, x in enumerate(np.arange(-150.0, 200.0, 16.0)):
+            r, s = synthetic.building_polygons(x, x + 12.0, y0, y1, 10.0, 14.0, near)
+            rings += r
+            semantics += s
+            buildings += [f"b{side:+.0f}{k}"] * len(r)
+    return rings, semantics, buildings
+
+
+@pytest.fixture(scope="module")
+def identical_street():
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(synthetic, "street_polygons", identical_houses)
+        return synthetic.make_street_scene(StreetSceneOptions(seed=3, num_stations=12),
+                                           crs=user_crs("EPSG:25832"))
+
+
+def test_a_street_of_identical_houses_is_ambiguous_and_fails(identical_street):
+    scene = identical_street
+    hint = true_centre(scene)[:2] - scene.store.origin[:2] + [20.0, 5.0]
+    with pytest.raises(AmbiguousLocationError) as caught:
+        locate(scene.sfm, scene.store, hint)
+    report = caught.value.report
+    assert report["verdict"] == "failed"
+    assert report["score_ratio"] > LocateOptions().max_ratio
+    assert report["runner_up_offset_m"] > 5.0
+    assert caught.value.exit_code == 3
+
+
+@pytest.fixture(scope="module")
+def workspace(tmp_path_factory, street_scene):
+    """The synthetic street written as a user without GNSS would have it."""
+    root = tmp_path_factory.mktemp("nognss")
+    scene = synthetic.make_street_scene(StreetSceneOptions(seed=7), crs=user_crs("EPSG:25832"))
+    (root / "sparse" / "0").mkdir(parents=True)
+    scene.sfm.write_binary(str(root / "sparse" / "0"))
+    write_citygml(root / "model.gml", raw_from_store(scene.store))
+    return root, scene
+
+
+def run(args, capsys):
+    code = cli_main(["refine", "--no_progress", *map(str, args)])
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_a_hint_300_m_off_fails_with_a_clear_message(workspace, tmp_path, capsys):
+    root, scene = workspace
+    x, y = true_centre(scene)[:2] + [0.0, 300.0]
+    out = tmp_path / "out"
+    code, _, err = run(["--input_path", root / "sparse" / "0", "--citymodel",
+                        root / "model.gml", "--output_path", out, "--location", x, y,
+                        "--location_radius", 100], capsys)
+    assert code == 2
+    assert "location hint" in err and "Traceback" not in err
+    assert len(err.strip().splitlines()) == 1
+    assert not out.exists()
+
+
+def test_an_ambiguous_block_writes_only_its_report(identical_street, tmp_path, capsys):
+    scene = identical_street
+    root = tmp_path / "ws"
+    (root / "sparse" / "0").mkdir(parents=True)
+    scene.sfm.write_binary(str(root / "sparse" / "0"))
+    write_citygml(root / "model.gml", raw_from_store(scene.store))
+    x, y = true_centre(scene)[:2] + [20.0, 5.0]
+    out = tmp_path / "out"
+    code, stdout, err = run(["--input_path", root / "sparse" / "0", "--citymodel",
+                             root / "model.gml", "--output_path", out, "--location", x, y],
+                            capsys)
+    assert code == 3
+    assert "two places" in err
+    assert sorted(p.name for p in out.iterdir()) == ["report.json"]
+    report = json.loads((out / "report.json").read_text())
+    assert report["quality"]["verdict"] == "failed"
+    assert report["georegistration"]["method"] == "model only"
+
