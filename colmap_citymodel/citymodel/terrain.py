@@ -78,9 +78,9 @@ class Terrain:
         return np.where(inside, z, np.nan)
 
     def normal(self, xy: np.ndarray) -> np.ndarray:
-        """(N, 3) upward unit normals from the height differences half a spacing around `xy`."""
+        """(N, 3) upward unit normals from the height differences a spacing around `xy`."""
         xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-        d = 0.5 * self.spacing
+        d = self.spacing
         gx = (self.height(xy + [d, 0]) - self.height(xy - [d, 0])) / (2 * d)
         gy = (self.height(xy + [0, d]) - self.height(xy - [0, d])) / (2 * d)
         n = np.stack([-gx, -gy, np.ones(len(xy))], axis=1)
@@ -149,15 +149,20 @@ def read_dtm(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
     heights = np.full((ny, nx), np.nan)
     tiles = np.full((ny, nx), -1, np.int32)
     names: list[str] = []
-    for path in [Path(p) for p in paths]:
-        mosaic = _warp_tile(path, crs, x0, y0, nx, ny, spacing)
-        if mosaic is None:
-            continue
-        fill = np.isnan(heights) & np.isfinite(mosaic)
-        if fill.any():
-            heights[fill] = mosaic[fill]
-            tiles[fill] = len(names)
-            names.append(path.name)
+    warped = [(path, _warp_tile(path, crs, x0, y0, nx, ny, spacing))
+              for path in [Path(p) for p in paths]]
+    # Bilinear first; a node within half a post of a tile's edge (a seam between tiles) has
+    # no bilinear value, and takes the nearest post of whichever tile has one.
+    for k in (0, 1):
+        for path, pair in warped:
+            if pair is None:
+                continue
+            fill = np.isnan(heights) & np.isfinite(pair[k])
+            if fill.any():
+                if path.name not in names:
+                    names.append(path.name)
+                heights[fill] = pair[k][fill]
+                tiles[fill] = names.index(path.name)
     if not names:
         raise InputError("no DTM tile covers the block's area "
                          f"({np.round(bbox.ravel(), 1).tolist()} in {crs.label}); check the "
@@ -168,8 +173,9 @@ def read_dtm(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
     return Terrain("dtm", x0, y0, spacing, heights, sigmas, tiles, names)
 
 
-def _warp_tile(path: Path, crs: CRSInfo, x0, y0, nx, ny, spacing) -> np.ndarray | None:
-    """One tile's heights on the grid (nan where it has none), or None when it misses it."""
+def _warp_tile(path: Path, crs: CRSInfo, x0, y0, nx, ny, spacing) -> tuple | None:
+    """One tile's heights on the grid, resampled bilinear and nearest (nan where it has
+    none), or None when it misses the grid."""
     import rasterio
     from rasterio.errors import RasterioIOError
     from rasterio.transform import Affine
@@ -193,18 +199,26 @@ def _warp_tile(path: Path, crs: CRSInfo, x0, y0, nx, ny, spacing) -> np.ndarray 
         if right < s.left or left > s.right or top < s.bottom or bottom > s.top:
             logger.info("terrain: %s lies outside the block's area", path.name)
             return None
-        window = from_bounds(max(left, s.left), max(bottom, s.bottom), min(right, s.right),
-                             min(top, s.top), src.transform).round_offsets().round_lengths()
-        window = window.intersection(rasterio.windows.Window(0, 0, src.width, src.height))
+        found = from_bounds(max(left, s.left), max(bottom, s.bottom), min(right, s.right),
+                            min(top, s.top), src.transform)
+        # Whole posts, one more on every side: the resampling needs the posts around a node.
+        col0 = max(int(np.floor(found.col_off)) - 1, 0)
+        row0 = max(int(np.floor(found.row_off)) - 1, 0)
+        col1 = min(int(np.ceil(found.col_off + found.width)) + 1, src.width)
+        row1 = min(int(np.ceil(found.row_off + found.height)) + 1, src.height)
+        window = rasterio.windows.Window(col0, row0, col1 - col0, row1 - row0)
         data = src.read(1, window=window, out_dtype="float64", masked=True)
         values = np.where(np.ma.getmaskarray(data), np.nan, np.ma.getdata(data))
         # North-up destination grid: row 0 at the top (largest y); flipped below.
         transform = Affine(spacing, 0, x0 - half, 0, -spacing, y0 + (ny - 0.5) * spacing)
-        out = np.full((ny, nx), np.nan)
-        reproject(values, out, src_transform=src.window_transform(window), src_crs=src.crs,
-                  src_nodata=np.nan, dst_transform=transform, dst_crs=dst_crs,
-                  dst_nodata=np.nan, resampling=Resampling.bilinear)
-    return out[::-1]
+        out = []
+        for resampling in (Resampling.bilinear, Resampling.nearest):
+            grid = np.full((ny, nx), np.nan)
+            reproject(values, grid, src_transform=src.window_transform(window),
+                      src_crs=src.crs, src_nodata=np.nan, dst_transform=transform,
+                      dst_crs=dst_crs, dst_nodata=np.nan, resampling=resampling)
+            out.append(grid[::-1])
+    return tuple(out)
 
 
 def terrain_options(options, terrain, sigma) -> None:

@@ -1,0 +1,244 @@
+"""The terrain beside the buildings: DTM rasters in another CRS with nodata and two tiles, the
+TIN relief of CityGML and CityJSON files, the buildings' feet, a DTM that stands metres off
+(caught, not followed), the faces and their weights, and clutter kept off the ground."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from colmap_citymodel.citymodel.crs import user_crs
+from colmap_citymodel.citymodel.ground_faces import (
+    TERRAIN_CLASS,
+    block_terrain,
+    terrain_face_sigmas,
+    terrain_mask,
+    terrain_units,
+    with_terrain_faces,
+)
+from colmap_citymodel.citymodel.terrain import (
+    building_feet,
+    check_against_feet,
+    feet_terrain,
+    read_dtm,
+    read_relief,
+    terrain_options,
+)
+from colmap_citymodel.errors import InputError
+from colmap_citymodel.options import RefineOptions, TerrainOptions
+from colmap_citymodel.simulate.dtm import write_dtm
+from colmap_citymodel.simulate.synthetic import StreetSceneOptions, ground_height, make_street_scene
+from data_paths import CITYGML
+
+X0, Y0, Z0 = 691000.0, 5335000.0, 500.0
+UTM32 = user_crs("EPSG:25832")
+
+
+def plane(xy):
+    xy = np.asarray(xy, float)
+    return Z0 + 0.03 * (xy[:, 0] - X0) - 0.02 * (xy[:, 1] - Y0)
+
+
+def test_a_dtm_in_geographic_coordinates_with_nodata_in_two_tiles(tmp_path):
+    def ground(xy):  # the plane, with a hole of nodata 6 m around (X0 + 20, Y0 + 30)
+        z = plane(xy)
+        z[np.hypot(xy[:, 0] - X0 - 20, xy[:, 1] - Y0 - 30) < 6.0] = np.nan
+        return z
+
+    bbox = np.array([[X0 - 30, Y0 - 30], [X0 + 130, Y0 + 90]])
+    files = write_dtm(tmp_path, ground, bbox, "EPSG:25832", tiles=2, crs="EPSG:4326",
+                      offsets=[0.0, 0.0])
+    block = np.array([[X0, Y0], [X0 + 100, Y0 + 60]])
+    terrain = read_dtm(files, UTM32, block, sigma=0.15)
+    assert terrain.source == "dtm" and terrain.tile_names == ["dtm_0.tif", "dtm_1.tif"]
+    xs, ys = terrain.node_xy()
+    # only the block's area (plus the margin) is on the grid, not the tiles' whole extent
+    assert xs[0] >= X0 - 21 and xs[-1] <= X0 + 121 and ys[-1] <= Y0 + 81
+    gx, gy = np.meshgrid(xs, ys)
+    xy = np.c_[gx.ravel(), gy.ravel()]
+    z = terrain.heights.ravel()
+    hole = np.hypot(xy[:, 0] - X0 - 20, xy[:, 1] - Y0 - 30)
+    assert np.all(np.isnan(z[hole < 5.0]))  # nodata stays no data
+    inside = np.all((xy >= block[0]) & (xy <= block[1]), axis=1) & (hole > 8.0)
+    assert np.all(np.isfinite(z[inside]))  # no gap along the seam between the tiles
+    assert np.max(np.abs(z[inside] - plane(xy[inside]))) < 0.02
+    tiles = terrain.tiles.ravel()[inside]
+    assert set(np.unique(tiles)) == {0, 1}
+    # the surface's functions at a point
+    probe = np.array([[X0 + 50.3, Y0 + 10.7]])
+    assert terrain.height(probe)[0] == pytest.approx(plane(probe)[0], abs=0.02)
+    n = terrain.normal(probe)[0]
+    assert n == pytest.approx(np.array([-0.03, 0.02, 1.0]) / np.sqrt(1.0013), abs=5e-3)
+    assert terrain.sigma(probe)[0] == pytest.approx(0.15)
+
+
+def test_dtm_files_that_are_missing_or_not_rasters_name_the_file(tmp_path):
+    options = TerrainOptions()
+    with pytest.raises(InputError, match="does not exist") as error:
+        terrain_options(options, [str(tmp_path / "none.tif")], None)
+    assert "none.tif" in str(error.value.path)
+    bad = tmp_path / "dtm.tif"
+    bad.write_text("not a raster")
+    with pytest.raises(InputError, match="not a readable raster"):
+        terrain_options(options, [str(bad)], None)
+    with pytest.raises(InputError, match="positive"):
+        terrain_options(options, None, -1.0)
+    terrain_options(options, ["none"], 0.1)
+    assert options.source == "none" and options.sigma == 0.1
+
+
+def test_tin_relief_of_a_citygml_file():
+    def relief_height(x, y):  # make_relief.py's relief
+        return 100.0 + 0.03 * (x - X0) + 0.01 * (y - Y0)
+
+    path = CITYGML / "synthetic/relief_tin_house.gml"
+    terrain = read_relief([path], user_crs("EPSG:25832+7837"),
+                          np.array([[X0 + 10, Y0 + 10], [X0 + 50, Y0 + 50]]), sigma=0.1)
+    assert terrain is not None and terrain.source == "relief"
+    xs, ys = terrain.node_xy()
+    covered = np.isfinite(terrain.heights)
+    assert covered.mean() > 0.5
+    gx, gy = np.meshgrid(xs, ys)
+    expected = np.vectorize(relief_height)(gx, gy)
+    assert np.max(np.abs(terrain.heights[covered] - expected[covered])) < 1e-6
+
+
+def test_tin_relief_of_a_cityjson_file(tmp_path):
+    vertices = [[0, 0, 0], [100000, 0, 3000], [100000, 100000, 5000], [0, 100000, 2000]]
+    doc = {"type": "CityJSON", "version": "2.0",
+           "transform": {"scale": [0.001, 0.001, 0.001], "translate": [X0, Y0, 100.0]},
+           "metadata": {"referenceSystem": "https://www.opengis.net/def/crs/EPSG/0/25832"},
+           "CityObjects": {"relief": {"type": "TINRelief", "geometry": [
+               {"type": "CompositeSurface", "lod": "2",
+                "boundaries": [[[0, 1, 2]], [[0, 2, 3]]]}]}},
+           "vertices": vertices}
+    path = tmp_path / "relief.city.json"
+    path.write_text(json.dumps(doc))
+    terrain = read_relief([path], UTM32, np.array([[X0 + 10, Y0 + 10], [X0 + 90, Y0 + 90]]),
+                          sigma=0.1)
+    assert terrain is not None
+    probe = np.array([[X0 + 60.0, Y0 + 20.0]])  # in the triangle 0-1-2: z = 0.03 x + 0.02 y
+    assert terrain.height(probe)[0] == pytest.approx(100.0 + 0.03 * 60 + 0.02 * 20, abs=1e-6)
+
+
+@pytest.fixture(scope="module")
+def street():
+    options = StreetSceneOptions(num_stations=20, flight_height=2.5, tilt_deg=8.0,
+                                 forward_tilt_deg=5.0, ground_spacing=1.0, ground_slope=0.04,
+                                 kerb_height=0.15)
+    return options, make_street_scene(options, crs=UTM32)
+
+
+def street_dtm(directory, options, offsets, noise=0.15):
+    origin = np.array([X0, Y0, Z0])
+
+    def ground(xy):
+        return ground_height(options, xy - origin[:2]) + origin[2]
+
+    bbox = np.array([origin[:2] + [-40, -30], origin[:2] + [80, 30]])
+    return write_dtm(directory, ground, bbox, "EPSG:25832", tiles=2, offsets=offsets,
+                     noise_sigma=noise, seed=1)
+
+
+def test_the_buildings_feet_give_a_terrain_whose_sigma_grows_away_from_them(street):
+    _, scene = street
+    store = scene.store
+    feet = building_feet(store)
+    assert len(feet.points) > 100 and not feet.footprints.is_empty
+    bbox = np.array([[X0 - 10, Y0 - 12], [X0 + 40, Y0 + 12]])
+    terrain = feet_terrain(store, bbox, sigma=0.3, growth=0.02, feet=feet)
+    assert terrain.source == "building_feet"
+    near = np.argmin(np.hypot(feet.points[:, 0] - X0 - 20, feet.points[:, 1] - Y0 - 10))
+    at_foot = feet.points[near:near + 1, :2]
+    assert terrain.sigma(at_foot)[0] == pytest.approx(0.3, abs=0.03)
+    mid_street = np.array([[X0 + 20.0, Y0 + 0.0]])
+    assert terrain.sigma(mid_street)[0] > 0.45  # 10 m from the facades
+    # the buildings stand at their centres' street heights: the feet follow the slope
+    assert terrain.height(np.array([[X0 + 40, Y0]]))[0] - terrain.height(
+        np.array([[X0, Y0]]))[0] == pytest.approx(1.6, abs=0.5)
+
+
+def test_terrain_faces_skip_the_footprints_and_weigh_as_one_observation_per_tile(street,
+                                                                                  tmp_path):
+    options, scene = street
+    store = scene.store
+    files = street_dtm(tmp_path, options, [0.0, 0.0], noise=0.0)
+    points = np.array([p.xyz for p in scene.truth.points3D.values()])
+    terrain = read_dtm(files, UTM32, np.array([[X0 - 20, Y0 - 20], [X0 + 60, Y0 + 20]]), 0.15)
+    feet = building_feet(store)
+    out = with_terrain_faces(store, terrain, points, 6.0, feet.footprints)
+    mask = terrain_mask(out)
+    assert mask.sum() > 20 and not terrain_mask(store).any()
+    assert set(out.faces.semantic[int(f)] for f in np.flatnonzero(mask)) == {TERRAIN_CLASS}
+    import shapely
+
+    centres = out.centroids[mask][:, :2] + out.origin[:2]
+    assert not shapely.contains_xy(feet.footprints, centres[:, 0], centres[:, 1]).any()
+    assert np.all(out.normals[mask][:, 2] > 0.99)  # upward, the street's slope
+    unit, sigma, names = terrain_units(out)
+    assert set(names) == {"terrain:dtm_0.tif", "terrain:dtm_1.tif"}
+    assert np.allclose(sigma[mask], 0.15)
+    # n points of one unit: each at sqrt(s_dtp^2 + n s_u^2), together one observation
+    faces = np.flatnonzero(mask)[:3]
+    faces = faces[unit[faces] == unit[faces[0]]]
+    rows = np.repeat(np.arange(len(faces)), 100)
+    sigmas = terrain_face_sigmas(out, faces, rows, np.full(len(faces), 0.2), 0.2)
+    n = 100 * len(faces)
+    assert np.allclose(sigmas, np.sqrt(0.2 ** 2 + n * 0.15 ** 2))
+    assert np.sum(np.full(n, 1.0) / sigmas[0] ** 2) == pytest.approx(1 / 0.15 ** 2, rel=0.01)
+    walls = np.flatnonzero(~mask)[:2]
+    assert np.allclose(terrain_face_sigmas(out, walls, np.zeros(5, int), np.full(2, 0.2), 0.2),
+                       0.2)
+
+
+def test_a_dtm_five_metres_off_is_left_out_not_followed(street, tmp_path):
+    options, scene = street
+    store = scene.store
+    files = street_dtm(tmp_path, options, [5.0, 0.0], noise=0.05)
+    terrain = read_dtm(files, UTM32, np.array([[X0 - 20, Y0 - 20], [X0 + 60, Y0 + 20]]), 0.15)
+    warnings = check_against_feet(terrain, building_feet(store), 1.0)
+    assert len(warnings) == 1 and "dtm_0.tif" in warnings[0] and "+5" in warnings[0]
+    assert terrain.tile_names[0] == "dtm_0.tif" and not (terrain.tiles == 0).any()
+    assert (terrain.tiles == 1).any()  # the tile that agrees with the feet stays
+    # every tile off: the terrain comes from the buildings' feet
+    files = street_dtm(tmp_path / "off", options, [5.0, 5.0], noise=0.05)
+    points = np.array([p.xyz for p in scene.truth.points3D.values()])
+    terrain_options_ = TerrainOptions(files=tuple(str(f) for f in files))
+    out, record = block_terrain(store, points, terrain_options_)
+    assert record["source"] == "building_feet" and len(record["warnings"]) == 3
+    assert terrain_mask(out).sum() > 20
+
+
+def test_clutter_is_kept_off_the_terrain():
+    from colmap_citymodel.assign.ground import off_ground
+
+    rng = np.random.default_rng(3)
+    ground = np.c_[rng.uniform(0, 20, 400), rng.uniform(0, 20, 400), rng.normal(0, 0.02, 400)]
+    car_side = np.c_[rng.uniform(5, 9, 60), np.full(60, 10.0), rng.uniform(0.3, 1.5, 60)]
+    bush = rng.normal([15, 15, 1.0], 0.5, (60, 3))
+    points = np.vstack([ground, car_side, bush])
+    off = off_ground(points, np.arange(len(points)))
+    assert off[:400].mean() < 0.05
+    assert off[400:460].mean() > 0.8 and off[460:].mean() > 0.8
+
+
+def test_a_sloped_street_drive_lands_within_a_quarter_metre_in_height_with_a_dtm(street,
+                                                                                tmp_path):
+    from colmap_citymodel.workflow import refine
+
+    options, scene = street
+    files = street_dtm(tmp_path, options, [0.10, -0.05])
+    refine_options = RefineOptions()
+    refine_options.terrain.files = tuple(str(f) for f in files)
+    result = refine(scene.sfm, scene.store, scene.gnss(), refine_options, progress=False)
+    true = {im.name: im.projection_center() for im in scene.truth.images.values()}
+    errors = np.array([im.projection_center() - true[im.name]
+                       for im in result.reconstruction.images.values()])
+    assert abs(errors[:, 2].mean()) < 0.25
+    assert np.sqrt(np.mean(errors ** 2, axis=0)).max() < 0.25
+    terrain = result.terrain
+    assert terrain["source"] == "dtm" and terrain["residuals"]["num_points"] > 300
+    assert set(terrain["residuals"]["units"]) == {"dtm_0.tif", "dtm_1.tif"}
+    assert terrain["residuals"]["rms_m"] < 0.2
