@@ -61,8 +61,8 @@ class LocateOptions:
     """Plausible median distance (m) from a tie point to the nearest camera: bounds the scale."""
     yaw_candidates: int = 12
     """Headings (peaks of the wall-normal histogram) searched."""
-    hypotheses: int = 24
-    """Best 2D placements given a height and refined in 3D."""
+    hypotheses: int = 60
+    """Placements (the best distinct ones after the height search) refined in 3D."""
     distinct_m: float = 5.0
     """A runner-up placement counts as distinct when its block centre lies this far from the
     best one's..."""
@@ -70,8 +70,8 @@ class LocateOptions:
     """...or its heading differs by this much."""
     max_ratio: float = 0.85
     """Runner-up over best score above this: the block fits two places (ambiguous, failed)."""
-    min_share: float = 0.25
-    """Best score (smooth share of tie points within 1 m of the model) below this: the block
+    min_share: float = 0.2
+    """Best score (smooth share of tie points within 0.5 m of the model) below this: the block
     fits nowhere near the hint (failed)."""
     max_points: int = 4000
     """Tie points of the 2D correlation and of the 3D scores (a random subset)."""
@@ -95,11 +95,24 @@ WALL_DEG = 10.0
 CAMERA_WEIGHT = 0.5
 #: Roll of the cameras (deg) up to which their image x axes count as horizontal.
 CAMERA_ROLL_DEG = 10.0
+#: The cameras' image x axes lie within this angle (RMS, deg) of the horizontal.
+MAX_ROLL_DEG = 20.0
 #: Kernel radii (m) of the 3D scores: height search, refinement rounds, final score.
-HEIGHT_RADIUS, FINAL_RADIUS = 2.0, 1.0
+HEIGHT_RADIUS, FIT_RADIUS, FINAL_RADIUS = 2.0, 1.0, 0.5
+#: Metres below a roof from which a camera or a line of sight is inside the building.
+SOLID_MARGIN = 1.0
+#: Weight of the share of camera rays inside buildings against the share of tie points near
+#: the model: a placement whose cameras look through walls is not the block's.
+RAY_WEIGHT = 1.0
+#: Tie points of the 3D refinement of each placement.
+FIT_POINTS = 2000
+#: Tie points of the height search of each 2D placement.
+HEIGHT_POINTS = 300
 #: A round of the 3D refinement may change the scale by about this much (relative; bounded at
 #: 3 times it): planes alone would pull a block with partly wrong nearest faces smaller.
 SCALE_SIGMA = 0.02
+#: 2D placements per scale (over all headings) that are given a height and a 3D score.
+PER_SCALE = 6
 
 
 def locate(rec: pycolmap.Reconstruction, store: PlaneStore, hint_local: np.ndarray,
@@ -141,6 +154,20 @@ class _ModelNearHint:
     samples_wall: np.ndarray  # (K, 2) points on the walls, seen from above
     samples_roof: np.ndarray  # (K, 2) points on roofs and other faces seen from above
     z_range: tuple[float, float]  # heights of the faces tie points can lie on
+    roofs: tuple  # (lower corner (2,), cell, (I, J) lowest roof height per cell, nan: none)
+
+    def roof_above(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) the lowest roof height above each of the points `xy` (nan: none)."""
+        lower, cell, low = self.roofs
+        idx = np.floor((xy[:, :2] - lower) / cell).astype(int)
+        ok = np.all((idx >= 0) & (idx < low.shape), axis=1)
+        out = np.full(len(xy), np.nan)
+        out[ok] = low[idx[ok, 0], idx[ok, 1]]
+        return out
+
+    def inside(self, points: np.ndarray) -> np.ndarray:
+        """(N,) bool: under a roof by more than SOLID_MARGIN, i.e. inside a building."""
+        return points[:, 2] < self.roof_above(points) - SOLID_MARGIN  # nan compares False
 
 
 def _model_near(store: PlaneStore, hint: np.ndarray, radius: float) -> _ModelNearHint:
@@ -174,11 +201,24 @@ def _model_near(store: PlaneStore, hint: np.ndarray, radius: float) -> _ModelNea
     samples = _sample_triangles(corners, areas, 0.5, rng)
     is_wall = wall[samples[1]]
     keep_w = wall & inside & (areas > 0.5)
+    up = normals[samples[1], 2] > 0.3
     return _ModelNearHint(near, SurfaceDistance(near, excluded),
-                  np.arctan2(normals[keep_w, 1], normals[keep_w, 0]), areas[keep_w],
-                  samples[0][is_wall, :2], samples[0][~is_wall, :2],
-                  (float(vertices[triangles].reshape(-1, 3)[:, 2].min()),
-                   float(vertices[triangles].reshape(-1, 3)[:, 2].max())))
+                          np.arctan2(normals[keep_w, 1], normals[keep_w, 0]), areas[keep_w],
+                          samples[0][is_wall, :2], samples[0][~is_wall, :2],
+                          (float(corners[:, :, 2].min()), float(corners[:, :, 2].max())),
+                          _roof_raster(samples[0][up]))
+
+
+def _roof_raster(samples: np.ndarray, cell: float = 1.0) -> tuple:
+    """The lowest roof height per cell of a grid over the roof samples (nan: no roof)."""
+    if not len(samples):
+        return np.zeros(2), cell, np.full((1, 1), np.nan)
+    lower = samples[:, :2].min(axis=0) - cell
+    idx = np.floor((samples[:, :2] - lower) / cell).astype(int)
+    low = np.full(idx.max(axis=0) + 2, np.inf)
+    np.minimum.at(low, (idx[:, 0], idx[:, 1]), samples[:, 2])
+    low[np.isinf(low)] = np.nan
+    return lower, cell, low
 
 
 def _sample_triangles(corners: np.ndarray, areas: np.ndarray, spacing: float, rng):
@@ -210,6 +250,7 @@ class _LevelledBlock:
     plane_counts: np.ndarray
     depth: float  # median distance (normalised units) from a tie point to the nearest camera
     vertical_cue: str
+    rays: np.ndarray  # (M, 3) points on lines of sight from cameras to their tie points
 
 
 def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOptions) -> _LevelledBlock:
@@ -239,8 +280,28 @@ def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOpti
     members = [m @ level.T for m in members]
     depth = float(np.median(cKDTree(cams).query(q)[0]))
     walls, roofs, angles, wall_counts = _classify_planes(normals, members, cams)
-    return _LevelledBlock(q, level, centre, unit, cams, angles, wall_counts, walls, roofs, counts,
-                  depth, cue)
+    rays = (_ray_samples(rec, ids, options.seed) - centre) / unit @ level.T
+    return _LevelledBlock(q, level, centre, unit, cams, angles, wall_counts, walls, roofs,
+                          counts, depth, cue, rays)
+
+
+def _ray_samples(rec: pycolmap.Reconstruction, ids, seed: int, images: int = 150,
+                 per_image: int = 12) -> np.ndarray:
+    """Points on the lines of sight from cameras to tie points they see (the camera itself
+    and 30, 60, 85 % of the way): free space, outside every building."""
+    rng = np.random.default_rng(seed)
+    chosen = ids if len(ids) <= images else rng.choice(ids, images, replace=False)
+    out = []
+    for image_id in chosen:
+        image = rec.image(int(image_id))
+        seen = [p.point3D_id for p in image.points2D if p.has_point3D()]
+        if not seen:
+            continue
+        pick = rng.choice(seen, min(per_image, len(seen)), replace=False)
+        xyz = np.array([rec.point3D(int(i)).xyz for i in pick])
+        centre = image.projection_center()
+        out += [centre[None, :]] + [centre + f * (xyz - centre) for f in (0.3, 0.6, 0.85)]
+    return np.vstack(out) if out else np.zeros((0, 3))
 
 
 def _vertical(normals: np.ndarray, counts: np.ndarray, right: np.ndarray, up: np.ndarray,
@@ -251,6 +312,11 @@ def _vertical(normals: np.ndarray, counts: np.ndarray, right: np.ndarray, up: np
     mean_up, mean_view = up.mean(axis=0), view.mean(axis=0)
     mean_view /= max(np.linalg.norm(mean_view), 1e-12)
     allowed = (candidates @ mean_up > 0) & (candidates @ mean_view < np.sin(np.radians(20)))
+    # Cameras held about upright: the image x axes lie within MAX_ROLL_DEG of the horizontal
+    # (RMS). Sloped roofs of one pitch can make a block on its side fit the planes better.
+    upright = np.mean((right @ candidates.T) ** 2, axis=0) < np.sin(np.radians(MAX_ROLL_DEG)) ** 2
+    if np.any(allowed & upright):
+        allowed &= upright
     candidates = candidates[allowed] if np.any(allowed) else candidates
 
     def score(v: np.ndarray) -> np.ndarray:
@@ -421,12 +487,17 @@ def _search_2d(block: _LevelledBlock, model: _ModelNearHint, hint: np.ndarray, o
                 spectrum = spectrum + np.conj(fft.rfft2(image)) * channel
             corr = fft.irfft2(spectrum, s=(n, n))
             corr[~allowed] = -1.0
-            found += _peaks(corr, ax, ay, yaw, scale, 3)
-    found.sort(key=lambda h: -h.score)
+            found += _peaks(corr, ax, ay, yaw, scale, PER_SCALE)
     logger.info("model-only georegistration: %d headings x %d scales (%.3g-%.3g m per unit) "
                 "correlated, best 2D score %.2f", len(yaws), len(scales), scales[0],
-                scales[-1], found[0].score if found else float("nan"))
-    return _distinct(found, options.hypotheses, 3.0 * cell, np.radians(5.0), 0.06)
+                scales[-1], max((h.score for h in found), default=float("nan")))
+    # Seen from above, a block shrunk onto one building fits as well as the true one: the
+    # best of every scale go on to the 3D score, not the best overall.
+    chosen = []
+    for scale in scales:
+        of_scale = sorted((h for h in found if h.scale == scale), key=lambda h: -h.score)
+        chosen += of_scale[:PER_SCALE]
+    return chosen
 
 
 def _subset(points: np.ndarray, n: int, rng) -> np.ndarray:
@@ -477,27 +548,45 @@ def _share(model: _ModelNearHint, points: np.ndarray, radius: float) -> float:
     return near_share(model.surface(points, radius), radius)
 
 
+def _score(model: _ModelNearHint, block: _LevelledBlock, sim3: pycolmap.Sim3d,
+           points: np.ndarray, radius: float) -> float:
+    """Share of tie points near the model less RAY_WEIGHT x the share of ray samples inside
+    buildings."""
+    inside = model.inside(_apply(sim3, block.rays)).mean() if len(block.rays) else 0.0
+    return _share(model, _apply(sim3, points), radius) - RAY_WEIGHT * float(inside)
+
+
 def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_Hypothesis],
                options: LocateOptions) -> list[_Hypothesis]:
     """Height by the share of tie points near the model, then rounds of nearest faces and a
     similarity to their planes; each scored by the share within FINAL_RADIUS."""
     rng = np.random.default_rng(options.seed + 1)
     points = _subset(block.points, options.max_points, rng)
-    few = points[:800]
-    out = []
+    few = points[:HEIGHT_POINTS]
     for h in hypotheses:
-        flat = _as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0])
-        moved = _apply(flat, few)
+        moved = _apply(_as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0]), few)
         zs = np.arange(model.z_range[0] - moved[:, 2].max() - 5.0,
                        model.z_range[1] - moved[:, 2].min() + 5.0, 1.0)
         if not len(zs):
             continue
-        shares = [_share(model, moved + [0, 0, z], HEIGHT_RADIUS) for z in zs]
-        z = float(zs[int(np.argmax(shares))])
-        sim3 = _as_sim3(h.yaw, h.scale, np.r_[h.shift, z])
-        sim3 = _fit_to_planes(sim3, points, model)
-        out.append(_Hypothesis(h.score, h.yaw, h.scale, h.shift, z, sim3,
-                               _share(model, _apply(sim3, points), FINAL_RADIUS)))
+        stack = (moved[None, :, :] + zs[:, None, None] * [0, 0, 1.0]).reshape(-1, 3)
+        u = np.clip(model.surface(stack, HEIGHT_RADIUS).reshape(len(zs), -1) / HEIGHT_RADIUS,
+                    0, 1)
+        shares = np.mean((1 - u * u) ** 2, axis=1)
+        if len(block.rays):
+            rays = _apply(_as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0]), block.rays)
+            limit = model.roof_above(rays) - SOLID_MARGIN
+            inside = rays[None, :, 2] + zs[:, None] < limit[None, :]
+            shares = shares - RAY_WEIGHT * inside.mean(axis=1)
+        h.z, h.share = float(zs[int(np.argmax(shares))]), float(shares.max())
+    ranked = sorted(hypotheses, key=lambda h: -h.share)
+    ranked = _distinct(ranked, options.hypotheses, 3.0, np.radians(5.0), 0.06)
+    out = []
+    for h in ranked:
+        sim3 = _fit_to_planes(_as_sim3(h.yaw, h.scale, np.r_[h.shift, h.z]),
+                              points[:FIT_POINTS], model)
+        out.append(_Hypothesis(h.score, h.yaw, h.scale, h.shift, h.z, sim3,
+                               _score(model, block, sim3, points, FINAL_RADIUS)))
     out.sort(key=lambda h: -h.share)
     return out
 
@@ -509,7 +598,7 @@ def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHi
     from .initial_alignment import similarity_to_planes
 
     store = model.store
-    best, best_share = sim3, _share(model, _apply(sim3, points), FINAL_RADIUS)
+    best, best_share = sim3, _share(model, _apply(sim3, points), FIT_RADIUS)
     for threshold in (3.0, 2.0, 1.0, 1.0, 0.6):
         moved = _apply(best, points)
         faces, _ = store.closest_faces(moved, threshold)
@@ -520,7 +609,7 @@ def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHi
                                    store.offsets[faces[ok]], 0.3, max_iterations=20,
                                    scale_sigma=SCALE_SIGMA)
         candidate = fit.sim3 * best
-        share = _share(model, _apply(candidate, points), FINAL_RADIUS)
+        share = _share(model, _apply(candidate, points), FIT_RADIUS)
         if share <= best_share:
             break
         best, best_share = candidate, share
