@@ -276,6 +276,20 @@ def test_closest_faces_picks_nearest_plane():
     np.testing.assert_allclose(d[:2], [0.3, -0.2])
 
 
+def test_with_plane_shifts_moves_each_plane_along_its_normal():
+    # two parallel floors 1 m apart; the lower one moved 0.4 m up, the upper one 0.1 m down
+    lo = np.array([[0, 0, 0], [4, 0, 0], [4, 4, 0], [0, 4, 0]], float)
+    store = store_from_polygons([lo, lo + [0, 0, 1]], origin=np.zeros(3))
+    shifted = store.with_plane_shifts(np.array([-0.4, 0.1]))
+    points = np.array([[2, 2, 0.3], [2, 2, 0.8], [4.05, 2, 0.45]])
+    face, d = shifted.closest_faces(points, 0.2)
+    assert face.tolist() == [0, 1, 0]  # the outline (and its margin) stays the face's
+    np.testing.assert_allclose(d, [-0.1, -0.1, 0.05])
+    np.testing.assert_allclose(shifted.normals, store.normals)
+    with pytest.raises(ValueError):
+        store.with_plane_shifts(np.zeros(3))
+
+
 def test_with_vertices_and_subset_bbox():
     store = store_from_polygons(cube() + cube((5, 0, 0)), semantics=CUBE_SEM * 2,
                                 origin=np.zeros(3), building_ids=["a"] * 6 + ["b"] * 6)

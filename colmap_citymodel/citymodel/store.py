@@ -462,6 +462,24 @@ class PlaneStore:
             _cache={k: v for k, v in self._cache.items() if k == "visibility"},
         )
 
+    def with_plane_shifts(self, shifts: np.ndarray) -> PlaneStore:
+        """Same faces with each plane moved along its normal so that the signed distance of a
+        point X becomes n . X + d + shifts[f] ((F,) m): the surface a face's tie points lie on
+        when it stands `-shifts[f]` off the face. Outlines in the plane, and so every
+        containment and visibility test, stay the face's own."""
+        shifts = np.asarray(shifts, dtype=np.float64)
+        if shifts.shape != (self.num_faces,):
+            raise ValueError(f"shifts must have shape ({self.num_faces},), got {shifts.shape}")
+        return replace(
+            self,
+            centroids=self.centroids - shifts[:, None] * self.normals,
+            warnings=list(self.warnings),
+            # Edges and grids are in each face's own 2D frame, which a move along the normal
+            # keeps, as it keeps what is hidden.
+            _cache={k: v for k, v in self._cache.items() if k in ("visibility", "edges", "fv",
+                                                                 "vf")},
+        )
+
     def subset_bbox(self, bbox_local_min, bbox_local_max) -> PlaneStore:
         """Faces whose vertex AABB touches the box, with only their vertices (re-indexed)."""
         bmin = np.asarray(bbox_local_min, dtype=np.float64)
