@@ -18,6 +18,7 @@ import pycolmap
 
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
+from ..citymodel.ground_faces import terrain_faces, terrain_groups
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
 
@@ -80,7 +81,8 @@ def face_tilts(store: PlaneStore, faces, sigma_generalisation: float) -> dict[in
 
 def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                       centre: np.ndarray, sigma: float, sigma_generalisation: float,
-                      tilts: dict[int, FaceTilt] | None = None) -> list[np.ndarray]:
+                      tilts: dict[int, FaceTilt] | None = None,
+                      shared_sigmas: dict[int, float] | None = None) -> list[np.ndarray]:
     """7x7 information of the datum from the tie points of each plane (one group per plane):
     each plane's points share its offset error (sigma_generalisation) and, for the groups in
     `tilts`, its tilt error."""
@@ -92,7 +94,8 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
         j = jac[selected]
         # The shared error's columns: the offset and, when known, the two tilts (square root
         # of their covariance), as distances along the normal at each point.
-        shared = np.full((len(j), 1), sigma_generalisation)
+        shared = np.full((len(j), 1), sigma_generalisation if shared_sigmas is None
+                         else shared_sigmas.get(int(group), sigma_generalisation))
         tilt = None if tilts is None else tilts.get(int(group))
         if tilt is not None:
             shared = np.hstack([shared, tilt.distances(points[selected])])
@@ -153,7 +156,8 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
 def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
                   sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
-                  tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None) -> dict:
+                  tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None,
+                  terrain: dict[int, tuple[int, float]] | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
@@ -166,8 +170,14 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
               else points.mean(0))
+    # Terrain faces (citymodel.ground_faces): one group per terrain unit, with its sigma.
+    shared_sigmas, terrain_keys = None, set()
+    if terrain:
+        groups, shared_sigmas, terrain_keys = terrain_groups(groups, terrain)
     per_plane = (plane_information(points, normals, groups, centre, sigma_dtp,
-                                   sigma_generalisation, tilts) if len(points) else [])
+                                   sigma_generalisation, tilts, shared_sigmas)
+                 if len(points) else [])
+    by_terrain = terrain_shares(per_plane, np.unique(groups), terrain_keys)
     planes = sum(per_plane, np.zeros((7, 7)))
     has_gnss = gnss_positions is not None and len(gnss_positions)
     gnss = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes)
@@ -203,13 +213,30 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         # What a user can rely on: a direction that rests on one unchecked plane is as precise
         # as GNSS makes it (nothing shows when that plane's assignment is wrong).
         sigma = s_biased[k] if one_plane and g_ok else s_both[k]
-        out[name] = {"source": source,
+        out[name] = {"source": source, **by_terrain[k],
                      "one_plane": one_plane,
                      "sigma": _finite(sigma * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
                      "sigma_gnss_with_bias": _finite(s_biased[k] * factor)}
     return out
+
+
+def terrain_shares(per_plane: list[np.ndarray], keys: np.ndarray, terrain_keys: set
+                   ) -> list[dict]:
+    """Per datum parameter: {} without terrain, else `terrain` (True where the buildings'
+    planes alone know it DOMINANCE times worse than with the terrain: the ground fixes it)
+    and `sigma_terrain` (the terrain's units alone)."""
+    if not terrain_keys or not per_plane:
+        return [{} for _ in DATUM]
+    is_terrain = np.isin(keys, list(terrain_keys))
+    ground = sum((p for p, t in zip(per_plane, is_terrain) if t), np.zeros((7, 7)))
+    buildings = sum((p for p, t in zip(per_plane, is_terrain) if not t), np.zeros((7, 7)))
+    s_all, s_ground, s_buildings = _sigmas(ground + buildings), _sigmas(ground), \
+        _sigmas(buildings)
+    return [{"terrain": bool(np.isfinite(s_all[k]) and s_buildings[k] > DOMINANCE * s_all[k]),
+             "sigma_terrain": _finite(s_ground[k] * (np.degrees(1.0) if k > 3 else 1.0))}
+            for k in range(len(DATUM))]
 
 
 def _finite(value: float) -> float | None:
@@ -246,7 +273,8 @@ def datum_line(observability_dict: dict) -> str:
     for name, row in observability_dict.items():
         unit = " deg" if name.startswith("rotation") else "" if name == "scale" else " m"
         sigma = f" ({row['sigma']:.3g}{unit})" if row["sigma"] is not None else ""
-        parts.append(f"{name} {row['source']}{sigma}")
+        source = f"{row['source']} (terrain)" if row.get("terrain") else row["source"]
+        parts.append(f"{name} {source}{sigma}")
     return ", ".join(parts)
 
 
@@ -265,7 +293,8 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          options.adjustment.sigma_dtp, sigma_gen,
                          priors.offset_axes if priors is not None else None,
                          face_tilts(store, faces, sigma_gen),
-                         gnss_bias_sigmas(priors, options.adjustment.gnss_bias_share))
+                         gnss_bias_sigmas(priors, options.adjustment.gnss_bias_share),
+                         terrain=terrain_faces(store, faces))
 
 
 def gnss_bias_sigmas(priors: GNSSPriors | None, share: float) -> np.ndarray | None:

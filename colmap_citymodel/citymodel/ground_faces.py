@@ -250,3 +250,27 @@ def terrain_residuals(store, assignment, points: np.ndarray) -> dict:
                 "rms_m": float(np.sqrt(np.mean(d[mine] ** 2)))}
     return {"num_points": int(len(rows)),
             "rms_m": float(np.sqrt(np.mean(d ** 2))) if len(rows) else None, "units": units}
+
+
+def terrain_faces(store, faces: np.ndarray) -> dict[int, tuple[int, float]] | None:
+    """{face: (terrain unit, sigma m)} for the terrain faces among `faces` (None: none), for
+    the datum's observability (adjust.observability): a unit's points share its offset."""
+    unit, sigma, _ = terrain_units(store)
+    faces = np.unique(np.asarray(faces, np.int64))
+    on = faces[unit[faces] >= 0]
+    if not len(on):
+        return None
+    return {int(f): (int(unit[f]), float(sigma[f])) for f in on}
+
+
+def terrain_groups(groups: np.ndarray, terrain: dict[int, tuple[int, float]]):
+    """`groups` (a face per point) with the terrain faces' points grouped by unit (keys
+    -1 - unit, apart from every face), the units' sigmas by key, and the set of those keys."""
+    groups = np.asarray(groups, np.int64).copy()
+    shared, keys = {}, set()
+    for face, (unit, sigma) in terrain.items():
+        key = -1 - unit
+        groups[groups == face] = key
+        keys.add(key)
+        shared.setdefault(key, []).append(sigma)
+    return groups, {k: float(np.sqrt(np.mean(np.square(v)))) for k, v in shared.items()}, keys

@@ -383,6 +383,9 @@ FOOT_SPACING = 2.0
 #: A wall vertex within this height (m) of its face's lowest vertex lies on its lowest edge.
 LOWEST_EDGE = 0.05
 
+#: A foot point lies within this distance (m) of the footprints' outline.
+FOOT_OUTLINE = 0.3
+
 
 def building_feet(store) -> Feet:
     """The feet of the buildings of `store` (citymodel.store.PlaneStore)."""
@@ -411,8 +414,13 @@ def building_feet(store) -> Feet:
             if len(ring) >= 3:
                 rings.append(shapely.Polygon(ring[:, :2]).buffer(0))
     footprints = shapely.unary_union(rings) if rings else shapely.Polygon()
-    pts = np.concatenate(points) + store.origin
-    return Feet(pts, np.concatenate(owner), list(store.faces.building_id.categories),
+    pts, owner = np.concatenate(points), np.concatenate(owner)
+    if not footprints.is_empty:
+        # A wall standing on a lower roof (a set-back storey, a tower on its building) has
+        # its lowest edge inside the footprint, above the ground: only the outline's count.
+        edge = shapely.distance(footprints.boundary, shapely.points(pts[:, :2]))
+        pts, owner = pts[edge < FOOT_OUTLINE], owner[edge < FOOT_OUTLINE]
+    return Feet(pts + store.origin, owner, list(store.faces.building_id.categories),
                 shapely.transform(footprints, lambda xy: xy + store.origin[:2]))
 
 

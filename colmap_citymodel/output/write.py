@@ -15,6 +15,7 @@ import numpy as np
 import pycolmap
 
 from ..adjust.record import cameras_settled
+from ..citymodel.ground_faces import terrain_mask
 from ..errors import InputError
 from ..files import atomic_directory, write_point_ply
 from ..precision.figures import html_page
@@ -24,6 +25,7 @@ from .result import RefineResult
 logger = logging.getLogger(__name__)
 
 UNASSIGNED_GREY = (160, 160, 160)
+TERRAIN_BROWN = (150, 105, 60)
 
 
 def face_colours(num_faces: int) -> np.ndarray:
@@ -42,6 +44,8 @@ def write_assignments_ply(result: RefineResult, path: Path, offset: np.ndarray) 
     colours = np.tile(np.array(UNASSIGNED_GREY, np.uint8), (len(xyz), 1))
     palette = face_colours(len(result.store.faces))
     colours[a.assigned] = palette[a.face_index[a.assigned]]
+    ground = a.assigned & terrain_mask(result.store)[np.maximum(a.face_index, 0)]
+    colours[ground] = TERRAIN_BROWN  # ground tie points on the terrain faces
     write_point_ply(path, xyz + offset, colours,
                     {"face": a.face_index.astype(np.float32),
                      "distance": np.nan_to_num(a.distance, nan=-1.0).astype(np.float32)})
@@ -155,7 +159,23 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "gnss_height_offset": result.gnss_offset,
         "workflow": result.options.workflow.mode,
         "sliding_window": result.sliding_window,
+        "terrain": result.terrain,
     }
+
+
+def terrain_lines(terrain: dict | None) -> list[str]:
+    """report.md's line on the terrain the ground tie points were held to."""
+    if not terrain or terrain.get("source") in (None, "none"):
+        return []
+    residuals = terrain.get("residuals") or {}
+    rms = residuals.get("rms_m")
+    line = (f"Terrain: {terrain['source']} ({', '.join(terrain.get('tiles', [])[:4])}"
+            f"{', ...' if len(terrain.get('tiles', [])) > 4 else ''}), "
+            f"{terrain.get('num_faces', 0)} cells of {terrain.get('cell_m', 0):g} m, "
+            f"{residuals.get('num_points', 0)} ground tie points"
+            + (f", RMS {rms:.3f} m from it" if rms is not None else "") + ".")
+    return [line, ""] + [f"- {w}" for w in terrain.get("warnings", [])] + (
+        [""] if terrain.get("warnings") else [])
 
 
 def _number(value, fmt: str = "{:.4f}") -> str:
@@ -191,6 +211,7 @@ def report_markdown(report: dict) -> str:
                   f"{100 * t['near_share_after']:.0f} %"
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
+    lines += terrain_lines(report.get("terrain"))
     offset = report.get("gnss_height_offset")
     if offset:
         sigma = f" +- {offset['sigma_m']:.2f}" if offset["sigma_m"] is not None else ""
