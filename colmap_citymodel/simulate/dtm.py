@@ -73,3 +73,69 @@ def _spacing_in(crs: str, spacing: float, fx, fy, to_model) -> float:
     ax, ay = to_model.transform([x, x + d], [y, y])
     metres = float(np.hypot(ax[1] - ax[0], ay[1] - ay[0]))
     return spacing * d / metres
+
+
+def true_ground_grid(triangles: np.ndarray, spacing: float = 1.0):
+    """The height of the ground triangles (T, 3, 3), local frame, at posts `spacing` apart
+    over their extent (vertical rays from above): (x0, y_top, heights (rows, cols) with row 0
+    at the top, nan where no triangle is)."""
+    import open3d as o3d
+
+    lo, hi = triangles[:, :, :2].min((0, 1)), triangles[:, :, :2].max((0, 1))
+    xs = np.arange(np.ceil(lo[0]), hi[0], spacing)
+    ys = np.arange(np.floor(hi[1]), lo[1], -spacing)
+    gx, gy = np.meshgrid(xs, ys)
+    scene = o3d.t.geometry.RaycastingScene()
+    vertices = triangles.reshape(-1, 3).astype(np.float32)
+    scene.add_triangles(o3d.core.Tensor(vertices),
+                        o3d.core.Tensor(np.arange(len(vertices), dtype=np.uint32).reshape(-1, 3)))
+    top = float(triangles[:, :, 2].max()) + 10.0
+    rays = np.c_[gx.ravel(), gy.ravel(), np.full(gx.size, top),
+                 np.zeros(gx.size), np.zeros(gx.size), -np.ones(gx.size)].astype(np.float32)
+    hit = scene.cast_rays(o3d.core.Tensor(rays))["t_hit"].numpy().astype(np.float64)
+    heights = np.where(np.isfinite(hit), top - hit, np.nan).reshape(gx.shape)
+    return float(xs[0]), float(ys[0]), heights
+
+
+def write_grid(path, x0: float, y_top: float, spacing: float, heights: np.ndarray,
+               crs: str) -> Path:
+    """`heights` (rows, cols; row 0 at y_top, posts at their cell centres' coordinates
+    x0 + j * spacing, y_top - i * spacing) as a float32 GeoTIFF in `crs`; nan -> nodata."""
+    import rasterio
+    from rasterio.transform import from_origin
+
+    path = Path(path)
+    with rasterio.open(path, "w", driver="GTiff", width=heights.shape[1],
+                       height=heights.shape[0], count=1, dtype="float32", crs=crs,
+                       nodata=NODATA, transform=from_origin(x0 - spacing / 2, y_top + spacing / 2,
+                                                            spacing, spacing)) as dst:
+        dst.write(np.where(np.isfinite(heights), heights, NODATA).astype(np.float32), 1)
+    return path
+
+
+def dtm_from_truth(truth_tif, directory, *, tiles: int, offset_sigma: float,
+                   noise_sigma: float, seed: int) -> list[Path]:
+    """The true ground grid `truth_tif` cut into `tiles` tiles along x, each with its own
+    height offset (N(0, offset_sigma^2)) and white noise per post, written as
+    `directory`/dtm_<k>.tif; returns their paths."""
+    import rasterio
+
+    rng = np.random.default_rng([seed, 4712])
+    directory = Path(directory)
+    directory.mkdir(parents=True, exist_ok=True)
+    with rasterio.open(truth_tif) as src:
+        z = src.read(1, masked=True).filled(np.nan).astype(np.float64)
+        transform, crs = src.transform, src.crs
+    spacing = transform.a
+    x0, y_top = transform.c + spacing / 2, transform.f - spacing / 2
+    edges = np.linspace(0, z.shape[1], tiles + 1).astype(int)
+    offsets = rng.normal(0.0, offset_sigma, tiles)
+    paths = []
+    for k in range(tiles):
+        part = z[:, edges[k]:edges[k + 1]] + offsets[k]
+        part = part + rng.normal(0.0, noise_sigma, part.shape)
+        paths.append(write_grid(directory / f"dtm_{k}.tif", x0 + edges[k] * spacing, y_top,
+                                spacing, part, crs))
+    logger.info("DTM: %d tile(s), offsets %s m, noise %.2f m", tiles,
+                np.round(offsets, 3).tolist(), noise_sigma)
+    return paths

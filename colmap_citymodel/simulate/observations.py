@@ -11,7 +11,7 @@ import numpy as np
 
 from .flight import Flight
 from .scenario import STAGE_CHECK, STAGE_GNSS, STAGE_OBS, STAGE_POINTS, CheckPointOptions, GNSSOptions, ObservationOptions
-from .scene import LABEL_ROOF, LABEL_WALL, TrueScene
+from .scene import LABEL_GROUND, LABEL_ROOF, LABEL_WALL, TrueScene
 
 logger = logging.getLogger(__name__)
 
@@ -48,17 +48,21 @@ def sample_surface_points(scene: TrueScene, density: float, rng: np.random.Gener
 
 
 def visibility(flight: Flight, points: np.ndarray, normals: np.ndarray, raycaster,
-               opt: ObservationOptions, progress: bool = True):
+               opt: ObservationOptions, progress: bool = True,
+               max_incidence_deg: np.ndarray | None = None):
     """All (point, frame) pairs where the point projects into the image, lies within the
-    distance limits, is seen at an incidence below the limit and is not occluded (the first ray
-    hit from the camera is the point itself, +-2 cm). Returns point index, frame index, pixel
-    coordinates (no noise) and unit viewing rays."""
+    distance limits, is seen at an incidence below the limit (per point when
+    `max_incidence_deg` is given) and is not occluded (the first ray hit from the camera is the
+    point itself, +-2 cm). Returns point index, frame index, pixel coordinates (no noise) and
+    unit viewing rays."""
     import open3d as o3d
     from scipy.spatial import cKDTree
     from tqdm import tqdm
 
     tree = cKDTree(points)
-    cos_max = math.cos(math.radians(opt.max_incidence_deg))
+    cos_max = (np.cos(np.radians(np.asarray(max_incidence_deg, float)))
+               if max_incidence_deg is not None
+               else np.full(len(points), math.cos(math.radians(opt.max_incidence_deg))))
     P, F, UV, RAY = [], [], [], []
     m = opt.image_margin
     frames = range(len(flight.names))
@@ -75,7 +79,7 @@ def visibility(flight: Flight, points: np.ndarray, normals: np.ndarray, raycaste
         ray = points[idx] - C
         dist = np.linalg.norm(ray, axis=1)
         ray /= dist[:, None]
-        inc = np.abs(np.einsum("ij,ij->i", ray, normals[idx])) >= cos_max
+        inc = np.abs(np.einsum("ij,ij->i", ray, normals[idx])) >= cos_max[idx]
         idx, uv, ray, dist = idx[inc], uv[inc], ray[inc], dist[inc]
         if len(idx) == 0:
             continue
@@ -114,9 +118,12 @@ def simulate_observations(flight: Flight, scene: TrueScene, raycaster,
     rng = np.random.default_rng([seed, STAGE_OBS])
     pts, tri = sample_surface_points(scene, opt.points_per_m2, rng_pts, near=flight.centres,
                                      radius=opt.max_distance)
+    limits = np.full(len(pts), float(opt.max_incidence_deg))
+    if opt.ground_points_per_m2 is not None or opt.ground_max_incidence_deg is not None:
+        pts, tri, limits = _ground_features(scene, opt, flight, pts, tri, limits, rng_pts)
     normals = scene.normals[tri]
     logger.info("%d candidate feature points on the true surfaces", len(pts))
-    p_idx, f_idx, uv, ray = visibility(flight, pts, normals, raycaster, opt, progress)
+    p_idx, f_idx, uv, ray = visibility(flight, pts, normals, raycaster, opt, progress, limits)
     num_visible = len(p_idx)
     # detection losses
     det = rng.random(len(p_idx)) < opt.detection_probability
@@ -195,6 +202,24 @@ def simulate_observations(flight: Flight, scene: TrueScene, raycaster,
             n_out_total += len(m) - (e - s)
     return Observations(track_xyz, track, f_idx, kp_index, uv, keypoints, pairs, n_out_total,
                         len(pts), num_visible)
+
+
+def _ground_features(scene: TrueScene, opt: ObservationOptions, flight: Flight, pts, tri,
+                     limits, rng):
+    """The ground's candidate features at `ground_points_per_m2` (instead of points_per_m2)
+    and seen up to `ground_max_incidence_deg`: road markings, kerbs and paving are matched
+    at grazing angles a facade's texture is not."""
+    ground = scene.labels[tri] == LABEL_GROUND
+    if opt.ground_points_per_m2 is not None:
+        more, more_tri = sample_surface_points(scene, opt.ground_points_per_m2, rng,
+                                               near=flight.centres, radius=opt.max_distance,
+                                               labels=(LABEL_GROUND,))
+        pts, tri = np.vstack([pts[~ground], more]), np.concatenate([tri[~ground], more_tri])
+        ground = scene.labels[tri] == LABEL_GROUND
+        limits = np.full(len(pts), float(opt.max_incidence_deg))
+    if opt.ground_max_incidence_deg is not None:
+        limits[ground] = opt.ground_max_incidence_deg
+    return pts, tri, limits
 
 
 @dataclass

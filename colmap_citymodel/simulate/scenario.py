@@ -27,7 +27,11 @@ FLIGHT_MODES = ("sideways", "forward", "orbit")
 # Options left out of the sequence key while they hold these defaults, so that sequences
 # cached without them keep their keys.
 _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_radius": 35.0},
-                "gnss": {"bias_magnitude": 0.0}}
+                "gnss": {"bias_magnitude": 0.0},
+                "observations": {"ground_points_per_m2": None,
+                                 "ground_max_incidence_deg": None},
+                "details": {"kerb_height": 0.0, "sidewalk_width": 3.0,
+                            "road_cross_slope": 0.0}}
 
 
 @dataclass
@@ -91,6 +95,11 @@ class ObservationOptions:
     match_window: int = 10  # sequential matching: each key frame with the next N
     min_matches: int = 15  # pairs with fewer matches are not written
     image_margin: float = 2.0  # px
+    # The ground's features (road markings, kerbs, paving): their density (None: as the
+    # other surfaces') and the steepest incidence at which they are still matched (None: as
+    # the others'); a street camera sees the road at grazing angles.
+    ground_points_per_m2: float | None = None
+    ground_max_incidence_deg: float | None = None
 
 
 @dataclass
@@ -133,6 +142,13 @@ class ScenarioOptions:
     model: str = "corrected"  # detailed | corrected | original | none
     gnss: str = "all"  # all | first | none
     gnss_first_n: int = 50
+    # A DTM beside the model (dtm/dtm_<k>.tif, from truth/ground.tif): dtm_tiles tiles along
+    # x, each with its own height offset ~ N(0, dtm_offset_sigma^2), white noise dtm_noise (m)
+    # per 1 m post.
+    dtm: bool = False
+    dtm_tiles: int = 2
+    dtm_offset_sigma: float = 0.10
+    dtm_noise: float = 0.15
 
 
 @dataclass

@@ -88,6 +88,12 @@ class DetailOptions:
     car_spacing: float = 18.0  # mean spacing of parked cars (0: none)
     camera_clearance: float = 3.0  # no clutter closer than this to a camera
     ground_cell: float = 4.0  # terrain grid cell (m)
+    # The street's shape beside the buildings' feet (GroundModel): pavements sidewalk_width
+    # wide along the footprints stand kerb_height above the road, and the road falls by
+    # road_cross_slope per metre from the kerb (up to ROAD_CAMBER_WIDTH m out). 0: flat.
+    kerb_height: float = 0.0
+    sidewalk_width: float = 3.0
+    road_cross_slope: float = 0.0
     min_wall_length: float = 2.0  # smaller walls stay plain
 
 
@@ -441,11 +447,22 @@ def building_footprints(store: PlaneStore) -> dict[str, Polygon]:
     return out
 
 
+#: Metres from the kerb over which a road's cross slope falls (half a carriageway).
+ROAD_CAMBER_WIDTH = 6.0
+
+
 class GroundModel:
     """Terrain height: linear interpolation of the buildings' lowest vertices (nearest outside
-    their hull). Real LOD2 models put GroundSurfaces at the terrain; this is the street level."""
+    their hull). Real LOD2 models put GroundSurfaces at the terrain; this is the street level.
+    With `details` (DetailOptions) kerbs, pavements and the road's cross slope are added."""
 
-    def __init__(self, store: PlaneStore):
+    def __init__(self, store: PlaneStore, details: DetailOptions | None = None):
+        self._shape = None
+        if details is not None and (details.kerb_height or details.road_cross_slope):
+            self._shape = (details, _footprint_edges(store))
+        self._feet(store)
+
+    def _feet(self, store: PlaneStore) -> None:
         from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
 
         pts = []
@@ -475,7 +492,30 @@ class GroundModel:
         bad = ~np.isfinite(z)
         if bad.any():
             z[bad] = self._nearest(xy[bad])
+        if self._shape is not None:
+            details, (edges, footprints) = self._shape
+            d = edges.query(xy)[0]
+            d[shapely.contains_xy(footprints, xy[:, 0], xy[:, 1])] = 0.0
+            road = d > details.sidewalk_width
+            z = z - details.kerb_height * road - details.road_cross_slope * np.clip(
+                d - details.sidewalk_width, 0.0, ROAD_CAMBER_WIDTH)
         return z
+
+
+def _footprint_edges(store: PlaneStore, step: float = 0.25):
+    """A KD-tree of points every `step` m along the buildings' footprint outlines, and the
+    footprints (shapely, local xy)."""
+    from scipy.spatial import cKDTree
+
+    union = shapely.unary_union(list(building_footprints(store).values()))
+    points = []
+    for poly in _polygons_of(union):
+        for ring in [poly.exterior, *poly.interiors]:
+            n = max(int(ring.length / step), 4)
+            points.append(np.array([ring.interpolate(t, normalized=True).coords[0]
+                                    for t in np.linspace(0, 1, n, endpoint=False)]))
+    shapely.prepare(union)
+    return cKDTree(np.concatenate(points)[:, :2]), union
 
 
 # ----------------------------------------------------------------------------------------------

@@ -126,7 +126,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
     seed = options.seed
     out.mkdir(parents=True)
     store = _load_store(options)
-    ground = GroundModel(store)
+    ground = GroundModel(store, options.details)
     flight = plan_flight(store, options.flight, seed, ground)
     logger.info("%d key frames along %.0f m of path", len(flight.names), flight.arc[-1])
     roi = options.observations.max_distance + 5.0
@@ -175,6 +175,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         f"# crs: {store.crs.label}\n")
     scene.to_trimesh().export(truth / "true_scene.ply")
     np.save(truth / "true_scene_labels.npy", scene.labels)
+    _write_true_ground(scene, origin, store.crs, truth / "ground.tif")
 
     # check points, GNSS
     cp_crs = cps.xyz + origin
@@ -257,6 +258,20 @@ COLMAP registered {reg} of {frames} images ({models} model(s)).
 """
 
 
+def _write_true_ground(scene, origin: np.ndarray, crs, path: Path) -> None:
+    """truth/ground.tif: the true scene's ground at 1 m posts (model CRS), which a scenario's
+    DTM (`scenario.dtm`) is made from."""
+    from .dtm import true_ground_grid, write_grid
+    from .scene import LABEL_GROUND
+
+    ground = scene.triangles[scene.labels == LABEL_GROUND]
+    if not len(ground) or crs.horizontal_epsg is None:
+        return
+    x0, y_top, heights = true_ground_grid(ground)
+    write_grid(path, x0 + origin[0], y_top + origin[1], 1.0, heights + origin[2],
+               f"EPSG:{crs.horizontal_epsg}")
+
+
 def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dict:
     """A scenario workspace from a built sequence: copies, then restricts GNSS priors and picks
     the given model."""
@@ -293,6 +308,15 @@ def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dic
         db.close()
     if sc.model != "none":
         shutil.copy2(out / "models" / f"{sc.model}.gml", out / "given_model.gml")
+    if sc.dtm:
+        from .dtm import dtm_from_truth
+
+        if not (out / "truth" / "ground.tif").exists():
+            raise InputError("scenario.dtm needs the sequence's truth/ground.tif (a sequence "
+                             "with ground in a CRS with an EPSG code)", seq_dir)
+        dtm_from_truth(out / "truth" / "ground.tif", out / "dtm", tiles=sc.dtm_tiles,
+                       offset_sigma=sc.dtm_offset_sigma, noise_sigma=sc.dtm_noise,
+                       seed=options.seed)
     for i, src in enumerate(options.source_files):
         dst = "scenario.toml" if i == len(options.source_files) - 1 else "sequence.toml"
         shutil.copy2(src, out / dst)
