@@ -169,6 +169,9 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
     quality.add_argument("--sigma_generalisation", type=float, default=None, metavar="M",
                          help="per-plane generalisation error (m; Unger's typical size 0.2): "
                               "report generalisation-aware sigmas beside the classical ones")
+    quality.add_argument("--tolerance", type=float, default=None, metavar="METRES",
+                         help="position tolerance of the verdict (3D sigma, m; default 0.2): "
+                              "a result whose stated sigma exceeds it is 'weak'")
     quality.add_argument("--variance_components", action="store_true", default=None,
                          help="iterated variance components of image and f_dTP, then a "
                               "re-weighted final solve")
@@ -185,7 +188,7 @@ def _citymodel_kwargs(args) -> dict:
                gnss_bias=args.gnss_bias, lever_arm=args.lever_arm,
                checkpoints=args.checkpoints,
                checkpoint_observations=args.checkpoint_observations,
-               sigma_generalisation=args.sigma_generalisation,
+               sigma_generalisation=args.sigma_generalisation, tolerance=args.tolerance,
                variance_components=args.variance_components, assignment=args.assignment,
                write_model=args.write_model, workflow=args.workflow, terrain=args.terrain,
                terrain_sigma=args.terrain_sigma)

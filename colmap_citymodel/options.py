@@ -66,6 +66,14 @@ class AssignmentOptions:
     30 deg) that contains its projection, off its plane, is at least this much (m) further away:
     a point between a facade and a set-back storey or an arcade goes to neither. sigma_dtp's
     size; 0: off."""
+    window: str = "plane"
+    """(a) in refine's loop: "plane", a tie point within the threshold of the face's plane;
+    "centred", within it of the face's own surface (the median signed distance of the points
+    within `window_reach` beyond the threshold), so that a face standing off its surface keeps
+    its points from both sides instead of the side toward the plane, wherever the block is."""
+    window_reach: float = 0.4
+    """With `window` "centred": how far (m) beyond the threshold a face's points are looked for:
+    twice a LOD2 face's generalisation sigma (0.2 m, Unger 5.3)."""
     polygon_margin: float = 0.1
     """A point's projection may lie this far (m) outside the face polygon and still count."""
     excluded_classes: tuple[str, ...] = ("GroundSurface", "ClosureSurface")
@@ -259,6 +267,11 @@ class AdjustmentOptions:
     (receiver, multipath along a street, datum) and does not average out over its images: every
     stated datum sigma includes it, sqrt(sigma^2 / n + (share sigma)^2). Half: a consumer
     receiver's stated accuracy is mostly such errors. 0: independent positions."""
+    sigma_model_datum: float = 0.03
+    """Sigma (m, per axis) of an error all faces of the model share, which no number of faces
+    averages out: its georeference, details that stand out of every facade the same way. Every
+    stated datum sigma includes it (adjust.observability). 0.03: a few centimetres, below any
+    LOD2 model's generalisation; a model's known georeference accuracy sets it."""
     sigma_gnss_offset: float = 3.0
     """A priori sigma (m) of the estimated offset about 0, i.e. about the positions as read and
     converted (national grid, or the fallback geoid EGM96, typically within 2 m of it, plus the
@@ -331,6 +344,7 @@ CHOICES = {"adjustment.image_loss": ("none", "huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
            "adjustment.face_weighting": ("per_point", "face"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
+           "assignment.window": ("plane", "centred"),
            "assignment.auto_indirect_method": ("msac", "roi_msac"),
            "workflow.mode": ("global", "sliding_window"),
            "terrain.source": ("auto", "none")}
@@ -474,6 +488,10 @@ class PrecisionOptions:
     with the cube of the images and soon costs more than the solves themselves."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
+    tolerance: float = 0.2
+    """The position tolerance (m) of the verdict (`--tolerance`): a result whose stated 3D sigma
+    of the block's position exceeds it is "weak". Default 0.2: one face's generalisation in a
+    LOD2 model (Unger 5.3); a block placed that well is placed as well as the model is drawn."""
     generalisation_from_data: bool = True
     """Without an a priori `AdjustmentOptions.sigma_generalisation`, the covariances are also given
     under the generalisation-aware stochastic model, with the sigma the planes' mean f_dTP

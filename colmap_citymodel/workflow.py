@@ -40,7 +40,7 @@ import numpy as np
 import pycolmap
 
 from .adjust.loop import adjustment_loop
-from .adjust.observability import assigned_observability, datum_line
+from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
 from .adjust.steps import model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -189,7 +189,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                 rec, last, assignment = corrected.reconstruction, corrected.last, \
                     corrected.assignment
     point_ids, points = tie_points(rec, exclude_point_ids)
-    observability = assigned_observability(points, assignment, current, priors, rec, options)
+    observability = assigned_observability(points, assignment, current, priors, rec, options,
+                                           from_data=True)
     if terrain_record.get("num_faces"):
         terrain_record["residuals"] = terrain_residuals(current, assignment, np.array(
             [rec.point3D(int(i)).xyz for i in assignment.point_ids]).reshape(-1, 3))
@@ -199,7 +200,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         logger.info(offset_line(gnss_offset))
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma,
-                              loop.unsettled_shift)
+                              loop.unsettled_shift, store=current)
     if located is not None and isinstance(quality.metrics, dict):
         quality.metrics["location_score_ratio"] = located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
@@ -209,6 +210,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     if quality.verdict == "failed" and gnss_only is not None:
         # Never hand back a block worse than GNSS alone: the result is the GNSS-only one.
         rec, sim3 = gnss_only, gnss_only_sim3
+        observability = gnss_only_observability(observability)
     else:
         precision = precision_after_refine(last, options.precision, checkpoint_observations)
     correction = None
@@ -382,7 +384,7 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
                 exif=None, initial_transform=None, preset="generalised", options_file=None,
                 lod=2, model_crs=None, target_crs=None, precision=None,
                 gnss_height_offset=None, gnss_bias=None, lever_arm=None, checkpoints=None,
-                checkpoint_observations=None, sigma_generalisation=None,
+                checkpoint_observations=None, sigma_generalisation=None, tolerance=None,
                 variance_components=None, assignment=None, write_model=None, num_threads=None,
                 terrain=None, terrain_sigma=None,
                 workflow=None, location=None, location_radius=100.0) -> RefineInputs:
@@ -399,6 +401,8 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         options.precision.covariances = precision
     if sigma_generalisation is not None:
         options.adjustment.sigma_generalisation = float(sigma_generalisation)
+    if tolerance is not None:  # --tolerance overrides the options file
+        options.mergedict({"precision": {"tolerance": float(tolerance)}}, source="--tolerance")
     if variance_components is not None:
         options.precision.variance_components = bool(variance_components)
     if assignment is not None:  # --assignment overrides the options file

@@ -111,7 +111,8 @@ def test_option_docstrings_say_what_and_why_in_a_few_lines(module):
     path = Path(colmap_citymodel.__file__).parent / module
     source = path.read_text()
     fields = field_docstrings(source, OPTION_MODULES[module])
-    assert len([f for f in fields if f[1]]) >= 10  # the parser found the fields
+    # The parser found the fields (the verdict keeps a handful of constants).
+    assert len([f for f in fields if f[1]]) >= (10 if OPTION_MODULES[module] is None else 4)
     assert docstring_problems(source, OPTION_MODULES[module]) == []
 
 

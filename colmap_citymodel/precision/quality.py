@@ -1,96 +1,71 @@
-"""Whether a refine result can be trusted.
+"""Whether a refine result can be trusted: a verdict from the stated sigmas and from tests with
+stated false-alarm rates (docs/verdict.md gives each rule in one sentence).
 
-`quality_verdict`: compares the refined block with the GNSS-only adjustment of the same block.
-"ok": the model fitted and moved the block no further than GNSS allows; "weak": usable but
-with a stated doubt; "failed": refine hands back the GNSS-only result.
+failed (refine hands back the GNSS-only block):
+- the model does not fit the block: fewer than `min_support` of the tie points lie near it, or
+  the faces' generalisation sigma estimated from their offsets, or the tie points' scatter on
+  their faces, is significantly above its tolerance band (chi-square, level `alpha`);
+- model and GNSS contradict each other: the shift between the GNSS-only and the refined block,
+  against the covariance of both (GNSS with a bias as large as its stated sigma, planes with
+  their generalisation), is significant (chi-square, level `alpha`);
+- the placement is ambiguous: a distinct placement that GNSS admits fits the tie points nearly
+  as well as the best one (ratio below `ambiguity_ratio`).
+weak: a direction rests on GNSS alone, the stated 3D sigma exceeds the user's tolerance, or the
+assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
+ok: otherwise.
 """
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass, field
 
 import numpy as np
 import pycolmap
+from scipy import stats
 
-from ..adjust.observability import planes_fix, rests_on_one_plane
-from ..adjust.scale import scale_change
+from ..adjust.observability import (REGULARISATION, FaceFit, common_shift_eliminated,
+                                    face_fit, face_tilts, gnss_information,
+                                    plane_information, planes_fix, rests_on_one_plane)
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
-from ..options import RefineOptions
+from ..options import GENERALISATION_SIGMA, RefineOptions
+from .ambiguity import placement_fit
 
-# -- verdict ---------------------------------------------------------------------------------
+logger = logging.getLogger(__name__)
 
 
 @dataclass
 class QualityThresholds:
-    """Limits of the quality gate (one place)."""
+    """The verdict's constants (one place): a significance level, a tolerance band and a
+    ratio; the user's position tolerance is `PrecisionOptions.tolerance`."""
 
-    shift_ok: float = 3.0
-    """Mean camera shift from the GNSS-only result, in GNSS sigmas (Mahalanobis over E, N, U),
-    up to which the result is "ok": GNSS errors are mostly a bias common to the block, so its
-    position is not known better than one GNSS sigma."""
-    shift_failed: float = 4.5
-    """Above this the model has pulled the block further than any plausible GNSS error."""
-    gnss_axis_weak: float = 3.0
-    """Shift from the GNSS-only result along E, N or U, in units of that direction's GNSS
-    sigma (observability's sigma_gnss: the sigma of the block's mean position from GNSS), above
-    which a direction the planes leave to GNSS counts as moved by something else: a wrong
-    assignment pulling through the other parameters; weak. Nothing but GNSS determines such
-    a direction, so refined and GNSS-only blocks agree there to within that sigma."""
-    gnss_axis_failed: float = 5.0
-    """The same, failed: the block has been moved where GNSS alone decides, further than GNSS can
-    have put it; the GNSS-only result is the better one there. Also for a direction that rests
-    on a single model plane: nothing checks that plane's assignment."""
-    model_evidence_gain: float = 0.25
-    """A move beyond `gnss_axis_failed` or `shift_failed` is only weak when it has brought at
-    least this share of all tie points near the model (within `near_distance`) that were not
-    near it in the GNSS-only block, ending with at least `min_near_share`: the move is then the
-    model's evidence (the first assignment's search over metres of GNSS bias, the height held
-    there), not a runaway."""
-    axis_evidence_share: float = 0.2
-    """A move along one axis is the model's evidence only when the tie points, moved back along
-    that axis to the GNSS-only level, lose at least this share of the near share the whole move
-    gained: the move along that axis, not the rest of the move, brought them onto the model."""
-    scale_failed_sigmas: float = 5.0
-    """Scale change from the GNSS-only result beyond this many of its GNSS sigmas: failed."""
-    scale_gnss_sigmas: float = 3.0
-    """The same where the planes do not determine the scale (observability): beyond this the
-    model has bent the block against the only observation of its scale, GNSS."""
-    unsettled_shift: float = 0.05
-    """The assign/adjust loop ran all its iterations and the last one still moved a camera by
-    more than this (m): the assignment had not settled, and the result is one state of a loop
-    still moving; weak. Loops that settle end with moves of millimetres."""
-    min_assigned_share: float = 0.02
-    """Fewer tie points than this share on planes: the model does not fit the block."""
-    min_near_share: float = 0.35
-    """Share of tie points within `near_distance` of the model below which the fit is weak: a
-    block that fits has most of its tie points near the model, ground and clutter points
-    counted."""
-    failed_near_share: float = 0.10
-    """Below this share the model does not fit the block at all: failed."""
-    near_distance: float = 0.5
-    """Distance (m) from the model within which a tie point counts as near it (2.5 x a LOD2
-    model's sigma_dTP)."""
-    position_sigma_ok: float = 0.20
-    """The a posteriori sigma (3D, m) of the block's position from planes and GNSS (each plane
-    with its generalisation error, offset and tilt; observability) up to which the result is
-    "ok": the block is then placed as well as the model's own generalisation (0.2 m,
-    sigma_dTP) allows; above it, "weak" says how well it is."""
-    wall_ok: float = 0.75
-    """Share of the tie points on vertical planes of the cloud (walls: the model's surest part)
-    that lie within `near_distance` of the model, below which the fit is weak: a block that fits
-    has nearly all of them there."""
-    wall_failed: float = 0.5
-    """Below this share most walls the images see are not the model's: it does not describe the
-    block well enough to be its control; failed."""
-    dtp_rms_weak: float = 2.0
-    """RMS point-to-plane distance above this many sigma_dTP: weak."""
-    gnss_scatter_weak: float = 1.5
-    """GNSS residuals (after removing their mean) that scatter more than this many of their
-    stated sigmas and more than with GNSS only: the block was bent to the model against its
-    GNSS; weak. (A scatter that only grows, within the stated sigmas, is normal: GNSS-only
-    blocks follow their GNSS's slow bias, the model's corrected block exposes it.)"""
+    alpha: float = 0.001
+    """Significance level of each test (model fit, model against GNSS): a block whose model
+    and GNSS are as their error models state fails a test with this probability."""
+    fit_band: float = 2.5
+    """Tolerance band of the model's fit: the faces' generalisation sigma may be this many
+    times the a priori one (0.2 m, or sigma_generalisation) and the tie points' scatter on their
+    faces this many times sigma_dtp before the model counts as not fitting the block."""
+    ambiguity_ratio: float = 1.1
+    """The best placement must fit the tie points (share within NEAR_DISTANCE of the model)
+    this many times better than the best distinct placement GNSS admits; else the pose is
+    ambiguous. A block slid along a facade row that only walls parallel to the slide hold
+    scores about 1; a placement cross walls, roofs and corners confirm scores well above."""
+    min_support: float = 0.25
+    """Share of the block's tie points within NEAR_DISTANCE of the model below which the model
+    does not fit the block: the model of the buildings the images see carries most of their tie
+    points, ground and clutter aside; a model of another street only the few that happen to
+    lie near one of its faces."""
+
+
+#: Distance (m) within which a tie point counts as near the model: 2.5 sigma_dTP of a LOD2
+#: model (0.2 m).
+NEAR_DISTANCE = 0.5
+#: Metres from the best placement beyond which another counts as distinct (a neighbouring
+#: house, the next facade bay): four times NEAR_DISTANCE, beyond the best one's own peak.
+DISTINCT = 4 * NEAR_DISTANCE
 
 
 @dataclass
@@ -107,159 +82,167 @@ class QualityReport:
                                              else "")
 
 
-def gnss_scatter(observed: np.ndarray, positions: np.ndarray, sigmas: np.ndarray) -> float:
-    """RMS of the normalised GNSS residuals after removing their mean (the block's shape
-    against GNSS, free of the common bias)."""
-    v = (observed - positions) / sigmas
-    return float(np.sqrt(np.mean((v - v.mean(0)) ** 2)))
+# -- the tests -------------------------------------------------------------------------------
+
+def chi2_exceeds(value: float, dof: int, alpha: float) -> bool:
+    """value beyond the (1 - alpha) quantile of chi-square with `dof` degrees of freedom."""
+    return dof > 0 and value > float(stats.chi2.ppf(1.0 - alpha, dof))
 
 
-def gnss_axis_shifts(mean_shift: np.ndarray, observability_dict: dict, *,
-                     one_plane: bool = False) -> dict[str, float]:
-    """|shift| / sigma_gnss along each of E, N, U that GNSS alone fixes (source "gnss"), either
-    those not resting on a single plane or (`one_plane`) those that do, which a single plane
-    may move legitimately (a ground or roof plane against GNSS heights metres off)."""
-    out = {}
-    for k, axis in enumerate("ENU"):
-        row = observability_dict.get(axis, {})
-        if row.get("source") == "gnss" and bool(row.get("one_plane")) == one_plane \
-                and row.get("sigma_gnss"):
-            out[axis] = float(abs(mean_shift[k]) / row["sigma_gnss"])
+def fit_statistics(fit: FaceFit, prior_generalisation: float, sigma_dtp: float,
+                   band: float) -> dict:
+    """The model-fit test's figures: the faces' offsets (outlier faces left out, and named)
+    against a generalisation sigma `band` x `prior_generalisation` (chi-square, faces - 7
+    degrees of freedom); the tie points' robust scatter on their faces against `band` x
+    `sigma_dtp` (chi-square, points - faces degrees of freedom)."""
+    keep = ~np.isin(fit.faces, fit.outlier_faces)
+    noise = fit.sigma_point ** 2 / np.maximum(fit.counts, 1)
+    limit = band * prior_generalisation
+    faces_dof = int(keep.sum()) - 7
+    points_dof = int(np.sum(fit.counts)) - fit.num_faces
+    return {
+        **fit.todict(),
+        "faces_chi2": float(np.sum(fit.offsets[keep] ** 2 / (limit ** 2 + noise[keep]))),
+        "faces_dof": faces_dof,
+        "sigma_generalisation_limit_m": limit,
+        "points_chi2": float(points_dof * (fit.sigma_point / (band * sigma_dtp)) ** 2),
+        "points_dof": points_dof, "sigma_point_limit_m": band * sigma_dtp,
+    }
+
+
+def fit_reasons(fit: dict, alpha: float) -> list[str]:
+    """Why the model does not fit the block (empty: it does, at level alpha)."""
+    out = []
+    if fit["faces_dof"] > 0 and chi2_exceeds(fit["faces_chi2"], fit["faces_dof"], alpha):
+        out.append(f"the model does not fit the block: its faces are off by "
+                   f"{fit['sigma_generalisation_m']:.2f} m (sigma of {fit['num_faces']} faces), "
+                   f"beyond the {fit['sigma_generalisation_limit_m']:.2f} m a generalised model "
+                   f"may be (test at {alpha:g})")
+    if fit["points_dof"] > 0 and chi2_exceeds(fit["points_chi2"], fit["points_dof"], alpha):
+        out.append(f"the model does not fit the block: the tie points scatter "
+                   f"{fit['sigma_point_m']:.2f} m about their faces, beyond "
+                   f"{fit['sigma_point_limit_m']:.2f} m")
     return out
 
 
-def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None
-                    ) -> QualityReport:
-    """Verdict from the figures refine measured (keys as written by measure_quality)."""
+def contradiction(shift: np.ndarray, covariance: np.ndarray, alpha: float) -> dict:
+    """The shift (3,) between the GNSS-only and the refined block against its covariance
+    (3x3; infinite variance along what neither fixes): chi-square statistic, degrees of
+    freedom (the directions with finite variance), p-value."""
+    finite = np.isfinite(np.diag(covariance)) & (np.diag(covariance) > 0)
+    d = np.asarray(shift, float)[finite]
+    c = covariance[np.ix_(finite, finite)]
+    value = float(d @ np.linalg.solve(c, d)) if len(d) else 0.0
+    dof = int(finite.sum())
+    return {"chi2": value, "dof": dof,
+            "p": float(stats.chi2.sf(value, dof)) if dof else 1.0,
+            "significant": chi2_exceeds(value, dof, alpha)}
+
+
+def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
+                    tolerance: float = 0.2) -> QualityReport:
+    """Verdict from the figures refine measured (keys as written by measure_quality); each
+    test runs only where its figures are present."""
     t = thresholds or QualityThresholds()
     failed, weak = [], []
-    fixed = metrics.get("planes_fix")
-    unsettled = metrics.get("unsettled_shift_m")
-    if unsettled is not None and unsettled > t.unsettled_shift:
-        weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
-                    f"iterations: the last moved the cameras by up to {unsettled:.2f} m")
+    support = metrics.get("near_share")
+    if support is not None and support < t.min_support:
+        failed.append(f"the model does not fit the block: only {100 * support:.0f} % of the tie "
+                      f"points lie within {NEAR_DISTANCE:g} m of it")
+    if metrics.get("fit"):
+        failed += fit_reasons(metrics["fit"], t.alpha)
+    test = metrics.get("gnss_test")
+    if test and test["significant"]:
+        failed.append(f"the model moved the block {np.linalg.norm(metrics['shift_enu_m']):.1f} m "
+                      f"from where GNSS puts it, more than both error models allow "
+                      f"(chi-square {test['chi2']:.1f}, {test['dof']} dof, p {test['p']:.1e})")
+    placement = metrics.get("placement")
+    if placement and placement.get("ratio") is not None \
+            and placement["ratio"] < t.ambiguity_ratio:
+        shift = placement["alternative_shift_m"]
+        failed.append(f"the placement is ambiguous: shifted by {shift[0]:+.1f} / {shift[1]:+.1f} "
+                      f"m (E / N) the tie points fit the model nearly as well (ratio "
+                      f"{placement['ratio']:.2f} < {t.ambiguity_ratio:g})")
+    free = metrics.get("gnss_alone") or []
+    if free:
+        weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
+                    "GNSS's")
+    sigma = metrics.get("position_sigma_m")
+    if sigma is not None and sigma > tolerance:
+        weak.append(f"the stated 3D sigma {sigma:.2f} m exceeds the tolerance {tolerance:g} m")
     if metrics.get("diverged"):
         weak.append(f"the assignment loop diverged ({metrics['diverged']}); its best iterate "
                     "is kept")
-    if metrics["assigned_share"] < t.min_assigned_share:
-        failed.append(f"only {100 * metrics['assigned_share']:.1f} % of the tie points lie on "
-                      "model planes: the model does not fit the block")
-    before, after = metrics.get("near_share_gnss_only"), metrics["near_share"]
-    # Tie points the move brought near the model: its evidence for a move GNSS disagrees with.
-    evidence = (f" (tie points within {t.near_distance:g} m of the model: "
-                f"{100 * before:.0f} % -> {100 * after:.0f} %)"
-                if before is not None else "")
-    backed = before is not None and after >= t.min_near_share \
-        and after - before >= t.model_evidence_gain
-
-    moved_back = metrics.get("near_share_moved_back") or {}
-
-    def moved_where_gnss_checks(axis: str, sigmas: float, text: str) -> None:
-        """A move along a direction that only GNSS checks, beyond `gnss_axis_weak` of its
-        sigma: failed beyond `gnss_axis_failed` unless the model's evidence backs it, and
-        backs this move (`axis_evidence_share`)."""
-        beyond = sigmas > t.gnss_axis_failed
-        by_axis = (axis not in moved_back or before is None
-                   or after - moved_back[axis] >= t.axis_evidence_share * (after - before))
-        held = backed and by_axis
-        (failed if beyond and not held else weak).append(
-            text + (evidence if held and beyond else "")
-            + (f" (moved back in {axis}, {100 * moved_back[axis]:.0f} % of the tie points lie "
-               f"near the model)" if beyond and backed and not by_axis else ""))
-
-    shift = metrics.get("shift_sigmas")
-    if shift is not None:
-        if shift > t.shift_failed:
-            (weak if backed else failed).append(
-                f"the model moved the cameras {metrics['shift_m']:.1f} m ({shift:.1f} GNSS "
-                "sigma) from the GNSS-only result" + (evidence if backed else ""))
-        elif shift > t.shift_ok:
-            weak.append(f"the model moved the cameras {metrics['shift_m']:.1f} m "
-                        f"({shift:.1f} GNSS sigma) from the GNSS-only result")
-    for axis, sigmas in (metrics.get("gnss_axis_shift_sigmas") or {}).items():
-        if sigmas > t.gnss_axis_weak:
-            moved_where_gnss_checks(
-                axis, sigmas,
-                f"the cameras moved {abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in "
-                f"{axis} ({sigmas:.1f} sigma of GNSS there) from the GNSS-only result, although "
-                "only GNSS fixes that direction")
-    scale = metrics.get("scale_change_sigmas")
-    scale_by_gnss = fixed is not None and "scale" not in fixed
-    if scale is not None and (scale > t.scale_failed_sigmas
-                              or (scale_by_gnss and scale > t.scale_gnss_sigmas)):
-        failed.append(f"the block's scale changed by {100 * metrics['scale_change']:.2f} % "
-                      f"({scale:.1f} GNSS sigma)"
-                      + (" although only GNSS determines it" if scale_by_gnss else ""))
-    if before is not None and after < before:
-        # As many decimals as it takes for the two shares to differ in print.
-        digits = next((d for d in (0, 1) if round(100 * after, d) != round(100 * before, d)),
-                      2)
-        failed.append(f"fewer tie points near the model after refine ({100 * after:.{digits}f} "
-                      f"%) than with GNSS only ({100 * before:.{digits}f} %)")
-    elif after < t.failed_near_share:
-        failed.append(f"only {100 * after:.0f} % of the tie points lie within "
-                      f"{t.near_distance:g} m of the model: it does not fit the block")
-    elif after < t.min_near_share:
-        weak.append(f"only {100 * after:.0f} % of the tie points lie within "
-                    f"{t.near_distance:g} m of the model")
-    position = metrics.get("position_sigma_m")
-    if position is not None and position > t.position_sigma_ok:
-        weak.append(f"the planes and GNSS fix the block's position only to {position:.2f} m "
-                    "(3D sigma, with the model's generalisation error)")
-    walls = metrics.get("wall_near_share")
-    if walls is not None and walls < t.wall_ok:
-        # A block put on the wrong building of a regular street still has many of its walls
-        # on model walls (a regular street's facades line up); its sigmas then say nothing.
-        (failed if walls < t.wall_failed else weak).append(
-            f"only {100 * walls:.0f} % of the tie points on walls lie on the model's walls"
-            + ("" if walls < t.wall_failed else
-               ": the block may sit on the wrong buildings, and its sigmas hold only if not"))
-    if metrics.get("dtp_rms_sigmas", 0.0) > t.dtp_rms_weak:
-        weak.append(f"tie points lie {metrics['dtp_rms_m']:.2f} m (RMS) from their planes")
-    ratio, scatter = metrics.get("gnss_scatter_ratio"), metrics.get("gnss_scatter")
-    if ratio is not None and ratio > 1.0 and scatter is not None \
-            and scatter > t.gnss_scatter_weak:
-        weak.append(f"the GNSS residuals scatter {scatter:.1f} of their sigmas, {ratio:.1f}x "
-                    "more than with GNSS only")
-    if fixed is not None:
-        single = [k for k in metrics.get("one_plane", []) if k in ("E", "N", "U")]
-        free = [k for k in ("E", "N", "U") if k not in fixed and k not in single]
-        if free:
-            weak.append(f"the model planes do not fix {', '.join(free)}: there the position "
-                        "rests on GNSS and on where the first assignment put the block")
-        if single:
-            weak.append(f"{', '.join(single)} rest(s) on a single model plane, which nothing "
-                        "checks (a wrong assignment there moves the block unseen)")
-        moved = metrics.get("one_plane_shift_sigmas") or {}
-        for axis in single:
-            if moved.get(axis, 0.0) > t.gnss_axis_weak:
-                # One plane against GNSS, further than GNSS's own sigma allows: nothing checks
-                # the plane, so the GNSS-only result is the safer one.
-                moved_where_gnss_checks(
-                    axis, moved[axis],
-                    f"that plane alone moved the cameras "
-                    f"{abs(metrics['shift_enu_m']['ENU'.index(axis)]):.2f} m in {axis} "
-                    f"({moved[axis]:.1f} sigma of GNSS there) from the GNSS-only result")
+    unsettled = metrics.get("unsettled_shift_m")
+    if unsettled is not None and sigma is not None and unsettled > sigma:
+        weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
+                    f"iterations: the last moved the cameras by up to {unsettled:.2f} m, more "
+                    "than the stated sigma")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
+
+
+# -- the figures -----------------------------------------------------------------------------
+
+def gnss_alone(observability_dict: dict) -> list[str]:
+    """E, N, U that only GNSS fixes: source "gnss" and no single plane holding them."""
+    return [axis for axis in ("E", "N", "U")
+            if observability_dict.get(axis, {}).get("source") in ("gnss", "none")
+            and not observability_dict.get(axis, {}).get("one_plane")]
+
+
+def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit,
+                      priors: GNSSPriors, rec: pycolmap.Reconstruction,
+                      options: RefineOptions) -> tuple[np.ndarray, np.ndarray]:
+    """3x3 covariances of the block's position from GNSS alone, with a bias as large as its
+    stated sigma (its whole error may be common to the block), and from the planes alone (each
+    face with the estimated generalisation, outlier faces out, the model's common error); inf
+    on the diagonal where one leaves a direction free. Their sum is the covariance of the shift
+    between the GNSS-only and the refined block."""
+    positions = priors.observed_points(rec)
+    centre = positions.mean(0)
+    bias = np.median(np.asarray(priors.sigmas, float), axis=0)
+    gnss = gnss_information(positions, priors.sigmas, centre, priors.offset_axes, bias)
+    keep = ~np.isin(faces, fit.outlier_faces)
+    planes = np.zeros((7, 7))
+    if keep.any():
+        planes = sum(plane_information(
+            points[keep], store.normals[faces[keep]], faces[keep], centre,
+            options.adjustment.sigma_dtp, fit.sigma_generalisation,
+            face_tilts(store, faces[keep], fit.sigma_generalisation)), np.zeros((7, 7)))
+    planes = common_shift_eliminated(planes, options.adjustment.sigma_model_datum)
+    return _shift_block(gnss), _shift_block(planes)
+
+
+def _shift_block(info: np.ndarray) -> np.ndarray:
+    """The 3x3 shift covariance of a 7x7 datum information (inverted as
+    adjust.observability's sigmas are, with its weak regularising priors); inf where the
+    information leaves a shift (nearly) free."""
+    regularised = info + np.diag(1.0 / REGULARISATION ** 2)
+    scale = np.sqrt(np.diag(regularised))
+    values, vectors = np.linalg.eigh(regularised / np.outer(scale, scale))
+    covariance = ((vectors / np.maximum(values, 1e-300)) @ vectors.T
+                  / np.outer(scale, scale))[:3, :3]
+    free = np.diag(covariance) > (0.5 * REGULARISATION[:3]) ** 2
+    covariance[free, :] = covariance[:, free] = 0.0
+    covariance[free, free] = np.inf
+    return covariance
 
 
 def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
                     surface, priors: GNSSPriors | None, assignment: Assignment, last,
                     observability_dict: dict, points: np.ndarray, options: RefineOptions,
                     diverged: str | None, scale_sigma: float | None,
-                    unsettled_shift: float | None = None):
-    """The figures of the quality gate (quality.quality_verdict) and the verdict; `points`
-    are the refined tie points that could be assigned (check points left out);
-    `unsettled_shift`: the largest camera move of the loop's last iteration when it ran out
-    of iterations (adjust.loop.LoopResult)."""
-
-    thresholds = QualityThresholds()
-    near = thresholds.near_distance
+                    unsettled_shift: float | None = None, *, store=None) -> QualityReport:
+    """The figures of the verdict (quality_verdict) and the verdict; `points` are the refined
+    tie points that could be assigned (check points left out), `store` the model they were
+    assigned to (without it, no model-fit test); `unsettled_shift`: the largest camera move of
+    the loop's last iteration when it ran out of iterations (adjust.loop.LoopResult)."""
+    t = QualityThresholds()
     metrics: dict = {
         "assigned_share": assignment.num_assigned / max(len(points), 1),
         "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
-        "near_share": float(np.mean(surface(points, near) < near))
+        "near_share": float(np.mean(surface(points, NEAR_DISTANCE) < NEAR_DISTANCE))
         if len(points) else 0.0,
         "near_share_gnss_only": None, "diverged": diverged,
         "loop_iterations": (options.workflow.max_iterations if unsettled_shift is not None
@@ -267,58 +250,67 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "unsettled_shift_m": float(unsettled_shift) if unsettled_shift is not None else None,
         "planes_fix": planes_fix(observability_dict),
         "one_plane": rests_on_one_plane(observability_dict),
+        "gnss_alone": gnss_alone(observability_dict),
     }
-    shift_sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
-    if all(v is not None for v in shift_sigmas):
-        metrics["position_sigma_m"] = float(np.linalg.norm(shift_sigmas))
-    normalised = last.residuals.get("dTP", np.zeros(0))
-    if len(normalised):
-        dtp = float(np.sqrt(np.mean(normalised ** 2)))
-        metrics["dtp_rms_sigmas"] = float(dtp)
-        metrics["dtp_rms_m"] = float(dtp) * options.adjustment.sigma_dtp
-    from ..align.coarse import wall_points
-
-    walls = (wall_points(points, options.adjustment.num_threads) if len(points)
-             else np.zeros((0, 3)))
-    metrics["num_wall_points"] = len(walls)
-    if len(walls) >= options.assignment.min_points_per_plane:
-        metrics["wall_near_share"] = float(np.mean(surface(walls, near) < near))
+    sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
+    if all(v is not None for v in sigmas):
+        metrics["position_sigma_m"] = float(np.linalg.norm(sigmas))
+    assigned = assignment.assigned
+    faces = assignment.face_index[assigned]
+    fit = None
+    if store is not None and len(faces):
+        prior = options.adjustment.sigma_generalisation or GENERALISATION_SIGMA
+        fit = face_fit(points[assigned], faces, store, prior)
+        metrics["fit"] = fit_statistics(fit, prior, options.adjustment.sigma_dtp, t.fit_band)
+    gnss_covariance = None
     if gnss_only is not None and priors is not None:
         _, before = tie_points(gnss_only)
-        metrics["near_share_gnss_only"] = (float(np.mean(surface(before, near) < near))
-                                           if len(before) else 0.0)
-        # Where GNSS observed: elsewhere (GNSS for part of the block) the GNSS-only result is
-        # an extrapolation that the model is there to correct.
+        metrics["near_share_gnss_only"] = (
+            float(np.mean(surface(before, NEAR_DISTANCE) < NEAR_DISTANCE)) if len(before)
+            else 0.0)
         ids = [int(i) for i in priors.image_ids]
         a = np.array([gnss_only.image(i).projection_center() for i in ids])
         b = np.array([rec.image(i).projection_center() for i in ids])
-        sigma = np.median(priors.sigmas, axis=0)
-        # The GNSS-only block sits on the GNSS as read; an estimated GNSS offset (another
-        # height system, a bias) explains that much of the move.
-        mean_shift = (b - a).mean(0) - priors.offset
-        metrics["shift_m"] = float(np.linalg.norm(mean_shift))
-        metrics["shift_enu_m"] = mean_shift.tolist()
-        metrics["shift_sigmas"] = float(np.linalg.norm(mean_shift / sigma))
-        metrics["gnss_axis_shift_sigmas"] = gnss_axis_shifts(mean_shift, observability_dict)
-        metrics["one_plane_shift_sigmas"] = gnss_axis_shifts(mean_shift, observability_dict,
-                                                             one_plane=True)
-        # The model's evidence for each of those moves on its own: the near share with the
-        # refined tie points moved back along that axis to the GNSS-only level.
-        moved_axes = {**metrics["gnss_axis_shift_sigmas"], **metrics["one_plane_shift_sigmas"]}
-        metrics["near_share_moved_back"] = {}
-        for axis in sorted(moved_axes):
-            back = np.array(points, float)
-            back[:, "ENU".index(axis)] -= mean_shift["ENU".index(axis)]
-            metrics["near_share_moved_back"][axis] = (
-                float(np.mean(surface(back, near) < near)) if len(back) else 0.0)
-        if scale_sigma:
-            change = scale_change(gnss_only, rec, ids)
-            metrics["scale_change"] = change
-            metrics["scale_change_sigmas"] = abs(np.log1p(change)) / scale_sigma
-        before_scatter = gnss_scatter(priors.observed_points(gnss_only), priors.positions,
-                                      priors.sigmas)
-        after_scatter = gnss_scatter(priors.observed_points(rec), priors.positions,
-                                     priors.sigmas)
-        metrics["gnss_scatter"] = after_scatter
-        metrics["gnss_scatter_ratio"] = after_scatter / max(before_scatter, 1e-9)
-    return quality_verdict(metrics, thresholds)
+        # An estimated GNSS offset (another height system, a bias) explains that much.
+        shift = (b - a).mean(0) - priors.offset
+        metrics["shift_m"] = float(np.linalg.norm(shift))
+        metrics["shift_enu_m"] = shift.tolist()
+        if fit is not None:
+            gnss_covariance, planes_covariance = shift_covariances(
+                points[assigned], faces, store, fit, priors, rec, options)
+            metrics["gnss_test"] = contradiction(shift, gnss_covariance + planes_covariance,
+                                                 t.alpha)
+    if len(points):
+        metrics["placement"] = placement_metrics(points, surface, metrics.get("shift_enu_m"),
+                                                 gnss_covariance, t)
+    return quality_verdict(metrics, t, options.precision.tolerance)
+
+
+#: Half-width (m) of the placements searched without GNSS, and at most with it.
+PLACEMENT_REACH = 30.0
+
+
+def placement_metrics(points: np.ndarray, surface, shift, covariance, t: QualityThresholds
+                      ) -> dict:
+    """The ambiguity test's figures (precision.ambiguity): placements within the region GNSS
+    admits around the GNSS-only block (`covariance`: GNSS's, with its bias; its chi-square
+    bound at `t.alpha`), at most PLACEMENT_REACH from the refined one, or within
+    PLACEMENT_REACH without GNSS."""
+    if shift is None or covariance is None or not np.all(np.isfinite(covariance[:2, :2])):
+        reach = PLACEMENT_REACH
+
+        def admitted(grid):
+            return np.ones(len(grid), bool)
+    else:
+        horizontal = covariance[:2, :2]
+        bound = float(stats.chi2.ppf(1.0 - t.alpha, 2))
+        inverse = np.linalg.inv(horizontal)
+        reach = min(PLACEMENT_REACH, float(np.sqrt(bound * np.max(np.diag(horizontal))))
+                    + float(np.linalg.norm(shift[:2])))
+
+        def admitted(grid):
+            d = np.asarray(grid) + np.asarray(shift[:2])
+            return np.einsum("ij,jk,ik->i", d, inverse, d) <= bound
+    placement = placement_fit(points, surface, reach, admitted, radius=NEAR_DISTANCE,
+                              distinct=DISTINCT)
+    return {**placement.todict(), "reach_m": reach}

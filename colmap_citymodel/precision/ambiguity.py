@@ -1,0 +1,95 @@
+"""Is the block's placement on the model unique? The refined tie points, moved rigidly across
+the model, fit it at other horizontal placements too (a neighbouring house of the same shape, a
+regular facade row); the best placement is compared with the best distinct one that GNSS does
+not rule out, as a ratio of their fits.
+
+The fit at a placement is the smooth share of tie points within `radius` of the model
+(as align.coarse.near_share). Placements are scored on a grid of horizontal shifts; the
+alternative is the best local maximum at least `distinct` metres from the best one and inside
+the region GNSS allows (a callable telling, per shift, whether GNSS admits it).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..align.coarse import subsample
+
+logger = logging.getLogger(__name__)
+
+#: Tie points scored per placement: enough for a share to 1-2 %, few enough for a grid of
+#: thousands of placements in seconds.
+SAMPLE_POINTS = 3000
+#: Finest grid step of the shifts (m), the near radius; larger reaches take a coarser step
+#: (at most GRID_SIDE steps a side) and score with a near radius of that step.
+STEP = 0.5
+GRID_SIDE = 61
+
+
+@dataclass
+class Placement:
+    """The best placement's fit, the best distinct alternative's and its shift (m, E N)."""
+
+    best_share: float
+    alternative_share: float
+    alternative_shift: np.ndarray | None
+    best_shift: np.ndarray
+
+    @property
+    def ratio(self) -> float:
+        """best / alternative fit; inf without an alternative."""
+        if self.alternative_shift is None or self.alternative_share <= 0:
+            return float("inf")
+        return self.best_share / self.alternative_share
+
+    def todict(self) -> dict:
+        return {"best_share": self.best_share, "alternative_share": self.alternative_share,
+                "ratio": None if not np.isfinite(self.ratio) else float(self.ratio),
+                "alternative_shift_m": None if self.alternative_shift is None
+                else [float(v) for v in self.alternative_shift],
+                "best_shift_m": [float(v) for v in self.best_shift]}
+
+
+def _local_maxima(scores: np.ndarray) -> np.ndarray:
+    """bool mask of the grid cells no lower than any of their 8 neighbours."""
+    padded = np.pad(scores, 1, constant_values=-np.inf)
+    n, m = scores.shape
+    mask = np.ones_like(scores, bool)
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            if di or dj:
+                mask &= scores >= padded[1 + di:1 + di + n, 1 + dj:1 + dj + m]
+    return mask
+
+
+def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
+                  radius: float = 0.5, distinct: float = 2.0) -> Placement:
+    """The best horizontal placement of `points` within +- `reach` m and the best distinct
+    one (a local maximum at least `distinct` m away) that `admitted` ((K, 2) shifts -> (K,)
+    bool, whether GNSS allows the block there) lets through. `surface(points, within)`:
+    distances to the model (align.coarse.SurfaceDistance)."""
+    sample = subsample(np.asarray(points, float), SAMPLE_POINTS)
+    step = max(STEP, 2.0 * reach / (GRID_SIDE - 1))
+    radius = max(radius, step)
+    offsets = np.arange(-np.floor(reach / step), np.floor(reach / step) + 1) * step
+    grid = np.stack(np.meshgrid(offsets, offsets, indexing="ij"), -1).reshape(-1, 2)
+    scores = np.empty(len(grid))
+    batch = 64  # shifts per distance query
+    for start in range(0, len(grid), batch):
+        chunk = grid[start:start + batch]
+        shifts = np.column_stack([chunk, np.zeros(len(chunk))])
+        moved = (sample[None, :, :] + shifts[:, None, :]).reshape(-1, 3)
+        u = np.clip(surface(moved, radius).reshape(len(shifts), -1) / radius, 0.0, 1.0)
+        scores[start:start + batch] = np.mean((1.0 - u * u) ** 2, axis=1)
+    best = int(np.argmax(scores))
+    maxima = _local_maxima(scores.reshape(len(offsets), len(offsets))).ravel()
+    far = np.linalg.norm(grid - grid[best], axis=1) >= distinct
+    candidates = np.flatnonzero(maxima & far & np.asarray(admitted(grid), bool))
+    if not len(candidates):
+        return Placement(float(scores[best]), 0.0, None, grid[best])
+    alternative = candidates[int(np.argmax(scores[candidates]))]
+    return Placement(float(scores[best]), float(scores[alternative]), grid[alternative],
+                     grid[best])
