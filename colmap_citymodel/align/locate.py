@@ -57,8 +57,9 @@ class LocateOptions:
     """Metres per cell of the 2D correlation of the block's walls and roofs with the model."""
     scale_step: float = 0.04
     """Relative step of the scale grid (4 %: 1.6 m at the ends of an 80 m block)."""
-    viewing_distance: tuple[float, float] = (3.0, 250.0)
-    """Plausible median distance (m) from a tie point to the nearest camera: bounds the scale."""
+    viewing_distance: tuple[float, float] = (5.0, 250.0)
+    """Plausible median distance (m) from a tie point to the nearest camera: bounds the scale
+    (below 5 m a block shrunk into a corner of the model fits as well as the true one)."""
     yaw_candidates: int = 12
     """Headings (peaks of the wall-normal histogram) searched."""
     hypotheses: int = 60
@@ -104,6 +105,11 @@ SOLID_MARGIN = 1.0
 #: Weight of the share of camera rays inside buildings against the share of tie points near
 #: the model: a placement whose cameras look through walls is not the block's.
 RAY_WEIGHT = 1.0
+#: Weight of the share of the block's ground points under a roof (streets are not inside
+#: buildings) against the share of tie points near the model.
+GROUND_WEIGHT = 0.5
+#: A tie point of a plane counts near a model face whose normal is within this angle (deg).
+ORIENTED_DEG = 20.0
 #: Tie points of the 3D refinement of each placement.
 FIT_POINTS = 2000
 #: Tie points of the height search of each 2D placement.
@@ -111,6 +117,9 @@ HEIGHT_POINTS = 300
 #: A round of the 3D refinement may change the scale by about this much (relative; bounded at
 #: 3 times it): planes alone would pull a block with partly wrong nearest faces smaller.
 SCALE_SIGMA = 0.02
+#: The 3D refinement changes a placement's scale by at most this (log): a placement shrinking
+#: round after round is not the block's.
+MAX_FIT_SCALE = 0.08
 #: 2D placements per scale (over all headings) that are given a height and a 3D score.
 PER_SCALE = 6
 
@@ -251,6 +260,10 @@ class _LevelledBlock:
     depth: float  # median distance (normalised units) from a tie point to the nearest camera
     vertical_cue: str
     rays: np.ndarray  # (M, 3) points on lines of sight from cameras to their tie points
+    ground: np.ndarray  # (G, 3) tie points on the ground (level planes at the walls' feet)
+    plane_points: np.ndarray  # (P, 3) tie points of the other planes
+    plane_normals: np.ndarray  # (P, 3) their planes' normals
+    plane_weights: np.ndarray  # (P,) summing to 1, every plane the same
 
 
 def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOptions) -> _LevelledBlock:
@@ -279,10 +292,33 @@ def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOpti
     normals = normals @ level.T
     members = [m @ level.T for m in members]
     depth = float(np.median(cKDTree(cams).query(q)[0]))
-    walls, roofs, angles, wall_counts = _classify_planes(normals, members, cams)
+    walls, roofs, angles, wall_counts, ground = _classify_planes(normals, members, cams)
+    oriented = _oriented_points(normals, members, ground, options)
+    if len(ground):  # the ground is scored by lying outside buildings, not near a surface
+        q = q[cKDTree(ground).query(q)[0] > 1e-12]
+        ground = subsample(ground, 500, options.seed)
     rays = (_ray_samples(rec, ids, options.seed) - centre) / unit @ level.T
     return _LevelledBlock(q, level, centre, unit, cams, angles, wall_counts, walls, roofs,
-                          counts, depth, cue, rays)
+                          counts, depth, cue, rays, ground, *oriented)
+
+
+def _oriented_points(normals, members, ground, options: LocateOptions):
+    """The tie points of the planes but the ground, each with its plane's normal (a random
+    subset of `options.max_points`)."""
+    keep = [k for k, m in enumerate(members)
+            if not (len(ground) and np.any(np.all(m[:1] == ground, axis=1)))]
+    if not keep:
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0)
+    points = np.vstack([members[k] for k in keep])
+    point_normals = np.vstack([np.tile(normals[k], (len(members[k]), 1)) for k in keep])
+    plane = np.concatenate([np.full(len(members[k]), j) for j, k in enumerate(keep)])
+    rng = np.random.default_rng(options.seed + 2)
+    pick = (np.arange(len(points)) if len(points) <= options.max_points else
+            rng.choice(len(points), options.max_points, replace=False))
+    # Every plane weighs the same: the walls' heights fix the scale that roofs of many
+    # points, shrunk onto one flat roof, would not.
+    weights = 1.0 / np.bincount(plane[pick])[plane[pick]]
+    return points[pick], point_normals[pick], weights / weights.sum()
 
 
 def _ray_samples(rec: pycolmap.Reconstruction, ids, seed: int, images: int = 150,
@@ -368,7 +404,7 @@ def _classify_planes(normals, members, cams):
     headings turned towards the cameras nearest to each wall."""
     sin_wall = np.sin(np.radians(WALL_DEG))
     is_wall = np.abs(normals[:, 2]) < sin_wall if len(normals) else np.zeros(0, bool)
-    walls, others, angles, counts = [], [], [], []
+    walls, others, angles, counts, ground = [], [], [], [], []
     foot = (np.median([np.percentile(m[:, 2], 10) for m, w in zip(members, is_wall) if w])
             if np.any(is_wall) else -np.inf)
     for normal, m, wall in zip(normals, members, is_wall):
@@ -380,11 +416,12 @@ def _classify_planes(normals, members, cams):
             counts.append(len(m))
             walls.append(m[:, :2])
         elif abs(normal[2]) > np.cos(np.radians(WALL_DEG)) and np.median(m[:, 2]) <= foot:
-            continue  # the ground: not in the model
+            ground.append(m)  # the ground: not in the model, not under a roof
         else:
             others.append(m[:, :2])
-    stack = (lambda parts: np.vstack(parts) if parts else np.zeros((0, 2)))
-    return stack(walls), stack(others), np.array(angles), np.array(counts, float)
+    stack = (lambda parts, d=2: np.vstack(parts) if parts else np.zeros((0, d)))
+    return (stack(walls), stack(others), np.array(angles), np.array(counts, float),
+            stack(ground, 3))
 
 
 # -- 2D search: heading, scale, horizontal position -------------------------------------------
@@ -553,7 +590,33 @@ def _score(model: _ModelNearHint, block: _LevelledBlock, sim3: pycolmap.Sim3d,
     """Share of tie points near the model less RAY_WEIGHT x the share of ray samples inside
     buildings."""
     inside = model.inside(_apply(sim3, block.rays)).mean() if len(block.rays) else 0.0
-    return _share(model, _apply(sim3, points), radius) - RAY_WEIGHT * float(inside)
+    share = (_oriented_share(model, block, sim3, radius) if len(block.plane_points)
+             else _share(model, _apply(sim3, points), radius))
+    return (share - RAY_WEIGHT * float(inside)
+            - GROUND_WEIGHT * _ground_under_roofs(model, block, sim3))
+
+
+def _oriented_share(model: _ModelNearHint, block: _LevelledBlock, sim3, radius: float
+                    ) -> float:
+    """Smooth share of the tie points of planes that lie within `radius` of a model face
+    whose normal is within ORIENTED_DEG of their plane's: scale-fair, where the share near any
+    surface favours a block shrunk into a corner of the model."""
+    moved = _apply(sim3, block.plane_points)
+    normals = block.plane_normals @ np.asarray(sim3.rotation.matrix()).T
+    faces, distance = model.store.closest_faces(moved, radius)
+    ok = faces >= 0
+    agree = np.zeros(len(moved), bool)
+    agree[ok] = np.abs(np.einsum("ij,ij->i", normals[ok], model.store.normals[faces[ok]])) \
+        > np.cos(np.radians(ORIENTED_DEG))
+    u = np.clip(np.abs(np.nan_to_num(distance, nan=radius)) / radius, 0, 1)
+    return float(np.sum(((1 - u * u) ** 2 * block.plane_weights)[agree]))
+
+
+def _ground_under_roofs(model: _ModelNearHint, block: _LevelledBlock, sim3) -> float:
+    """Share of the block's ground points that lie under a roof of the model (in plan)."""
+    if not len(block.ground):
+        return 0.0
+    return float(np.mean(np.isfinite(model.roof_above(_apply(sim3, block.ground)))))
 
 
 def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_Hypothesis],
@@ -578,7 +641,9 @@ def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_H
             limit = model.roof_above(rays) - SOLID_MARGIN
             inside = rays[None, :, 2] + zs[:, None] < limit[None, :]
             shares = shares - RAY_WEIGHT * inside.mean(axis=1)
-        h.z, h.share = float(zs[int(np.argmax(shares))]), float(shares.max())
+        h.z = float(zs[int(np.argmax(shares))])
+        h.share = float(shares.max()) - GROUND_WEIGHT * _ground_under_roofs(
+            model, block, _as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0]))
     ranked = sorted(hypotheses, key=lambda h: -h.share)
     ranked = _distinct(ranked, options.hypotheses, 3.0, np.radians(5.0), 0.06)
     out = []
@@ -609,6 +674,8 @@ def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHi
                                    store.offsets[faces[ok]], 0.3, max_iterations=20,
                                    scale_sigma=SCALE_SIGMA)
         candidate = fit.sim3 * best
+        if abs(np.log(candidate.scale / sim3.scale)) > MAX_FIT_SCALE:  # the scale grid's job
+            break
         share = _share(model, _apply(candidate, points), FIT_RADIUS)
         if share <= best_share:
             break
