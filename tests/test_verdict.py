@@ -187,3 +187,23 @@ def test_verdict_rules_one_sentence_each():
                            ).verdict == "weak"
     assert quality_verdict({**good, "loop_iterations": 10, "unsettled_shift_m": 0.01}
                            ).verdict == "ok"
+
+
+def test_no_number_of_faces_states_the_position_better_than_the_models_common_error():
+    """Two hundred faces fitting to 2 cm would state a millimetre position; the error all
+    faces share (0.03 m) keeps it at that, and the faces still count as fixing every axis."""
+    rng = np.random.default_rng(7)
+    polygons = [p + [30.0 * (k % 10), 40.0 * (k // 10), 0] for k in range(40)
+                for p in box(0, 0, 20, 16, 12)]
+    points, faces = points_on(polygons, 50, rng)
+    normals = np.array([np.cross(r[1] - r[0], r[2] - r[1]) for r in polygons])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    cams = np.column_stack([rng.uniform(0, 300, 80), rng.uniform(0, 160, 80), np.full(80, 40.0)])
+    sigmas = np.tile([3.0, 3.0, 5.0], (80, 1))
+    free = observability(points, normals[faces], faces, cams, sigmas, 0.05, 0.02)
+    shared = observability(points, normals[faces], faces, cams, sigmas, 0.05, 0.02,
+                           model_bias_sigma=0.03)
+    for axis in "ENU":
+        assert free[axis]["sigma"] < 0.01
+        assert 0.03 <= shared[axis]["sigma"] < 0.035
+        assert shared[axis]["source"] == "planes" and not shared[axis]["one_plane"]

@@ -191,7 +191,8 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                                    sigma_generalisation, tilts, shared_sigmas)
                  if len(points) else [])
     by_terrain = terrain_shares(per_plane, np.unique(groups), terrain_keys)
-    planes = common_shift_eliminated(sum(per_plane, np.zeros((7, 7))), model_bias_sigma)
+    total = sum(per_plane, np.zeros((7, 7)))
+    planes = common_shift_eliminated(total, model_bias_sigma)
     has_gnss = gnss_positions is not None and len(gnss_positions)
     gnss = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes)
             if has_gnss else np.zeros((7, 7)))
@@ -204,7 +205,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     # roof among facades): it counts for the planes only if it survives leaving any one out
     # (judged with the other parameters held, so that two parallel facades, which together
     # also fix the scale, still count for their normal direction).
-    diagonals = np.array([np.diag(planes - info) for info in per_plane]).reshape(-1, 7)
+    diagonals = np.array([np.diag(total - info) for info in per_plane]).reshape(-1, 7)
     s_robust = (1.0 / np.sqrt(np.maximum(diagonals.min(axis=0), 1e-30)) if len(per_plane) > 1
                 else np.full(7, np.inf))
     out = {}
