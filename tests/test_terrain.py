@@ -242,3 +242,46 @@ def test_a_sloped_street_drive_lands_within_a_quarter_metre_in_height_with_a_dtm
     assert terrain["source"] == "dtm" and terrain["residuals"]["num_points"] > 300
     assert set(terrain["residuals"]["units"]) == {"dtm_0.tif", "dtm_1.tif"}
     assert terrain["residuals"]["rms_m"] < 0.2
+
+
+def test_the_cli_names_a_bad_dtm_file_in_one_line_and_exits_2(tmp_path, capsys):
+    from colmap_citymodel.cli import main as cli_main
+
+    bad = tmp_path / "dgm1.tif"
+    bad.write_bytes(b"II*\x00 not really a tiff")
+    code = cli_main(["refine", "--input_path", str(tmp_path), "--citymodel",
+                     str(CITYGML / "synthetic/relief_tin_house.gml"), "--output_path",
+                     str(tmp_path / "out"), "--terrain", str(bad)])
+    err = capsys.readouterr().err.strip()
+    assert code == 2 and len(err.splitlines()) == 1 and err.startswith("error: ")
+    assert "dgm1.tif" in err and "raster" in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_terrain_units_off_the_block_are_flagged_and_terrain_is_never_corrected(street,
+                                                                               tmp_path):
+    from colmap_citymodel.adjust.model_correction import select_corrected_faces
+    from colmap_citymodel.assign.assignment import Assignment
+    from colmap_citymodel.citymodel.ground_faces import terrain_residuals
+    from colmap_citymodel.options import AdjustmentOptions
+
+    options, scene = street
+    files = street_dtm(tmp_path, options, [0.0, 0.0], noise=0.0)
+    terrain = read_dtm(files, UTM32, np.array([[X0 - 20, Y0 - 20], [X0 + 60, Y0 + 20]]), 0.15)
+    rng = np.random.default_rng(5)
+    ground = np.c_[rng.uniform(2, 36, 400), rng.uniform(-6, 6, 400)]
+    z = ground_height(options, ground)
+    points = np.c_[ground, z] + (np.array([X0, Y0, Z0]) - scene.store.origin)
+    store = with_terrain_faces(scene.store, terrain, points, 6.0,
+                               building_feet(scene.store).footprints)
+    faces, _ = store.closest_faces(points, max_distance=0.5)
+    assert np.mean(faces >= 0) > 0.9 and terrain_mask(store)[faces[faces >= 0]].all()
+    assignment = Assignment(np.arange(len(points)), faces, np.zeros(len(points)), 0.5)
+    right = terrain_residuals(store, assignment, points)
+    assert right["num_points"] == np.sum(faces >= 0) and right["off_units"] == []
+    assert right["rms_m"] < 0.05
+    lifted = terrain_residuals(store, assignment, points + [0, 0, 1.0])  # a block 1 m high
+    assert lifted["off_units"] and all(u["mean_m"] == pytest.approx(1.0, abs=0.05)
+                                       for u in lifted["units"].values())
+    selection = select_corrected_faces(store, assignment, points, AdjustmentOptions())
+    assert len(selection.faces) == 0 and selection.not_corrected.get("terrain", 0) > 5

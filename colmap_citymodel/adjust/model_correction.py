@@ -38,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..assign.assignment import Assignment
+from ..citymodel.ground_faces import terrain_mask
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
 
@@ -101,7 +102,12 @@ def select_corrected_faces(store: PlaneStore, assignment: Assignment, points: np
     faces, counts = np.unique(assignment.face_index[assignment.assigned], return_counts=True)
     chosen, num_points, sigmas, all_sigmas = [], [], [], []
     reasons: dict[str, int] = {}
+    terrain = terrain_mask(store)  # the terrain's cells are no faces of the model
     for face, count in zip(faces.tolist(), counts.tolist()):
+        if terrain[face]:
+            all_sigmas.append(np.inf)
+            reasons["terrain"] = reasons.get("terrain", 0) + 1
+            continue
         _, sigma = plane_fit_sigma(store, face, points[assignment.face_index == face])
         all_sigmas.append(sigma)
         if not sigma <= options.correction_max_sigma:
