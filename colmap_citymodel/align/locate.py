@@ -263,7 +263,7 @@ class _LevelledBlock:
     ground: np.ndarray  # (G, 3) tie points on the ground (level planes at the walls' feet)
     plane_points: np.ndarray  # (P, 3) tie points of the other planes
     plane_normals: np.ndarray  # (P, 3) their planes' normals
-    plane_weights: np.ndarray  # (P,) summing to 1, every plane the same
+    plane_weights: np.ndarray  # (P,) summing to 1, a plane as the root of its points
 
 
 def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOptions) -> _LevelledBlock:
@@ -315,9 +315,10 @@ def _oriented_points(normals, members, ground, options: LocateOptions):
     rng = np.random.default_rng(options.seed + 2)
     pick = (np.arange(len(points)) if len(points) <= options.max_points else
             rng.choice(len(points), options.max_points, replace=False))
-    # Every plane weighs the same: the walls' heights fix the scale that roofs of many
-    # points, shrunk onto one flat roof, would not.
-    weights = 1.0 / np.bincount(plane[pick])[plane[pick]]
+    # A plane weighs as the square root of its points: the walls' heights fix the scale that
+    # roofs of many points, shrunk onto one flat roof, would not; small planes (eaves,
+    # balconies the model lacks) do not outweigh the facades.
+    weights = 1.0 / np.sqrt(np.bincount(plane[pick]))[plane[pick]]
     return points[pick], point_normals[pick], weights / weights.sum()
 
 
