@@ -29,11 +29,6 @@ from .terrain import Terrain
 
 logger = logging.getLogger(__name__)
 
-#: Metres from the nearest building foot within which the feet terrain is used (a pavement's
-#: width), and the side (m) of its cells: small enough for cells along the facades.
-FEET_REACH = 3.5
-FEET_CELL = 3.0
-
 TERRAIN_CLASS = "TerrainSurface"
 TERRAIN_PREFIX = "terrain:"
 SIGMA_PREFIX = "sigma="
@@ -52,13 +47,11 @@ def smoothed(terrain: Terrain, width: float) -> Terrain:
     return replace(terrain, heights=heights)
 
 
-def terrain_cells(terrain: Terrain, points_xy: np.ndarray, cell: float, footprints=None,
-                  near: np.ndarray | None = None, reach: float = np.inf
+def terrain_cells(terrain: Terrain, points_xy: np.ndarray, cell: float, footprints=None
                   ) -> tuple[np.ndarray, np.ndarray]:
     """(C, 2) int cell indices (cell (a, b) spans x in [a, a + 1] * cell, y in [b, b + 1] *
     cell, CRS) that hold a point of `points_xy` (CRS) or border one that does, without those
-    whose centre lies in `footprints` (shapely, CRS xy) or further than `reach` from every
-    point of `near` (CRS xy); and their centres (C, 2)."""
+    whose centre lies in `footprints` (shapely, CRS xy); and their centres (C, 2)."""
     import shapely
 
     if not len(points_xy):
@@ -71,19 +64,13 @@ def terrain_cells(terrain: Terrain, points_xy: np.ndarray, cell: float, footprin
     if footprints is not None and not footprints.is_empty:
         inside = shapely.contains_xy(footprints, centres[:, 0], centres[:, 1])
         cells, centres = cells[~inside], centres[~inside]
-    if near is not None and np.isfinite(reach) and len(near):
-        from scipy.spatial import cKDTree
-
-        close = cKDTree(near).query(centres)[0] <= reach
-        cells, centres = cells[close], centres[close]
     return cells, centres
 
 
-def terrain_polygons(terrain: Terrain, points_xy: np.ndarray, cell: float, footprints=None,
-                     near: np.ndarray | None = None, reach: float = np.inf):
+def terrain_polygons(terrain: Terrain, points_xy: np.ndarray, cell: float, footprints=None):
     """The cells' quadrilaterals: corner node indices (C, 4) into the returned corners (K, 3)
     (CRS, counter-clockwise seen from above), each cell's unit name and sigma."""
-    cells, centres = terrain_cells(terrain, points_xy, cell, footprints, near, reach)
+    cells, centres = terrain_cells(terrain, points_xy, cell, footprints)
     smooth = smoothed(terrain, cell)
     corner_cells = (cells[:, None, :] + np.array([[0, 0], [1, 0], [1, 1], [0, 1]])).reshape(-1, 2)
     nodes, inverse = np.unique(corner_cells, axis=0, return_inverse=True)
@@ -99,15 +86,12 @@ def terrain_polygons(terrain: Terrain, points_xy: np.ndarray, cell: float, footp
 
 
 def with_terrain_faces(store, terrain: Terrain, points_local: np.ndarray, cell: float,
-                       footprints=None, near: np.ndarray | None = None,
-                       reach: float = np.inf):
+                       footprints=None):
     """`store` (citymodel.store.PlaneStore) with the terrain cells near `points_local` (tie
-    points, the store's local frame) appended as "TerrainSurface" faces (only cells within
-    `reach` of `near`, CRS xy, when given); the store unchanged when no cell has terrain
-    heights."""
+    points, the store's local frame) appended as "TerrainSurface" faces; the store unchanged
+    when no cell has terrain heights."""
     points_xy = np.asarray(points_local, float)[:, :2] + store.origin[:2]
-    quads, corners, names, sigmas = terrain_polygons(terrain, points_xy, cell, footprints,
-                                                     near, reach)
+    quads, corners, names, sigmas = terrain_polygons(terrain, points_xy, cell, footprints)
     if not len(quads):
         logger.info("terrain: no terrain under the tie points")
         return store
@@ -239,13 +223,9 @@ def block_terrain(store, points_local: np.ndarray, options) -> tuple:
     if terrain is None:
         return store, {"source": "none", "warnings": warnings or ["no building feet to "
                                                                   "build a terrain from"]}
-    # The feet are the ground next to them: the pavement. Further out a street's kerb and
-    # camber drop below them, so the feet terrain is only used within FEET_REACH of a foot.
-    from_feet = terrain.source == "building_feet"
-    out = with_terrain_faces(store, terrain, points_local,
-                             min(options.cell, FEET_CELL) if from_feet else options.cell,
-                             feet.footprints, feet.points[:, :2] if from_feet else None,
-                             FEET_REACH if from_feet else np.inf)
+    # The feet terrain covers the whole street, not a band along the facades: a band's
+    # pattern of cells would let the coarse search match ground points along the street.
+    out = with_terrain_faces(store, terrain, points_local, options.cell, feet.footprints)
     record = {**terrain.summary(), "num_faces": out.num_faces - store.num_faces,
               "cell_m": options.cell, "warnings": warnings}
     return out, record
