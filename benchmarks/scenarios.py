@@ -45,6 +45,7 @@ from the model's.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import logging
 import os
@@ -271,8 +272,10 @@ def build_from_toml(toml: Path, out: Path, *, seed: int | None = None) -> tuple[
     if seed is not None:
         options.seed = seed
     stats = out / "simulation.json"
-    if not ((out / "sparse" / "0").is_dir() and stats.exists() and json.loads(
-            stats.read_text()).get("sequence_key") == sequence_key(options)):
+    made = json.loads(stats.read_text()) if stats.exists() else {}
+    if not ((out / "sparse" / "0").is_dir() and made.get("sequence_key") == sequence_key(options)
+            and made.get("scenario") == json.loads(json.dumps(
+                dataclasses.asdict(options.scenario)))):
         simulate.main(toml, out, seed=seed, cache_path=GENERATED / "cache",
                       overwrite=out.exists(), progress=False)
     return out, json.loads(stats.read_text())
@@ -341,6 +344,9 @@ def refine_with_quality(workspace: Path, gnss=None, assignment: str | None = Non
     options.precision.covariances = "off"
     if assignment is not None:
         options.assignment.method = assignment
+    dtm = sorted((workspace / "dtm").glob("*.tif"))  # a scenario with `dtm = true`
+    if dtm:
+        options.terrain.files = tuple(str(p) for p in dtm)
     out: dict = {"origin": store.origin, "refined": None, "gnss_only": None,
                  "verdict": "n/a", "reasons": [], "quality_metrics": None, "observability": None}
     start = time.perf_counter()
