@@ -65,8 +65,8 @@ class LocateOptions:
     hypotheses: int = 60
     """Placements (the best distinct ones after the height search) refined in 3D."""
     distinct_m: float = 5.0
-    """A runner-up placement counts as distinct when its block centre lies this far from the
-    best one's..."""
+    """A runner-up placement counts as distinct when its block centre (the cameras' mean) lies
+    this far from the best one's..."""
     distinct_deg: float = 10.0
     """...or its heading differs by this much."""
     max_ratio: float = 0.85
@@ -148,7 +148,8 @@ def locate(rec: pycolmap.Reconstruction, store: PlaneStore, hint_local: np.ndarr
             f"no placement of the block within {options.radius:g} m of the location hint "
             "matches the model's walls (are there walls in the tie points, is the hint right?)")
     placements = _refine_3d(block, near, hypotheses, options)
-    return _decide(placements, hypotheses, block, hint, options, time.perf_counter() - t0)
+    return _decide(placements, hypotheses, block, near, hint, options,
+                   time.perf_counter() - t0)
 
 
 # -- the model near the hint -------------------------------------------------------------------
@@ -278,7 +279,7 @@ def _block(rec: pycolmap.Reconstruction, points: np.ndarray, options: LocateOpti
     right = np.cross(up, view)  # image x = (-y) x z ... x right, y down, z view: x = y cross z
     right = -right
     pts = subsample(points, 20000, options.seed)
-    centre = np.median(pts, axis=0)
+    centre = centres.mean(axis=0)  # the block centre: the cameras' mean
     unit = float(np.sqrt(np.sum(np.var(pts, axis=0))))
     if not unit > 0:
         raise GeoregistrationError("the tie points coincide: no block to locate")
@@ -657,15 +658,18 @@ def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_H
     return out
 
 
-def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHint
+def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHint,
+                   thresholds=(3.0, 2.0, 1.0, 1.0, 0.6), max_scale: float | None = None
                    ) -> pycolmap.Sim3d:
-    """A few rounds: each tie point to its nearest face (within a shrinking distance), a
-    similarity to those planes (robust); kept only while the share near the model grows."""
+    """A few rounds: each tie point to its nearest face (within `thresholds`, m), a
+    similarity to those planes (robust); kept only while the share near the model grows and
+    the scale stays within `max_scale` (log; default MAX_FIT_SCALE) of the start."""
     from .initial_alignment import similarity_to_planes
 
+    max_scale = MAX_FIT_SCALE if max_scale is None else max_scale
     store = model.store
     best, best_share = sim3, _share(model, _apply(sim3, points), FIT_RADIUS)
-    for threshold in (3.0, 2.0, 1.0, 1.0, 0.6):
+    for threshold in thresholds:
         moved = _apply(best, points)
         faces, _ = store.closest_faces(moved, threshold)
         ok = faces >= 0
@@ -675,7 +679,7 @@ def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHi
                                    store.offsets[faces[ok]], 0.3, max_iterations=20,
                                    scale_sigma=SCALE_SIGMA)
         candidate = fit.sim3 * best
-        if abs(np.log(candidate.scale / sim3.scale)) > MAX_FIT_SCALE:  # the scale grid's job
+        if abs(np.log(candidate.scale / sim3.scale)) > max_scale:  # the scale grid's job
             break
         share = _share(model, _apply(candidate, points), FIT_RADIUS)
         if share <= best_share:
@@ -687,22 +691,40 @@ def _fit_to_planes(sim3: pycolmap.Sim3d, points: np.ndarray, model: _ModelNearHi
 # -- decision ----------------------------------------------------------------------------------
 
 
-def _decide(placements: list[_Hypothesis], hypotheses: list[_Hypothesis], block: _LevelledBlock,
-            hint: np.ndarray, options: LocateOptions, seconds: float) -> Location:
+def _apart(sim3: pycolmap.Sim3d, centre: np.ndarray, heading: float, cameras: np.ndarray
+           ) -> tuple[float, float]:
+    """How far (m, in plan) and how much turned (deg) the placement `sim3` puts the mean
+    of `cameras` from `centre`, and its heading from `heading`."""
+    other = _apply(sim3, cameras).mean(axis=0)
+    turn = abs((_heading(sim3) - heading + 180.0) % 360.0 - 180.0)
+    return float(np.linalg.norm(other[:2] - centre[:2])), float(turn)
+
+
+def _decide(placements: list[_Hypothesis], hypotheses: list[_Hypothesis],
+            block: _LevelledBlock, model: _ModelNearHint, hint: np.ndarray,
+            options: LocateOptions, seconds: float) -> Location:
     if not placements:
         raise GeoregistrationError("no placement of the block near the location hint could be "
                                    "given a height on the model")
     best = placements[0]
-    centre = _apply(best.sim3, np.zeros((1, 3)))[0]
+    points = block.points[:FIT_POINTS]
+    cameras = block.centres
+    centre = _apply(best.sim3, cameras).mean(axis=0)  # the block's centre: its cameras' mean
     heading = _heading(best.sim3)
     runner = None
     for h in placements[1:]:
-        other = _apply(h.sim3, np.zeros((1, 3)))[0]
-        turn = abs((_heading(h.sim3) - heading + 180.0) % 360.0 - 180.0)
-        if np.linalg.norm(other[:2] - centre[:2]) > options.distinct_m or \
-                turn > options.distinct_deg:
-            runner = (h, float(np.linalg.norm(other[:2] - centre[:2])), turn)
-            break
+        offset, turn = _apart(h.sim3, centre, heading, cameras)
+        if offset <= options.distinct_m and turn <= options.distinct_deg:
+            continue
+        # A placement the best one's own, half-way there (scale or shift not settled), is no
+        # alternative: refitted with the scale free it joins the best.
+        refit = _fit_to_planes(h.sim3, points, model, (4.0, 3.0, 2.0, 2.0, 1.0, 1.0, 0.6),
+                               max_scale=0.5)
+        if all(a <= b for a, b in zip(_apart(refit, centre, heading, cameras),
+                                      (options.distinct_m, options.distinct_deg))):
+            continue
+        runner = (h, offset, turn)
+        break
     runner_share = runner[0].share if runner else 0.0
     ratio = runner_share / best.share if best.share > 0 else 1.0
     # The normalised levelled frame -> the input frame is undone: input -> local.
