@@ -43,6 +43,8 @@ from pathlib import Path
 
 import numpy as np
 
+from colmap_citymodel.options import PrecisionOptions
+
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scenarios import GENERATED, RESULTS, ROOT, build_from_toml, centre_errors, code_version, \
     inputs, model_variant, truth_centres  # noqa: E402
@@ -62,8 +64,8 @@ QUICK_BLOCKS, DEFAULT_BLOCKS = 10, 40
 Z_COVERED, Z_OUTLIER = 2.0, 3.5
 #: A block this close to the truth (3D camera-centre RMS, m) deserves "ok".
 GOOD_ERROR = 0.10
-#: refine's default position tolerance (PrecisionOptions.tolerance, m).
-TOLERANCE = 0.2
+#: refine's default position tolerance (m).
+TOLERANCE = PrecisionOptions().tolerance
 
 
 # ----------------------------------------------------------------------------------------------

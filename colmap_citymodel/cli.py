@@ -170,7 +170,7 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
                          help="per-plane generalisation error (m; Unger's typical size 0.2): "
                               "report generalisation-aware sigmas beside the classical ones")
     quality.add_argument("--tolerance", type=float, default=None, metavar="METRES",
-                         help="position tolerance of the verdict (3D sigma, m; default 0.2): "
+                         help="position tolerance of the verdict (3D sigma, m; default 0.25): "
                               "a result whose stated sigma exceeds it is 'weak'")
     quality.add_argument("--variance_components", action="store_true", default=None,
                          help="iterated variance components of image and f_dTP, then a "

@@ -488,10 +488,11 @@ class PrecisionOptions:
     with the cube of the images and soon costs more than the solves themselves."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
-    tolerance: float = 0.2
+    tolerance: float = 0.25
     """The position tolerance (m) of the verdict (`--tolerance`): a result whose stated 3D sigma
-    of the block's position exceeds it is "weak". Default 0.2: one face's generalisation in a
-    LOD2 model (Unger 5.3); a block placed that well is placed as well as the model is drawn."""
+    of the block's position exceeds it is "weak". Default 0.25: about one face's generalisation
+    in a LOD2 model (0.2 m, Unger 5.3) with the model's common error; a block placed that well
+    is placed as well as the model is drawn."""
     generalisation_from_data: bool = True
     """Without an a priori `AdjustmentOptions.sigma_generalisation`, the covariances are also given
     under the generalisation-aware stochastic model, with the sigma the planes' mean f_dTP

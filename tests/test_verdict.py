@@ -207,3 +207,33 @@ def test_no_number_of_faces_states_the_position_better_than_the_models_common_er
         assert free[axis]["sigma"] < 0.01
         assert 0.03 <= shared[axis]["sigma"] < 0.035
         assert shared[axis]["source"] == "planes" and not shared[axis]["one_plane"]
+
+
+def test_refines_weighting_states_what_a_face_holding_most_points_does_to_the_block():
+    """Every tie point weighs alike in refine, so a face holding most of them moves the block
+    by its whole error: with one of 40 faces holding 96 % of the points, the stated sigma
+    (per_point) is well above the optimal weighting's, and with points spread evenly about
+    the same."""
+    rng = np.random.default_rng(8)
+    polygons = [p + [30.0 * (k % 10), 40.0 * (k // 10), 0] for k in range(8)
+                for p in box(0, 0, 20, 16, 12)]
+    normals = np.array([np.cross(r[1] - r[0], r[2] - r[1]) for r in polygons])
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    cams = np.column_stack([rng.uniform(0, 300, 60), rng.uniform(0, 80, 60), np.full(60, 40.0)])
+    sigmas = np.tile([3.0, 3.0, 5.0], (60, 1))
+    even, even_faces = points_on(polygons, 40, rng)
+    heavy, heavy_faces = points_on(polygons[20:21], 8000, rng)  # a wall mid-block
+    heavy_faces[:] = 20
+    uneven = np.vstack([even, heavy])
+    uneven_faces = np.concatenate([even_faces, heavy_faces])
+
+    def stated(points, faces, per_point):
+        return observability(points, normals[faces], faces, cams, sigmas, 0.2, 0.2,
+                             per_point=per_point)
+
+    # That wall faces -y: the N sigma is the one it dominates, at about its 0.2 m offset.
+    assert stated(uneven, uneven_faces, True)["N"]["sigma"] > \
+        2 * stated(uneven, uneven_faces, False)["N"]["sigma"]
+    for axis in "ENU":
+        assert stated(even, even_faces, True)[axis]["sigma"] == pytest.approx(
+            stated(even, even_faces, False)[axis]["sigma"], rel=0.5)

@@ -90,6 +90,23 @@ def common_shift_eliminated(info: np.ndarray, sigma: float) -> np.ndarray:
     return info - cross @ np.linalg.solve(info[:3, :3] + np.eye(3) / sigma ** 2, cross.T)
 
 
+def _plane_terms(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                 centre: np.ndarray, sigma_generalisation: float,
+                 tilts: dict[int, FaceTilt] | None, shared_sigmas: dict[int, float] | None):
+    """Per plane (group): the datum Jacobian of its points and the columns of the error they
+    share (offset and, for the groups in `tilts`, the two tilts, as distances along the
+    normal at each point)."""
+    jac = _datum_jacobian(points, normals, centre)
+    for group in np.unique(groups):
+        selected = groups == group
+        shared = np.full((int(selected.sum()), 1), sigma_generalisation if shared_sigmas is None
+                         else shared_sigmas.get(int(group), sigma_generalisation))
+        tilt = None if tilts is None else tilts.get(int(group))
+        if tilt is not None:
+            shared = np.hstack([shared, tilt.distances(points[selected])])
+        yield jac[selected], shared
+
+
 def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                       centre: np.ndarray, sigma: float, sigma_generalisation: float,
                       tilts: dict[int, FaceTilt] | None = None,
@@ -97,22 +114,42 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
     """7x7 information of the datum from the tie points of each plane (one group per plane):
     each plane's points share its offset error (sigma_generalisation) and, for the groups in
     `tilts`, its tilt error."""
-    jac = _datum_jacobian(points, normals, centre)
     s2 = sigma ** 2
     out = []
-    for group in np.unique(groups):
-        selected = groups == group
-        j = jac[selected]
-        # The shared error's columns: the offset and, when known, the two tilts (square root
-        # of their covariance), as distances along the normal at each point.
-        shared = np.full((len(j), 1), sigma_generalisation if shared_sigmas is None
-                         else shared_sigmas.get(int(group), sigma_generalisation))
-        tilt = None if tilts is None else tilts.get(int(group))
-        if tilt is not None:
-            shared = np.hstack([shared, tilt.distances(points[selected])])
+    for j, shared in _plane_terms(points, normals, groups, centre, sigma_generalisation, tilts,
+                                  shared_sigmas):
         projected = j.T @ shared
         inner = s2 * np.eye(shared.shape[1]) + shared.T @ shared
         out.append((j.T @ j - projected @ np.linalg.solve(inner, projected.T)) / s2)
+    return out
+
+
+def per_point_sigmas(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                     centre: np.ndarray, sigma: float, sigma_generalisation: float,
+                     tilts, shared_sigmas, gnss: np.ndarray, gnss_bias: np.ndarray,
+                     model_bias_sigma: float) -> np.ndarray:
+    """(7,) sigmas of the datum as refine weighs it: every tie point alike (`sigma`), GNSS by
+    its stated sigmas (`gnss`: that information), whatever the errors they share. Sandwich
+    H^-1 M H^-1: H the normal matrix of those weights, M the covariance of its right-hand side
+    under the full model (each face's offset and tilt, `gnss_bias`: the GNSS bias's part, the
+    model's common shift). Above the optimal weighting's sigmas where a few faces hold most
+    of the points."""
+    s2 = sigma ** 2
+    hessian, middle = gnss.copy(), gnss + gnss_bias
+    planes = np.zeros((7, 7))
+    for j, shared in _plane_terms(points, normals, groups, centre, sigma_generalisation, tilts,
+                                  shared_sigmas):
+        normal = j.T @ j / s2
+        projected = j.T @ shared / s2
+        planes += normal
+        middle += normal + projected @ projected.T
+    hessian += planes
+    if model_bias_sigma > 0:
+        middle += model_bias_sigma ** 2 * planes[:, :3] @ planes[:3, :]
+    inverse = _inverse(hessian)
+    variance = np.einsum("ij,jk,ki->i", inverse, middle, inverse)
+    out = np.sqrt(np.maximum(variance, 0.0))
+    out[~np.isfinite(_sigmas(hessian))] = np.inf
     return out
 
 
@@ -141,9 +178,40 @@ def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarr
     return info
 
 
+def gnss_bias_part(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray,
+                   free_axes=None, bias_sigmas=None) -> np.ndarray:
+    """7x7: what a bias common to all positions (`bias_sigmas` per axis) adds to the covariance
+    of GNSS's right-hand side J^T W e when GNSS is weighed by its stated sigmas alone; nothing
+    along `free_axes`, where an offset is estimated."""
+    out = np.zeros((7, 7))
+    if bias_sigmas is None:
+        return out
+    free = np.zeros(3, bool) if free_axes is None else np.asarray(free_axes, bool)
+    for axis in range(3):
+        if free[axis] or not bias_sigmas[axis] > 0:
+            continue
+        directions = np.zeros_like(positions)
+        directions[:, axis] = 1.0
+        jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
+        g = jac.T @ (1.0 / sigmas[:, axis])
+        out += bias_sigmas[axis] ** 2 * np.outer(g, g)
+    return out
+
+
 #: Prior sigmas (shifts in metres, log scale, rotations in radians) that keep a singular
 #: information matrix invertible, far above every UNDETERMINED limit.
 REGULARISATION = np.array([1e6, 1e6, 1e6, 1e3, 1e3, 1e3, 1e3])
+
+
+def _inverse(info: np.ndarray) -> np.ndarray:
+    """The inverse of a datum information with REGULARISATION as priors, in units scaled by
+    its diagonal (see `_sigmas`)."""
+    prior = 1.0 / REGULARISATION ** 2
+    regularised = info + np.diag(prior)
+    scale = np.sqrt(np.diag(regularised))
+    normalised = regularised / np.outer(scale, scale)
+    values, vectors = np.linalg.eigh(0.5 * (normalised + normalised.T))
+    return (vectors / np.maximum(values, 1e-300)) @ vectors.T / np.outer(scale, scale)
 
 
 def _sigmas(info: np.ndarray) -> np.ndarray:
@@ -152,13 +220,7 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
     (vertical walls and the height) keeps its large sigma without dragging the others it barely
     touches into the null space (in units scaled by the diagonal, the height's null vector
     looked half made of E and N)."""
-    prior = 1.0 / REGULARISATION ** 2
-    regularised = info + np.diag(prior)
-    scale = np.sqrt(np.diag(regularised))
-    normalised = regularised / np.outer(scale, scale)
-    values, vectors = np.linalg.eigh(0.5 * (normalised + normalised.T))
-    inverse = (vectors / np.maximum(values, 1e-300)) @ vectors.T
-    sigma = np.sqrt(np.maximum(np.diag(inverse), 0.0)) / scale
+    sigma = np.sqrt(np.maximum(np.diag(_inverse(info)), 0.0))
     # Within a factor of two of the regularisation: the information said (almost) nothing.
     sigma[sigma > 0.5 * REGULARISATION] = np.inf
     return sigma
@@ -169,7 +231,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
                   tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None,
                   terrain: dict[int, tuple[int, float]] | None = None,
-                  model_bias_sigma: float = 0.0) -> dict:
+                  model_bias_sigma: float = 0.0, per_point: bool = False) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
@@ -178,7 +240,9 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     a user can rely on) includes it; `sigma_gnss` is the GNSS positions' mean without it (how
     far refined and GNSS-only blocks, which share the bias, may differ), and the sources are
     decided on it; `sigma_gnss_with_bias` is GNSS alone with it. `model_bias_sigma` (m): a
-    shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`."""
+    shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`.
+    `per_point`: `sigma` is that of refine's weighting, every tie point alike
+    (`per_point_sigmas`), not that of the optimal one."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
@@ -201,6 +265,13 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
     s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
+    s_stated = s_both
+    if per_point and len(points):
+        bias_part = (gnss_bias_part(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
+                                    gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
+        s_stated = np.maximum(s_both, per_point_sigmas(
+            points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
+            shared_sigmas, gnss, bias_part, model_bias_sigma))
     # A direction that only one plane fixes rests on that plane's assignment being right (one
     # roof among facades): it counts for the planes only if it survives leaving any one out
     # (judged with the other parameters held, so that two parallel facades, which together
@@ -229,7 +300,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         # judge (precision.quality), not this sigma.
         out[name] = {"source": source, **by_terrain[k],
                      "one_plane": one_plane,
-                     "sigma": _finite(s_both[k] * factor),
+                     "sigma": _finite(s_stated[k] * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
                      "sigma_gnss_with_bias": _finite(s_biased[k] * factor)}
@@ -329,7 +400,9 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          gnss_bias_sigmas(priors, options.adjustment.gnss_bias_share),
                          terrain=terrain_faces(store, faces),
                          model_bias_sigma=options.adjustment.sigma_model_datum if from_data
-                         else 0.0)
+                         else 0.0,
+                         per_point=from_data
+                         and options.adjustment.face_weighting == "per_point")
 
 
 # -- the faces' fit: generalisation sigma from the data ----------------------------------------

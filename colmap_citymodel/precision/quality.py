@@ -140,7 +140,7 @@ def contradiction(shift: np.ndarray, covariance: np.ndarray, alpha: float) -> di
 
 
 def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
-                    tolerance: float = 0.2) -> QualityReport:
+                    tolerance: float = 0.25) -> QualityReport:
     """Verdict from the figures refine measured (keys as written by measure_quality); each
     test runs only where its figures are present."""
     t = thresholds or QualityThresholds()
