@@ -153,3 +153,25 @@ def test_an_ambiguous_block_writes_only_its_report(identical_street, tmp_path, c
     assert report["quality"]["verdict"] == "failed"
     assert report["georegistration"]["method"] == "model only"
 
+
+
+def test_refine_cli_without_gnss_reports_the_search(workspace, tmp_path, capsys):
+    root, scene = workspace
+    x, y = true_centre(scene)[:2] + [-30.0, 25.0]
+    out = tmp_path / "out"
+    code, stdout, err = run(["--input_path", root / "sparse" / "0", "--citymodel",
+                             root / "model.gml", "--output_path", out, "--location", x, y,
+                             "--precision", "off"], capsys)
+    assert code == 0, err
+    report = json.loads((out / "report.json").read_text())
+    geo = report["georegistration"]
+    assert geo["method"] == "model only" and geo["score_ratio"] < LocateOptions().max_ratio
+    assert 30.0 < geo["hint_distance_m"] < 50.0
+    assert report["quality"]["metrics"]["location_score_ratio"] == geo["score_ratio"]
+    assert "model alone" in (out / "report.md").read_text()
+    rec = pycolmap.Reconstruction(str(out))
+    truth = {im.name: im.projection_center() + scene.store.origin
+             for im in scene.truth.images.values()}
+    errors = [np.linalg.norm(im.projection_center() - truth[im.name])
+              for im in rec.images.values()]
+    assert rms(errors) < 0.10
