@@ -246,6 +246,10 @@ class AdjustmentOptions:
     each at sigma^2 = sigma_dtp^2 + n sigma_face^2 (scaled so all tie points weigh together as per
     point), a face further off than sigma_face explains weighed less. Better where one face
     dominates a direction, worse where many faces fit well (docs/method.md, "Faces as units")."""
+    face_test_alpha: float | None = 0.001
+    """Significance level (per face, two-sided) of the test that drops a face whose points the
+    other faces place further off than the generalisation error explains (an arcade behind a
+    facade, a set-back storey; adjust.faces.snooped_faces). None: no face is dropped."""
     sigma_face: float | None = None
     """With `face_weighting` "face": the sigma (m) of a face's offset error, shared by all its
     tie points. None: estimated from the faces' mean offsets after each solve (adjust.faces),

@@ -59,6 +59,16 @@ def test_the_faces_offset_sigma_comes_from_their_spread():
 def arcade(street_scene):
     """The street's largest street-facing facade modelled 0.6 m in front of its true surface
     (an arcade or recessed ground floor the model does not have)."""
+    return arcade_model(street_scene, 0.6)
+
+
+@pytest.fixture(scope="module")
+def deep_arcade(street_scene):
+    """The same facade 2 m in front of its true surface."""
+    return arcade_model(street_scene, 2.0)
+
+
+def arcade_model(street_scene, metres: float):
     store = street_scene.store
     cameras = np.array([im.projection_center() for im in street_scene.truth.images.values()])
     walls = [f for f in range(store.num_faces) if store.faces[f].semantic == "WallSurface"
@@ -66,7 +76,7 @@ def arcade(street_scene):
              and abs(store.normals[f][1]) > 0.99]
     face = max(walls, key=lambda f: store.areas[f])
     vertices = store.vertices.copy()
-    vertices[store.face_vertex_ids(face)] += 0.6 * store.normals[face]
+    vertices[store.face_vertex_ids(face)] += metres * store.normals[face]
     return store.with_vertices(vertices), face
 
 
@@ -94,3 +104,78 @@ def test_a_face_off_its_true_surface_does_not_pull_the_block(street_scene, arcad
     rms_fixed = float(np.sqrt(np.mean(np.square(centre_errors(pulled.reconstruction,
                                                                 street_scene.truth)))))
     assert rms_fixed > 2 * rms
+
+
+def box(x0: float, y0: float, x: float, y: float, h: float) -> list[np.ndarray]:
+    """The four walls and the roof of a box building."""
+    c = np.array([[x0, y0], [x0 + x, y0], [x0 + x, y0 + y], [x0, y0 + y]])
+    walls = [np.array([[*c[i], 0], [*c[(i + 1) % 4], 0], [*c[(i + 1) % 4], h], [*c[i], h]])
+             for i in range(4)]
+    return [w.astype(float) for w in walls] + [np.array([[*p, h] for p in c], float)]
+
+
+def faces_scene(offset_of_face0: float, seed: int = 0):
+    """Points on the walls and roofs of three box buildings around a square, each face off by
+    its own generalisation error (0.1 m), the first wall's points `offset_of_face0` in front
+    of it; that face also holds the most points."""
+    from colmap_citymodel.assign.assignment import Assignment
+    from colmap_citymodel.citymodel.build import store_from_polygons
+
+    rng = np.random.default_rng(seed)
+    polygons = box(0, 0, 40, 20, 12) + box(60, 0, 20, 30, 15) + box(0, 40, 30, 20, 9)
+    store = store_from_polygons(polygons, origin=np.zeros(3))
+    points, faces = [], []
+    for f in range(store.num_faces):
+        n = 1500 if f == 0 else 300
+        local = store.vertices[store.face_vertex_ids(f)]
+        p = rng.uniform(local.min(0), local.max(0), (n, 3))
+        p -= np.outer(p @ store.normals[f] + store.offsets[f], store.normals[f])
+        error = rng.normal(0, 0.1) + (offset_of_face0 if f == 0 else 0.0)
+        points.append(p + store.normals[f] * (error + rng.normal(0, 0.05, (n, 1))))
+        faces.append(np.full(n, f))
+    points, faces = np.vstack(points), np.concatenate(faces)
+    distance = np.einsum("ij,ij->i", points, store.normals[faces]) + store.offsets[faces]
+    assignment = Assignment(np.arange(len(points)), faces, distance, 1.5)
+    return points, assignment, store
+
+
+def test_the_face_test_drops_the_face_the_others_contradict():
+    from colmap_citymodel.adjust.faces import snooped_faces
+
+    points, assignment, store = faces_scene(1.0)
+    dropped = snooped_faces(points, assignment, store, sigma_dtp=0.2, sigma_face=0.2)
+    assert list(dropped) == [0] and dropped[0] > 3.3
+    # Faces within their generalisation error stay, also the one with the most points.
+    points, assignment, store = faces_scene(0.0)
+    assert snooped_faces(points, assignment, store, sigma_dtp=0.2, sigma_face=0.2) == {}
+
+
+def test_a_face_no_other_face_checks_is_kept():
+    from colmap_citymodel.adjust.faces import snooped_faces
+
+    points, assignment, store = faces_scene(1.0)
+    # With only the roofs and the walls facing it (none parallel), nothing checks its offset.
+    parallel = np.abs(store.normals @ store.normals[0]) > 0.9
+    alone = assignment.without(parallel[assignment.face_index] & (assignment.face_index != 0))
+    assert 0 not in snooped_faces(points, alone, store, sigma_dtp=0.2, sigma_face=0.2)
+
+
+def camera_rms(result, street_scene) -> float:
+    return float(np.sqrt(np.mean(np.square(centre_errors(result.reconstruction,
+                                                         street_scene.truth)))))
+
+
+def same_face(result, store, face) -> int:
+    """The face of `store` in the model refine kept near the block (numbered anew)."""
+    same = np.flatnonzero(np.linalg.norm(result.store.centroids - store.centroids[face],
+                                         axis=1) < 1e-6)
+    assert len(same) == 1
+    return int(same[0])
+
+
+def test_an_arcade_2_m_behind_the_model_does_not_pull_the_block(street_scene, deep_arcade):
+    store, face = deep_arcade
+    result = refine(street_scene.sfm, store, street_scene.gnss(), RefineOptions(),
+                    progress=False)
+    assert not np.any(result.assignment.face_index == same_face(result, store, face))
+    assert camera_rms(result, street_scene) < 0.03

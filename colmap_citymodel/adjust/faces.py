@@ -85,3 +85,83 @@ def outlier_factors(problem, options: AdjustmentOptions, sigma_face: float
     beyond = found.z > FACE_HUBER_K
     return {int(f): float(np.sqrt(z / FACE_HUBER_K))
             for f, z in zip(found.faces[beyond], found.z[beyond])}
+
+
+#: Significance level of the test that drops a face (two-sided, per face and round): the chance
+#: that a face whose error is no larger than the generalisation error explains is dropped.
+FACE_TEST_ALPHA = 0.001
+
+
+@dataclass
+class _FaceRows:
+    """Each assigned point's row of the linearised similarity (translation, rotation, scale
+    about `centre`) that moves it along its face's normal, its signed distance, and its face."""
+
+    design: np.ndarray  # (P, 7)
+    distance: np.ndarray  # (P,)
+    slot: np.ndarray  # (P,) index into `faces`
+    faces: np.ndarray  # (F,) face ids
+
+
+def _face_rows(points: np.ndarray, assignment, store) -> _FaceRows:
+    mask = assignment.assigned
+    faces = assignment.face_index[mask]
+    pts = points[mask]
+    normals = store.normals[faces]
+    r = pts - pts.mean(axis=0)
+    design = np.hstack([normals, np.cross(r, normals), np.einsum("ij,ij->i", normals, r)[:, None]])
+    distance = np.einsum("ij,ij->i", normals, pts) + store.offsets[faces]
+    used, slot = np.unique(faces, return_inverse=True)
+    return _FaceRows(design, distance, slot, used)
+
+
+def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma_face: float,
+                  alpha: float = FACE_TEST_ALPHA) -> dict[int, float]:
+    """{face: z} of the faces the other faces contradict, dropped one at a time, worst first.
+
+    The block's 7 parameters are fitted (linearised, each face weighing as one observation
+    of its offset: its points at sigma^2 = sigma_dtp^2 + n sigma_face^2) to all faces but one;
+    z = that face's points' mean distance after the fit over the sigma of its offset
+    (sqrt(sigma_face^2 + sigma_dtp^2 / n)) and of the prediction. A face that held the block
+    where it wanted shows its offset only when left out; a face the others cannot check
+    (the only one fixing a direction) has a large prediction sigma and is kept. `points`:
+    the tie points in the order of `assignment.point_ids`.
+    """
+    from scipy.stats import norm
+
+    if not np.any(assignment.assigned):
+        return {}
+    rows = _face_rows(points, assignment, store)
+    counts = np.bincount(rows.slot, minlength=len(rows.faces))
+    weights = 1.0 / (sigma_dtp ** 2 + counts[rows.slot] * sigma_face ** 2)
+    weighted = rows.design * weights[:, None]
+    per_face_n = np.zeros((len(rows.faces), 7, 7))
+    per_face_b = np.zeros((len(rows.faces), 7))
+    np.add.at(per_face_n, rows.slot, weighted[:, :, None] * rows.design[:, None, :])
+    np.add.at(per_face_b, rows.slot, -weighted * rows.distance[:, None])
+    mean_row = np.zeros((len(rows.faces), 7))
+    np.add.at(mean_row, rows.slot, rows.design)
+    mean_row /= counts[:, None]
+    mean_distance = np.bincount(rows.slot, weights=rows.distance) / counts
+    own = sigma_face ** 2 + sigma_dtp ** 2 / counts
+    critical = norm.isf(alpha / 2)
+    dropped: dict[int, float] = {}
+    active = np.ones(len(rows.faces), bool)
+    while np.count_nonzero(active) > 1:
+        z = np.zeros(len(rows.faces))
+        total_n, total_b = per_face_n[active].sum(0), per_face_b[active].sum(0)
+        for k in np.flatnonzero(active):
+            normal = total_n - per_face_n[k]
+            # The block's datum without face k: unfixed directions make the prediction's
+            # sigma large (the pseudo-inverse leaves them at zero, the prior term at a metre).
+            normal = normal + np.eye(7) * 1e-6 * max(np.trace(normal), 1.0)
+            inverse = np.linalg.inv(normal)
+            shift = inverse @ (total_b - per_face_b[k])
+            predicted = mean_distance[k] + mean_row[k] @ shift
+            z[k] = abs(predicted) / np.sqrt(own[k] + mean_row[k] @ inverse @ mean_row[k])
+        worst = int(np.argmax(z))
+        if z[worst] <= critical:
+            break
+        dropped[int(rows.faces[worst])] = float(z[worst])
+        active[worst] = False
+    return dropped

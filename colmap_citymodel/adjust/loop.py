@@ -31,7 +31,8 @@ from tqdm import tqdm
 
 from ..align.objective import BlockObjective
 from ..assign.assignment import Assignment, Observers
-from ..assign.schedule import (assign, initial_threshold, next_threshold,
+from ..assign.direct import centred_surfaces
+from ..assign.schedule import (assign, initial_threshold, next_threshold, resolve_method,
                                without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import TiePointReader, camera_centres
@@ -39,7 +40,8 @@ from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
 from .datum import check_datum
-from .faces import DEFAULT_SIGMA_FACE, estimate_sigma_face, face_offsets, outlier_factors
+from .faces import (DEFAULT_SIGMA_FACE, estimate_sigma_face, face_offsets, outlier_factors,
+                    snooped_faces)
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
@@ -120,6 +122,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
     stopped_by = None
     face_factors: dict[int, float] = {}  # faces the adjustment weighs less (adjust.faces)
+    dropped_faces: dict[int, float] = {}  # faces no tie point goes to (adjust.faces), their z
     # The sigma of the faces' offsets (m): given, or estimated from them after each solve.
     sigma_face = o_adj.sigma_face if o_adj.sigma_face is not None else DEFAULT_SIGMA_FACE
     # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem).
@@ -134,10 +137,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     for iteration in bar:
         t0 = time.perf_counter()
         point_ids, points = read_tie_points(rec)
+        surfaces = current  # where the tie points are looked for
         if assignment is not None:
+            if o_a.window == "centred" and resolve_method(o_a, threshold) == "direct":
+                surfaces = centred_surfaces(points, point_ids, current, threshold, o_a)
             # The tie point set does not change inside the loop: same ids in the same order.
             # The threshold never grows again: no flip-flop between two assignments.
-            threshold = min(threshold, next_threshold(assignment, points, current, o_a,
+            threshold = min(threshold, next_threshold(assignment, points, surfaces, o_a,
                                                       o_adj.sigma_dtp))
         observers = roof_observers(rec, point_ids)
         # Roofs keep only the points seen from above once the block is on the model: while
@@ -145,15 +151,28 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # parapets and eaves near a roof's plane hold its height (from a street they are
         # often the only points near a roof).
         kept_faces = assignment.faces if assignment is not None else None
-        assignment = assign(points, point_ids, current, threshold, o_a, weights,
+        assignment = assign(points, point_ids, surfaces, threshold, o_a, weights,
                             observers if iterations else None, kept_faces)
         if eliminated_from is None:  # the tie points keep their order inside the loop
             eliminated_from = np.full(len(point_ids), -1, np.int64)
         if o_w.keep_eliminated:
             assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
                                              kept_faces)
+        if iterations and o_adj.face_test_alpha is not None:
+            dropped_faces.update(snooped_faces(
+                points, assignment.without(np.isin(assignment.face_index, list(dropped_faces))),
+                current, o_adj.sigma_dtp, sigma_face, o_adj.face_test_alpha))
+        if dropped_faces:
+            off = np.isin(assignment.face_index, list(dropped_faces))
+            if np.any(off):
+                logger.info("iteration %d: %d faces dropped (%s): the other faces place their "
+                            "points beyond the generalisation error", iteration,
+                            len(dropped_faces), ", ".join(f"{f}: z {z:.1f}"
+                                                          for f, z in dropped_faces.items()))
+                assignment = assignment.eliminate(off, points, o_a, kept_faces)
         assignment.face_factors = dict(face_factors)
         assignment.face_sigma = sigma_face
+        assignment.dropped_faces = dict(dropped_faces)
         signature = _signature(assignment)
         if (o_w.reuse_problem and solved is not None and signature == _signature(solved)
                 and last is not None):

@@ -47,6 +47,10 @@ class Assignment:
     face_factors: dict[int, float] = field(default_factory=dict)
     # The sigma (m) of the faces' offsets the adjustment weighs them with (None: the option's).
     face_sigma: float | None = None
+    # Faces that take no tie points (face -> test statistic): the other faces place the block
+    # so that their points lie further from them than the generalisation error explains
+    # (adjust.faces.snooped_faces).
+    dropped_faces: dict[int, float] = field(default_factory=dict)
 
     @property
     def assigned(self) -> np.ndarray:
@@ -76,7 +80,7 @@ class Assignment:
         distance[point_mask] = np.nan
         return Assignment(self.point_ids, face_index, distance, self.threshold,
                           dict(self.rejected_faces), self.method, dict(self.face_factors),
-                          self.face_sigma)
+                          self.face_sigma, dict(self.dropped_faces))
 
     def eliminate(self, point_mask: np.ndarray, points: np.ndarray,
                   options: AssignmentOptions, kept_faces: np.ndarray | None = None

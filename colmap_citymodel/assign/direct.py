@@ -49,3 +49,21 @@ def assign_direct(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
     distance = np.where(face_index >= 0, distance, np.nan)
     return Assignment(np.asarray(point_ids, dtype=np.int64), face_index, distance, threshold,
                       rejected)
+
+
+def centred_surfaces(points: np.ndarray, point_ids: np.ndarray, store: PlaneStore,
+                     threshold: float, options: AssignmentOptions) -> PlaneStore:
+    """`store` with each face moved to its own surface: the median signed distance of the
+    points `assign_direct` gives it within `threshold + options.window_reach` (faces without
+    points stay). An assignment within `threshold` of these takes a face's points evenly from
+    both sides of where they lie, so that it does not follow the block towards the plane."""
+    wide = assign_direct(points, point_ids, store, threshold + options.window_reach, options)
+    faces = wide.face_index[wide.assigned]
+    distance = wide.distance[wide.assigned]
+    shifts = np.zeros(store.num_faces)
+    order = np.argsort(faces, kind="stable")
+    faces, distance = faces[order], distance[order]
+    starts = np.flatnonzero(np.r_[True, faces[1:] != faces[:-1]]) if len(faces) else []
+    for begin, end in zip(starts, list(starts[1:]) + [len(faces)]):
+        shifts[faces[begin]] = -np.median(distance[begin:end])
+    return store.with_plane_shifts(shifts)

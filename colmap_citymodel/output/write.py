@@ -98,8 +98,9 @@ def face_table(result: RefineResult) -> list[dict]:
     """report.json `faces`: each face that held tie points, as one observation of its offset:
     its points, their mean signed distance from the adjusted plane (`offset_m`), the sigma of
     that offset in the adjustment (`sigma_m`: sqrt(sigma_face^2 + sigma_dtp^2 / points), times
-    the face's outlier factor), and "kept" or "downweighted" (adjust.faces); then the faces near
-    the block that lie inside the city's volume, "dropped" (citymodel.visibility)."""
+    the face's outlier factor), and "kept" or "downweighted" (adjust.faces); then the faces the
+    face test dropped and the faces near the block that lie inside the city's volume, "dropped"
+    (adjust.faces.snooped_faces, citymodel.visibility)."""
     from ..adjust.faces import DEFAULT_SIGMA_FACE, FACE_HUBER_K
     from ..citymodel.visibility import visibility
 
@@ -118,6 +119,12 @@ def face_table(result: RefineResult) -> list[dict]:
             row["why"] = (f"its points' mean offset lies {factor ** 2 * FACE_HUBER_K:.1f} sigma "
                           "from the model, beyond its generalisation error")
         rows.append(row)
+    for face, z in sorted(result.assignment.dropped_faces.items()):
+        rows.append({"face": int(face), "id": store.faces[int(face)].gml_id, "points": 0,
+                     "status": "dropped",
+                     "why": f"the other faces place its points {z:.1f} sigma from it, beyond "
+                            "its generalisation error (face test, alpha "
+                            f"{o.face_test_alpha:g})"})
     vis = visibility(store)
     for face in np.flatnonzero(vis.hidden):
         rows.append({"face": int(face), "id": store.faces[int(face)].gml_id, "points": 0,
