@@ -725,7 +725,7 @@ def _decide(placements: list[_Hypothesis], hypotheses: list[_Hypothesis],
             continue
         runner = (h, offset, turn)
         break
-    runner_share = runner[0].share if runner else 0.0
+    runner_share = max(runner[0].share, 0.0) if runner else 0.0
     ratio = runner_share / best.share if best.share > 0 else 1.0
     # The normalised levelled frame -> the input frame is undone: input -> local.
     to_block = pycolmap.Sim3d(1.0 / block.unit, pycolmap.Rotation3d(block.level),
