@@ -285,3 +285,19 @@ def test_terrain_units_off_the_block_are_flagged_and_terrain_is_never_corrected(
                                        for u in lifted["units"].values())
     selection = select_corrected_faces(store, assignment, points, AdjustmentOptions())
     assert len(selection.faces) == 0 and selection.not_corrected.get("terrain", 0) > 5
+
+
+def test_a_drive_given_a_dtm_five_metres_off_does_not_follow_it(street, tmp_path):
+    from colmap_citymodel.workflow import refine
+
+    options, scene = street
+    files = street_dtm(tmp_path, options, [5.0, 5.0])
+    refine_options = RefineOptions()
+    refine_options.terrain.files = tuple(str(f) for f in files)
+    result = refine(scene.sfm, scene.store, scene.gnss(), refine_options, progress=False)
+    true = {im.name: im.projection_center() for im in scene.truth.images.values()}
+    errors = np.array([im.projection_center() - true[im.name]
+                       for im in result.reconstruction.images.values()])
+    assert abs(errors[:, 2].mean()) < 0.3  # not 5 m
+    assert result.terrain["source"] == "building_feet"
+    assert sum("left out" in w for w in result.terrain["warnings"]) == 2
