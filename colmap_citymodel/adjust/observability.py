@@ -242,7 +242,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     decided on it; `sigma_gnss_with_bias` is GNSS alone with it. `model_bias_sigma` (m): a
     shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`.
     `per_point`: `sigma` is that of refine's weighting, every tie point alike
-    (`per_point_sigmas`), not that of the optimal one."""
+    (`per_point_sigmas`), not that of the optimal one, where the planes fix the direction."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
@@ -294,13 +294,16 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         else:
             source = "none"
         factor = np.degrees(1.0) if kind == "rotation" else 1.0
+        # Refine's weighting where the planes hold the direction; where GNSS alone does, the
+        # loop holds it to GNSS (workflow.hold_gnss_height, scale priors), as weighed optimally.
+        stated = s_stated[k] if source in ("planes", "both") else s_both[k]
         one_plane = bool(s_planes[k] < limit and not p_ok)
         # What a user can rely on: planes (a single one too, with its generalisation error)
         # and GNSS with its bias; whether that one plane is the right one the verdict's tests
         # judge (precision.quality), not this sigma.
         out[name] = {"source": source, **by_terrain[k],
                      "one_plane": one_plane,
-                     "sigma": _finite(s_stated[k] * factor),
+                     "sigma": _finite(stated * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
                      "sigma_gnss_with_bias": _finite(s_biased[k] * factor)}
