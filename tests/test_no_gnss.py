@@ -59,6 +59,7 @@ def test_a_turned_and_scaled_block_is_registered_from_a_hint_40_m_off(turned_sce
     assert result.datum_cues["scale"] == "model only"
 
 
+@pytest.mark.slow
 def test_useless_gnss_is_replaced_by_the_model_search(street_scene):
     """GNSS stated at 50 m (and 30 m off): the search runs around its mean, without it."""
     gnss = street_scene.gnss()
@@ -155,6 +156,7 @@ def test_an_ambiguous_block_writes_only_its_report(identical_street, tmp_path, c
 
 
 
+@pytest.mark.slow
 def test_refine_cli_without_gnss_reports_the_search(workspace, tmp_path, capsys):
     root, scene = workspace
     x, y = true_centre(scene)[:2] + [-30.0, 25.0]
