@@ -88,7 +88,7 @@ def hint_of(case: str, truth: dict) -> np.ndarray:
 
 
 def without_gnss(workspace: Path, hint: np.ndarray) -> dict:
-    from colmap_citymodel.align.locate import AmbiguousLocationError
+    from colmap_citymodel.align.locate import ModelOnlyFailure
     from colmap_citymodel.errors import CityModelError, GeoregistrationError
     from colmap_citymodel.options import RefineOptions
     from colmap_citymodel.workflow import refine
@@ -105,9 +105,8 @@ def without_gnss(workspace: Path, hint: np.ndarray) -> dict:
     try:
         result = refine(rec, store, None, options, location=hint, location_radius=RADIUS,
                         progress=False)
-    except AmbiguousLocationError as error:
-        out.update(verdict="failed", failure="ambiguous: " + error.message,
-                   georegistration=error.report)
+    except ModelOnlyFailure as error:  # ambiguous, or planes that cannot hold the block
+        out.update(verdict="failed", failure=error.message, georegistration=error.report)
     except GeoregistrationError as error:
         out.update(verdict="failed", failure="not found: " + error.message)
     except CityModelError as error:  # e.g. planes that cannot fix the datum without GNSS

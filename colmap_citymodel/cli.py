@@ -203,8 +203,9 @@ def _add_refine(subparsers) -> None:
         "refine", help="georeference and refine a COLMAP model with a city building model",
         epilog="exit status: 0 refined (quality ok or weak: see the quality line and "
                "report.json), 2 bad input, 3 the quality gate failed: the model could not help "
-               "and the output holds the GNSS-only adjustment (or, when the block fits two "
-               "places of the model about equally well, report.json alone)")
+               "and the output holds the GNSS-only adjustment (or, for a block registered "
+               "from the model alone that fits two places about equally well or whose planes "
+               "cannot hold it, report.json alone)")
     p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
     _add_citymodel_arguments(p, database=True, initial_transform=True)
     hint = p.add_argument_group("no GNSS: register from the model alone (docs/no-gnss.md)")

@@ -50,7 +50,7 @@ from .block.reconstruction import camera_up_and_view, read_reconstruction, tie_p
 from .citymodel.ground_faces import block_terrain, terrain_residuals
 from .citymodel.read import peek_crs
 from .citymodel.store import PlaneStore
-from .errors import NoOverlapError
+from .errors import DatumError, NoOverlapError
 from .options import RefineOptions
 from .output.result import RefineResult
 from .precision.quality import measure_quality
@@ -150,9 +150,17 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         warnings += windows.warnings
         timer["sliding_window"] = windows.seconds
 
-    loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
-                           exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
-                           scale_sigma=scale_sigma, progress=progress)
+    try:
+        loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
+                               exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
+                               scale_sigma=scale_sigma, progress=progress)
+    except DatumError as error:
+        if located is None:
+            raise
+        from .align.locate import ModelOnlyFailure
+
+        raise ModelOnlyFailure(f"the block was found on the model, yet {error.message}",
+                               {**located, "verdict": "failed"}, error.path) from None
     rec, current, assignment, last = loop.reconstruction, loop.current, loop.assignment, loop.last
     sim3 = loop.move * sim3
     warnings += loop.warnings
@@ -538,8 +546,9 @@ def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, outp
 
 
 def write_failed_report(output_path, inputs: dict, error) -> None:
-    """`output_path`/report.json of a refine that ended before any result (an ambiguous
-    model-only georegistration): the inputs, the search's findings, the verdict "failed"."""
+    """`output_path`/report.json of a refine that ended before any result (a model-only
+    georegistration that is ambiguous or that the planes cannot hold): the inputs, the
+    search's findings, the verdict "failed"."""
     import json
 
     from .files import atomic_directory
@@ -564,10 +573,11 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     correct_model preset). `workflow`: "global" or "sliding_window" (overrides the options
     file's `[workflow] mode`). `location` (x, y) and `location_radius`: without GNSS, the
     block is found on the model near the hint (align.locate); when two places fit it about
-    equally well only report.json is written and AmbiguousLocationError raised (exit 3)."""
+    equally well, or its planes cannot hold it, only report.json is written and
+    ModelOnlyFailure raised (exit 3)."""
     read = read_inputs(citymodel, output_path, input_path=input_path, lod=lod,
                        model_crs=model_crs, **kwargs)
-    from .align.locate import AmbiguousLocationError
+    from .align.locate import ModelOnlyFailure
 
     try:
         result = refine(read.reconstruction, read.store, read.observations, read.options,
@@ -576,7 +586,7 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
                         checkpoint_observations=read.checkpoint_observations,
                         location=kwargs.get("location"),
                         location_radius=kwargs.get("location_radius", 100.0))
-    except AmbiguousLocationError as error:  # no result: the report says why
+    except ModelOnlyFailure as error:  # no result: the report says why
         write_failed_report(output_path, read.inputs, error)
         raise
     write_outputs(result, output_path, read, output_type=output_type,

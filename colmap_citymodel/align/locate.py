@@ -36,15 +36,19 @@ from ..errors import GeoregistrationError
 logger = logging.getLogger(__name__)
 
 
-class AmbiguousLocationError(GeoregistrationError):
-    """Two distinct placements of the block fit the model about equally well: the verdict is
-    "failed" (exit 3); `report` holds what the search found."""
+class ModelOnlyFailure(GeoregistrationError):
+    """A block registered from the model alone that the model cannot hold: the verdict is
+    "failed" (exit 3, report.json only); `report` holds what the search found."""
 
     exit_code = 3
 
-    def __init__(self, message: str, report: dict):
-        super().__init__(message)
+    def __init__(self, message: str, report: dict, path=None):
+        super().__init__(message, path)
         self.report = report
+
+
+class AmbiguousLocationError(ModelOnlyFailure):
+    """Two distinct placements of the block fit the model about equally well."""
 
 
 @dataclass
