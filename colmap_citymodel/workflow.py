@@ -574,7 +574,14 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     file's `[workflow] mode`). `location` (x, y) and `location_radius`: without GNSS, the
     block is found on the model near the hint (align.locate); when two places fit it about
     equally well, or its planes cannot hold it, only report.json is written and
-    ModelOnlyFailure raised (exit 3)."""
+    ModelOnlyFailure raised (exit 3). An `input_path` that holds COLMAP's numbered models
+    (sparse/0, sparse/1, ...) instead of one: each part is refined on its own into
+    `output_path`/<part> (`refine_parts`)."""
+    parts = model_parts(input_path)
+    if parts:
+        return refine_parts(parts, citymodel, output_path, output_type=output_type,
+                            output_frame=output_frame, progress=progress, lod=lod,
+                            model_crs=model_crs, **kwargs)
     read = read_inputs(citymodel, output_path, input_path=input_path, lod=lod,
                        model_crs=model_crs, **kwargs)
     from .align.locate import ModelOnlyFailure
@@ -592,3 +599,42 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     write_outputs(result, output_path, read, output_type=output_type,
                   output_frame=output_frame, lod=lod, model_crs=model_crs)
     return result
+
+
+def model_parts(input_path) -> list[Path]:
+    """COLMAP's numbered models in `input_path` (a mapper's sparse/ with 0, 1, ...: parts of
+    the block that share no images) when it holds no model itself; else none."""
+    path = Path(input_path)
+    if not path.is_dir() or any((path / f"cameras.{e}").exists() for e in ("bin", "txt")):
+        return []
+    return sorted((p for p in path.iterdir() if p.is_dir() and p.name.isdigit()
+                   and any((p / f"cameras.{e}").exists() for e in ("bin", "txt"))),
+                  key=lambda p: int(p.name))
+
+
+def refine_parts(parts: list[Path], citymodel, output_path, **kwargs) -> RefineResult:
+    """Refine each part of a model on its own (`main`) into `output_path`/<part>: with GNSS
+    each is registered to its own positions, without it each is found on the model near the
+    same location hint. Returns the result of the first part whose verdict is the worst;
+    raises ModelOnlyFailure when no part has a result."""
+    from .align.locate import ModelOnlyFailure
+    from .files import check_new_directory
+
+    check_new_directory(output_path)
+    results, failures = [], []
+    for part in parts:
+        logger.info("model part %s of %d", part.name, len(parts))
+        try:
+            results.append(main(part, citymodel, Path(output_path) / part.name, **kwargs))
+        except ModelOnlyFailure as error:  # its report.json is written; the others go on
+            print(f"part {part.name}: {error}")
+            failures.append(error)
+    if not results:
+        raise ModelOnlyFailure(f"none of the {len(parts)} model parts could be registered",
+                               {"parts": [f.report for f in failures]})
+    rank = {"ok": 0, "weak": 1, "failed": 2}
+    worst = max(results, key=lambda r: rank.get(r.quality.verdict, 2))
+    if failures and worst.quality.verdict != "failed":
+        worst.quality.verdict = "failed"  # a part without a result fails the whole
+        worst.quality.reasons.append(f"{len(failures)} of {len(parts)} model parts failed")
+    return worst

@@ -177,3 +177,24 @@ def test_refine_cli_without_gnss_reports_the_search(workspace, tmp_path, capsys)
     errors = [np.linalg.norm(im.projection_center() - truth[im.name])
               for im in rec.images.values()]
     assert rms(errors) < 0.10
+
+
+@pytest.mark.slow
+def test_each_part_of_a_model_is_registered_on_its_own(workspace, tmp_path, capsys):
+    """A mapper's sparse/ with two parts (here the same block twice): each is found on the
+    model and refined into its own output directory."""
+    root, scene = workspace
+    sparse = tmp_path / "sparse"
+    for part in ("0", "1"):
+        (sparse / part).mkdir(parents=True)
+        scene.sfm.write_binary(str(sparse / part))
+    x, y = true_centre(scene)[:2] + [25.0, -30.0]
+    out = tmp_path / "out"
+    code, _, err = run(["--input_path", sparse, "--citymodel", root / "model.gml",
+                        "--output_path", out, "--location", x, y, "--precision", "off"], capsys)
+    assert code == 0, err
+    assert sorted(p.name for p in out.iterdir()) == ["0", "1"]
+    for part in ("0", "1"):
+        report = json.loads((out / part / "report.json").read_text())
+        assert report["georegistration"]["method"] == "model only"
+        assert report["inputs"]["input_path"].endswith(f"sparse/{part}")
