@@ -206,7 +206,9 @@ def _add_refine(subparsers) -> None:
                "and the output holds the GNSS-only adjustment (or, for a block registered "
                "from the model alone that fits two places about equally well or whose planes "
                "cannot hold it, report.json alone)")
-    p.add_argument("--input_path", required=True, help="COLMAP model directory (sparse/0)")
+    p.add_argument("--input_path", required=True,
+                   help="COLMAP model directory (sparse/0), or sparse/ with several parts: "
+                        "each is refined on its own into OUTPUT_PATH/<part>")
     _add_citymodel_arguments(p, database=True, initial_transform=True)
     hint = p.add_argument_group("no GNSS: register from the model alone (docs/no-gnss.md)")
     hint.add_argument("--location", type=float, nargs=2, metavar=("X", "Y"), default=None,
