@@ -110,8 +110,14 @@ SOLID_MARGIN = 1.0
 #: the model: a placement whose cameras look through walls is not the block's.
 RAY_WEIGHT = 1.0
 #: Weight of the share of the block's ground points under a roof (streets are not inside
-#: buildings) against the share of tie points near the model.
+#: buildings) or off the height of the buildings' feet, against the share of tie points near
+#: the model.
 GROUND_WEIGHT = 0.5
+#: Metres the ground's median height may lie from that of the nearest building feet (a
+#: street's slope and kerbs, the model's generalised feet) ...
+GROUND_TOLERANCE = 1.5
+#: ... within this distance (m) of it; further, only "not under a roof" is asked.
+GROUND_REACH = 30.0
 #: A tie point of a plane counts near a model face whose normal is within this angle (deg).
 ORIENTED_DEG = 20.0
 #: Tie points of the 3D refinement of each placement.
@@ -169,6 +175,19 @@ class _ModelNearHint:
     samples_roof: np.ndarray  # (K, 2) points on roofs and other faces seen from above
     z_range: tuple[float, float]  # heights of the faces tie points can lie on
     roofs: tuple  # (lower corner (2,), cell, (I, J) lowest roof height per cell, nan: none)
+    feet: np.ndarray  # (K, 3) lowest corners of the walls: the ground at the buildings
+
+    def ground_height(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) the height of the nearest building foot within GROUND_REACH m (nan: none)."""
+        from scipy.spatial import cKDTree
+
+        if not len(self.feet):
+            return np.full(len(xy), np.nan)
+        if not hasattr(self, "_feet_tree"):
+            self._feet_tree = cKDTree(self.feet[:, :2])
+        distance, index = self._feet_tree.query(xy[:, :2])
+        return np.where(distance <= GROUND_REACH, self.feet[np.minimum(index, len(self.feet) - 1),
+                                                            2], np.nan)
 
     def roof_above(self, xy: np.ndarray) -> np.ndarray:
         """(N,) the lowest roof height above each of the points `xy` (nan: none)."""
@@ -220,7 +239,16 @@ def _model_near(store: PlaneStore, hint: np.ndarray, radius: float) -> _ModelNea
                           np.arctan2(normals[keep_w, 1], normals[keep_w, 0]), areas[keep_w],
                           samples[0][is_wall, :2], samples[0][~is_wall, :2],
                           (float(corners[:, :, 2].min()), float(corners[:, :, 2].max())),
-                          _roof_raster(samples[0][up]))
+                          _roof_raster(samples[0][up]), _feet(corners[wall]))
+
+
+def _feet(walls: np.ndarray) -> np.ndarray:
+    """(K, 3) the lowest corners of the wall triangles: where the buildings meet the ground."""
+    if not len(walls):
+        return np.zeros((0, 3))
+    corners = walls.reshape(-1, 3, 3)
+    low = np.argmin(corners[:, :, 2], axis=1)
+    return corners[np.arange(len(corners)), low]
 
 
 def _roof_raster(samples: np.ndarray, cell: float = 1.0) -> tuple:
@@ -619,10 +647,23 @@ def _oriented_share(model: _ModelNearHint, block: _LevelledBlock, sim3, radius: 
 
 
 def _ground_under_roofs(model: _ModelNearHint, block: _LevelledBlock, sim3) -> float:
-    """Share of the block's ground points that lie under a roof of the model (in plan)."""
+    """`_off_ground` of the placement `sim3`."""
     if not len(block.ground):
         return 0.0
-    return float(np.mean(np.isfinite(model.roof_above(_apply(sim3, block.ground)))))
+    return float(_off_ground(model, _apply(sim3, block.ground), np.zeros(1))[0])
+
+
+def _off_ground(model: _ModelNearHint, ground: np.ndarray, zs: np.ndarray) -> np.ndarray:
+    """(Z,) for the ground points shifted up by each of `zs`: the share of them under a roof
+    (in plan), plus up to 1 as the ground's median height leaves that of the nearest
+    building feet by GROUND_TOLERANCE to twice it (a street on a roof, or in the air)."""
+    under = float(np.mean(np.isfinite(model.roof_above(ground))))
+    foot = model.ground_height(ground)
+    known = np.isfinite(foot)
+    if not np.any(known):
+        return np.full(len(zs), under)
+    offset = float(np.median(ground[known, 2] - foot[known])) + zs
+    return under + np.clip((np.abs(offset) - GROUND_TOLERANCE) / GROUND_TOLERANCE, 0.0, 1.0)
 
 
 def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_Hypothesis],
@@ -647,9 +688,10 @@ def _refine_3d(block: _LevelledBlock, model: _ModelNearHint, hypotheses: list[_H
             limit = model.roof_above(rays) - SOLID_MARGIN
             inside = rays[None, :, 2] + zs[:, None] < limit[None, :]
             shares = shares - RAY_WEIGHT * inside.mean(axis=1)
-        h.z = float(zs[int(np.argmax(shares))])
-        h.share = float(shares.max()) - GROUND_WEIGHT * _ground_under_roofs(
-            model, block, _as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0]))
+        if len(block.ground):
+            ground = _apply(_as_sim3(h.yaw, h.scale, np.r_[h.shift, 0.0]), block.ground)
+            shares = shares - GROUND_WEIGHT * _off_ground(model, ground, zs)
+        h.z, h.share = float(zs[int(np.argmax(shares))]), float(shares.max())
     ranked = sorted(hypotheses, key=lambda h: -h.share)
     ranked = _distinct(ranked, options.hypotheses, 3.0, np.radians(5.0), 0.06)
     out = []
