@@ -71,6 +71,11 @@ REAL = {
         {"crs": "EPSG:3946"}, "2.0", "EPSG:3946", 1, 1, 7, 0,
         {"WallSurface": 4, "RoofSurface": 2, "GroundSurface": 1},
     ),
+    # a house beside a dem:ReliefFeature (TINRelief): the relief is no building face
+    "synthetic/relief_tin_house.gml": (
+        {}, "2.0", "EPSG:25832+7837", 1, 0, 6, 0,
+        {"WallSurface": 4, "RoofSurface": 1, "GroundSurface": 1},
+    ),
     "tum2twin/DEBY_LOD2_4906970.gml": ({}, "2.0", "EPSG:25832", 1, 0, 13, 0, None),
     "tum2twin/DEBY_LOD2_4906972.gml": ({}, "2.0", "EPSG:25832", 1, 0, 24, 0, None),
     "tum2twin/DEBY_LOD2_4959321.gml": ({}, "2.0", "EPSG:25832", 1, 0, 8, 0, None),
