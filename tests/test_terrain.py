@@ -301,3 +301,14 @@ def test_a_drive_given_a_dtm_five_metres_off_does_not_follow_it(street, tmp_path
     assert abs(errors[:, 2].mean()) < 0.3  # not 5 m
     assert result.terrain["source"] == "building_feet"
     assert sum("left out" in w for w in result.terrain["warnings"]) == 2
+
+
+def test_terrain_cells_grow_where_tie_points_are_sparse():
+    from colmap_citymodel.citymodel.ground_faces import POINTS_PER_CELL, cell_size
+
+    rng = np.random.default_rng(0)
+    dense = rng.uniform(0, 100, (30000, 2))  # 3 points per m^2: a street camera's ground
+    assert cell_size(dense, 6.0) == 6.0
+    sparse = rng.uniform(0, 600, (40000, 2))  # 0.11 per m^2: an aerial block
+    cell = cell_size(sparse, 6.0)
+    assert 15.0 <= cell <= 20.0 and 0.11 * cell ** 2 >= POINTS_PER_CELL

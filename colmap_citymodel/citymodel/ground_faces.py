@@ -187,6 +187,25 @@ def terrain_face_sigmas(store, faces: np.ndarray, rows: np.ndarray, sigmas: np.n
     return out
 
 
+#: Tie points a terrain cell should hold (twice the assignment's default minimum per face):
+#: where the tie points are sparser (an aerial block), the cells grow until they do.
+POINTS_PER_CELL = 30
+
+#: The largest cell (m) the sparsest block gets.
+MAX_CELL = 30.0
+
+
+def cell_size(points_xy: np.ndarray, cell: float) -> float:
+    """`cell` (m), grown where the median cell of that size that holds tie points holds fewer
+    than POINTS_PER_CELL of them (at most MAX_CELL)."""
+    if not len(points_xy):
+        return cell
+    _, counts = np.unique(np.floor(points_xy / cell).astype(np.int64), axis=0,
+                          return_counts=True)
+    grow = np.sqrt(max(1.0, POINTS_PER_CELL / float(np.median(counts))))
+    return float(min(MAX_CELL, max(cell, np.ceil(cell * grow))))
+
+
 def block_terrain(store, points_local: np.ndarray, options) -> tuple:
     """`store` with the terrain under the block's tie points (`points_local`, local frame) as
     faces, and report.json's `terrain` record. `options`: options.TerrainOptions. The source:
@@ -225,9 +244,10 @@ def block_terrain(store, points_local: np.ndarray, options) -> tuple:
                                                                   "build a terrain from"]}
     # The feet terrain covers the whole street, not a band along the facades: a band's
     # pattern of cells would let the coarse search match ground points along the street.
-    out = with_terrain_faces(store, terrain, points_local, options.cell, feet.footprints)
+    cell = cell_size(xy, options.cell)
+    out = with_terrain_faces(store, terrain, points_local, cell, feet.footprints)
     record = {**terrain.summary(), "num_faces": out.num_faces - store.num_faces,
-              "cell_m": options.cell, "warnings": warnings}
+              "cell_m": cell, "warnings": warnings}
     return out, record
 
 
