@@ -10,7 +10,8 @@ failed (refine hands back the GNSS-only block):
   their generalisation), is significant (chi-square, level `alpha`);
 - the placement is ambiguous: a distinct placement that GNSS admits fits the tie points nearly
   as well as the best one (ratio below `ambiguity_ratio`).
-weak: a direction rests on GNSS alone, the stated 3D sigma exceeds the user's tolerance, or the
+weak: a direction rests on GNSS alone, the radius that holds the stated position error with
+`tolerance_confidence` exceeds the user's tolerance, or the
 assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
 ok: otherwise.
 """
@@ -53,6 +54,10 @@ class QualityThresholds:
     this many times better than the best distinct placement GNSS admits; else the pose is
     ambiguous. A block slid along a facade row that only walls parallel to the slide hold
     scores about 1; a placement cross walls, roofs and corners confirm scores well above."""
+    tolerance_confidence: float = 0.95
+    """Probability with which an "ok" block lies within the user's tolerance: the radius that
+    holds the position error with this probability (from the stated E, N, U sigmas) must not
+    exceed the tolerance."""
     min_support: float = 0.25
     """Share of the block's tie points within NEAR_DISTANCE of the model below which the model
     does not fit the block: the model of the buildings the images see carries most of their tie
@@ -139,6 +144,20 @@ def contradiction(shift: np.ndarray, covariance: np.ndarray, alpha: float) -> di
             "significant": chi2_exceeds(value, dof, alpha)}
 
 
+def confidence_radius(sigmas, probability: float) -> float:
+    """The radius (m) that holds a 3D position error with independent normal components of
+    `sigmas` (E, N, U) with `probability`: the quantile of their squared sum, a weighted sum
+    of chi-square variables, by Satterthwaite's scaled chi-square of the same mean and
+    variance (exact where the sigmas are equal or one dominates)."""
+    variances = np.square(np.asarray(sigmas, dtype=np.float64))
+    total = float(np.sum(variances))
+    if total <= 0:
+        return 0.0
+    scale = float(np.sum(variances ** 2)) / total
+    dof = total / scale
+    return float(np.sqrt(scale * stats.chi2.ppf(probability, dof)))
+
+
 def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
                     tolerance: float = 0.25) -> QualityReport:
     """Verdict from the figures refine measured (keys as written by measure_quality); each
@@ -168,8 +187,13 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
         weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
                     "GNSS's")
     sigma = metrics.get("position_sigma_m")
-    if sigma is not None and sigma > tolerance:
-        weak.append(f"the stated 3D sigma {sigma:.2f} m exceeds the tolerance {tolerance:g} m")
+    axes = metrics.get("position_sigmas_m")
+    radius = (confidence_radius(axes, t.tolerance_confidence) if axes is not None
+              else sigma)
+    if radius is not None and radius > tolerance:
+        weak.append(f"the block lies within {radius:.2f} m of its stated position with "
+                    f"{100 * t.tolerance_confidence:g} % probability (3D sigma {sigma:.2f} m), "
+                    f"more than the tolerance {tolerance:g} m")
     if metrics.get("diverged"):
         weak.append(f"the assignment loop diverged ({metrics['diverged']}); its best iterate "
                     "is kept")
@@ -255,6 +279,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
     sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
     if all(v is not None for v in sigmas):
         metrics["position_sigma_m"] = float(np.linalg.norm(sigmas))
+        metrics["position_sigmas_m"] = [float(v) for v in sigmas]
     assigned = assignment.assigned
     faces = assignment.face_index[assigned]
     fit = None
