@@ -237,3 +237,19 @@ def test_refines_weighting_states_what_a_face_holding_most_points_does_to_the_bl
     for axis in "ENU":
         assert stated(even, even_faces, True)[axis]["sigma"] == pytest.approx(
             stated(even, even_faces, False)[axis]["sigma"], rel=0.5)
+
+
+def test_ok_means_within_the_tolerance_nineteen_times_in_twenty():
+    from colmap_citymodel.precision.quality import confidence_radius
+
+    rng = np.random.default_rng(0)
+    for sigmas in ([0.1, 0.1, 0.1], [0.1, 0.05, 0.02], [0.2, 0.0, 0.0]):
+        errors = np.linalg.norm(rng.normal(size=(200_000, 3)) * sigmas, axis=1)
+        assert confidence_radius(sigmas, 0.95) == pytest.approx(np.quantile(errors, 0.95),
+                                                                rel=0.02)
+    # A 3D sigma of 0.17 m is below a 0.25 m tolerance, but one block in five would lie
+    # beyond it: weak. The same block at half the sigmas is ok.
+    metrics = {"position_sigma_m": float(np.sqrt(3) * 0.1), "position_sigmas_m": [0.1] * 3}
+    assert quality_verdict(metrics, tolerance=0.25).verdict == "weak"
+    metrics = {"position_sigma_m": float(np.sqrt(3) * 0.05), "position_sigmas_m": [0.05] * 3}
+    assert quality_verdict(metrics, tolerance=0.25).verdict == "ok"
