@@ -247,7 +247,7 @@ def test_ok_means_within_the_tolerance_nineteen_times_in_twenty():
         errors = np.linalg.norm(rng.normal(size=(200_000, 3)) * sigmas, axis=1)
         assert confidence_radius(sigmas, 0.95) == pytest.approx(np.quantile(errors, 0.95),
                                                                 rel=0.02)
-    # A 3D sigma of 0.17 m is below a 0.25 m tolerance, but one block in five would lie
+    # A 3D sigma of 0.17 m is below a 0.25 m tolerance, but one block in ten would lie
     # beyond it: weak. The same block at half the sigmas is ok.
     metrics = {"position_sigma_m": float(np.sqrt(3) * 0.1), "position_sigmas_m": [0.1] * 3}
     assert quality_verdict(metrics, tolerance=0.25).verdict == "weak"
