@@ -174,7 +174,10 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
     if test and test["significant"]:
         failed.append(f"the model moved the block {np.linalg.norm(metrics['shift_enu_m']):.1f} m "
                       f"from where GNSS puts it, more than both error models allow "
-                      f"(chi-square {test['chi2']:.1f}, {test['dof']} dof, p {test['p']:.1e})")
+                      f"(chi-square {test['chi2']:.1f}, {test['dof']} dof, p {test['p']:.1e}): "
+                      "the model is not the one of these images, or the GNSS is further off "
+                      "than its stated sigma (then give its sigmas in the GNSS file, or "
+                      "--gnss_bias auto where the planes fix the position)")
     placement = metrics.get("placement")
     if placement and placement.get("ratio") is not None \
             and placement["ratio"] < t.ambiguity_ratio:
