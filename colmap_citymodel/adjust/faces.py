@@ -87,15 +87,11 @@ def outlier_factors(problem, options: AdjustmentOptions, sigma_face: float
             for f, z in zip(found.faces[beyond], found.z[beyond])}
 
 
-#: Significance level of the test that drops a face (two-sided, per face and round): the chance
-#: that a face whose error is no larger than the generalisation error explains is dropped.
-FACE_TEST_ALPHA = 0.001
-
-
 @dataclass
 class _FaceRows:
     """Each assigned point's row of the linearised similarity (translation, rotation, scale
-    about `centre`) that moves it along its face's normal, its signed distance, and its face."""
+    about the points' centroid) that moves it along its face's normal, its signed distance,
+    and its face."""
 
     design: np.ndarray  # (P, 7)
     distance: np.ndarray  # (P,)
@@ -116,13 +112,14 @@ def _face_rows(points: np.ndarray, assignment, store) -> _FaceRows:
 
 
 def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma_face: float,
-                  alpha: float = FACE_TEST_ALPHA) -> dict[int, float]:
+                  alpha: float = AdjustmentOptions.face_test_alpha) -> dict[int, float]:
     """{face: z} of the faces the other faces contradict, dropped one at a time, worst first.
 
     The block's 7 parameters are fitted (linearised, each face weighing as one observation
     of its offset: its points at sigma^2 = sigma_dtp^2 + n sigma_face^2) to all faces but one;
     z = that face's points' mean distance after the fit over the sigma of its offset
-    (sqrt(sigma_face^2 + sigma_dtp^2 / n)) and of the prediction. A face that held the block
+    (sqrt(sigma_face^2 + sigma_dtp^2 / n)) and of the prediction; `alpha`: two-sided level
+    per face and round (`AdjustmentOptions.face_test_alpha`). A face that held the block
     where it wanted shows its offset only when left out; a face the others cannot check
     (the only one fixing a direction) has a large prediction sigma and is kept. `points`:
     the tie points in the order of `assignment.point_ids`.
@@ -152,8 +149,8 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
         total_n, total_b = per_face_n[active].sum(0), per_face_b[active].sum(0)
         for k in np.flatnonzero(active):
             normal = total_n - per_face_n[k]
-            # The block's datum without face k: unfixed directions make the prediction's
-            # sigma large (the pseudo-inverse leaves them at zero, the prior term at a metre).
+            # The block's datum without face k. A direction the other faces leave free gets
+            # only this tiny ridge: its variance, and so the prediction's sigma, is huge.
             normal = normal + np.eye(7) * 1e-6 * max(np.trace(normal), 1.0)
             inverse = np.linalg.inv(normal)
             shift = inverse @ (total_b - per_face_b[k])
