@@ -170,8 +170,9 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
                          help="per-plane generalisation error (m; Unger's typical size 0.2): "
                               "report generalisation-aware sigmas beside the classical ones")
     quality.add_argument("--tolerance", type=float, default=None, metavar="METRES",
-                         help="position tolerance of the verdict (3D sigma, m; default 0.25): "
-                              "a result whose stated sigma exceeds it is 'weak'")
+                         help="position tolerance of the verdict (m, default 0.25): a "
+                              "result that its stated sigmas do not place within it with 95 "
+                              "%% probability is 'weak'")
     quality.add_argument("--variance_components", action="store_true", default=None,
                          help="iterated variance components of image and f_dTP, then a "
                               "re-weighted final solve")

@@ -493,8 +493,8 @@ class PrecisionOptions:
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
     tolerance: float = 0.25
-    """The position tolerance (m) of the verdict (`--tolerance`): a result whose stated 3D sigma
-    of the block's position exceeds it is "weak". Default 0.25: about one face's generalisation
+    """The position tolerance (m) of the verdict (`--tolerance`): a result that its stated sigmas
+    do not place within it with 95 % probability is "weak". Default 0.25: one face's generalisation
     in a LOD2 model (0.2 m, Unger 5.3) with the model's common error; a block placed that well
     is placed as well as the model is drawn."""
     generalisation_from_data: bool = True
