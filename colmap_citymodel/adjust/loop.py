@@ -159,17 +159,9 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
                                              kept_faces)
         if iterations and o_adj.face_test_alpha is not None:
-            dropped_faces.update(snooped_faces(
-                points, assignment.without(np.isin(assignment.face_index, list(dropped_faces))),
-                current, o_adj.sigma_dtp, sigma_face, o_adj.face_test_alpha))
-        if dropped_faces:
-            off = np.isin(assignment.face_index, list(dropped_faces))
-            if np.any(off):
-                logger.info("iteration %d: %d faces dropped (%s): the other faces place their "
-                            "points beyond the generalisation error", iteration,
-                            len(dropped_faces), ", ".join(f"{f}: z {z:.1f}"
-                                                          for f, z in dropped_faces.items()))
-                assignment = assignment.eliminate(off, points, o_a, kept_faces)
+            assignment = without_contradicted_faces(assignment, points, current, options,
+                                                    sigma_face, dropped_faces, kept_faces,
+                                                    iteration)
         assignment.face_factors = dict(face_factors)
         assignment.face_sigma = sigma_face
         assignment.dropped_faces = dict(dropped_faces)
@@ -437,6 +429,26 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       warnings=warnings, seconds=seconds, threshold=threshold,
                       baselines=baselines, weights=weights, unsettled_shift=unsettled_shift,
                       stopped_by=stopped_by)
+
+
+def without_contradicted_faces(assignment: Assignment, points: np.ndarray, current: PlaneStore,
+                               options: RefineOptions, sigma_face: float,
+                               dropped_faces: dict[int, float], kept_faces: np.ndarray | None,
+                               iteration: int) -> Assignment:
+    """`assignment` without the points of the faces the face test drops (adjust.faces.
+    snooped_faces), those of earlier iterations included; `dropped_faces` ({face: z}) grows by
+    the new ones: a face once dropped takes no points for the rest of the run."""
+    o_adj = options.adjustment
+    dropped_faces.update(snooped_faces(
+        points, assignment.without(np.isin(assignment.face_index, list(dropped_faces))),
+        current, o_adj.sigma_dtp, sigma_face, o_adj.face_test_alpha))
+    off = np.isin(assignment.face_index, list(dropped_faces))
+    if not np.any(off):
+        return assignment
+    logger.info("iteration %d: %d faces dropped (%s): the other faces place their points "
+                "beyond the generalisation error", iteration, len(dropped_faces),
+                ", ".join(f"{f}: z {z:.1f}" for f, z in dropped_faces.items()))
+    return assignment.eliminate(off, points, options.assignment, kept_faces)
 
 
 def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
