@@ -85,26 +85,11 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         check_window_options(options)
     timer = {"start": time.perf_counter()}
     rec = pycolmap.Reconstruction(reconstruction)
-    details: dict = {}
-    located = None
-    if initial_transform is None:
-        from .align.locate import start_from_model
-
-        start, gnss, located = start_from_model(rec, city_model, gnss, location,
-                                                location_radius)
-        if start is not None:
-            initial_transform = start
-    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details,
-                                        options.adjustment.gnss_offset)
-    store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
-    logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
-                len(store.vertices))
-    # The ground beside the buildings as faces of their own (citymodel.ground_faces).
-    store, terrain_record = block_terrain(store, tie_points(rec, exclude_point_ids)[1],
-                                          options.terrain)
+    start = place_on_model(rec, city_model, gnss, options, initial_transform, exclude_point_ids,
+                           location, location_radius)
+    sim3, priors, geo_rms, store = start.sim3, start.priors, start.rms, start.store
+    details, located, terrain_record = start.details, start.located, start.terrain
     timer["georegistration"] = time.perf_counter() - timer["start"]
-    if located is not None:
-        details["cues"] = {k: "model only" for k in ("translation", "scale", "rotation")}
 
     warnings: list[str] = []
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
@@ -133,34 +118,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             sim3 = coarse.sim3 * sim3
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
     offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
-    windows = None
-    loop_options = options
-    if o_w.mode == "sliding_window":
-        # The windows' iterations and those of the global loop after them each end on a solve
-        # with the original weights, which ends the sliding window closer to the truth
-        # (docs/defaults.md, `solve_again_after_elimination`).
-        loop_options = copy.deepcopy(options)
-        loop_options.workflow.solve_again_after_elimination = True
-        # Windows along the sequence, each on the model; the loop below is then the final
-        # global hybrid adjustment of all images, starting from where the windows left them.
-        from .adjust.sliding_window import sliding_window
-
-        windows = sliding_window(rec, store, priors, loop_options, surface,
-                                 exclude_point_ids=exclude_point_ids, progress=progress)
-        warnings += windows.warnings
-        timer["sliding_window"] = windows.seconds
-
-    try:
-        loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
-                               exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
-                               scale_sigma=scale_sigma, progress=progress)
-    except DatumError as error:
-        if located is None:
-            raise
-        from .align.locate import ModelOnlyFailure
-
-        raise ModelOnlyFailure(f"the block was found on the model, yet {error.message}",
-                               {**located, "verdict": "failed"}, error.path) from None
+    windows, loop = adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
+                                      exclude_point_ids, gnss_only, scale_sigma, located,
+                                      progress, timer, warnings)
     rec, current, assignment, last = loop.reconstruction, loop.current, loop.assignment, loop.last
     sim3 = loop.move * sim3
     warnings += loop.warnings
@@ -178,24 +138,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         priors.offset = np.array(last.gnss.offset if last.gnss is not None else priors.offset)
     corrected = None
     if options.adjustment.correct_model and last.blocks.faces.size:
-        from .adjust.correction_loop import correction_loop
-
-        t_correction = time.perf_counter()
-        corrected = correction_loop(rec, store, current, priors, options, loop.threshold,
-                                    exclude_point_ids=exclude_point_ids,
-                                    baselines=loop.baselines, weights=loop.weights,
-                                    objective=objective, first_iteration=len(loop.iterations))
-        loop.iterations += corrected.iterations
-        timer["model_correction"] = time.perf_counter() - t_correction
-        if corrected.undone is not None:
-            warnings.append(f"model correction undone: {corrected.undone}")
-            rec = corrected.reconstruction
-            corrected = None
-        else:
-            current = corrected.current
-            if corrected.last is not None:  # the block moved with the model
-                rec, last, assignment = corrected.reconstruction, corrected.last, \
-                    corrected.assignment
+        corrected, rec, current, last, assignment = correct_model(
+            rec, store, current, last, assignment, priors, options, loop, objective,
+            exclude_point_ids, timer, warnings)
     point_ids, points = tie_points(rec, exclude_point_ids)
     observability = assigned_observability(points, assignment, current, priors, rec, options,
                                            from_data=True)
@@ -250,6 +195,107 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         loop_stopped_by=loop.stopped_by, georegistration=located)
     result.terrain = terrain_record
     return result
+
+
+def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
+                      exclude_point_ids, gnss_only, scale_sigma, located, progress: bool,
+                      timer: dict, warnings: list[str]):
+    """Steps 3-4: the sliding window's windows (with `workflow.mode` "sliding_window"), then
+    the assign/adjust loop over the whole block. Returns (the windows or None, the loop's
+    adjust.loop.LoopResult). A block found on the model alone whose planes leave its datum
+    open ends as a failed model-only registration."""
+    windows = None
+    loop_options = options
+    if options.workflow.mode == "sliding_window":
+        # The windows' iterations and those of the global loop after them each end on a solve
+        # with the original weights, which ends the sliding window closer to the truth
+        # (docs/defaults.md, `solve_again_after_elimination`).
+        loop_options = copy.deepcopy(options)
+        loop_options.workflow.solve_again_after_elimination = True
+        # Windows along the sequence, each on the model; the loop below is then the final
+        # global hybrid adjustment of all images, starting from where the windows left them.
+        from .adjust.sliding_window import sliding_window
+
+        windows = sliding_window(rec, store, priors, loop_options, surface,
+                                 exclude_point_ids=exclude_point_ids, progress=progress)
+        warnings += windows.warnings
+        timer["sliding_window"] = windows.seconds
+    try:
+        loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
+                               exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
+                               scale_sigma=scale_sigma, progress=progress)
+    except DatumError as error:
+        if located is None:
+            raise
+        from .align.locate import ModelOnlyFailure
+
+        raise ModelOnlyFailure(f"the block was found on the model, yet {error.message}",
+                               {**located, "verdict": "failed"}, error.path) from None
+    return windows, loop
+
+
+@dataclass
+class ModelStart:
+    """Where refine starts: the block in the store's local frame (`sim3` from the input frame),
+    its GNSS priors, the model near it with its terrain faces, and how it got there."""
+
+    sim3: pycolmap.Sim3d
+    priors: object  # block.priors.GNSSPriors | None
+    rms: float | None  # the GNSS similarity's RMS (m)
+    store: PlaneStore
+    details: dict  # the georegistration's cues
+    located: dict | None  # the model-only search's record (align.locate), None with GNSS
+    terrain: dict  # report.json `terrain`
+
+
+def place_on_model(rec: pycolmap.Reconstruction, city_model: PlaneStore, gnss, options,
+                   initial_transform, exclude_point_ids, location, location_radius
+                   ) -> ModelStart:
+    """Step 1: `rec` (modified) into the model's local frame, by GNSS, a given transform or the
+    model-only search around `location`; the model cropped to the block, its ground added."""
+    details: dict = {}
+    located = None
+    if initial_transform is None:
+        from .align.locate import start_from_model
+
+        start, gnss, located = start_from_model(rec, city_model, gnss, location,
+                                                location_radius)
+        if start is not None:
+            initial_transform = start
+    sim3, priors, geo_rms = georegister(rec, city_model, gnss, initial_transform, details,
+                                        options.adjustment.gnss_offset)
+    store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
+    logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
+                len(store.vertices))
+    # The ground beside the buildings as faces of their own (citymodel.ground_faces).
+    store, terrain_record = block_terrain(store, tie_points(rec, exclude_point_ids)[1],
+                                          options.terrain)
+    if located is not None:
+        details["cues"] = {k: "model only" for k in ("translation", "scale", "rotation")}
+    return ModelStart(sim3, priors, geo_rms, store, details, located, terrain_record)
+
+
+def correct_model(rec, store, current, last, assignment, priors, options, loop, objective,
+                  exclude_point_ids, timer: dict, warnings: list[str]):
+    """The model correction after the loop (adjust.correction_loop). Returns (the correction
+    or None where it was undone, and the reconstruction, model, last problem and assignment
+    refine goes on with)."""
+    from .adjust.correction_loop import correction_loop
+
+    t_correction = time.perf_counter()
+    corrected = correction_loop(rec, store, current, priors, options, loop.threshold,
+                                exclude_point_ids=exclude_point_ids,
+                                baselines=loop.baselines, weights=loop.weights,
+                                objective=objective, first_iteration=len(loop.iterations))
+    loop.iterations += corrected.iterations
+    timer["model_correction"] = time.perf_counter() - t_correction
+    if corrected.undone is not None:
+        warnings.append(f"model correction undone: {corrected.undone}")
+        return None, corrected.reconstruction, current, last, assignment
+    if corrected.last is not None:  # the block moved with the model
+        return (corrected, corrected.reconstruction, corrected.current, corrected.last,
+                corrected.assignment)
+    return corrected, rec, corrected.current, last, assignment
 
 
 def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneStore, surface,
