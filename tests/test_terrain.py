@@ -224,18 +224,24 @@ def test_clutter_is_kept_off_the_terrain():
     assert off[400:460].mean() > 0.8 and off[460:].mean() > 0.8
 
 
-def test_a_sloped_street_drive_lands_within_a_quarter_metre_in_height_with_a_dtm(street,
-                                                                                tmp_path):
+def refine_with_dtm(scene, files):
+    """refine of the street's block with the DTM `files`: the result and its camera-centre
+    errors (estimated - true, one row per image)."""
     from colmap_citymodel.workflow import refine
 
-    options, scene = street
-    files = street_dtm(tmp_path, options, [0.10, -0.05])
-    refine_options = RefineOptions()
-    refine_options.terrain.files = tuple(str(f) for f in files)
-    result = refine(scene.sfm, scene.store, scene.gnss(), refine_options, progress=False)
+    options = RefineOptions()
+    options.terrain.files = tuple(str(f) for f in files)
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     true = {im.name: im.projection_center() for im in scene.truth.images.values()}
     errors = np.array([im.projection_center() - true[im.name]
                        for im in result.reconstruction.images.values()])
+    return result, errors
+
+
+def test_a_sloped_street_drive_lands_within_a_quarter_metre_in_height_with_a_dtm(street,
+                                                                                tmp_path):
+    options, scene = street
+    result, errors = refine_with_dtm(scene, street_dtm(tmp_path, options, [0.10, -0.05]))
     assert abs(errors[:, 2].mean()) < 0.25
     assert np.sqrt(np.mean(errors ** 2, axis=0)).max() < 0.25
     terrain = result.terrain
@@ -288,16 +294,8 @@ def test_terrain_units_off_the_block_are_flagged_and_terrain_is_never_corrected(
 
 
 def test_a_drive_given_a_dtm_five_metres_off_does_not_follow_it(street, tmp_path):
-    from colmap_citymodel.workflow import refine
-
     options, scene = street
-    files = street_dtm(tmp_path, options, [5.0, 5.0])
-    refine_options = RefineOptions()
-    refine_options.terrain.files = tuple(str(f) for f in files)
-    result = refine(scene.sfm, scene.store, scene.gnss(), refine_options, progress=False)
-    true = {im.name: im.projection_center() for im in scene.truth.images.values()}
-    errors = np.array([im.projection_center() - true[im.name]
-                       for im in result.reconstruction.images.values()])
+    result, errors = refine_with_dtm(scene, street_dtm(tmp_path, options, [5.0, 5.0]))
     assert abs(errors[:, 2].mean()) < 0.3  # not 5 m
     assert result.terrain["source"] == "building_feet"
     assert sum("left out" in w for w in result.terrain["warnings"]) == 2
