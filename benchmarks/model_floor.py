@@ -56,6 +56,7 @@ floors of the given model, every point alike and each face once, and refine's ow
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import itertools
 import json
 import subprocess
@@ -66,6 +67,7 @@ import numpy as np
 import pycolmap
 
 from colmap_citymodel.assign.direct import assign_direct
+from colmap_citymodel.assign.direct import centred_surfaces as centred_on_faces
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.options import AssignmentOptions
 
@@ -161,16 +163,13 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
 ICP_ROUNDS, CENTRE_BAND = 12, 1.0
 
 
-def centred_surfaces(store, points: np.ndarray, ids: np.ndarray):
+def centred_surfaces(store, points: np.ndarray, ids: np.ndarray, threshold: float):
     """`store` with each face moved to the median signed distance of the points within
-    CENTRE_BAND of it: an assignment window centred there takes a face's points evenly from
-    both sides of where they lie, wherever the block stands."""
-    wide = assign_direct(points, ids, store, CENTRE_BAND, AT_TRUTH)
-    faces, distance = wide.face_index[wide.assigned], wide.distance[wide.assigned]
-    shifts = np.zeros(store.num_faces)
-    for f in np.unique(faces):
-        shifts[f] = -np.median(distance[faces == f])
-    return store.with_plane_shifts(shifts)
+    CENTRE_BAND of it (assign.direct.centred_surfaces): an assignment window centred there
+    takes a face's points evenly from both sides of where they lie, wherever the block
+    stands."""
+    return centred_on_faces(points, ids, store, threshold,
+                            dataclasses.replace(AT_TRUTH, window_reach=CENTRE_BAND - threshold))
 
 
 def fit_face_units(points: np.ndarray, faces: np.ndarray, store, centre: np.ndarray,
@@ -220,7 +219,8 @@ def _reassign_rounds(scheme: str, store, true_points: np.ndarray, ids: np.ndarra
         if units:  # the window around where the last fit put each face's surface
             surfaces = store.with_plane_shifts(shifts)
         else:
-            surfaces = centred_surfaces(store, points, ids) if "centred" in scheme else store
+            surfaces = (centred_surfaces(store, points, ids, threshold) if "centred" in scheme
+                        else store)
         assignment = assign_direct(points, ids, surfaces, threshold, AT_TRUTH)
         mask = assignment.assigned
         faces = assignment.face_index[mask]
