@@ -282,6 +282,17 @@ def face_sigmas(options: AdjustmentOptions, rows: np.ndarray, num_faces: int,
     return sigmas
 
 
+def tie_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.ndarray,
+               point_faces: np.ndarray, assignment: Assignment) -> np.ndarray:
+    """(len(faces),) the sigma (m) of each face's f_dTP: `face_sigmas` for the model's faces,
+    terrain faces as one observation per terrain unit (citymodel.ground_faces); `point_faces`:
+    the face of each assigned point."""
+    rows = np.searchsorted(faces, point_faces)
+    sigmas = face_sigmas(options, rows, len(faces), slot_factors(assignment, faces),
+                         assignment.face_sigma)
+    return terrain_face_sigmas(store, faces, rows, sigmas, options.sigma_dtp)
+
+
 class HybridProblem:
     """One hybrid adjustment problem built from the current state; solve() updates in place.
 
@@ -494,11 +505,7 @@ class HybridProblem:
         assigned = assignment.assigned
         self.point_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
-        self.face_sigmas = face_sigmas(o, np.searchsorted(faces, self.point_faces), len(faces),
-                                       slot_factors(assignment, faces), assignment.face_sigma)
-        # Terrain faces weigh as one observation per terrain unit (citymodel.ground_faces).
-        self.face_sigmas = terrain_face_sigmas(store, faces, np.searchsorted(
-            faces, self.point_faces), self.face_sigmas, o.sigma_dtp)
+        self.face_sigmas = tie_sigmas(o, store, faces, self.point_faces, assignment)
         tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
                        else core.PointPlaneDistanceCost)
         self._tie_costs = [tie_factory(sigma / o.sigma_image, r)
@@ -616,11 +623,7 @@ class HybridProblem:
         assigned = assignment.assigned
         new_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         new_faces = np.asarray(assignment.face_index[assigned], np.int64)
-        sigmas = face_sigmas(self.options, np.searchsorted(self.blocks.faces, new_faces),
-                             len(self.blocks.faces), slot_factors(assignment, self.blocks.faces),
-                             assignment.face_sigma)
-        sigmas = terrain_face_sigmas(current, self.blocks.faces, np.searchsorted(
-            self.blocks.faces, new_faces), sigmas, self.options.sigma_dtp)
+        sigmas = tie_sigmas(self.options, current, self.blocks.faces, new_faces, assignment)
         if np.any(np.abs(sigmas / self.face_sigmas - 1.0) > REWEIGHT_TOLERANCE):
             return False  # the faces' weights changed: their costs must be made anew
         # Blocks that stay: the same tie point on the same plane (point ids are unique).
