@@ -19,6 +19,11 @@ BERLIN = CITYGML / "berlin" / "3910_5819.gml"
 def street_store():
     """Two rows of four 25 m houses (walls 15 m high, flat roofs) along x, closed at both ends
     by lower walls."""
+    return store_from_polygons(street_rings(), origin=np.zeros(3))
+
+
+def street_rings():
+    """The rings of `street_store`."""
     rings = []
     for x0 in (-50.0, -25.0, 0.0, 25.0):
         x1 = x0 + 25.0
@@ -28,7 +33,7 @@ def street_store():
         rings.append([(x0, -20, 15), (x0, -10, 15), (x1, -10, 15), (x1, -20, 15)])
     rings.append([(-50, -10, 0), (-50, 10, 0), (-50, 10, 8), (-50, -10, 8)])
     rings.append([(75, 10, 0), (75, -10, 0), (75, -10, 8), (75, 10, 8)])
-    return store_from_polygons([np.array(r, float) for r in rings], origin=np.zeros(3))
+    return [np.array(r, float) for r in rings]
 
 
 def tie_points_on(store, per_face, rng):
@@ -155,3 +160,76 @@ def test_a_gnss_bias_common_to_the_block_does_not_average_out():
         assert biased[axis]["sigma_gnss"] == pytest.approx(plain[axis]["sigma_gnss"])
         assert biased[axis]["source"] == plain[axis]["source"] == "gnss"
     assert biased["N"]["sigma"] == pytest.approx(plain["N"]["sigma"], rel=0.05)
+
+
+def _weighted_fit_spread(points, normals, groups, shared, weights_sigmas, noise, trials, rng):
+    """Spread (std per datum parameter) of the 7-parameter weighted least-squares fit of
+    tie points whose distances to their planes are each group's shared error plus noise."""
+    from colmap_citymodel.adjust.observability import _datum_jacobian
+
+    jac = _datum_jacobian(points, normals, points.mean(0))
+    w = 1.0 / weights_sigmas ** 2
+    solve = np.linalg.solve(jac.T @ (w[:, None] * jac), (w[:, None] * jac).T)
+    keys, slots = np.unique(groups, return_inverse=True)
+    fits = [solve @ (rng.normal(0.0, shared[keys])[slots] + rng.normal(0.0, noise, len(points)))
+            for _ in range(trials)]
+    return np.std(fits, axis=0)
+
+
+def test_the_stated_sigma_is_that_of_the_weights_refine_gives_a_terrain_unit():
+    """Refine weighs a terrain unit's points as one observation of its offset (sigma
+    sqrt(s^2 + n s_u^2) each): the stated height sigma is that weighting's, as a Monte Carlo
+    of such fits spreads, not the far larger one of every ground point weighed like a roof
+    point (2000 ground points with a 0.5 m unit error would then carry the height)."""
+    rng = np.random.default_rng(7)
+    store = street_store()
+    points, faces = tie_points_on(store, 20, rng)
+    ground = np.column_stack([rng.uniform(-50, 75, 2000), rng.uniform(-9, 9, 2000),
+                              np.zeros(2000)])
+    ground_face = store.num_faces
+    points = np.vstack([points, ground])
+    normals = np.vstack([store.normals[faces], np.tile([0.0, 0.0, 1.0], (2000, 1))])
+    groups = np.concatenate([faces, np.full(2000, ground_face)])
+    noise, unit_sigma = 0.05, 0.5
+    weights_sigmas = np.where(groups == ground_face, np.sqrt(noise ** 2 + 2000 * unit_sigma ** 2),
+                              noise)
+    terrain = {ground_face: (0, unit_sigma)}
+    stated = observability(points, normals, groups, None, None, noise, GENERALISATION,
+                           terrain=terrain, per_point=True, weights_sigmas=weights_sigmas)
+    alike = observability(points, normals, groups, None, None, noise, GENERALISATION,
+                          terrain=terrain, per_point=True)
+    shared = np.full(ground_face + 1, GENERALISATION)
+    shared[ground_face] = unit_sigma
+    spread = _weighted_fit_spread(points, normals, groups, shared, weights_sigmas, noise, 400,
+                                  rng)
+    assert stated["U"]["sigma"] == pytest.approx(spread[2], rel=0.15)
+    assert stated["E"]["sigma"] == pytest.approx(spread[0], rel=0.15)
+    assert alike["U"]["sigma"] > 2.0 * stated["U"]["sigma"]
+
+
+def test_the_generalisation_sigma_comes_from_the_model_faces_not_the_terrain():
+    """A corrected model (faces 2 cm off) beside a terrain half a metre off: the faces'
+    generalisation sigma is the model's 2 cm, no terrain cell is called an outlier face, and the
+    model-fit test counts the model's faces only (the terrain has its own sigma)."""
+    from colmap_citymodel.adjust.observability import face_fit
+    from colmap_citymodel.precision.quality import fit_statistics
+
+    rng = np.random.default_rng(11)
+    rings = street_rings()
+    cells = [np.array([(x, -9, 0), (x + 10, -9, 0), (x + 10, 9, 0), (x, 9, 0)], float)
+             for x in range(-50, 70, 10)]
+    store = store_from_polygons(rings + cells, origin=np.zeros(3),
+                                semantics=["Unknown"] * len(rings)
+                                + ["TerrainSurface"] * len(cells),
+                                building_ids=[f"b{k}" for k in range(len(rings))]
+                                + ["terrain"] * len(cells))
+    points, faces = tie_points_on(store, 40, rng)
+    offsets = np.where(np.arange(store.num_faces) < len(rings), 0.02, 0.5) * rng.standard_normal(
+        store.num_faces)
+    points += store.normals[faces] * (offsets[faces] + rng.normal(0, 0.01, len(faces)))[:, None]
+    fit = face_fit(points, faces, store, GENERALISATION)
+    assert fit.estimated
+    assert 0.01 < fit.sigma_generalisation < 0.04
+    assert not np.isin(fit.outlier_faces, np.arange(len(rings), store.num_faces)).any()
+    stats = fit_statistics(fit, GENERALISATION, 0.2, 2.5)
+    assert stats["faces_dof"] == len(rings) - len(fit.outlier_faces) - 7

@@ -18,7 +18,8 @@ import pycolmap
 
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
-from ..citymodel.ground_faces import terrain_faces, terrain_groups
+from ..citymodel.ground_faces import (terrain_face_sigmas, terrain_faces, terrain_groups,
+                                     terrain_units)
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
 
@@ -95,7 +96,7 @@ def _plane_terms(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                  tilts: dict[int, FaceTilt] | None, shared_sigmas: dict[int, float] | None):
     """Per plane (group): the datum Jacobian of its points and the columns of the error they
     share (offset and, for the groups in `tilts`, the two tilts, as distances along the
-    normal at each point)."""
+    normal at each point), and which points are the group's."""
     jac = _datum_jacobian(points, normals, centre)
     for group in np.unique(groups):
         selected = groups == group
@@ -104,7 +105,7 @@ def _plane_terms(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         tilt = None if tilts is None else tilts.get(int(group))
         if tilt is not None:
             shared = np.hstack([shared, tilt.distances(points[selected])])
-        yield jac[selected], shared
+        yield jac[selected], shared, selected
 
 
 def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
@@ -116,8 +117,8 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
     `tilts`, its tilt error."""
     s2 = sigma ** 2
     out = []
-    for j, shared in _plane_terms(points, normals, groups, centre, sigma_generalisation, tilts,
-                                  shared_sigmas):
+    for j, shared, _ in _plane_terms(points, normals, groups, centre, sigma_generalisation,
+                                     tilts, shared_sigmas):
         projected = j.T @ shared
         inner = s2 * np.eye(shared.shape[1]) + shared.T @ shared
         out.append((j.T @ j - projected @ np.linalg.solve(inner, projected.T)) / s2)
@@ -127,22 +128,27 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
 def per_point_sigmas(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                      centre: np.ndarray, sigma: float, sigma_generalisation: float,
                      tilts, shared_sigmas, gnss: np.ndarray, gnss_bias: np.ndarray,
-                     model_bias_sigma: float) -> np.ndarray:
-    """(7,) sigmas of the datum as refine weighs it: every tie point alike (`sigma`), GNSS by
-    its stated sigmas (`gnss`: that information), whatever the errors they share. Sandwich
-    H^-1 M H^-1: H the normal matrix of those weights, M the covariance of its right-hand side
-    under the full model (each face's offset and tilt, `gnss_bias`: the GNSS bias's part, the
-    model's common shift). Above the optimal weighting's sigmas where a few faces hold most
-    of the points."""
+                     model_bias_sigma: float, weights_sigmas: np.ndarray | None = None
+                     ) -> np.ndarray:
+    """(7,) sigmas of the datum as refine weighs it: every tie point alike (`sigma`; or each
+    with its sigma in `weights_sigmas`, (n,) m: a terrain unit's points weigh as one
+    observation), GNSS by its stated sigmas (`gnss`: that information), whatever the errors
+    they share. Sandwich H^-1 M H^-1: H the normal matrix of those weights, M the covariance of
+    its right-hand side under the full model (each point's own noise `sigma`, each face's offset
+    and tilt, `gnss_bias`: the GNSS bias's part, the model's common shift). Above the optimal
+    weighting's sigmas where a few faces hold most of the points."""
     s2 = sigma ** 2
+    weights = np.full(len(points), 1.0 / s2) if weights_sigmas is None else (
+        1.0 / np.asarray(weights_sigmas, float) ** 2)
     hessian, middle = gnss.copy(), gnss + gnss_bias
     planes = np.zeros((7, 7))
-    for j, shared in _plane_terms(points, normals, groups, centre, sigma_generalisation, tilts,
-                                  shared_sigmas):
-        normal = j.T @ j / s2
-        projected = j.T @ shared / s2
+    for j, shared, selected in _plane_terms(points, normals, groups, centre,
+                                            sigma_generalisation, tilts, shared_sigmas):
+        w = weights[selected][:, None]
+        normal = j.T @ (w * j)
+        projected = j.T @ (w * shared)
         planes += normal
-        middle += normal + projected @ projected.T
+        middle += s2 * (j.T @ (w * w * j)) + projected @ projected.T
     hessian += planes
     if model_bias_sigma > 0:
         middle += model_bias_sigma ** 2 * planes[:, :3] @ planes[:3, :]
@@ -231,7 +237,8 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
                   tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None,
                   terrain: dict[int, tuple[int, float]] | None = None,
-                  model_bias_sigma: float = 0.0, per_point: bool = False) -> dict:
+                  model_bias_sigma: float = 0.0, per_point: bool = False,
+                  weights_sigmas: np.ndarray | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
@@ -242,7 +249,8 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     decided on it; `sigma_gnss_with_bias` is GNSS alone with it. `model_bias_sigma` (m): a
     shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`.
     `per_point`: `sigma` is that of refine's weighting, every tie point alike
-    (`per_point_sigmas`), not that of the optimal one, where the planes fix the direction."""
+    (`per_point_sigmas`; `weights_sigmas`: each point's sigma in that weighting), not that of
+    the optimal one, where the planes fix the direction."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
@@ -271,7 +279,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                                     gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
         s_stated = np.maximum(s_both, per_point_sigmas(
             points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
-            shared_sigmas, gnss, bias_part, model_bias_sigma))
+            shared_sigmas, gnss, bias_part, model_bias_sigma, weights_sigmas))
     # A direction that only one plane fixes rests on that plane's assignment being right (one
     # roof among facades): it counts for the planes only if it survives leaving any one out
     # (judged with the other parameters held, so that two parallel facades, which together
@@ -394,6 +402,12 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
         sigma_gen = fit.sigma_generalisation
         selected = ~np.isin(faces, fit.outlier_faces)
     faces = faces[selected]
+    unique = np.unique(faces)
+    rows = np.searchsorted(unique, faces)
+    dtp = options.adjustment.sigma_dtp
+    # As the adjustment weighs them (adjust.problem.tie_sigmas): a terrain unit as one point.
+    weights_sigmas = terrain_face_sigmas(store, unique, rows, np.full(len(unique), dtp),
+                                         dtp)[rows]
     return observability(points[assigned][selected], store.normals[faces], faces,
                          priors.observed_points(rec) if priors is not None else None,
                          priors.sigmas if priors is not None else None,
@@ -405,7 +419,8 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          model_bias_sigma=options.adjustment.sigma_model_datum if from_data
                          else 0.0,
                          per_point=from_data
-                         and options.adjustment.face_weighting == "per_point")
+                         and options.adjustment.face_weighting == "per_point",
+                         weights_sigmas=weights_sigmas)
 
 
 # -- the faces' fit: generalisation sigma from the data ----------------------------------------
@@ -431,7 +446,9 @@ class FaceFit:
     mean signed distance (m, the face's offset), the points' scatter about that mean
     (`sigma_point`, m, median-based) and the faces' offset sigma by moments
     (`sigma_generalisation`, m; the a priori one with fewer than MIN_FACES_FOR_SIGMA faces,
-    `estimated` False). `outlier_faces`: faces beyond OUTLIER_FACE_SIGMAS."""
+    `estimated` False). `outlier_faces`: faces beyond OUTLIER_FACE_SIGMAS. Terrain faces
+    (`terrain`) carry their unit's sigma, not the model's generalisation: they are left out of
+    both."""
 
     faces: np.ndarray
     counts: np.ndarray
@@ -440,6 +457,7 @@ class FaceFit:
     sigma_generalisation: float
     estimated: bool
     outlier_faces: np.ndarray
+    terrain: np.ndarray | None = None  # bool per face: a terrain face, with its own sigma
 
     @property
     def num_faces(self) -> int:
@@ -465,7 +483,8 @@ def face_fit(points: np.ndarray, faces: np.ndarray, store: PlaneStore,
     sigma_point = float(1.4826 * np.median(np.abs(spread))) if len(spread) else 0.0
     sigma_point = max(sigma_point, 1e-3)
     noise = sigma_point ** 2 / np.maximum(counts, 1)
-    keep = np.ones(len(unique), bool)
+    terrain = terrain_units(store)[0][unique] >= 0 if len(unique) else np.zeros(0, bool)
+    keep = ~terrain
     sigma, estimated = prior_sigma, False
     for _ in range(5):  # outlier faces out, the sigma again, until none leaves
         if keep.sum() < MIN_FACES_FOR_SIGMA:
@@ -474,11 +493,11 @@ def face_fit(points: np.ndarray, faces: np.ndarray, store: PlaneStore,
         sigma = max(float(np.sqrt(max(variance, 0.0))), SIGMA_GENERALISATION_FLOOR)
         estimated = True
         beyond = np.abs(offsets) > OUTLIER_FACE_SIGMAS * np.sqrt(sigma ** 2 + noise)
-        if np.array_equal(~beyond, keep):
+        if np.array_equal(~beyond & ~terrain, keep):
             break
-        keep = ~beyond
-    outliers = unique[~keep] if estimated else np.zeros(0, np.int64)
-    return FaceFit(unique, counts, offsets, sigma_point, sigma, estimated, outliers)
+        keep = ~beyond & ~terrain
+    outliers = unique[~keep & ~terrain] if estimated else np.zeros(0, np.int64)
+    return FaceFit(unique, counts, offsets, sigma_point, sigma, estimated, outliers, terrain)
 
 
 def gnss_bias_sigmas(priors: GNSSPriors | None, share: float) -> np.ndarray | None:

@@ -99,8 +99,10 @@ def fit_statistics(fit: FaceFit, prior_generalisation: float, sigma_dtp: float,
     """The model-fit test's figures: the faces' offsets (outlier faces left out, and named)
     against a generalisation sigma `band` x `prior_generalisation` (chi-square, faces - 7
     degrees of freedom); the tie points' robust scatter on their faces against `band` x
-    `sigma_dtp` (chi-square, points - faces degrees of freedom)."""
+    `sigma_dtp` (chi-square, points - faces degrees of freedom). Terrain faces left out."""
     keep = ~np.isin(fit.faces, fit.outlier_faces)
+    if fit.terrain is not None:  # the terrain's own error is not the model's generalisation
+        keep &= ~fit.terrain
     noise = fit.sigma_point ** 2 / np.maximum(fit.counts, 1)
     limit = band * prior_generalisation
     faces_dof = int(keep.sum()) - 7
