@@ -125,12 +125,12 @@ def plane_information(points: np.ndarray, normals: np.ndarray, groups: np.ndarra
     return out
 
 
-def per_point_sigmas(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
-                     centre: np.ndarray, sigma: float, sigma_generalisation: float,
-                     tilts, shared_sigmas, gnss: np.ndarray, gnss_bias: np.ndarray,
-                     model_bias_sigma: float, weights_sigmas: np.ndarray | None = None
-                     ) -> np.ndarray:
-    """(7,) sigmas of the datum as refine weighs it: every tie point alike (`sigma`; or each
+def per_point_covariance(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
+                         centre: np.ndarray, sigma: float, sigma_generalisation: float,
+                         tilts, shared_sigmas, gnss: np.ndarray, gnss_bias: np.ndarray,
+                         model_bias_sigma: float, weights_sigmas: np.ndarray | None = None
+                         ) -> np.ndarray:
+    """7x7 covariance of the datum as refine weighs it: every tie point alike (`sigma`; or each
     with its sigma in `weights_sigmas`, (n,) m: a terrain unit's points weigh as one
     observation), GNSS by its stated sigmas (`gnss`: that information), whatever the errors
     they share. Sandwich H^-1 M H^-1: H the normal matrix of those weights, M the covariance of
@@ -153,10 +153,7 @@ def per_point_sigmas(points: np.ndarray, normals: np.ndarray, groups: np.ndarray
     if model_bias_sigma > 0:
         middle += model_bias_sigma ** 2 * planes[:, :3] @ planes[:3, :]
     inverse = _inverse(hessian)
-    variance = np.einsum("ij,jk,ki->i", inverse, middle, inverse)
-    out = np.sqrt(np.maximum(variance, 0.0))
-    out[~np.isfinite(_sigmas(hessian))] = np.inf
-    return out
+    return inverse @ middle @ inverse
 
 
 def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray,
@@ -220,6 +217,27 @@ def _inverse(info: np.ndarray) -> np.ndarray:
     return (vectors / np.maximum(values, 1e-300)) @ vectors.T / np.outer(scale, scale)
 
 
+def image_sigmas(covariance: np.ndarray, determined: np.ndarray, positions: np.ndarray | None,
+                 centre: np.ndarray) -> np.ndarray:
+    """(3,) sigma (m) per axis E N U of the image centres at `positions` as the datum's
+    `covariance` (7x7, about `centre`) moves them, shift, scale and rotations together: the
+    root of the mean variance over the images. Only the `determined` parameters count (one
+    left free says so through its own sigma); a free shift gives inf on its axis. Without
+    positions: the shift's sigma at `centre`."""
+    cov = np.where(np.outer(determined, determined), covariance, 0.0)
+    offsets = (np.zeros((1, 3)) if positions is None or not len(positions)
+               else np.asarray(positions, float) - centre)
+    variance = np.zeros(3)
+    for axis in range(3):
+        directions = np.zeros_like(offsets)
+        directions[:, axis] = 1.0
+        jac = _datum_jacobian(offsets, directions, np.zeros(3))
+        variance[axis] = np.mean(np.einsum("ij,jk,ik->i", jac, cov, jac))
+    out = np.sqrt(np.maximum(variance, 0.0))
+    out[~determined[:3]] = np.inf
+    return out
+
+
 def _sigmas(info: np.ndarray) -> np.ndarray:
     """Marginal sigma per datum parameter; inf where the information leaves it free. The
     inverse is taken with REGULARISATION as priors: a direction with hardly any information
@@ -240,7 +258,9 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   model_bias_sigma: float = 0.0, per_point: bool = False,
                   weights_sigmas: np.ndarray | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
-    (metres; relative for scale; degrees for rotations) from planes, GNSS and both.
+    (metres; relative for scale; degrees for rotations) from planes, GNSS and both. The stated
+    shifts' `sigma` and `sigma_gnss_with_bias` are those of the images' centres (at the GNSS
+    positions; `image_sigmas`): a short block's uncertain rotation moves its far images.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
     `tilts`: the tilt errors of the planes (`face_tilts`, by group), else offsets only;
     `gnss_bias_sigmas` ((3,) m): the part of the GNSS error common to the block. `sigma` (what
@@ -249,7 +269,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     decided on it; `sigma_gnss_with_bias` is GNSS alone with it. `model_bias_sigma` (m): a
     shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`.
     `per_point`: `sigma` is that of refine's weighting, every tie point alike
-    (`per_point_sigmas`; `weights_sigmas`: each point's sigma in that weighting), not that of
+    (`per_point_covariance`; `weights_sigmas`: each point's sigma in that weighting), not that of
     the optimal one, where the planes fix the direction."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
     # the tie points': the position users care about, and rotations then do not leak into it.
@@ -274,12 +294,20 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
     s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
     s_stated = s_both
+    at = gnss_positions if has_gnss else None
+    images_both = image_sigmas(_inverse(planes + biased), np.isfinite(s_both), at, centre)
+    images_biased = image_sigmas(_inverse(biased), np.isfinite(s_biased), at, centre)
+    images_stated = images_both
     if per_point and len(points):
         bias_part = (gnss_bias_part(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
                                     gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
-        s_stated = np.maximum(s_both, per_point_sigmas(
+        covariance = per_point_covariance(
             points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
-            shared_sigmas, gnss, bias_part, model_bias_sigma, weights_sigmas))
+            shared_sigmas, gnss, bias_part, model_bias_sigma, weights_sigmas)
+        s_stated = np.maximum(s_both, np.sqrt(np.maximum(np.diag(covariance), 0.0)))
+        s_stated[~np.isfinite(s_both)] = np.inf
+        images_stated = np.maximum(images_both, image_sigmas(
+            covariance, np.isfinite(s_both), at, centre))
     # A direction that only one plane fixes rests on that plane's assignment being right (one
     # roof among facades): it counts for the planes only if it survives leaving any one out
     # (judged with the other parameters held, so that two parallel facades, which together
@@ -305,6 +333,10 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         # Refine's weighting where the planes hold the direction; where GNSS alone does, the
         # loop holds it to GNSS (workflow.hold_gnss_height, scale priors), as weighed optimally.
         stated = s_stated[k] if source in ("planes", "both") else s_both[k]
+        with_bias = s_biased[k]
+        if k < 3:  # a shift: as it moves the images, with the block's scale and rotations
+            stated = images_stated[k] if source in ("planes", "both") else images_both[k]
+            with_bias = images_biased[k]
         one_plane = bool(s_planes[k] < limit and not p_ok)
         # What a user can rely on: planes (a single one too, with its generalisation error)
         # and GNSS with its bias; whether that one plane is the right one the verdict's tests
@@ -314,7 +346,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                      "sigma": _finite(stated * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
-                     "sigma_gnss_with_bias": _finite(s_biased[k] * factor)}
+                     "sigma_gnss_with_bias": _finite(with_bias * factor)}
     return out
 
 
