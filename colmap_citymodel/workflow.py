@@ -165,7 +165,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         rec, sim3 = gnss_only, gnss_only_sim3
         observability = gnss_only_observability(observability)
     else:
-        precision = precision_after_refine(last, options.precision, checkpoint_observations)
+        precision = precision_after_refine(last, options.precision, checkpoint_observations,
+                                           observability)
     correction = None
     if corrected is not None and corrected.selection is not None:
         correction = _model_correction(store, current, corrected, last, precision, options,
