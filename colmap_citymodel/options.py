@@ -538,11 +538,12 @@ class TerrainOptions:
     tile's ground points together weigh as one observation of it (`--terrain_sigma`). DGM1 and
     AHN state 0.05-0.15 m on open ground."""
     feet_sigma: float = 0.30
-    """Sigma (m) of the terrain interpolated from the buildings' feet, at a foot: a LOD2
-    model's ground heights are its generalised outline's, decimetres off a kerb."""
+    """Sigma (m) of one building's ground height, which the terrain interpolated from its feet
+    shares (one offset per building): a LOD2 model's ground heights are its generalised
+    outline's, decimetres off."""
     feet_sigma_growth: float = 0.02
-    """Metres the feet terrain's sigma grows per metre from the nearest foot: a street's
-    cross slope and camber (2 %) are not in the feet."""
+    """Metres the feet terrain's local sigma (beyond its building's offset) grows per metre
+    from the nearest foot: a street's cross slope and camber (2 %) are not in the feet."""
     cell: float = 6.0
     """Side (m) of the square terrain cells that become planar faces: a few metres, so that a
     cell takes enough tie points, and its plane follows the slope of the street."""
