@@ -219,6 +219,10 @@ def _add_refine(subparsers) -> None:
     hint.add_argument("--location_radius", type=float, default=100.0, metavar="M",
                       help="metres around --location within which the block's centre is "
                            "searched (default 100)")
+    p.add_argument("--sequence", action="store_true",
+                   help="the images are video frames named in capture order: after refine, "
+                        "frames whose pose jumps from their neighbours' are reported "
+                        "(report.json quality.metrics.sequence)")
 
     def run(args):
         from .workflow import main
@@ -229,7 +233,7 @@ def _add_refine(subparsers) -> None:
             raise CityModelError("--location needs finite X Y and --location_radius a "
                                  "positive number of metres")
         result = main(args.input_path, **_citymodel_kwargs(args), location=args.location,
-                      location_radius=args.location_radius)
+                      location_radius=args.location_radius, sequence=args.sequence)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 
