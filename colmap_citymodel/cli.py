@@ -160,7 +160,7 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
     p.add_argument("--no_progress", action="store_true", help="no progress bars")
     p.add_argument("--precision", choices=["auto", "on", "off"], default=None,
                    help="a posteriori covariances of images and tie points (default auto: on "
-                        "below 500 images; s0 and the global test are always reported)")
+                        "below 2,500 images; s0 and the global test are always reported)")
     quality = p.add_argument_group("check points and honest precision")
     quality.add_argument("--checkpoints", help="check points 'id X Y Z' (model CRS), evaluated "
                          "at the end: never assigned to planes, never control")

@@ -484,12 +484,15 @@ class PrecisionOptions:
     """A posteriori precision after the last solve (method.md 7 and 9; precision.py)."""
 
     covariances: str = "auto"
-    """"on", "off" or "auto": covariances of images and tie points (Schur elimination, dense in
-    the camera-side unknowns) only for blocks of fewer than `max_images_auto` images. Without
-    them s0 and the global test are still reported, with proportional group redundancies."""
-    max_images_auto: int = 200
-    """Image count up to which "auto" computes covariances: the dense camera-side inverse grows
-    with the cube of the images and soon costs more than the solves themselves."""
+    """"on", "off" or "auto": covariances of images and tie points (Schur elimination; the
+    camera-side inverse dense, or selected where large) only for blocks of fewer than
+    `max_images_auto` images. Without them s0 and the global test are still reported, with
+    proportional group redundancies."""
+    max_images_auto: int = 2500
+    """Image count up to which "auto" computes covariances. Above 3,000 camera-side unknowns the
+    inverse is selected (only where sigmas need it), whose cost grows about linearly along a
+    street: at 2,000 images well under the refine's own time; memory grows with images x
+    planes."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
     tolerance: float = 0.25
