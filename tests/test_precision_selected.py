@@ -143,3 +143,35 @@ def test_datum_shift_is_what_the_least_precise_axis_lacks():
     np.testing.assert_allclose(datum_shift(cov, np.array([0.2, 0.05, np.nan])),
                                [0.04 - 0.01, 0.0, 0.0])
     assert not datum_shift(cov, None).any()
+
+
+def test_solve_weighted_cofactors_equal_a_new_system_at_the_solve_weights(many_levels):
+    """The holds re-weighted in S alone give the same Q_cc as the Jacobian at the solve's
+    weights, densely and selected."""
+    from colmap_citymodel.adjust.problem import BaselinePriors
+    from colmap_citymodel.precision.estimate import solve_weighted
+
+    def holds(rec):
+        ids = np.array(sorted(rec.reg_image_ids()))
+        centres = np.array([rec.image(int(i)).projection_center() for i in ids])
+        pairs = np.array([[ids[0], ids[-1]], [ids[1], ids[-2]]])
+        lengths = np.linalg.norm(centres[[0, 1]] - centres[[-1, -2]], axis=1)
+        return BaselinePriors(pairs, lengths, np.full(2, 0.01), level_image=int(ids[3]),
+                              level_position=centres[3], level_sigmas=np.full(3, 0.01),
+                              tightening=10.0, level_tightening=5.0)
+
+    problem = _tiny(holds=holds)
+    assert len(problem.hold_relaxation) == 5
+    for method in ("dense", "selected"):
+        relaxed = cofactors(problem, keep_system=True, method=method, redundancy=False)
+        fresh = cofactors(problem, keep_system=True, method=method, redundancy=False,
+                          relax_holds=False, points=False)
+        ours = solve_weighted(problem, relaxed)
+        layout = fresh.layout
+        for (kind, key) in layout.names[:len(layout.names) - len(layout.point_ids)]:
+            columns = layout.columns(kind, key)
+            expected = np.asarray(fresh.q_cc[columns, columns])
+            np.testing.assert_allclose(ours.q_cc[columns, columns], expected,
+                                       atol=1e-9 * np.abs(expected).max())
+        rhs = np.ones(layout.num_c)
+        np.testing.assert_allclose(ours.q_cc @ rhs, fresh.q_cc @ rhs, rtol=1e-7)

@@ -283,13 +283,14 @@ class Cofactors:
     """Unscaled cofactor matrices (Q = N^-1 of the whitened problem) and redundancy numbers."""
 
     layout: _Layout
-    q_cc: np.ndarray  # (num_c, num_c) camera-side unknowns, dense
+    q_cc: np.ndarray  # (num_c, num_c) camera-side unknowns, dense (or a SelectedInverse)
     q_points: np.ndarray  # (P, 3, 3) marginal
     q_points_conditional: np.ndarray  # (P, 3, 3) W_i^-1
     redundancy_by_group: dict[str, float]
     datum_defect: int
     seconds: float
     system: tuple | None = None  # (j_c, j_p, b = W^-1 E, w_inv) when asked to keep them
+    normal: sp.csr_matrix | None = None  # the reduced normal matrix S, with `system`
 
 
 def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
@@ -338,10 +339,10 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     jacobian, layout = whitened_jacobian(problem, relax_holds=relax_holds)
     nc = layout.num_c
     num_points = len(layout.point_ids)
-    jacobian = jacobian.tocsc()
-    j_c = jacobian[:, :nc].tocsr()
-    j_p = jacobian[:, nc:].tocsr()
-    e = (j_p.T @ j_c).tocsr()  # (3P, nc)
+    jacobian = jacobian.tocsr()
+    j_c = jacobian[:, :nc]
+    j_p = jacobian[:, nc:]
+    e = (j_p.T.tocsr() @ j_c).tocsr()  # (3P, nc)
     w = _block_diagonal_3x3(j_p.T @ j_p, num_points)
     w_inv = np.linalg.inv(w) if num_points else w
     b = (_bsr_blocks(w_inv) @ e).tocsr() if num_points else sp.csr_matrix((0, nc))
@@ -358,7 +359,7 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
         q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
                                layout.sizes[:n_blocks])
         defect = 0
-        q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, w_inv, bounds,
+        q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
                                                 redundancy, points)
     else:
         s = s.toarray()
@@ -369,7 +370,37 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
                            if redundancy else {})
     return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
                      time.perf_counter() - start,
-                     (j_c, j_p, b, w_inv) if keep_system else None)
+                     (j_c, j_p, b, w_inv) if keep_system else None,
+                     sp.csr_matrix(s) if keep_system else None)
+
+
+def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
+    """`cof` (kept with its system, holds relaxed) re-weighted to the solve's own holds
+    (`whitened_jacobian(relax_holds=False)`): the holds' rows touch camera-side unknowns only,
+    so S changes by J_h^T (1/f^2 - 1) J_h (f the relaxation factors) and nothing else does.
+    Falls back to a new `cofactors` where that does not hold. No point cofactors."""
+    relaxation = problem.hold_relaxation
+    first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
+    rows = slice(first, first + len(relaxation))
+    if cof.system is None or cof.normal is None or not np.all(relaxation > 0) \
+            or cof.system[1][rows].nnz:
+        return cofactors(problem, redundancy=False, keep_system=True, points=False,
+                         relax_holds=False)
+    start = time.perf_counter()
+    j_c = cof.system[0]
+    held = j_c[rows]
+    s = cof.normal + held.T @ sp.diags(1.0 / relaxation ** 2 - 1.0) @ held
+    s = 0.5 * (s + s.T)
+    layout = cof.layout
+    if isinstance(cof.q_cc, np.ndarray):
+        q_cc, defect = _inverse(s.toarray())
+    else:
+        from .selected import SelectedInverse
+
+        n_blocks = len(layout.sizes) - len(layout.point_ids)
+        q_cc, defect = SelectedInverse(s, layout.starts[:n_blocks], layout.sizes[:n_blocks]), 0
+    return Cofactors(layout, q_cc, cof.q_points_conditional, cof.q_points_conditional, {},
+                     defect, time.perf_counter() - start, cof.system, None)
 
 
 def _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
@@ -403,7 +434,7 @@ def _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
     return q_points, trace
 
 
-def _selected_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
+def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points
                           ) -> tuple[np.ndarray, dict[str, float]]:
     """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors)."""
     from .point_cofactors import point_terms
@@ -417,8 +448,16 @@ def _selected_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
         u_g = (jc_g.T @ jc_g).tocoo()
         trace[g] = float(np.sum(u_g.data * q_cc.pattern_values(u_g.row, u_g.col)))
         if jp_g.nnz:
-            e_groups[g] = (jp_g.T @ jc_g).tocsr()
+            e_groups[g] = jp_g
             w_groups[g] = _block_diagonal_3x3(jp_g.T @ jp_g, num_points)
+    if e_groups:  # E_g = J_p,g^T J_c,g; the largest group's as E minus the others'
+        largest = max(e_groups, key=lambda g: e_groups[g].nnz)
+        for g in e_groups:
+            if g != largest:
+                lo, hi = bounds[g]
+                e_groups[g] = (e_groups[g].T @ j_c[lo:hi]).tocsr()
+        others = [e_groups[g] for g in e_groups if g != largest]
+        e_groups[largest] = (e - sum(others)).tocsr() if others else e
     if not (points or e_groups):
         return np.array(w_inv, copy=True), trace
     q_points, point_traces, _ = point_terms(q_cc, b, w_inv, e_groups)
@@ -982,7 +1021,7 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     # Where refine held what the planes do not fix, the planes' errors act through the solve's
     # own weights (below), from a second system; else through this one.
     held = mode == "consider" and len(problem.hold_relaxation) > 0
-    needs_system = mode == "consider" and not held
+    needs_system = mode == "consider"
     own_cofactors = cof is None or (needs_system and cof.system is None)
     if own_cofactors:
         cof = cofactors(problem, keep_system=needs_system)
@@ -995,15 +1034,14 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
         # sigma, the walls' tilts would seem to move a block's height by metres, which the
         # hold does not let them.
-        solve_cof = (cofactors(problem, redundancy=False, keep_system=True, points=False,
-                               relax_holds=False) if held else cof)
+        solve_cof = solve_weighted(problem, cof) if held else cof
         effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
                                          estimate=estimate_generalisation,
                                          s0_squared=variance.sigma0_squared)
         if held:
             solve_cof.system = None
         if own_cofactors:
-            cof.system = None  # free the Jacobian and W^-1 E
+            cof.system = cof.normal = None  # free the Jacobian, W^-1 E and S
         sigma_generalisation = effects.sigma
         logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
                     " %.1f s)", len(effects.faces), effects.sigma,
