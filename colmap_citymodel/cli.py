@@ -160,7 +160,7 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
     p.add_argument("--no_progress", action="store_true", help="no progress bars")
     p.add_argument("--precision", choices=["auto", "on", "off"], default=None,
                    help="a posteriori covariances of images and tie points (default auto: on "
-                        "below 500 images; s0 and the global test are always reported)")
+                        "below 2,500 images; s0 and the global test are always reported)")
     quality = p.add_argument_group("check points and honest precision")
     quality.add_argument("--checkpoints", help="check points 'id X Y Z' (model CRS), evaluated "
                          "at the end: never assigned to planes, never control")
@@ -219,6 +219,10 @@ def _add_refine(subparsers) -> None:
     hint.add_argument("--location_radius", type=float, default=100.0, metavar="M",
                       help="metres around --location within which the block's centre is "
                            "searched (default 100)")
+    p.add_argument("--sequence", action="store_true",
+                   help="the images are video frames named in capture order: after refine, "
+                        "frames whose pose jumps from their neighbours' are reported "
+                        "(report.json quality.metrics.sequence)")
 
     def run(args):
         from .workflow import main
@@ -229,7 +233,7 @@ def _add_refine(subparsers) -> None:
             raise CityModelError("--location needs finite X Y and --location_radius a "
                                  "positive number of metres")
         result = main(args.input_path, **_citymodel_kwargs(args), location=args.location,
-                      location_radius=args.location_radius)
+                      location_radius=args.location_radius, sequence=args.sequence)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 

@@ -484,12 +484,15 @@ class PrecisionOptions:
     """A posteriori precision after the last solve (method.md 7 and 9; precision.py)."""
 
     covariances: str = "auto"
-    """"on", "off" or "auto": covariances of images and tie points (Schur elimination, dense in
-    the camera-side unknowns) only for blocks of fewer than `max_images_auto` images. Without
-    them s0 and the global test are still reported, with proportional group redundancies."""
-    max_images_auto: int = 200
-    """Image count up to which "auto" computes covariances: the dense camera-side inverse grows
-    with the cube of the images and soon costs more than the solves themselves."""
+    """"on", "off" or "auto": covariances of images and tie points (Schur elimination; the
+    camera-side inverse dense, or selected where large) only for blocks of fewer than
+    `max_images_auto` images. Without them s0 and the global test are still reported, with
+    proportional group redundancies."""
+    max_images_auto: int = 2500
+    """Image count up to which "auto" computes covariances. Above 3,000 camera-side unknowns the
+    inverse is selected (only where sigmas need it), whose cost grows about linearly along a
+    street: at 2,000 images well under the refine's own time; memory grows with images x
+    planes."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""
     tolerance: float = 0.25
@@ -538,11 +541,12 @@ class TerrainOptions:
     tile's ground points together weigh as one observation of it (`--terrain_sigma`). DGM1 and
     AHN state 0.05-0.15 m on open ground."""
     feet_sigma: float = 0.30
-    """Sigma (m) of the terrain interpolated from the buildings' feet, at a foot: a LOD2
-    model's ground heights are its generalised outline's, decimetres off a kerb."""
+    """Sigma (m) of one building's ground height, which the terrain interpolated from its feet
+    shares (one offset per building): a LOD2 model's ground heights are its generalised
+    outline's, decimetres off."""
     feet_sigma_growth: float = 0.02
-    """Metres the feet terrain's sigma grows per metre from the nearest foot: a street's
-    cross slope and camber (2 %) are not in the feet."""
+    """Metres the feet terrain's local sigma (beyond its building's offset) grows per metre
+    from the nearest foot: a street's cross slope and camber (2 %) are not in the feet."""
     cell: float = 6.0
     """Side (m) of the square terrain cells that become planar faces: a few metres, so that a
     cell takes enough tie points, and its plane follows the slope of the street."""

@@ -165,7 +165,8 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         rec, sim3 = gnss_only, gnss_only_sim3
         observability = gnss_only_observability(observability)
     else:
-        precision = precision_after_refine(last, options.precision, checkpoint_observations)
+        precision = precision_after_refine(last, options.precision, checkpoint_observations,
+                                           observability)
     correction = None
     if corrected is not None and corrected.selection is not None:
         correction = _model_correction(store, current, corrected, last, precision, options,
@@ -608,7 +609,7 @@ def write_failed_report(output_path, inputs: dict, error) -> None:
 
 
 def main(input_path, citymodel, output_path, *, output_type="bin", output_frame="crs",
-         progress=True, lod=2, model_crs=None, **kwargs) -> RefineResult:
+         progress=True, lod=2, model_crs=None, sequence=False, **kwargs) -> RefineResult:
     """`colmap-citymodel refine`: read everything, refine, write `output_path` atomically.
     The other keyword arguments are `read_inputs`'s:
     `checkpoints` / `checkpoint_observations`: files (evaluate's formats) of check points that
@@ -620,14 +621,17 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     file's `[workflow] mode`). `location` (x, y) and `location_radius`: without GNSS, the
     block is found on the model near the hint (align.locate); when two places fit it about
     equally well, or its planes cannot hold it, only report.json is written and
-    ModelOnlyFailure raised (exit 3). An `input_path` that holds COLMAP's numbered models
+    ModelOnlyFailure raised (exit 3). `sequence`: the images are video frames named in
+    capture order; frames whose registered pose jumps from their neighbours' are reported
+    (precision.sequence; report.json quality.metrics.sequence and warnings). An `input_path`
+    that holds COLMAP's numbered models
     (sparse/0, sparse/1, ...) instead of one: each part is refined on its own into
     `output_path`/<part> (`refine_parts`)."""
     parts = model_parts(input_path)
     if parts:
         return refine_parts(parts, citymodel, output_path, output_type=output_type,
                             output_frame=output_frame, progress=progress, lod=lod,
-                            model_crs=model_crs, **kwargs)
+                            model_crs=model_crs, sequence=sequence, **kwargs)
     read = read_inputs(citymodel, output_path, input_path=input_path, lod=lod,
                        model_crs=model_crs, **kwargs)
     from .align.locate import ModelOnlyFailure
@@ -642,9 +646,25 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
     except ModelOnlyFailure as error:  # no result: the report says why
         write_failed_report(output_path, read.inputs, error)
         raise
+    if sequence:
+        add_sequence_check(result)
     write_outputs(result, output_path, read, output_type=output_type,
                   output_frame=output_frame, lod=lod, model_crs=model_crs)
     return result
+
+
+def add_sequence_check(result: RefineResult) -> None:
+    """The neighbouring-frame check of the returned block into its quality figures, a warning
+    per frame that jumps."""
+    from .precision.sequence import sequence_check
+
+    check = sequence_check(result.reconstruction)
+    if result.quality is not None and isinstance(result.quality.metrics, dict):
+        result.quality.metrics["sequence"] = check
+    for camera in check["cameras"].values():
+        result.warnings += [f"sequence: frame {j['image']} lies {j['off_path_m']:.2f} m off "
+                            f"its neighbours' path, {j['turn_deg']:.1f} deg from their view"
+                            for j in camera["jumps"]]
 
 
 def model_parts(input_path) -> list[Path]:

@@ -12,12 +12,17 @@ import numpy as np
 import pycolmap
 import pytest
 
+from colmap_citymodel.align.coarse import SurfaceDistance
 from colmap_citymodel.align.locate import AmbiguousLocationError, LocateOptions, locate
+from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 from colmap_citymodel.cli import main as cli_main
 from colmap_citymodel.errors import GeoregistrationError
 from colmap_citymodel.options import RefineOptions
+from colmap_citymodel.precision.ambiguity import placement_fit
+from colmap_citymodel.precision.quality import DISTINCT, NEAR_DISTANCE, QualityThresholds, \
+    placement_metrics
 from colmap_citymodel.simulate import synthetic
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, centre_errors
 from colmap_citymodel.workflow import refine
@@ -104,6 +109,63 @@ def test_a_street_of_identical_houses_is_ambiguous_and_fails(identical_street):
     assert report["score_ratio"] > LocateOptions().max_ratio
     assert report["runner_up_offset_m"] > 5.0
     assert caught.value.exit_code == 3
+
+
+def house_on_ground(houses_x):
+    """Flat-roofed houses 12 x 10 x 6 m at `houses_x` on level ground 120 m square."""
+    rings = [np.array([(-60, -60, 0), (60, -60, 0), (60, 60, 0), (-60, 60, 0)], float)]
+    for x0 in houses_x:
+        x1, y0, y1, h = x0 + 12.0, 0.0, 10.0, 6.0
+        rings += [np.array(r, float) for r in (
+            [(x0, y0, 0), (x1, y0, 0), (x1, y0, h), (x0, y0, h)],
+            [(x1, y0, 0), (x1, y1, 0), (x1, y1, h), (x1, y0, h)],
+            [(x1, y1, 0), (x0, y1, 0), (x0, y1, h), (x1, y1, h)],
+            [(x0, y1, 0), (x0, y0, 0), (x0, y0, h), (x0, y1, h)],
+            [(x0, y0, h), (x1, y0, h), (x1, y1, h), (x0, y1, h)])]
+    store = store_from_polygons(rings, origin=np.zeros(3))
+    return SurfaceDistance(store, excluded_classes=(), threads=1)
+
+
+def loop_round_a_house(rng):
+    """Tie points of a drone loop round the house at x 0..12: 90 % on the ground around it,
+    the rest on its walls and roof."""
+    ground = np.column_stack([rng.uniform(-25, 37, 5000), rng.uniform(-20, 30, 5000),
+                              np.zeros(5000)])
+    ground = ground[~((ground[:, 0] > 0) & (ground[:, 0] < 12) & (ground[:, 1] > 0)
+                      & (ground[:, 1] < 10))][:3000]
+    u, v = rng.uniform(0, 1, (2, 60))
+    walls = [np.column_stack([12 * u, np.zeros(60), 6 * v]),
+             np.column_stack([np.full(60, 12.0), 10 * u, 6 * v]),
+             np.column_stack([12 * u, np.full(60, 10.0), 6 * v]),
+             np.column_stack([np.zeros(60), 10 * u, 6 * v]),
+             np.column_stack([12 * u, 10 * v, np.full(60, 6.0)])]
+    return np.vstack([ground] + walls)
+
+
+def test_the_ground_around_a_house_does_not_make_its_placement_ambiguous():
+    """A house alone on level ground, most tie points on the ground round it: the ground fits
+    every horizontal shift alike, so scored with it a shift by one house width fits almost as
+    well; the placement test scores the faces a shift moves the points off (walls), which hold
+    the house in one place. Two such houses side by side stay ambiguous."""
+    rng = np.random.default_rng(7)
+    points = loop_round_a_house(rng)
+    alone = house_on_ground([0.0])
+    t = QualityThresholds()
+
+    class Opaque:  # the same distances without the triangles to sort
+        def __call__(self, p, within):
+            return alone(p, within)
+
+    diluted = placement_fit(points, Opaque(), 30.0, lambda g: np.ones(len(g), bool),
+                            radius=NEAR_DISTANCE, distinct=DISTINCT)
+    assert diluted.ratio < t.ambiguity_ratio  # the ground alone nearly fits any shift
+    placement = placement_metrics(points, alone, None, None, t)
+    assert placement["ratio"] is None or placement["ratio"] > 1.5
+    assert placement["best_shift_m"] == pytest.approx([0.0, 0.0])
+    twins = placement_metrics(points, house_on_ground([0.0, 16.0]), None, None, t)
+    assert twins["ratio"] < t.ambiguity_ratio
+    assert np.abs(np.subtract(twins["alternative_shift_m"], twins["best_shift_m"])) \
+        == pytest.approx([16.0, 0.0], abs=1.1)
 
 
 @pytest.fixture(scope="module")

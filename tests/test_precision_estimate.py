@@ -78,7 +78,7 @@ def test_global_test_numbers():
 
 # -- a tiny bundle adjustment with a city model --------------------------------------------------
 
-def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3):
+def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3, holds=None):
     """12 images, ~230 points; image noise 1 px and GNSS noise of GNSS_SIGMA, so the stochastic
     model is right for sigma_scale = 1 (all stated sigmas multiplied by it)."""
     scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=2.5,
@@ -97,7 +97,7 @@ def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3):
         store = scene.store
         assignment = assign(xyz, point_ids, store, 0.5, AssignmentOptions(min_points_per_plane=5))
     problem = HybridProblem(rec, store, assignment, priors, options, robust_images=False,
-                            robust_planes=False)
+                            robust_planes=False, baselines=holds(rec) if holds else None)
     problem.solve()
     return problem
 

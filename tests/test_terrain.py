@@ -142,19 +142,31 @@ def street_dtm(directory, options, offsets, noise=0.15):
                      noise_sigma=noise, seed=1)
 
 
-def test_the_buildings_feet_give_a_terrain_whose_sigma_grows_away_from_them(street):
+def test_the_buildings_feet_give_a_terrain_whose_local_sigma_grows_away_from_them(street):
+    import shapely
+
     _, scene = street
     store = scene.store
     feet = building_feet(store)
     assert len(feet.points) > 100 and not feet.footprints.is_empty
     bbox = np.array([[X0 - 10, Y0 - 12], [X0 + 40, Y0 + 12]])
-    terrain = feet_terrain(store, bbox, sigma=0.3, growth=0.02, feet=feet)
+    terrain = feet_terrain(store, bbox, sigma=0.3, growth=0.02, feet=feet, reach=3.0,
+                           kerb=0.15)
     assert terrain.source == "building_feet"
     near = np.argmin(np.hypot(feet.points[:, 0] - X0 - 20, feet.points[:, 1] - Y0 - 10))
     at_foot = feet.points[near:near + 1, :2]
-    assert terrain.sigma(at_foot)[0] == pytest.approx(0.3, abs=0.03)
-    mid_street = np.array([[X0 + 20.0, Y0 + 0.0]])
-    assert terrain.sigma(mid_street)[0] > 0.45  # 10 m from the facades
+    # one offset per building (its ground height), no local error at a foot
+    assert terrain.sigma(at_foot)[0] == pytest.approx(0.3)
+    assert terrain.local_sigma(at_foot)[0] < 0.03
+    mid_street = np.array([[X0 + 20.0, Y0 + 0.0]])  # 10 m from the facades, beyond the kerb
+    assert terrain.sigma(mid_street)[0] == pytest.approx(0.3)
+    assert terrain.local_sigma(mid_street)[0] == pytest.approx(0.15 + 0.02 * 10, abs=0.05)
+    # the road lies a kerb below the feet; the pavement (3 m) at their height
+    assert terrain.grid_height(mid_street)[0] - terrain.height(mid_street)[0] == \
+        pytest.approx(0.15)
+    edge = shapely.distance(feet.footprints, shapely.points(at_foot + [0.0, -2.0]))[0]
+    assert edge < 3.0 and terrain.height(at_foot + [0.0, -2.0])[0] == pytest.approx(
+        terrain.grid_height(at_foot + [0.0, -2.0])[0])
     # the buildings stand at their centres' street heights: the feet follow the slope
     assert terrain.height(np.array([[X0 + 40, Y0]]))[0] - terrain.height(
         np.array([[X0, Y0]]))[0] == pytest.approx(1.6, abs=0.5)
@@ -191,6 +203,56 @@ def test_terrain_faces_skip_the_footprints_and_weigh_as_one_observation_per_tile
     walls = np.flatnonzero(~mask)[:2]
     assert np.allclose(terrain_face_sigmas(out, walls, np.zeros(5, int), np.full(2, 0.2), 0.2),
                        0.2)
+
+
+def test_feet_cells_split_at_the_pavement_and_the_road_does_not_outweigh_it(street):
+    import shapely
+
+    from colmap_citymodel.citymodel.ground_faces import smoothed, terrain_unit_sigmas, unit_weights
+
+    _, scene = street
+    store = scene.store
+    feet = building_feet(store)
+    points = np.array([p.xyz for p in scene.truth.points3D.values()])
+    xy = points[:, :2] + store.origin[:2]
+    bbox = np.array([xy.min(0) - 12, xy.max(0) + 12])
+    terrain = feet_terrain(store, bbox, sigma=0.3, growth=0.02, feet=feet)
+    out = with_terrain_faces(store, terrain, points, 6.0, feet.footprints)
+    mask = terrain_mask(out)
+    unit, sigma, local, _ = terrain_unit_sigmas(out)
+    pieces = [shapely.Polygon(out.vertices[out.faces[int(f)].exterior][:, :2] + out.origin[:2])
+              for f in np.flatnonzero(mask)]
+    assert not any(shapely.intersection(p, feet.footprints).area > 1e-3 for p in pieces)
+    centres = np.array([p.representative_point().coords[0] for p in pieces])
+    pavement = shapely.contains_xy(feet.footprints.buffer(3.0), centres[:, 0], centres[:, 1])
+    assert pavement.sum() >= 5 and (~pavement).sum() >= 5  # cells cut at the pavement's edge
+    assert np.all(local[mask][pavement] < 0.1) and np.all(local[mask][~pavement] >= 0.15)
+    assert np.allclose(sigma[mask], 0.3)
+    # the road pieces lie a kerb below the feet's heights, the pavement's at them
+    plane_z = np.array([out.vertices[out.faces[int(f)].exterior][:, 2].mean()
+                        for f in np.flatnonzero(mask)]) + out.origin[2]
+    ring_xy = [out.vertices[out.faces[int(f)].exterior][:, :2] + out.origin[:2]
+               for f in np.flatnonzero(mask)]
+    drop = np.array([smoothed_grid.mean() for smoothed_grid in
+                     (smoothed(terrain, 6.0).grid_height(r) for r in ring_xy)]) - plane_z
+    assert np.median(drop[~pavement]) == pytest.approx(0.15, abs=0.05)
+    assert np.median(np.abs(drop[pavement])) < 0.05
+    # One building's unit: 50 points on its pavement, 1200 on the road beside it, which lies
+    # 0.2 m further down than its kerb. The unit's offset as the adjustment weighs it (a
+    # weighted mean, 1 / sigma^2 per point) follows the pavement.
+    face_unit = np.zeros(7, np.int64)
+    counts = np.array([50.0] + [200.0] * 6)
+    loc = np.array([0.03] + [0.3] * 6)
+    share, unit_sigma = unit_weights(face_unit, counts, np.full(7, 0.3), loc, 0.2)
+    assert share[0] > 0.8 and unit_sigma[0] == pytest.approx(0.3, abs=0.01)
+    residual = np.r_[np.zeros(50), np.full(1200, -0.2)]
+    point_sigma = np.sqrt(0.2 ** 2 + counts * unit_sigma[0] ** 2 / share)
+    weight = 1.0 / np.repeat(point_sigma, counts.astype(int)) ** 2
+    assert abs(np.sum(weight * residual) / np.sum(weight)) < 0.04
+    assert np.sum(weight) == pytest.approx(1 / 0.3 ** 2, rel=0.02)  # still one observation
+    # without local errors (a DTM) every point weighs alike, as before
+    share, unit_sigma = unit_weights(face_unit, counts, np.full(7, 0.15), np.zeros(7), 0.2)
+    assert np.allclose(share, counts / counts.sum()) and unit_sigma[0] == pytest.approx(0.15)
 
 
 def test_a_dtm_five_metres_off_is_left_out_not_followed(street, tmp_path):

@@ -2,18 +2,22 @@
 
 The terrain (citymodel.terrain) is cut into square cells of `TerrainOptions.cell` metres; each
 cell that holds tie points (or borders one that does), and whose centre is not under a
-building's footprint, becomes one quadrilateral face whose corners are the terrain heights
-averaged over a cell's width around them (a DTM's own noise per post is smoothed away, its
-slope and steps of more than a cell are kept). Neighbouring cells share their corners. The
-assignment and the hybrid adjustment then treat the cells like model faces: a ground tie point
-gets the same point-to-plane residual as a point on a wall.
+building's footprint, becomes one face whose corners are the terrain heights averaged over a
+cell's width around them (a DTM's own noise per post is smoothed away, its slope and steps of
+more than a cell are kept). Neighbouring cells share their corners. The feet terrain's cells
+are cut at the pavements' outer edge and around the footprints (`split_pieces`): a piece lies
+either where the feet hold the ground or beyond. The assignment and the hybrid adjustment then
+treat the cells like model faces: a ground tie point gets the same point-to-plane residual as
+a point on a wall.
 
 A terrain's error is mostly one offset per source tile (a DTM tile's height reference, the
 feet of one building), not independent per cell: the tie points of all cells of one tile form
 one unit (`terrain_face_sigmas`), whose points together count as one observation of that
-offset with the terrain's sigma. Each terrain face names its unit in its building id
-("terrain:<tile>") and its sigma in its part id ("sigma=<m>"), so every copy of the store
-(moved vertices, shifted planes) keeps both.
+offset with the terrain's sigma. Within a unit each cell weighs by how well it knows the
+unit's height: its points' mean, with the cell's local error (a road beyond the feet terrain's
+pavements), shared by its points. Each terrain face names its unit in its building id
+("terrain:<tile>") and its sigmas in its part id ("sigma=<offset m>/<local m>"), so every copy
+of the store (moved vertices, shifted planes) keeps them.
 """
 
 from __future__ import annotations
@@ -32,6 +36,7 @@ logger = logging.getLogger(__name__)
 TERRAIN_CLASS = "TerrainSurface"
 TERRAIN_PREFIX = "terrain:"
 SIGMA_PREFIX = "sigma="
+LOCAL_SEPARATOR = "/"
 
 
 def smoothed(terrain: Terrain, width: float) -> Terrain:
@@ -67,47 +72,108 @@ def terrain_cells(terrain: Terrain, points_xy: np.ndarray, cell: float, footprin
     return cells, centres
 
 
-def terrain_polygons(terrain: Terrain, points_xy: np.ndarray, cell: float, footprints=None):
-    """The cells' quadrilaterals: corner node indices (C, 4) into the returned corners (K, 3)
-    (CRS, counter-clockwise seen from above), each cell's unit name and sigma."""
-    cells, centres = terrain_cells(terrain, points_xy, cell, footprints)
+#: Smallest piece (share of a cell's area) a cell split at the terrain's band keeps: a sliver
+#: cannot hold the assignment's minimum of points.
+MIN_PIECE = 0.1
+
+
+def split_pieces(terrain: Terrain, quads: np.ndarray, corners: np.ndarray, cell: float,
+                 footprints=None) -> tuple[list[np.ndarray], np.ndarray]:
+    """The cells `quads` (corner indices into `corners`) as xy rings (counter-clockwise, CRS):
+    each cell cut at the edge of `terrain.band` (inside and outside it a piece of its own) and
+    without the `footprints`; a cell that needs no cut keeps its four corners. Returns the
+    rings and the cell each came from."""
+    import shapely
+    from shapely.geometry.polygon import orient
+
+    rings, source = [], []
+    cut = terrain.band
+    for k, quad in enumerate(quads):
+        square = shapely.Polygon(corners[quad, :2])
+        if cut is None or not shapely.intersects(cut, square) or shapely.contains(cut, square):
+            if footprints is None or not shapely.intersects(footprints, square):
+                rings.append(corners[quad, :2])
+                source.append(k)
+                continue
+        open_ground = square if footprints is None else square.difference(footprints)
+        parts = [open_ground] if cut is None else [open_ground.intersection(cut),
+                                                   open_ground.difference(cut)]
+        for part in parts:
+            for piece in shapely.get_parts(part):
+                if piece.geom_type == "Polygon" and piece.area >= MIN_PIECE * cell ** 2:
+                    rings.append(np.asarray(orient(piece, 1.0).exterior.coords)[:-1])
+                    source.append(k)
+    return rings, np.asarray(source, np.int64)
+
+
+def _ring_faces(terrain: Terrain, rings: list[np.ndarray], cell: float):
+    """Per ring: its corners (CRS, the terrain averaged over a cell's width) and its unit
+    name, offset sigma and local sigma (at the ring's centre); only rings with heights."""
+    import shapely
+
     smooth = smoothed(terrain, cell)
-    corner_cells = (cells[:, None, :] + np.array([[0, 0], [1, 0], [1, 1], [0, 1]])).reshape(-1, 2)
-    nodes, inverse = np.unique(corner_cells, axis=0, return_inverse=True)
-    xy = nodes * cell
-    corners = np.c_[xy, smooth.height(xy)]
-    quads = inverse.reshape(-1, 4)
+    xy = np.concatenate(rings) if rings else np.zeros((0, 2))
+    z = smooth.grid_height(xy)
+    counts = np.array([len(r) for r in rings], np.int64)
+    starts = np.r_[0, np.cumsum(counts)[:-1]]
+    centres = np.array([shapely.Polygon(r).representative_point().coords[0] for r in rings]
+                       ).reshape(-1, 2)
+    beyond = np.zeros(len(rings), bool)
+    if terrain.band is not None and terrain.band_drop:  # a piece lies wholly in or out
+        beyond = ~shapely.contains_xy(terrain.band, centres[:, 0], centres[:, 1])
+        z = z - terrain.band_drop * np.repeat(beyond, counts)
     tile = terrain.tile(centres)
-    sigma = terrain.sigma(centres)
-    ok = (np.all(np.isfinite(corners[quads, 2]), axis=1) & (tile >= 0) & np.isfinite(sigma))
-    names = [TERRAIN_PREFIX + str(terrain.tile_names[t]) if 0 <= t < len(terrain.tile_names)
-             else TERRAIN_PREFIX + str(t) for t in tile[ok]]
-    return quads[ok], corners, names, sigma[ok]
+    sigma, local = terrain.sigma(centres), terrain.local_sigma(centres, beyond)
+    out = []
+    for k, (start, n) in enumerate(zip(starts, counts)):
+        heights = z[start:start + n]
+        if tile[k] < 0 or not (np.isfinite(sigma[k]) and np.all(np.isfinite(heights))):
+            continue
+        name = (terrain.tile_names[tile[k]] if tile[k] < len(terrain.tile_names)
+                else str(tile[k]))
+        out.append((np.c_[rings[k], heights], TERRAIN_PREFIX + str(name), float(sigma[k]),
+                    float(local[k]) if np.isfinite(local[k]) else 0.0))
+    return out
 
 
 def with_terrain_faces(store, terrain: Terrain, points_local: np.ndarray, cell: float,
                        footprints=None):
     """`store` (citymodel.store.PlaneStore) with the terrain cells near `points_local` (tie
-    points, the store's local frame) appended as "TerrainSurface" faces; the store unchanged
-    when no cell has terrain heights."""
+    points, the store's local frame) appended as "TerrainSurface" faces (cut at the terrain's
+    band, see split_pieces); the store unchanged when no cell has terrain heights."""
     points_xy = np.asarray(points_local, float)[:, :2] + store.origin[:2]
-    quads, corners, names, sigmas = terrain_polygons(terrain, points_xy, cell, footprints)
-    if not len(quads):
+    split = terrain.band is not None  # the cut drops the footprints, not the cell centres
+    cells, _ = terrain_cells(terrain, points_xy, cell, None if split else footprints)
+    corner_cells = (cells[:, None, :] + np.array([[0, 0], [1, 0], [1, 1], [0, 1]])).reshape(-1, 2)
+    nodes, inverse = np.unique(corner_cells, axis=0, return_inverse=True)
+    rings, _ = split_pieces(terrain, inverse.reshape(-1, 4), nodes * float(cell), cell,
+                            footprints if split else None)
+    faces = _ring_faces(terrain, rings, cell)
+    if not faces:
         logger.info("terrain: no terrain under the tie points")
         return store
-    used, remap = np.unique(quads, return_inverse=True)
+    return _append_faces(store, faces, cell, terrain.source)
+
+
+def _append_faces(store, faces: list, cell: float, source: str):
+    """`store` with the terrain `faces` ((corners CRS, unit name, sigma, local sigma) each)
+    appended; corners within a millimetre are one vertex."""
+    corners = np.concatenate([f[0] for f in faces])
+    key = np.round(corners, 3)  # the pieces on either side of a step keep their own corners
+    _, first, remap = np.unique(key, axis=0, return_index=True, return_inverse=True)
     base = len(store.vertices)
-    vertices = np.vstack([store.vertices, corners[used] - store.origin])
-    ring_vertex = base + remap.reshape(-1, 4).ravel()
-    new = FaceList(ring_vertex, offsets_from_counts(np.full(len(quads), 4)),
-                   np.arange(len(quads) + 1), [TERRAIN_CLASS] * len(quads), names,
-                   [f"{SIGMA_PREFIX}{s:.3f}" for s in sigmas],
-                   [f"terrain_{k}" for k in range(len(quads))],
-                   np.full(len(quads), int(store.faces.lod.max()) if store.num_faces else 2,
+    vertices = np.vstack([store.vertices, corners[first] - store.origin])
+    counts = np.array([len(f[0]) for f in faces])
+    names = [f[1] for f in faces]
+    new = FaceList(base + remap.ravel(), offsets_from_counts(counts),
+                   np.arange(len(faces) + 1), [TERRAIN_CLASS] * len(faces), names,
+                   [f"{SIGMA_PREFIX}{f[2]:.3f}{LOCAL_SEPARATOR}{f[3]:.3f}" for f in faces],
+                   [f"terrain_{k}" for k in range(len(faces))],
+                   np.full(len(faces), int(store.faces.lod.max()) if store.num_faces else 2,
                            np.int16))
     planes = compute_planes(vertices, new, extras=False)
     old = store.faces
-    faces = FaceList._own(
+    merged = FaceList._own(
         np.concatenate([old.ring_vertex, new.ring_vertex]),
         np.concatenate([old.ring_ptr, old.ring_ptr[-1] + new.ring_ptr[1:]]),
         np.concatenate([old.face_ring, old.face_ring[-1] + new.face_ring[1:]]),
@@ -117,17 +183,18 @@ def with_terrain_faces(store, terrain: Terrain, points_local: np.ndarray, cell: 
         PackedStrings.concatenate([old.gml_id, new.gml_id]),
         np.concatenate([old.lod, new.lod]))
     rms = planes["rms"]
-    logger.info("terrain: %d cells of %g m near the tie points (%s, %d tile(s)), plane fit RMS "
-                "%.3f m", len(quads), cell, terrain.source, len(set(names)), float(np.mean(rms)))
+    logger.info("terrain: %d faces of %g m cells near the tie points (%s, %d tile(s)), plane "
+                "fit RMS %.3f m", len(faces), cell, source, len(set(names)),
+                float(np.mean(rms)))
     return replace(
-        store, vertices=vertices, faces=faces,
+        store, vertices=vertices, faces=merged,
         centroids=np.vstack([store.centroids, planes["centroids"]]),
         rotations=np.concatenate([store.rotations, planes["rotations"]]),
         areas=np.concatenate([store.areas, planes["areas"]]),
         rms_out_of_plane=np.concatenate([store.rms_out_of_plane, rms]),
-        # Terrain cells are planes through four smoothed heights: their bend is the
-        # terrain's, which the terrain's sigma covers; none is flagged.
-        nonplanar=np.concatenate([store.nonplanar, np.zeros(len(quads), bool)]),
+        # Terrain cells are planes through smoothed heights: their bend is the terrain's,
+        # which the terrain's sigma covers; none is flagged.
+        nonplanar=np.concatenate([store.nonplanar, np.zeros(len(faces), bool)]),
         warnings=list(store.warnings), _cache={})
 
 
@@ -137,53 +204,81 @@ def terrain_mask(store) -> np.ndarray:
 
 
 def terrain_units(store) -> tuple[np.ndarray, np.ndarray, list[str]]:
-    """Per face of `store`: its terrain unit (-1: not terrain) and sigma (m; nan: not
-    terrain); and the units' names."""
+    """Per face of `store`: its terrain unit (-1: not terrain) and the sigma (m; nan: not
+    terrain) of its unit's offset; and the units' names."""
+    unit, sigma, _, names = terrain_unit_sigmas(store)
+    return unit, sigma, names
+
+
+def terrain_unit_sigmas(store) -> tuple[np.ndarray, np.ndarray, np.ndarray, list[str]]:
+    """Per face of `store`: its terrain unit (-1: not terrain), the sigma of its unit's
+    offset and its own local sigma (m; nan: not terrain); and the units' names."""
     mask = terrain_mask(store)
     unit = np.full(store.num_faces, -1, np.int64)
     sigma = np.full(store.num_faces, np.nan)
+    local = np.full(store.num_faces, np.nan)
     if not mask.any():
-        return unit, sigma, []
+        return unit, sigma, local, []
     codes = store.faces.building_id.codes
     names = store.faces.building_id.categories
     rows = np.flatnonzero(mask)
     used, unit[rows] = np.unique(codes[rows], return_inverse=True)
     parts = store.faces.part_id
-    part_sigma = np.array([_sigma_of(p) for p in parts.categories])
-    sigma[rows] = part_sigma[parts.codes[rows]]
-    return unit, sigma, [names[c] for c in used]
+    parsed = np.array([_sigmas_of(p) for p in parts.categories]).reshape(-1, 2)
+    sigma[rows] = parsed[parts.codes[rows], 0]
+    local[rows] = parsed[parts.codes[rows], 1]
+    return unit, sigma, local, [names[c] for c in used]
 
 
-def _sigma_of(part: str) -> float:
+def _sigmas_of(part: str) -> tuple[float, float]:
+    """(offset sigma, local sigma) of a part id "sigma=<m>[/<m>]"; nan when not one."""
     if part.startswith(SIGMA_PREFIX):
         try:
-            return float(part[len(SIGMA_PREFIX):])
+            values = [float(v) for v in part[len(SIGMA_PREFIX):].split(LOCAL_SEPARATOR)]
         except ValueError:
-            return np.nan
-    return np.nan
+            return np.nan, np.nan
+        return values[0], values[1] if len(values) > 1 else 0.0
+    return np.nan, np.nan
+
+
+def unit_weights(face_unit: np.ndarray, counts: np.ndarray, sigma: np.ndarray,
+                 local: np.ndarray, sigma_dtp: float) -> tuple[np.ndarray, np.ndarray]:
+    """Per terrain face (`face_unit` >= 0, `counts` its points, `sigma` its unit's offset
+    sigma, `local` its own sigma): its share of its unit, 1 / (local^2 + sigma_dtp^2 / n)
+    normalised over the unit (a cell's points share its local error; without local errors
+    the shares are the points'); and its unit's sigma, sqrt(sum share sigma^2 + sum
+    share^2 local^2), the offset's and the weighted mean's local error (m)."""
+    n = np.maximum(counts, 1e-9)
+    precision = 1.0 / (local ** 2 + sigma_dtp ** 2 / n)
+    precision = np.where(counts > 0, precision, 0.0)
+    units = max(int(face_unit.max()) + 1, 1) if len(face_unit) else 1
+    total = np.bincount(face_unit, weights=precision, minlength=units)
+    share = precision / np.maximum(total[face_unit], 1e-300)
+    var = (np.bincount(face_unit, weights=share * sigma ** 2, minlength=units)
+           + np.bincount(face_unit, weights=share ** 2 * local ** 2, minlength=units))
+    return share, np.sqrt(var)
 
 
 def terrain_face_sigmas(store, faces: np.ndarray, rows: np.ndarray, sigmas: np.ndarray,
                         sigma_dtp: float) -> np.ndarray:
     """`sigmas` (the f_dTP sigma of each face of `faces`, adjust.problem.face_sigmas) with
-    those of terrain faces replaced by their unit's: every point of a unit of n points at
-    sqrt(sigma_dtp^2 + n sigma_u^2), sigma_u^2 the mean of its points' faces' sigma^2, so
-    that a unit weighs as one observation of its offset however many points it has. `rows`:
-    the slot in `faces` of each assigned point."""
+    those of terrain faces replaced by their unit's: a face with n points and share w of its
+    unit (`unit_weights`) at sqrt(sigma_dtp^2 + n sigma_u^2 / w), sigma_u its unit's sigma,
+    so that a unit weighs as one observation of its offset however many points it has, and
+    within it each face by its share. `rows`: the slot in `faces` of each assigned point."""
     if store is None or not len(faces):
         return sigmas
-    unit, sigma, _ = terrain_units(store)
+    unit, sigma, local, _ = terrain_unit_sigmas(store)
     face_unit = unit[faces]
     on = face_unit >= 0
     if not on.any():
         return sigmas
     counts = np.bincount(rows, minlength=len(faces)).astype(float)
-    units = max(int(face_unit.max()) + 1, 1)
-    n_unit = np.bincount(face_unit[on], weights=counts[on], minlength=units)
-    var_unit = np.bincount(face_unit[on], weights=counts[on] * sigma[faces][on] ** 2,
-                           minlength=units) / np.maximum(n_unit, 1)
+    share, unit_sigma = unit_weights(face_unit[on], counts[on], sigma[faces][on],
+                                     local[faces][on], sigma_dtp)
     out = np.array(sigmas, dtype=float)
-    out[on] = np.sqrt(sigma_dtp ** 2 + n_unit[face_unit[on]] * var_unit[face_unit[on]])
+    out[on] = np.sqrt(sigma_dtp ** 2 + counts[on] * unit_sigma[face_unit[on]] ** 2
+                      / np.maximum(share, 1e-12))
     return out
 
 
@@ -256,24 +351,47 @@ def block_terrain(store, points_local: np.ndarray, options) -> tuple:
 UNIT_OFF_SIGMAS = 3.0
 
 
+#: A tie point's own scatter about its face (m), options.AdjustmentOptions.sigma_dtp's
+#: default: weighs a cell's points against its local error where no adjustment gives it.
+POINT_SIGMA = 0.20
+
+
+def _unit_shares(store, face_of_point: np.ndarray, sigma_dtp: float = POINT_SIGMA):
+    """For the terrain faces among `face_of_point` (a face per point): the faces, their
+    units, shares and their units' sigmas (unit_weights); None without terrain faces."""
+    unit, sigma, local, names = terrain_unit_sigmas(store)
+    faces, counts = np.unique(np.asarray(face_of_point, np.int64), return_counts=True)
+    keep = (faces >= 0) & (unit[np.maximum(faces, 0)] >= 0)
+    faces, counts = faces[keep], counts[keep]
+    if not len(faces):
+        return None
+    share, unit_sigma = unit_weights(unit[faces], counts.astype(float), sigma[faces],
+                                     local[faces], sigma_dtp)
+    return faces, unit[faces], share, unit_sigma, names
+
+
 def terrain_residuals(store, assignment, points: np.ndarray) -> dict:
-    """report.json `terrain.residuals`: per terrain unit its assigned tie points and their
-    mean and RMS signed distance (m) from the terrain faces; `points` in the order of
-    `assignment.point_ids` (local frame)."""
-    unit, sigma, names = terrain_units(store)
-    if not names or assignment is None:
+    """report.json `terrain.residuals`: per terrain unit its assigned tie points, their mean
+    signed distance (m) from the terrain faces as the adjustment weighs them (each face by
+    its share, `unit_weights`), their RMS distance, and the unit's sigma; `points` in the
+    order of `assignment.point_ids` (local frame)."""
+    found = None if assignment is None else _unit_shares(store, assignment.face_index)
+    if found is None:
         return {"num_points": 0, "units": {}}
+    faces, face_unit, share, unit_sigma, names = found
     face = assignment.face_index
-    on = (face >= 0) & (unit[np.maximum(face, 0)] >= 0)
-    rows = np.flatnonzero(on)
+    rows = np.flatnonzero(np.isin(face, faces))
+    slot = np.searchsorted(faces, face[rows])
     d = (np.einsum("ij,ij->i", points[rows], store.normals[face[rows]])
          + store.offsets[face[rows]])
+    face_mean = np.bincount(slot, weights=d, minlength=len(faces)) / np.maximum(
+        np.bincount(slot, minlength=len(faces)), 1)
     units = {}
     for k, name in enumerate(names):
-        mine = unit[face[rows]] == k
+        mine = face_unit[slot] == k
         if mine.any():
-            mean = float(np.mean(d[mine]))
-            stated = float(np.sqrt(np.mean(sigma[face[rows][mine]] ** 2)))
+            mean = float(np.sum((share * face_mean)[face_unit == k]))
+            stated = float(unit_sigma[k])
             units[name[len(TERRAIN_PREFIX):]] = {
                 "num_points": int(mine.sum()), "mean_m": mean,
                 "rms_m": float(np.sqrt(np.mean(d[mine] ** 2))), "sigma_m": stated,
@@ -289,14 +407,15 @@ def terrain_residuals(store, assignment, points: np.ndarray) -> dict:
 
 
 def terrain_faces(store, faces: np.ndarray) -> dict[int, tuple[int, float]] | None:
-    """{face: (terrain unit, sigma m)} for the terrain faces among `faces` (None: none), for
-    the datum's observability (adjust.observability): a unit's points share its offset."""
-    unit, sigma, _ = terrain_units(store)
-    faces = np.unique(np.asarray(faces, np.int64))
-    on = faces[unit[faces] >= 0]
-    if not len(on):
+    """{face: (terrain unit, sigma m)} for the terrain faces among `faces` (a face per
+    point; None: none), for the datum's observability (adjust.observability): a unit's
+    points share its offset, whose sigma (`unit_weights`) is that of the unit's weighted
+    mean."""
+    found = _unit_shares(store, faces)
+    if found is None:
         return None
-    return {int(f): (int(unit[f]), float(sigma[f])) for f in on}
+    on, face_unit, _, unit_sigma, _ = found
+    return {int(f): (int(u), float(unit_sigma[u])) for f, u in zip(on, face_unit)}
 
 
 def terrain_groups(groups: np.ndarray, terrain: dict[int, tuple[int, float]]):

@@ -11,8 +11,9 @@ per node) from, in order of preference:
 2. relief in the city model files (`read_relief`): CityGML `dem:TINRelief` triangles and
    CityJSON `TINRelief` objects;
 3. the buildings' own feet (`feet_terrain`): the lowest edges of the walls and the ground
-   surfaces, interpolated over the open ground between them, the sigma growing with the
-   distance from the nearest foot.
+   surfaces, interpolated over the open ground between them. Their error is one offset per
+   building (its ground height) plus a local error that grows away from the feet: beyond a
+   pavement's width the road lies a kerb lower and falls to its gutter.
 
 A DTM is checked against the buildings' feet before it is used (`check_against_feet`): a tile
 whose heights stand more than a tolerance off the feet (another tile's georeference, another
@@ -54,6 +55,15 @@ class Terrain:
     tiles: np.ndarray  # (ny, nx) int32 index into tile_names, -1: no data
     tile_names: list[str] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
+    # (ny, nx) each height's own error beyond its tile's offset (m); None: none (a DTM's
+    # noise per post, which the cells average away)
+    local_sigmas: np.ndarray | None = None
+    # shapely geometry (CRS xy) along whose edge the ground steps (the feet terrain: the
+    # footprints with their pavements); the cells are split there; None: not split
+    band: object = None
+    # metres the ground lies below `heights` outside `band` (the feet terrain: a kerb); as
+    # much again is added to the local sigma there
+    band_drop: float = 0.0
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -64,7 +74,19 @@ class Terrain:
         return (xy[:, 1] - self.y0) / self.spacing, (xy[:, 0] - self.x0) / self.spacing
 
     def height(self, xy: np.ndarray) -> np.ndarray:
-        """(N,) bilinear heights at CRS `xy` (N, 2); nan outside or next to missing data."""
+        """(N,) bilinear heights at CRS `xy` (N, 2), less `band_drop` outside the band; nan
+        outside or next to missing data."""
+        z = self.grid_height(xy)
+        if self.band is not None and self.band_drop:
+            import shapely
+
+            xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+            z = z - self.band_drop * ~shapely.contains_xy(self.band, xy[:, 0], xy[:, 1])
+        return z
+
+    def grid_height(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) bilinear heights of the grid at CRS `xy` (N, 2) (no band drop); nan outside
+        or next to missing data."""
         fi, fj = self._fractional(xy)
         ny, nx = self.shape
         i0 = np.clip(np.floor(fi).astype(np.int64), 0, max(ny - 2, 0))
@@ -96,8 +118,25 @@ class Terrain:
         return out
 
     def sigma(self, xy: np.ndarray) -> np.ndarray:
-        """(N,) the stated sigma (m) of the height at `xy` (nearest node; nan outside)."""
+        """(N,) the stated sigma (m) of the offset of the tile at `xy` (nearest node; nan
+        outside)."""
         return self._nearest(self.sigmas, xy, np.nan)
+
+    def local_sigma(self, xy: np.ndarray, beyond: np.ndarray | None = None) -> np.ndarray:
+        """(N,) the sigma (m) of the height at `xy` beyond its tile's offset (nearest node,
+        plus `band_drop` outside the band, or where `beyond` says so; 0 for a terrain without
+        local errors, nan outside)."""
+        if self.local_sigmas is None:
+            return np.where(np.isfinite(self.sigma(xy)), 0.0, np.nan)
+        local = self._nearest(self.local_sigmas, xy, np.nan)
+        if self.band is not None and self.band_drop:
+            if beyond is None:
+                import shapely
+
+                xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+                beyond = ~shapely.contains_xy(self.band, xy[:, 0], xy[:, 1])
+            local = local + self.band_drop * beyond
+        return local
 
     def tile(self, xy: np.ndarray) -> np.ndarray:
         """(N,) the tile index at `xy` (nearest node; -1 outside or without data)."""
@@ -114,7 +153,11 @@ class Terrain:
                 "grid_spacing_m": self.spacing, "grid_shape": list(self.shape),
                 "covered_share": float(valid.mean()) if valid.size else 0.0,
                 "sigma_m": float(np.nanmedian(self.sigmas[valid])) if valid.any() else None,
-                "notes": list(self.notes)}
+                "local_sigma_max_m": (float(np.nanmax(self.local_sigmas[valid]))
+                                      + self.band_drop
+                                      if valid.any() and self.local_sigmas is not None
+                                      else 0.0),
+                "band_drop_m": self.band_drop, "notes": list(self.notes)}
 
 
 def empty_grid(bbox_xy: np.ndarray, spacing: float = GRID_SPACING):
@@ -440,11 +483,25 @@ def _densify_edge(points: np.ndarray) -> np.ndarray:
     return np.vstack([points, points[a] + t * (points[b] - points[a])])
 
 
+#: Width (m) of the pavement along a facade: within it the ground lies at the feet's height
+#: (falling a few centimetres to the kerb); the feet terrain's cells are split at its edge.
+FEET_REACH = 3.0
+
+#: Height (m) of a kerb: beyond the pavement the road lies about this much below the feet
+#: (city kerbs stand 0.10-0.18 m). The feet do not show it: the feet terrain puts the ground
+#: beyond its pavements this much lower, and counts as much again as its local error there
+#: (a square or a courtyard has no kerb).
+KERB = 0.15
+
+
 def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
-                 spacing: float = GRID_SPACING, feet: Feet | None = None) -> Terrain | None:
+                 spacing: float = GRID_SPACING, feet: Feet | None = None,
+                 reach: float = FEET_REACH, kerb: float = KERB) -> Terrain | None:
     """The buildings' feet interpolated (linear between them, nearest beyond) over the grid on
-    `bbox_xy`; the sigma `sigma` at a foot, growing by `growth` per metre of distance from the
-    nearest one; one tile per building (the nearest foot's). None without feet."""
+    `bbox_xy`; one tile per building (the nearest foot's), whose offset has the sigma `sigma`
+    (the building's ground height); a local sigma of `growth` per metre from the nearest
+    foot. Beyond `reach` metres of the footprints (the pavement) the ground lies `kerb`
+    lower, with `kerb` more local sigma. None without feet."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
     from scipy.spatial import cKDTree
 
@@ -463,11 +520,13 @@ def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
         heights[missing] = NearestNDInterpolator(unique, feet.points[index, 2])(xy[missing])
     distance, nearest = cKDTree(feet.points[:, :2]).query(xy)
     tiles = feet.building[nearest].astype(np.int32)
-    sigmas = sigma + growth * distance
+    band = None if feet.footprints.is_empty else feet.footprints.buffer(reach)
     note = f"interpolated from {len(unique)} points on the feet of {len(set(feet.building))} buildings"
     logger.info("terrain: from the buildings' feet (%s)", note)
     return Terrain("building_feet", x0, y0, spacing, heights.reshape(ny, nx),
-                   sigmas.reshape(ny, nx), tiles.reshape(ny, nx), list(feet.building_ids), [note])
+                   np.full((ny, nx), float(sigma)), tiles.reshape(ny, nx),
+                   list(feet.building_ids), [note], (growth * distance).reshape(ny, nx), band,
+                   kerb if band is not None else 0.0)
 
 
 def check_against_feet(terrain: Terrain, feet: Feet, tolerance: float,

@@ -3,8 +3,12 @@ the model, fit it at other horizontal placements too (a neighbouring house of th
 regular facade row); the best placement is compared with the best distinct one that GNSS does
 not rule out, as a ratio of their fits.
 
-The fit at a placement is the smooth share of tie points within `radius` of the model
-(as align.coarse.near_share). Placements are scored on a grid of horizontal shifts; the
+The fit at a placement is the smooth share of tie points within `radius` of the model's
+faces that a horizontal shift moves them off (as align.coarse.near_share): walls and sloped
+roofs. A tie point on a level face (the ground, a flat roof) stays on it whatever the shift, so
+those faces score every placement alike and would only pull the ratio towards 1: a face whose
+slope is below asin(radius / distinct) keeps a point shifted by `distinct` within `radius` of
+its plane and is left out. Placements are scored on a grid of horizontal shifts; the
 alternative is the best local maximum at least `distinct` metres from the best one and inside
 the region GNSS allows (a callable telling, per shift, whether GNSS admits it).
 """
@@ -16,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .._ext import load_core
 from ..align.coarse import subsample
 
 logger = logging.getLogger(__name__)
@@ -65,12 +70,53 @@ def _local_maxima(scores: np.ndarray) -> np.ndarray:
     return mask
 
 
+class _Triangles:
+    """Distances (m, up to `within`) to some of a surface's triangles, as
+    align.coarse.SurfaceDistance."""
+
+    def __init__(self, vertices: np.ndarray, triangles: np.ndarray, threads: int):
+        self.vertices, self.triangles, self.threads = vertices, triangles, threads
+        self._grids: dict[float, object] = {}
+
+    def __call__(self, points: np.ndarray, within: float) -> np.ndarray:
+        grid = self._grids.get(within)
+        if grid is None:
+            grid = self._grids[within] = load_core().TriangleDistance(
+                self.vertices, np.ascontiguousarray(self.triangles, np.int64), float(within))
+        return grid(np.ascontiguousarray(points, np.float64).reshape(-1, 3), self.threads)
+
+
+def shift_sensitive(surface, radius: float, distinct: float):
+    """The part of `surface` (align.coarse.SurfaceDistance) whose fit a horizontal shift of
+    `distinct` m changes: its triangles sloped by at least asin(radius / distinct); None when
+    every face is flatter. A surface without triangles to read is returned as it is."""
+    vertices, triangles = getattr(surface, "vertices", None), getattr(surface, "triangles", None)
+    if vertices is None or triangles is None or not len(triangles):
+        return surface
+    corners = vertices[triangles]
+    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
+    length = np.maximum(np.linalg.norm(normals, axis=1), 1e-300)
+    sine = np.sqrt(np.clip(1.0 - (normals[:, 2] / length) ** 2, 0.0, 1.0))
+    keep = sine >= min(radius / distinct, 1.0)
+    if keep.all():
+        return surface
+    if not keep.any():
+        return None
+    return _Triangles(vertices, triangles[keep], getattr(surface, "threads", 0))
+
+
 def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
                   radius: float = 0.5, distinct: float = 2.0) -> Placement:
     """The best horizontal placement of `points` within +- `reach` m and the best distinct
     one (a local maximum at least `distinct` m away) that `admitted` ((K, 2) shifts -> (K,)
     bool, whether GNSS allows the block there) lets through. `surface(points, within)`:
-    distances to the model (align.coarse.SurfaceDistance)."""
+    distances to the model (align.coarse.SurfaceDistance); only its faces that a shift of
+    `distinct` moves a point off (shift_sensitive) score. Without such faces, no alternative."""
+    surface = shift_sensitive(surface, radius, distinct)
+    if surface is None:
+        logger.info("placement test: every face near the block is level; a horizontal shift "
+                    "changes no tie point's fit")
+        return Placement(0.0, 0.0, None, np.zeros(2))
     sample = subsample(np.asarray(points, float), SAMPLE_POINTS)
     step = max(STEP, 2.0 * reach / (GRID_SIDE - 1))
     radius = max(radius, step)

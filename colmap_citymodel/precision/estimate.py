@@ -74,6 +74,12 @@ logger = logging.getLogger(__name__)
 
 #: Rows of the point-camera block processed at once (memory ~ rows x camera unknowns x 8 B).
 CHUNK_ROWS = 6000
+#: Camera-side unknowns up to which `cofactors` inverts the reduced normal matrix densely
+#: ("auto"); above, by selected inversion (precision.selected), exact on its pattern.
+DENSE_MAX_UNKNOWNS = 3000
+#: BLAS threads of the precision step: its dense blocks are a few hundred unknowns wide, where
+#: more threads gain little on an idle machine and lose many times over on a busy one.
+BLAS_THREADS = 1
 #: Relative eigenvalue below which the reduced normal matrix counts as singular (datum defect).
 RANK_TOLERANCE = 1e-12
 #: Step of the numerical derivative of X0 and omega/phi/kappa w.r.t. the pose tangent.
@@ -277,13 +283,14 @@ class Cofactors:
     """Unscaled cofactor matrices (Q = N^-1 of the whitened problem) and redundancy numbers."""
 
     layout: _Layout
-    q_cc: np.ndarray  # (num_c, num_c) camera-side unknowns, dense
+    q_cc: np.ndarray  # (num_c, num_c) camera-side unknowns, dense (or a SelectedInverse)
     q_points: np.ndarray  # (P, 3, 3) marginal
     q_points_conditional: np.ndarray  # (P, 3, 3) W_i^-1
     redundancy_by_group: dict[str, float]
     datum_defect: int
     seconds: float
     system: tuple | None = None  # (j_c, j_p, b = W^-1 E, w_inv) when asked to keep them
+    normal: sp.csr_matrix | None = None  # the reduced normal matrix S, with `system`
 
 
 def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
@@ -319,32 +326,87 @@ def _inverse(s: np.ndarray) -> tuple[np.ndarray, int]:
 
 
 def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: bool = False,
-              points: bool = True, relax_holds: bool = True) -> Cofactors:
+              points: bool = True, relax_holds: bool = True, method: str = "auto"
+              ) -> Cofactors:
     """Q_cc, marginal and conditional point cofactors and (optionally) the redundancy numbers
     summed per observation group, all by Schur elimination of the tie points. `keep_system`
     keeps the Jacobian's camera and point columns and W^-1 E for `generalisation_effects`.
     `points=False` (with redundancy=False): Q_cc without the points' marginal cofactors
-    (`q_points` then holds the conditional ones). `relax_holds`: see `whitened_jacobian`."""
+    (`q_points` then holds the conditional ones). `relax_holds`: see `whitened_jacobian`.
+    `method`: "dense" (Q_cc a dense array), "selected" (a `SelectedInverse`: Q_cc where the
+    covariances need it, and products with it) or "auto" (dense up to DENSE_MAX_UNKNOWNS)."""
     start = time.perf_counter()
     jacobian, layout = whitened_jacobian(problem, relax_holds=relax_holds)
     nc = layout.num_c
     num_points = len(layout.point_ids)
-    jacobian = jacobian.tocsc()
-    j_c = jacobian[:, :nc].tocsr()
-    j_p = jacobian[:, nc:].tocsr()
-    u = (j_c.T @ j_c).toarray()
-    e = (j_p.T @ j_c).tocsr()  # (3P, nc)
+    jacobian = jacobian.tocsr()
+    j_c = jacobian[:, :nc]
+    j_p = jacobian[:, nc:]
+    e = (j_p.T.tocsr() @ j_c).tocsr()  # (3P, nc)
     w = _block_diagonal_3x3(j_p.T @ j_p, num_points)
     w_inv = np.linalg.inv(w) if num_points else w
     b = (_bsr_blocks(w_inv) @ e).tocsr() if num_points else sp.csr_matrix((0, nc))
-    s = u - (e.T @ b).toarray()
-    q_cc, defect = _inverse(0.5 * (s + s.T))
-
-    # Row ranges of the groups and their point-side normal contributions.
+    selected = method == "selected" or (method == "auto" and nc > DENSE_MAX_UNKNOWNS)
+    s = (j_c.T @ j_c) - e.T @ b
     bounds, first = {}, 0
     for g in GROUPS:
         bounds[g] = (first, first + problem.counts[g])
         first += problem.counts[g]
+    if selected:
+        from .selected import SelectedInverse
+
+        n_blocks = len(layout.sizes) - num_points
+        q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
+                               layout.sizes[:n_blocks])
+        defect = 0
+        q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
+                                                redundancy, points)
+    else:
+        s = s.toarray()
+        q_cc, defect = _inverse(0.5 * (s + s.T))
+        q_points, trace = _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy,
+                                             points)
+    redundancy_by_group = ({g: (hi - lo) - trace.get(g, 0.0) for g, (lo, hi) in bounds.items()}
+                           if redundancy else {})
+    return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
+                     time.perf_counter() - start,
+                     (j_c, j_p, b, w_inv) if keep_system else None,
+                     sp.csr_matrix(s) if keep_system else None)
+
+
+def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
+    """`cof` (kept with its system, holds relaxed) re-weighted to the solve's own holds
+    (`whitened_jacobian(relax_holds=False)`): the holds' rows touch camera-side unknowns only,
+    so S changes by J_h^T (1/f^2 - 1) J_h (f the relaxation factors) and nothing else does.
+    Falls back to a new `cofactors` where that does not hold. No point cofactors."""
+    relaxation = problem.hold_relaxation
+    first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
+    rows = slice(first, first + len(relaxation))
+    if cof.system is None or cof.normal is None or not np.all(relaxation > 0) \
+            or cof.system[1][rows].nnz:
+        return cofactors(problem, redundancy=False, keep_system=True, points=False,
+                         relax_holds=False)
+    start = time.perf_counter()
+    j_c = cof.system[0]
+    held = j_c[rows]
+    s = cof.normal + held.T @ sp.diags(1.0 / relaxation ** 2 - 1.0) @ held
+    s = 0.5 * (s + s.T)
+    layout = cof.layout
+    if isinstance(cof.q_cc, np.ndarray):
+        q_cc, defect = _inverse(s.toarray())
+    else:
+        from .selected import SelectedInverse
+
+        n_blocks = len(layout.sizes) - len(layout.point_ids)
+        q_cc, defect = SelectedInverse(s, layout.starts[:n_blocks], layout.sizes[:n_blocks]), 0
+    return Cofactors(layout, q_cc, cof.q_points_conditional, cof.q_points_conditional, {},
+                     defect, time.perf_counter() - start, cof.system, None)
+
+
+def _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
+                       ) -> tuple[np.ndarray, dict[str, float]]:
+    """Marginal point cofactors and the groups' traces of J Q J^T with a dense Q_cc."""
+    num_points = len(w_inv)
     with_points = {}
     trace = {}
     for g, (lo, hi) in bounds.items():
@@ -355,7 +417,6 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
         if jp_g.nnz:
             with_points[g] = ((jp_g.T @ jc_g).tocsr(), _block_diagonal_3x3(jp_g.T @ jp_g,
                                                                           num_points))
-
     q_points = np.zeros((num_points, 3, 3))
     chunk = max(1, CHUNK_ROWS // 3)
     for lo in range(0, num_points if points or with_points else 0, chunk):
@@ -370,11 +431,39 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     q_points += w_inv
     for g, (_, w_g) in with_points.items():
         trace[g] += float(np.einsum("kij,kji->", q_points, w_g))
-    redundancy_by_group = ({g: (hi - lo) - trace.get(g, 0.0) for g, (lo, hi) in bounds.items()}
-                           if redundancy else {})
-    return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
-                     time.perf_counter() - start,
-                     (j_c, j_p, b, w_inv) if keep_system else None)
+    return q_points, trace
+
+
+def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points
+                          ) -> tuple[np.ndarray, dict[str, float]]:
+    """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors)."""
+    from .point_cofactors import point_terms
+
+    num_points = len(w_inv)
+    trace, e_groups, w_groups = {}, {}, {}
+    for g, (lo, hi) in bounds.items():
+        if not redundancy or hi == lo:
+            continue
+        jc_g, jp_g = j_c[lo:hi], j_p[lo:hi]
+        u_g = (jc_g.T @ jc_g).tocoo()
+        trace[g] = float(np.sum(u_g.data * q_cc.pattern_values(u_g.row, u_g.col)))
+        if jp_g.nnz:
+            e_groups[g] = jp_g
+            w_groups[g] = _block_diagonal_3x3(jp_g.T @ jp_g, num_points)
+    if e_groups:  # E_g = J_p,g^T J_c,g; the largest group's as E minus the others'
+        largest = max(e_groups, key=lambda g: e_groups[g].nnz)
+        for g in e_groups:
+            if g != largest:
+                lo, hi = bounds[g]
+                e_groups[g] = (e_groups[g].T @ j_c[lo:hi]).tocsr()
+        others = [e_groups[g] for g in e_groups if g != largest]
+        e_groups[largest] = (e - sum(others)).tocsr() if others else e
+    if not (points or e_groups):
+        return np.array(w_inv, copy=True), trace
+    q_points, point_traces, _ = point_terms(q_cc, b, w_inv, e_groups)
+    for g, w_g in w_groups.items():
+        trace[g] += point_traces[g] + float(np.einsum("kij,kji->", q_points, w_g))
+    return q_points, trace
 
 
 # -- generalisation as consider parameters -------------------------------------------------------
@@ -441,17 +530,12 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
                          shape=(j_c.shape[0], 3 * len(faces)))
     g_c = np.asarray((j_c.T @ unit).todense())  # (nc, 3F)
     g_p = (j_p.T @ unit).tocsr()  # (3P, 3F)
-    d_c = cof.q_cc @ (g_c - np.asarray((b.T @ g_p).todense()))
+    reduced = g_c - np.asarray((b.T @ g_p).todense())
+    d_c = cof.q_cc @ reduced
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
-    points_cov = np.empty((num_points, 3, 3))
-    cross = g_c.T @ d_c  # accumulates g_p^T N^-1 g_q
-    chunk = max(1, CHUNK_ROWS // 3)
-    for lo in range(0, num_points, chunk):
-        hi = min(num_points, lo + chunk)
-        d_p = np.asarray(w_g[3 * lo:3 * hi].todense()) - b[3 * lo:3 * hi] @ d_c
-        cross += np.asarray((g_p[3 * lo:3 * hi].T @ d_p))
-        d_p = d_p.reshape(hi - lo, 3, -1)
-        points_cov[lo:hi] = np.einsum("kif,kjf->kij", d_p, d_p)
+    # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p
+    cross = reduced.T @ d_c + np.asarray((g_p.T @ w_g).todense())
+    points_cov = _consider_points(cof, b, w_g, d_c, num_points)
     counts = np.bincount(columns, minlength=len(faces))
     metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
     t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
@@ -465,6 +549,25 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     mean_offsets = np.bincount(columns, weights=metres, minlength=len(faces))
     return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
                                  estimated, counts, mean_offsets / np.maximum(counts, 1))
+
+
+def _consider_points(cof: Cofactors, b: sp.csr_matrix, w_g: sp.csr_matrix, d_c: np.ndarray,
+                     num_points: int) -> np.ndarray:
+    """(P, 3, 3) D_i D_i^T of the tie points' response D = W^-1 g_p - W^-1 E d_c."""
+    if not isinstance(cof.q_cc, np.ndarray):
+        from .point_cofactors import Consider, consider_rows, point_terms
+
+        h, columns = consider_rows(w_g, num_points)
+        return point_terms(cof.q_cc, b, cof.system[3], {},
+                           Consider(d_c, h, columns))[2]
+    points_cov = np.empty((num_points, 3, 3))
+    chunk = max(1, CHUNK_ROWS // 3)
+    for lo in range(0, num_points, chunk):
+        hi = min(num_points, lo + chunk)
+        d_p = np.asarray(w_g[3 * lo:3 * hi].todense()) - b[3 * lo:3 * hi] @ d_c
+        d_p = d_p.reshape(hi - lo, 3, -1)
+        points_cov[lo:hi] = np.einsum("kif,kjf->kij", d_p, d_p)
+    return points_cov
 
 
 def _tilt_entries(problem: HybridProblem, faces: np.ndarray, columns: np.ndarray
@@ -667,14 +770,14 @@ def checkpoint_cofactors(problem: HybridProblem, cof: Cofactors, points: dict[st
         return CheckpointCofactors([], np.zeros((0, 3)), np.zeros((0, 0)), np.zeros((0, 3, 3)),
                                    {}, False)
     b = np.vstack(b_rows)  # (3N, nc)
-    q_cc = cof.q_cc
     joint = cof.datum_defect == 0
-    if joint:
+    qb = cof.q_cc @ b.T  # products only: Q_cc may be a SelectedInverse
+    q = b @ qb
+    if joint:  # B Q_cc' B^T = B Q_cc B^T - (G Q_cc B^T)^T (I + G Q_cc G^T)^-1 G Q_cc B^T
         g = np.vstack(g_rows)
-        gq = g @ q_cc
-        inner = np.eye(len(g)) + gq @ g.T
-        q_cc = q_cc - gq.T @ np.linalg.solve(0.5 * (inner + inner.T), gq)
-    q = b @ q_cc @ b.T
+        inner = np.eye(len(g)) + g @ (cof.q_cc @ g.T)
+        gqb = g @ qb
+        q = q - gqb.T @ np.linalg.solve(0.5 * (inner + inner.T), gqb)
     for k, w in enumerate(w_inv):
         q[3 * k:3 * k + 3, 3 * k:3 * k + 3] += w
     return CheckpointCofactors(ids, np.array([points[i] for i in ids], float), 0.5 * (q + q.T),
@@ -740,20 +843,33 @@ class PrecisionResult:
     point_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
     checkpoint_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
     vertex_cov_generalisation: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    datum_shift_variance: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    """(3,) m^2 per axis: a shift common to the whole block (the datum's errors that the
+    covariances above do not hold: GNSS's bias, the model's common shift), added so that no
+    image centre is stated more precise than the datum (`datum_shift`)."""
 
     def aware(self, covariance: str) -> np.ndarray:
-        """`covariance` ("image_cov", "point_cov", "checkpoint_cov") under the
-        generalisation-aware stochastic model (the classical one plus the consider part)."""
+        """`covariance` ("image_cov", "point_cov", "checkpoint_cov") under the full stochastic
+        model: the classical one plus the consider part and the datum's common shift."""
         base = getattr(self, covariance)
-        if self.generalisation != "consider":
+        if self.generalisation == "consider":
+            base = base + getattr(self, f"{covariance}_generalisation")
+        if not np.any(self.datum_shift_variance > 0) or not len(base):
             return base
-        return base + getattr(self, f"{covariance}_generalisation")
+        shift = np.diag(self.datum_shift_variance)
+        out = np.array(base, copy=True)
+        if out.ndim == 2:  # joint (3N, 3N): the shift is common, so fully correlated
+            return out + np.kron(np.ones((len(out) // 3, len(out) // 3)), shift)
+        out[:, :3, :3] += shift
+        return out
 
     def aware_sigmas(self, covariance: str) -> np.ndarray | None:
         """Square roots of the diagonal blocks of `aware(covariance)` ((N, k), m; radians for
         image angles); None when there is no generalisation-aware model to state."""
-        if self.generalisation != "consider" \
-                or not len(getattr(self, f"{covariance}_generalisation")):
+        consider = self.generalisation == "consider" \
+            and len(getattr(self, f"{covariance}_generalisation"))
+        if not (consider or np.any(self.datum_shift_variance > 0)) \
+                or not len(getattr(self, covariance)):
             return None
         return _sigmas(self.aware(covariance))
 
@@ -841,6 +957,15 @@ class PrecisionResult:
             if len(self.checkpoint_ids):
                 g["median_checkpoint_sigma_m"] = dict(zip("XYZ", np.median(
                     _sigmas(self.aware("checkpoint_cov")), 0).tolist()))
+        if np.any(self.datum_shift_variance > 0) and self.has_covariances:
+            centres = _sigmas(self.aware("image_cov"))[:, :3]
+            out["datum_shift"] = {
+                "sigma_m": dict(zip("ENU", np.sqrt(self.datum_shift_variance).tolist())),
+                "median_image_sigma_m": dict(zip(("X0", "Y0", "Z0"),
+                                                 np.median(centres, 0).tolist())),
+                "note": "a shift common to the block, added to the image and point "
+                        "covariances so that none is stated more precise than the datum "
+                        "(observability: GNSS's bias, the model's common shift)"}
         if len(self.plane_generalisation):
             out["generalisation_offsets"] = {
                 "num_planes": int(len(self.plane_generalisation)),
@@ -851,11 +976,20 @@ class PrecisionResult:
         return out
 
 
-def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
+def estimate_precision(problem: HybridProblem, **options) -> PrecisionResult:
+    """`_estimate_precision` with BLAS on BLAS_THREADS threads (see there)."""
+    from threadpoolctl import threadpool_limits
+
+    with threadpool_limits(limits=BLAS_THREADS, user_api="blas"):
+        return _estimate_precision(problem, **options)
+
+
+def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                        alpha: float = 0.05, checkpoint_observations=None,
                        sigma_generalisation: float | None = None,
                        estimate_generalisation: bool = False,
-                       cof: Cofactors | None = None) -> PrecisionResult:
+                       cof: Cofactors | None = None,
+                       datum_sigmas: np.ndarray | None = None) -> PrecisionResult:
     """Variance factors, global test and (optionally) covariances at the current state of a
     solved `HybridProblem` (refine's last hybrid solve, or a plain step-2 problem).
 
@@ -867,7 +1001,8 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     `estimate_generalisation`: that sigma estimated from the planes' mean residuals (a
     variance component; also without an a priori sigma_generalisation). `cof`: the
     `cofactors(problem)` of this state when the caller has them already (e.g. kept with their
-    Schur system for a datum transformation)."""
+    Schur system for a datum transformation). `datum_sigmas` ((3,) m, E N U; nan where not
+    stated): the datum's shift sigmas (adjust.observability); see `datum_shift`."""
     start = time.perf_counter()
     residuals = problem.group_residuals()
     if not covariances:
@@ -886,7 +1021,7 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     # Where refine held what the planes do not fix, the planes' errors act through the solve's
     # own weights (below), from a second system; else through this one.
     held = mode == "consider" and len(problem.hold_relaxation) > 0
-    needs_system = mode == "consider" and not held
+    needs_system = mode == "consider"
     own_cofactors = cof is None or (needs_system and cof.system is None)
     if own_cofactors:
         cof = cofactors(problem, keep_system=needs_system)
@@ -899,15 +1034,14 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
         # sigma, the walls' tilts would seem to move a block's height by metres, which the
         # hold does not let them.
-        solve_cof = (cofactors(problem, redundancy=False, keep_system=True, points=False,
-                               relax_holds=False) if held else cof)
+        solve_cof = solve_weighted(problem, cof) if held else cof
         effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
                                          estimate=estimate_generalisation,
                                          s0_squared=variance.sigma0_squared)
         if held:
             solve_cof.system = None
         if own_cofactors:
-            cof.system = None  # free the Jacobian and W^-1 E
+            cof.system = cof.normal = None  # free the Jacobian, W^-1 E and S
         sigma_generalisation = effects.sigma
         logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
                     " %.1f s)", len(effects.faces), effects.sigma,
@@ -970,6 +1104,10 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
         if checkpoints is not None and checkpoints.b is not None:
             d = checkpoints.b @ effects.camera  # (3N, F): check points follow the poses
             extra["checkpoint_cov_generalisation"] = effects.sigma ** 2 * d @ d.T
+    extra["datum_shift_variance"] = datum_shift(
+        np.array(image_cov).reshape(-1, 6, 6)[:, :3, :3]
+        + (extra["image_cov_generalisation"][:, :3, :3] if effects is not None else 0.0),
+        datum_sigmas)
     points = np.array([rec.point3D(int(i)).xyz for i in layout.point_ids]).reshape(-1, 3)
     seconds = {"cofactors": cof.seconds, "images": time.perf_counter() - t1,
                "total": time.perf_counter() - start}
@@ -996,6 +1134,21 @@ def estimate_precision(problem: HybridProblem, *, covariances: bool = True,
             "checkpoint_ids": checkpoints.ids, "checkpoint_points": checkpoints.points,
             "checkpoint_cov": s0sq * checkpoints.q,
             "checkpoint_cov_conditional": s0sq * checkpoints.q_conditional}), **extra)
+
+
+def datum_shift(centre_cov: np.ndarray, datum_sigmas: np.ndarray | None) -> np.ndarray:
+    """(3,) m^2: the variance of a shift common to the block that lifts every image centre's
+    variance along E, N, U to at least the datum's (`datum_sigmas`, adjust.observability):
+    what the datum's stochastic model holds (GNSS's bias, the model's common shift) and the
+    covariances do not. Zero where they already state the datum or more."""
+    out = np.zeros(3)
+    if datum_sigmas is None or not len(centre_cov):
+        return out
+    least = np.min(np.diagonal(centre_cov, axis1=1, axis2=2), axis=0)
+    for axis, sigma in enumerate(np.asarray(datum_sigmas, float)):
+        if np.isfinite(sigma):
+            out[axis] = max(0.0, sigma ** 2 - least[axis])
+    return out
 
 
 def _vertex_blocks(problem: HybridProblem, cof: Cofactors, s0sq: float,
@@ -1053,9 +1206,11 @@ def wants_covariances(options, num_images: int) -> bool:
 
 
 def precision_after_refine(problem: HybridProblem | None, options,
-                           checkpoint_observations=None) -> PrecisionResult | None:
+                           checkpoint_observations=None, observability: dict | None = None
+                           ) -> PrecisionResult | None:
     """What refine() keeps: the precision of its last hybrid solve (with check point
-    covariances when their observations are given). A failure of the covariance step (e.g. an
+    covariances when their observations are given; with the datum's shift sigmas of
+    `observability`, adjust.observability, as the least an image centre states). A failure of the covariance step (e.g. an
     unexpected parameter block) costs the covariances, not the refine result."""
     if problem is None:
         return None
@@ -1071,10 +1226,19 @@ def precision_after_refine(problem: HybridProblem | None, options,
             estimate_generalisation=bool(options.variance_components
                                          and "gen" in options.variance_component_groups)
             or (options.generalisation_from_data
-                and problem.options.sigma_generalisation is None))
+                and problem.options.sigma_generalisation is None),
+            datum_sigmas=_datum_sigmas(observability))
     except (RuntimeError, np.linalg.LinAlgError, MemoryError) as error:
         logger.warning("precision: covariances failed (%s); reporting s0 only", error)
         return estimate_precision(problem, covariances=False, alpha=options.alpha)
+
+
+def _datum_sigmas(observability: dict | None) -> np.ndarray | None:
+    """(3,) E N U shift sigmas (m) of an observability dict; nan where it states none."""
+    if not observability:
+        return None
+    return np.array([observability.get(axis, {}).get("sigma") or np.nan
+                     for axis in ("E", "N", "U")], float)
 
 
 # -- variance component estimation ---------------------------------------------------------------

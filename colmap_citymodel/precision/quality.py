@@ -9,7 +9,8 @@ failed (refine hands back the GNSS-only block):
   against the covariance of both (GNSS with a bias as large as its stated sigma, planes with
   their generalisation), is significant (chi-square, level `alpha`);
 - the placement is ambiguous: a distinct placement that GNSS admits fits the tie points nearly
-  as well as the best one (ratio below `ambiguity_ratio`).
+  as well as the best one (ratio below `ambiguity_ratio`), on the faces a horizontal shift
+  moves them off (walls, sloped roofs; level ground fits every shift alike).
 weak: a direction rests on GNSS alone, the radius that holds the stated position error with
 `tolerance_confidence` exceeds the user's tolerance, or the
 assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
@@ -50,10 +51,11 @@ class QualityThresholds:
     times the a priori one (0.2 m, or sigma_generalisation) and the tie points' scatter on their
     faces this many times sigma_dtp before the model counts as not fitting the block."""
     ambiguity_ratio: float = 1.1
-    """The best placement must fit the tie points (share within NEAR_DISTANCE of the model)
-    this many times better than the best distinct placement GNSS admits; else the pose is
-    ambiguous. A block slid along a facade row that only walls parallel to the slide hold
-    scores about 1; a placement cross walls, roofs and corners confirm scores well above."""
+    """The best placement must fit the tie points (share within NEAR_DISTANCE of the model's
+    walls and sloped faces) this many times better than the best distinct placement GNSS
+    admits; else the pose is ambiguous. A block slid along a facade row that only walls
+    parallel to the slide hold scores about 1; one that cross walls and corners confirm, well
+    above."""
     tolerance_confidence: float = 0.95
     """Probability with which an "ok" block lies within the user's tolerance: the radius that
     holds the position error with this probability (from the stated E, N, U sigmas) must not
