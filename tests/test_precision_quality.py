@@ -143,8 +143,9 @@ def test_a_height_on_one_roof_is_flagged_and_states_the_roofs_sigma():
     height = result["U"]
     assert height["one_plane"] and height["source"] == "gnss"
     assert height["sigma_planes"] < height["sigma_gnss"] / 2  # the roof, if it is right
-    # The roof's, sharpened a little by the facades' and GNSS's hold on the rotations.
-    assert 0.7 * height["sigma_planes"] < height["sigma"] <= height["sigma_planes"]
+    # The roof's at the images: sharpened a little by the facades' and GNSS's hold on the
+    # rotations, widened a little by the block's tilt, which moves its far images.
+    assert 0.7 * height["sigma_planes"] < height["sigma"] <= 1.25 * height["sigma_planes"]
     assert height["sigma"] < 0.5 * 5.0 / np.sqrt(30)
     assert "U" not in gnss_alone(result)
 
