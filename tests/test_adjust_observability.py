@@ -239,3 +239,19 @@ def test_the_generalisation_sigma_comes_from_the_model_faces_not_the_terrain():
     assert not np.isin(fit.outlier_faces, np.arange(len(rings), store.num_faces)).any()
     stats = fit_statistics(fit, GENERALISATION, 0.2, 2.5)
     assert stats["faces_dof"] == len(rings) - len(fit.outlier_faces) - 7
+
+
+def test_gnss_whose_residuals_exceed_its_sigma_is_weighed_by_them():
+    """The GNSS residuals of the block, their common mean (a bias) removed, against the stated
+    sigmas: twice as large gives a factor of about 2 on every sigma GNSS gives; smaller than
+    stated leaves the stated sigmas (never sharper); a bias alone changes nothing."""
+    from colmap_citymodel.adjust.observability import gnss_variance_factor
+
+    rng = np.random.default_rng(3)
+    observed = rng.uniform(-50, 50, (200, 3))
+    sigmas = np.tile([3.0, 3.0, 5.0], (200, 1))
+    worse = observed + rng.normal(0.0, 2.0 * sigmas)
+    assert gnss_variance_factor(worse, observed, sigmas) == pytest.approx(2.0, rel=0.1)
+    better = observed + rng.normal(0.0, 0.5 * sigmas) + [4.0, -3.0, 6.0]
+    assert gnss_variance_factor(better, observed, sigmas) == 1.0
+    assert gnss_variance_factor(observed[:2] + 9.0, observed[:2], sigmas[:2]) == 1.0

@@ -11,6 +11,7 @@ is J^T (s^2 I + A A^T)^-1 J with A = [g 1, tilt columns] (Woodbury)."""
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 
 import numpy as np
@@ -22,6 +23,8 @@ from ..citymodel.ground_faces import (terrain_face_sigmas, terrain_faces, terrai
                                      terrain_units)
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
+
+logger = logging.getLogger(__name__)
 
 #: The datum parameters, in the order of the information matrices below.
 DATUM = ("E", "N", "U", "scale", "rotation_E", "rotation_N", "rotation_U")
@@ -440,9 +443,15 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
     # As the adjustment weighs them (adjust.problem.tie_sigmas): a terrain unit as one point.
     weights_sigmas = terrain_face_sigmas(store, unique, rows, np.full(len(unique), dtp),
                                          dtp)[rows]
+    gnss_sigmas = None
+    if priors is not None:
+        gnss_sigmas = np.asarray(priors.sigmas, float)
+        if from_data:  # GNSS no better than stated, and no better than the block lets it fit
+            gnss_sigmas = gnss_sigmas * gnss_variance_factor(
+                priors.observed_points(rec), priors.observed, gnss_sigmas)
     return observability(points[assigned][selected], store.normals[faces], faces,
                          priors.observed_points(rec) if priors is not None else None,
-                         priors.sigmas if priors is not None else None,
+                         gnss_sigmas,
                          options.adjustment.sigma_dtp, sigma_gen,
                          priors.offset_axes if priors is not None else None,
                          face_tilts(store, faces, sigma_gen),
@@ -530,6 +539,24 @@ def face_fit(points: np.ndarray, faces: np.ndarray, store: PlaneStore,
         keep = ~beyond & ~terrain
     outliers = unique[~keep & ~terrain] if estimated else np.zeros(0, np.int64)
     return FaceFit(unique, counts, offsets, sigma_point, sigma, estimated, outliers, terrain)
+
+
+def gnss_variance_factor(antennas: np.ndarray, observed: np.ndarray, sigmas: np.ndarray
+                         ) -> float:
+    """How many times their stated `sigmas` the block's GNSS residuals are, at least 1: the
+    root of the mean squared normalised residual (where the block puts the `antennas` minus what
+    GNSS `observed`, (N, 3) each, their common mean removed, 3N - 3 degrees of freedom). Above 1
+    GNSS is worse than stated or the block's shape does not fit it (an image registered in the
+    wrong place, a bent block): every sigma GNSS gives is that much larger."""
+    if len(antennas) < 3:
+        return 1.0
+    v = (np.asarray(antennas, float) - observed) / np.asarray(sigmas, float)
+    v -= v.mean(axis=0)
+    factor = float(np.sqrt(np.sum(v ** 2) / (v.size - 3)))
+    if factor > 1.0:
+        logger.info("GNSS residuals are %.2f x their stated sigmas: GNSS's sigmas scaled by it",
+                    factor)
+    return max(1.0, factor)
 
 
 def gnss_bias_sigmas(priors: GNSSPriors | None, share: float) -> np.ndarray | None:
