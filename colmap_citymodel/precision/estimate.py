@@ -266,15 +266,14 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None, *,
     jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
                              shape=(crs.num_rows, crs.num_cols))
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
-    jacobian = jacobian / problem.options.sigma_image
+    factors = np.full(jacobian.shape[0], 1.0 / problem.options.sigma_image)
     relaxation = problem.hold_relaxation
     if len(relaxation) and relax_holds:
         # The holds of what the planes do not fix (the scale, the height) count at GNSS's sigma
         # of it, not at the tighter one that keeps the solve there.
         first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
-        factors = np.ones(jacobian.shape[0])
-        factors[first:first + len(relaxation)] = relaxation
-        jacobian = sp.diags(factors) @ jacobian
+        factors[first:first + len(relaxation)] *= relaxation
+    jacobian.data *= np.repeat(factors, np.diff(jacobian.indptr))  # rows scaled in place
     return jacobian, layout
 
 
