@@ -76,7 +76,7 @@ logger = logging.getLogger(__name__)
 CHUNK_ROWS = 6000
 #: Camera-side unknowns up to which `cofactors` inverts the reduced normal matrix densely
 #: ("auto"); above, by selected inversion (precision.selected), exact on its pattern.
-DENSE_MAX_UNKNOWNS = 3000
+DENSE_MAX_UNKNOWNS = 1000
 #: BLAS threads of the precision step: its dense blocks are a few hundred unknowns wide, where
 #: more threads gain little on an idle machine and lose many times over on a busy one.
 BLAS_THREADS = 1
