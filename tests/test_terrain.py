@@ -255,6 +255,30 @@ def test_feet_cells_split_at_the_pavement_and_the_road_does_not_outweigh_it(stre
     assert np.allclose(share, counts / counts.sum()) and unit_sigma[0] == pytest.approx(0.15)
 
 
+def test_feet_from_terrain_intersection_lines_follow_the_ground_along_the_walls():
+    import shapely
+
+    from colmap_citymodel.citymodel.read import read_city_model
+    from colmap_citymodel.citymodel.terrain import read_model_ground
+
+    # NRW LoD2: the walls reach down to the lowest ground around a building; its
+    # lod2TerrainIntersection follows the ground along them
+    path = CITYGML / "nrw/LoD2_32_328_5725_1_NW.gml"
+    store = read_city_model(path)
+    ground = read_model_ground([path], store.crs)
+    assert set(ground.intersections) == {"DENW34AL0000qS9h", "DENW34AL0002jQAV"}
+    assert [328156.107, 5725316.049, 19.054] in ground.intersections[
+        "DENW34AL0000qS9h"].tolist()
+    walls = building_feet(store)
+    lines = building_feet(store, ground.intersections)
+    k = lines.building_ids.index("DENW34AL0000qS9h")
+    by_walls, by_lines = walls.points[walls.building == k], lines.points[lines.building == k]
+    assert np.ptp(by_walls[:, 2]) < 0.15 and np.ptp(by_lines[:, 2]) > 0.4
+    assert by_lines[:, 2].mean() - by_walls[:, 2].mean() > 0.2
+    assert np.max(shapely.distance(lines.footprints.boundary,
+                                   shapely.points(by_lines[:, :2]))) < 0.05
+
+
 def test_a_dtm_five_metres_off_is_left_out_not_followed(street, tmp_path):
     options, scene = street
     store = scene.store
