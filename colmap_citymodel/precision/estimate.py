@@ -77,6 +77,8 @@ CHUNK_ROWS = 6000
 #: Camera-side unknowns up to which `cofactors` inverts the reduced normal matrix densely
 #: ("auto"); above, by selected inversion (precision.selected), exact on its pattern.
 DENSE_MAX_UNKNOWNS = 1000
+#: ... and up to which a singular one (a datum defect) falls back to the dense pseudo-inverse.
+DENSE_FALLBACK_MAX = 6000
 #: BLAS threads of the precision step: its dense blocks are a few hundred unknowns wide, where
 #: more threads gain little on an idle machine and lose many times over on a busy one.
 BLAS_THREADS = 1
@@ -351,12 +353,19 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     for g in GROUPS:
         bounds[g] = (first, first + problem.counts[g])
         first += problem.counts[g]
+    q_cc = None
     if selected:
         from .selected import SelectedInverse
 
         n_blocks = len(layout.sizes) - num_points
-        q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
-                               layout.sizes[:n_blocks])
+        try:
+            q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
+                                   layout.sizes[:n_blocks])
+        except np.linalg.LinAlgError:  # singular: a datum defect, for the pseudo-inverse
+            if method == "selected" or nc > DENSE_FALLBACK_MAX:
+                raise
+            logger.info("precision: the reduced normal matrix is singular; dense inverse")
+    if q_cc is not None:
         defect = 0
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
                                                 redundancy, points)
