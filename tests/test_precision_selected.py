@@ -200,3 +200,20 @@ def test_selected_image_sigmas_cover_the_true_centre_errors(monkeypatch):
     distances = np.array(distances)
     assert 2.0 < distances.mean() < 4.5
     assert np.mean(distances < 7.81) > 0.85  # chi2(3) 95 % quantile
+
+
+def test_vectorised_image_jacobians_equal_the_per_image_ones(tiny):
+    from colmap_citymodel.precision.estimate import (
+        _image_quantities,
+        image_jacobian,
+        image_jacobians,
+    )
+
+    rec = tiny.reconstruction
+    ids = list(rec.reg_image_ids())
+    values, jacobians = image_jacobians(rec, ids)
+    for k, image_id in enumerate(ids):
+        image = rec.image(image_id)
+        expected = _image_quantities(rec, image, rec.frame(image.frame_id).rig_from_world)
+        np.testing.assert_allclose(values[k], expected, atol=1e-12)
+        np.testing.assert_allclose(jacobians[k], image_jacobian(rec, image_id), atol=1e-6)
