@@ -36,6 +36,7 @@ logger = logging.getLogger(__name__)
 TERRAIN_CLASS = "TerrainSurface"
 TERRAIN_PREFIX = "terrain:"
 SIGMA_PREFIX = "sigma="
+#: Between a terrain face's unit sigma and its own local sigma in its part id.
 LOCAL_SEPARATOR = "/"
 
 
