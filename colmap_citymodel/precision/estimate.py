@@ -367,6 +367,9 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
             logger.info("precision: the reduced normal matrix is singular; dense inverse")
     if q_cc is not None:
         defect = 0
+        logger.info("precision: selected inverse of %d camera-side unknowns, %d levels (widest "
+                    "%d), border %d, %.1f s", nc, q_cc.num_levels, max(q_cc.sizes, default=0),
+                    len(q_cc.levels.border), time.perf_counter() - start)
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
                                                 redundancy, points)
     else:
