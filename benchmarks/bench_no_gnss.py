@@ -166,8 +166,8 @@ def write_results(rows: list[dict], command: str, results: Path = RESULTS) -> No
              f"{RADIUS:g} m, no heading. Error: camera-centre RMS 3D (m) against the simulated "
              "truth. Target: within max(0.30 m, 1.3 x the GNSS refine's error); otherwise "
              "\"failed\". best, runner-up, ratio: the search's scores; placement ratio: the "
-             "verdict's ambiguity test (best over the best distinct placement, on walls and "
-             "sloped faces); jumps: frames the sequence check reports. reg s: the model-only "
+             "verdict's ambiguity test (best over the best distinct placement, on the model's "
+             "faces); jumps: frames the sequence check reports. reg s: the model-only "
              "search; refine s: the whole refine with GNSS.",
              "", "| block | images | GNSS refine error | verdict | no-GNSS error | verdict | "
              "best | runner-up | ratio | placement ratio | jumps | hint distance | reg s | "
