@@ -6,7 +6,9 @@ true block centre (mean camera centre) in a random direction (seeded per block),
 radius 100 m (`refine(..., location=hint)`, align.locate). Per block: the camera-centre RMS
 against the simulated truth of both, the no-GNSS verdict (a search that fails, ambiguous or
 finding nothing, is "failed" too), the search's best and runner-up scores, and the seconds of
-the model-only registration against those of the whole refine with GNSS.
+the model-only registration against those of the whole refine with GNSS, and the frames
+the neighbouring-frame check (`refine --sequence`, precision.sequence) reports as jumping in
+the no-GNSS result (the simulated images are video frames named in capture order).
 
 A run succeeds when it ends within max(0.30 m, 1.3 x the GNSS refine's error) of the truth;
 every other run should end "failed"; a run "ok" or "weak" beyond 1 m is a wrong result.
@@ -17,9 +19,9 @@ Blocks: the robustness blocks (workspaces/robust_{drive,orbit,strip,short}.toml,
 tiles of tests/data (Munich tum2twin, Rotterdam, The Hague). Workspaces are built once under
 workspaces/generated/ (git-ignored).
 
-    .venv/bin/python benchmarks/bench_no_gnss.py [--cases drive orbit ...]
+    .venv/bin/python benchmarks/bench_no_gnss.py [--cases drive orbit ...] [--results DIR]
 
-writes benchmarks/results/no_gnss.md and no_gnss.json.
+writes benchmarks/results/no_gnss.md and no_gnss.json (or DIR's).
 """
 
 from __future__ import annotations
@@ -91,6 +93,7 @@ def without_gnss(workspace: Path, hint: np.ndarray) -> dict:
     from colmap_citymodel.align.locate import ModelOnlyFailure
     from colmap_citymodel.errors import CityModelError, GeoregistrationError
     from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.precision.sequence import sequence_check
     from colmap_citymodel.workflow import refine
 
     rec, store, _ = inputs(workspace)
@@ -115,7 +118,10 @@ def without_gnss(workspace: Path, hint: np.ndarray) -> dict:
         out.update(verdict=result.quality.verdict, reasons=list(result.quality.reasons),
                    georegistration=result.georegistration,
                    cameras=centre_errors(result.reconstruction, store.origin,
-                                         truth_centres(workspace)))
+                                         truth_centres(workspace)),
+                   sequence_jumps=sequence_check(result.reconstruction)["jumps"],
+                   placement_ratio=((result.quality.metrics or {}).get("placement")
+                                    or {}).get("ratio"))
     out["seconds"] = time.perf_counter() - start
     return out
 
@@ -152,17 +158,21 @@ def _f(value, fmt="{:.3f}") -> str:
     return "-" if value is None else fmt.format(value)
 
 
-def write_results(rows: list[dict], command: str) -> None:
-    (RESULTS / "no_gnss.json").write_text(json.dumps(rows, indent=1, default=float))
+def write_results(rows: list[dict], command: str, results: Path = RESULTS) -> None:
+    (results / "no_gnss.json").write_text(json.dumps(rows, indent=1, default=float))
     lines = ["# Georegistration without GNSS", "", "Produced by", "", f"    {command}", "",
              f"Code measured: {', '.join(sorted({r['code'] for r in rows}))}. Hint "
              f"{HINT_DISTANCE:g} m from the true block centre in a random direction, radius "
              f"{RADIUS:g} m, no heading. Error: camera-centre RMS 3D (m) against the simulated "
              "truth. Target: within max(0.30 m, 1.3 x the GNSS refine's error); otherwise "
-             "\"failed\". reg s: the model-only search; refine s: the whole refine with GNSS.",
+             "\"failed\". best, runner-up, ratio: the search's scores; placement ratio: the "
+             "verdict's ambiguity test (best over the best distinct placement, on the model's "
+             "faces); jumps: frames the sequence check reports. reg s: the model-only "
+             "search; refine s: the whole refine with GNSS.",
              "", "| block | images | GNSS refine error | verdict | no-GNSS error | verdict | "
-             "best | runner-up | ratio | hint distance | reg s | refine s (GNSS) | outcome |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "best | runner-up | ratio | placement ratio | jumps | hint distance | reg s | "
+             "refine s (GNSS) | outcome |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         run, geo = r["no_gnss"], r["no_gnss"].get("georegistration") or {}
         lines.append(
@@ -170,7 +180,10 @@ def write_results(rows: list[dict], command: str) -> None:
             f"{_f((r['gnss_cameras'] or {}).get('rms_3d'))} | {r['gnss_verdict']} | "
             f"{_f((run.get('cameras') or {}).get('rms_3d'))} | {run['verdict']} | "
             f"{_f(geo.get('best_score'), '{:.2f}')} | {_f(geo.get('runner_up_score'), '{:.2f}')} | "
-            f"{_f(geo.get('score_ratio'), '{:.2f}')} | {_f(geo.get('hint_distance_m'), '{:.1f}')} | "
+            f"{_f(geo.get('score_ratio'), '{:.2f}')} | "
+            f"{_f(run.get('placement_ratio'), '{:.2f}')} | "
+            f"{_f(None if 'sequence_jumps' not in run else len(run['sequence_jumps']), '{}')} | "
+            f"{_f(geo.get('hint_distance_m'), '{:.1f}')} | "
             f"{_f(geo.get('seconds'), '{:.1f}')} | {r['gnss_seconds']:.1f} | {r['outcome']} |")
     counts = {k: sum(r["outcome"] == k for r in rows)
               for k in ("registered", "failed", "missed", "wrong")}
@@ -180,17 +193,20 @@ def write_results(rows: list[dict], command: str) -> None:
                 if r["no_gnss"].get("failure")]
     if failures:
         lines += ["", "Searches that failed:", ""] + failures
-    (RESULTS / "no_gnss.md").write_text("\n".join(lines) + "\n")
+    (results / "no_gnss.md").write_text("\n".join(lines) + "\n")
 
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=CASES, choices=CASES)
+    parser.add_argument("--results", type=Path, default=RESULTS,
+                        help="folder for no_gnss.md/.json (default benchmarks/results)")
     args = parser.parse_args()
     logging.getLogger("colmap_citymodel").setLevel(logging.WARNING)
     # Rows accumulate in no_gnss.json: `--cases` reruns some of them.
     command = ".venv/bin/python benchmarks/bench_no_gnss.py [--cases CASE ...]"
-    path = RESULTS / "no_gnss.json"
+    args.results.mkdir(parents=True, exist_ok=True)
+    path = args.results / "no_gnss.json"
     previous = {r["case"]: r for r in json.loads(path.read_text())} if path.exists() else {}
     for case in args.cases:
         print(f"{case}: ...", flush=True)
@@ -201,7 +217,7 @@ def main() -> None:
               f"{_f((run.get('cameras') or {}).get('rms_3d'))} m {run['verdict']} "
               f"({row['outcome']}), {run['seconds']:.0f} s vs {row['gnss_seconds']:.0f} s",
               flush=True)
-        write_results([previous[c] for c in CASES if c in previous], command)
+        write_results([previous[c] for c in CASES if c in previous], command, args.results)
 
 
 if __name__ == "__main__":

@@ -14,7 +14,8 @@ Steps (each a `colmap-citymodel` command, run in this process and timed):
    `triangulate` (COLMAP's point triangulator with the imported poses);
 5. `refine` of the footprint-pairs block with the city model and import-eo's gnss.txt (its
    verdict is recorded; with "failed" refine writes the GNSS-only adjustment, exit status 3,
-   and the chain goes on with that);
+   and the chain goes on with that); the same refine with `--terrain none` beside it, for the
+   terrain table (what the ground tie points on the terrain from the buildings' feet give);
 6. `precision --subset nadir --subset oblique --subset both` on the refined block with the
    same GNSS, written to benchmarks/results/oblique.md (+ .json).
 
@@ -135,6 +136,10 @@ def main(argv=None) -> int:
                           CITY, "--gnss", work / "eo" / "gnss.txt", "--gnss_crs", CRS,
                           "--output_path", work / "refined", "--precision", "off",
                           "--no_progress", allowed=(0, 3))  # 3: GNSS-only result written
+    times["refine_no_terrain"] = cli(
+        "refine", "--input_path", work / "sparse_footprint", "--citymodel", CITY, "--gnss",
+        work / "eo" / "gnss.txt", "--gnss_crs", CRS, "--output_path", work / "refined_none",
+        "--precision", "off", "--no_progress", "--terrain", "none", allowed=(0, 3))
     subset_args = [a for s in SUBSETS for a in ("--subset", s)]
     times["precision"] = cli("precision", "--input_path", work / "refined", *subset_args,
                              "--gnss", work / "eo" / "gnss.txt", "--gnss_crs", CRS,
@@ -144,12 +149,48 @@ def main(argv=None) -> int:
     simulation = json.loads((ws / "truth" / "simulation.json").read_text())
     result = {"seed": args.seed, "simulation": simulation, "times_seconds": times,
               "matching": variants, "precision": report["subsets"],
-              "refine_quality": refine_report.get("quality")}
+              "refine_quality": refine_report.get("quality"),
+              "terrain": {"default": terrain_summary(refine_report),
+                          "none": terrain_summary(json.loads(
+                              (work / "refined_none" / "report.json").read_text()))}}
     RESULTS.mkdir(exist_ok=True)
     args.output.with_suffix(".json").write_text(json.dumps(result, indent=2, default=str))
     args.output.write_text(markdown(result))
     print(markdown(result))
     return 0
+
+
+def terrain_summary(report: dict) -> dict:
+    """What a refine's report.json says about the terrain and the ground tie points."""
+    terrain = report.get("terrain") or {}
+    residuals = terrain.get("residuals") or {}
+    u = (report.get("observability") or {}).get("U") or {}
+    quality = report.get("quality") or {}
+    return {"source": terrain.get("source", "none"), "cell_m": terrain.get("cell_m"),
+            "num_faces": terrain.get("num_faces"), "units": len(residuals.get("units") or {}),
+            "ground_points": residuals.get("num_points", 0), "rms_m": residuals.get("rms_m"),
+            "assigned": report.get("num_assigned_points"), "points": report.get("num_points3D"),
+            "u_source": u.get("source", "-") + (" (terrain)" if u.get("terrain") else ""),
+            "u_sigma_m": u.get("sigma"), "verdict": quality.get("verdict"),
+            "reasons": quality.get("reasons") or []}
+
+
+def terrain_table(terrain: dict) -> list[str]:
+    """The terrain table: refine as run (the terrain from the buildings' feet) and with
+    `--terrain none`."""
+    lines = ["## Terrain", "", "refine with its default terrain (the buildings' feet: no DTM "
+             "given) and with `--terrain none`:", "",
+             "| terrain | cells (m) | terrain faces | units | tie points on the terrain | "
+             "their RMS distance (m) | assigned / all tie points | U fixed by | sigma U (m) | "
+             "verdict |", "|---|---|---|---|---|---|---|---|---|---|"]
+    for name, t in terrain.items():
+        rms = "-" if t["rms_m"] is None else f"{t['rms_m']:.3f}"
+        sigma = "-" if t["u_sigma_m"] is None else f"{t['u_sigma_m']:.3f}"
+        lines.append(f"| {t['source'] if name == 'default' else '--terrain none'} | "
+                     f"{t['cell_m'] or '-'} | {t['num_faces'] or 0} | {t['units']} | "
+                     f"{t['ground_points']} | {rms} | {t['assigned']} / {t['points']} | "
+                     f"{t['u_source']} | {sigma} | {t['verdict']} |")
+    return lines + [""]
 
 
 def markdown(result: dict) -> str:
@@ -178,6 +219,8 @@ def markdown(result: dict) -> str:
     q = result.get("refine_quality") or {}
     lines += ["", f"refine: verdict {q.get('verdict')}"
               + (f" ({'; '.join(q.get('reasons', []))})" if q.get("reasons") else "") + ".", ""]
+    if result.get("terrain"):
+        lines += terrain_table(result["terrain"])
     lines += ["", "## Median a posteriori sigmas per subset (Mulder Table 5.2)", "",
               "Tie points and projection centres, cm (GNSS datum: import-eo's gnss.txt, "
               "sigma 5/5/10 cm per image):", "",

@@ -16,8 +16,14 @@ Each size runs in its own process (peak memory per size, nothing cached between 
 prints, on copies of the same input:
 - colmap_ba_s: COLMAP's bundle adjustment with its defaults (`pycolmap.bundle_adjustment`
   with default BundleAdjustmentOptions = `colmap bundle_adjuster`), one run;
-- refine_s: refine() as the CLI runs it (covariances off: the precision step is timed by
-  bench_precision.py), and refine_ratio = refine_s / colmap_ba_s;
+- refine_s: refine() as the CLI runs it, with its default precision step (per-image and
+  per-tie-point covariances, `PrecisionOptions.covariances` auto), and refine_ratio =
+  refine_s / colmap_ba_s;
+- sigma_s: that precision step's seconds (variance factors, selected inversion, image and
+  point covariances under the full stochastic model) and sigma_ratio = sigma_s / (refine_s -
+  sigma_s), its share against the refine's own time; the median image centre sigma (the
+  largest axis, m) and coverage95, the share of images whose true centre error lies inside
+  their stated 95 % ellipsoid (chi-square, 3 degrees of freedom);
 - peak_rss_mb: the process's peak resident memory (ru_maxrss) at the end, and scene_rss_mb,
   its peak after synthesising the scene (before either adjustment);
 - the refine's iterations and seconds per stage, the camera centre RMS against the truth (m),
@@ -89,12 +95,12 @@ def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None
     del plain
 
     refine_options = RefineOptions()
-    refine_options.precision.covariances = "off"
     t, c = time.perf_counter(), time.process_time()
     result = refine(sfm, scene.store, scene.gnss(), refine_options, progress=False)
     figures["refine_s"] = time.perf_counter() - t
     figures["refine_cpu_s"] = time.process_time() - c
     figures["refine_ratio"] = figures["refine_s"] / figures["colmap_ba_s"]
+    figures.update(sigma_figures(result, scene, figures["refine_s"]))
     figures["iterations"] = len(result.iterations)
     figures["stages_s"] = {k: round(v, 2) for k, v in result.seconds.items()}
     truth = pycolmap.Reconstruction(scene.truth)
@@ -109,12 +115,46 @@ def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None
     return figures
 
 
+def sigma_figures(result, scene, refine_s: float) -> dict:
+    """The precision step's seconds, its ratio to the rest of the refine, the median image
+    centre sigma and how often the stated 95 % ellipsoids hold the true centre."""
+    import numpy as np
+    from scipy.stats import chi2
+
+    precision = result.precision
+    if precision is None or not precision.has_covariances:
+        return {"sigma_s": None, "sigma_ratio": None, "centre_sigma_m": None,
+                "coverage95": None}
+    sigma_s = precision.seconds["total"]
+    cov = precision.aware("image_cov")[:, :3, :3]
+    truth = {im.name: np.asarray(im.projection_center()) for im in scene.truth.images.values()}
+    origin = np.asarray(scene.store.origin)
+    refined = result.reconstruction_in_crs()
+    by_name = {im.name: np.asarray(im.projection_center()) for im in refined.images.values()
+               if im.has_pose}
+    inside = []
+    for name, c in zip(precision.image_names, cov):
+        error = by_name[name] - (truth[name] + origin)
+        inside.append(float(error @ np.linalg.solve(c, error)) <= chi2.ppf(0.95, 3))
+    sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)).max(axis=1)
+    return {"sigma_s": sigma_s, "sigma_ratio": sigma_s / max(refine_s - sigma_s, 1e-9),
+            "centre_sigma_m": float(np.median(sigma)), "coverage95": float(np.mean(inside)),
+            "sigma_stages_s": {k: round(v, 2) for k, v in precision.seconds.items()}}
+
+
+def _opt(value, fmt: str) -> str:
+    return "n/a" if value is None else format(value, fmt)
+
+
 def line(r: dict) -> str:
     return (f"{r['images']} images ({r['street_m']:.0f} m of street, {r['tie_points']} tie "
             f"points, {r['observations']} observations): colmap_ba_s {_bound(r)}"
             f"{r['colmap_ba_s']:.1f} refine_s {r['refine_s']:.1f} refine_ratio "
             f"{_bound(r, upper=True)}{r['refine_ratio']:.3f} peak_rss_mb "
-            f"{r['peak_rss_mb']:.0f} (after the scene {r['scene_rss_mb']:.0f}); "
+            f"{r['peak_rss_mb']:.0f} (after the scene {r['scene_rss_mb']:.0f}); sigma_s "
+            f"{_opt(r.get('sigma_s'), '.1f')} sigma_ratio {_opt(r.get('sigma_ratio'), '.3f')} "
+            f"({r.get('sigma_stages_s')}), centre sigma {_opt(r.get('centre_sigma_m'), '.3f')} "
+            f"m, coverage95 {_opt(r.get('coverage95'), '.2f')}; "
             f"{r['iterations']} iterations, stages {r['stages_s']}, camera centres "
             f"{r['camera_rms_m']:.3f} m, verdict {r['verdict']}, load "
             f"{' '.join(f'{v:.1f}' for v in r['load'])}")
@@ -130,14 +170,17 @@ def _bound(r: dict, upper: bool = False) -> str:
 
 def table(rows: list[dict]) -> str:
     out = ["| images | tie points | observations | colmap_ba_s | refine_s | refine_ratio | "
-           "peak_rss_mb | iterations | camera centre RMS m | verdict | load (1/5/15 min) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|"]
+           "sigma_s | sigma_ratio | peak_rss_mb | iterations | camera centre RMS m | "
+           "centre sigma m | coverage95 | verdict | load (1/5/15 min) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['images']} | {r['tie_points']} | {r['observations']} | "
                    f"{_bound(r)}{r['colmap_ba_s']:.1f} | {r['refine_s']:.1f} | "
                    f"{_bound(r, upper=True)}{r['refine_ratio']:.3f} | "
+                   f"{_opt(r.get('sigma_s'), '.1f')} | {_opt(r.get('sigma_ratio'), '.3f')} | "
                    f"{r['peak_rss_mb']:.0f} | {r['iterations']} | {r['camera_rms_m']:.3f} | "
-                   f"{r['verdict']} | {' / '.join(f'{v:.1f}' for v in r['load'])} |")
+                   f"{_opt(r.get('centre_sigma_m'), '.3f')} | "
+                   f"{_opt(r.get('coverage95'), '.2f')} | {r['verdict']} | {' / '.join(f'{v:.1f}' for v in r['load'])} |")
     return "\n".join(out) + "\n"
 
 
@@ -182,8 +225,8 @@ def main() -> None:
     for r in rows:
         print(f"images {r['images']} colmap_ba_s {_bound(r)}{r['colmap_ba_s']:.3f} refine_s "
               f"{r['refine_s']:.3f} refine_ratio {_bound(r, upper=True)}"
-              f"{r['refine_ratio']:.3f} peak_rss_mb "
-              f"{r['peak_rss_mb']:.0f}")
+              f"{r['refine_ratio']:.3f} sigma_s {_opt(r.get('sigma_s'), '.3f')} sigma_ratio "
+              f"{_opt(r.get('sigma_ratio'), '.3f')} peak_rss_mb {r['peak_rss_mb']:.0f}")
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.write_text(f"code {version}, `benchmarks/bench_scale.py --sizes "

@@ -489,7 +489,7 @@ class PrecisionOptions:
     `max_images_auto` images. Without them s0 and the global test are still reported, with
     proportional group redundancies."""
     max_images_auto: int = 2500
-    """Image count up to which "auto" computes covariances. Above 3,000 camera-side unknowns the
+    """Image count up to which "auto" computes covariances. Above 1,000 camera-side unknowns the
     inverse is selected (only where sigmas need it), whose cost grows about linearly along a
     street: at 2,000 images well under the refine's own time; memory grows with images x
     planes."""

@@ -15,6 +15,7 @@ import pytest
 from colmap_citymodel.align.coarse import SurfaceDistance
 from colmap_citymodel.align.locate import AmbiguousLocationError, LocateOptions, locate
 from colmap_citymodel.citymodel.build import store_from_polygons
+from colmap_citymodel.citymodel.ground_faces import TERRAIN_CLASS
 from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
 from colmap_citymodel.cli import main as cli_main
@@ -112,9 +113,12 @@ def test_a_street_of_identical_houses_is_ambiguous_and_fails(identical_street):
 
 
 def house_on_ground(houses_x):
-    """Flat-roofed houses 12 x 10 x 6 m at `houses_x` on level ground 120 m square."""
+    """Flat-roofed houses 12 x 10 x 6 m at `houses_x` on a terrain face 120 m square (as
+    refine adds from a DTM or the buildings' feet)."""
     rings = [np.array([(-60, -60, 0), (60, -60, 0), (60, 60, 0), (-60, 60, 0)], float)]
+    semantics = [TERRAIN_CLASS]
     for x0 in houses_x:
+        semantics += ["WallSurface"] * 4 + ["RoofSurface"]
         x1, y0, y1, h = x0 + 12.0, 0.0, 10.0, 6.0
         rings += [np.array(r, float) for r in (
             [(x0, y0, 0), (x1, y0, 0), (x1, y0, h), (x0, y0, h)],
@@ -122,8 +126,8 @@ def house_on_ground(houses_x):
             [(x1, y1, 0), (x0, y1, 0), (x0, y1, h), (x1, y1, h)],
             [(x0, y1, 0), (x0, y0, 0), (x0, y0, h), (x0, y1, h)],
             [(x0, y0, h), (x1, y0, h), (x1, y1, h), (x0, y1, h)])]
-    store = store_from_polygons(rings, origin=np.zeros(3))
-    return SurfaceDistance(store, excluded_classes=(), threads=1)
+    store = store_from_polygons(rings, semantics=semantics, origin=np.zeros(3))
+    return SurfaceDistance(store, threads=1)
 
 
 def loop_round_a_house(rng):
@@ -143,16 +147,16 @@ def loop_round_a_house(rng):
 
 
 def test_the_ground_around_a_house_does_not_make_its_placement_ambiguous():
-    """A house alone on level ground, most tie points on the ground round it: the ground fits
+    """A house alone on the terrain, most tie points on the ground round it: the terrain fits
     every horizontal shift alike, so scored with it a shift by one house width fits almost as
-    well; the placement test scores the faces a shift moves the points off (walls), which hold
-    the house in one place. Two such houses side by side stay ambiguous."""
+    well; the placement test scores the city model's faces, which hold the house in one place.
+    Two such houses side by side stay ambiguous."""
     rng = np.random.default_rng(7)
     points = loop_round_a_house(rng)
     alone = house_on_ground([0.0])
     t = QualityThresholds()
 
-    class Opaque:  # the same distances without the triangles to sort
+    class Opaque:  # the same distances without the faces' classes
         def __call__(self, p, within):
             return alone(p, within)
 

@@ -255,6 +255,30 @@ def test_feet_cells_split_at_the_pavement_and_the_road_does_not_outweigh_it(stre
     assert np.allclose(share, counts / counts.sum()) and unit_sigma[0] == pytest.approx(0.15)
 
 
+def test_feet_from_terrain_intersection_lines_follow_the_ground_along_the_walls():
+    import shapely
+
+    from colmap_citymodel.citymodel.read import read_city_model
+    from colmap_citymodel.citymodel.terrain import read_model_ground
+
+    # NRW LoD2: the walls reach down to the lowest ground around a building; its
+    # lod2TerrainIntersection follows the ground along them
+    path = CITYGML / "nrw/LoD2_32_328_5725_1_NW.gml"
+    store = read_city_model(path)
+    ground = read_model_ground([path], store.crs)
+    assert set(ground.intersections) == {"DENW34AL0000qS9h", "DENW34AL0002jQAV"}
+    assert [328156.107, 5725316.049, 19.054] in ground.intersections[
+        "DENW34AL0000qS9h"].tolist()
+    walls = building_feet(store)
+    lines = building_feet(store, ground.intersections)
+    k = lines.building_ids.index("DENW34AL0000qS9h")
+    by_walls, by_lines = walls.points[walls.building == k], lines.points[lines.building == k]
+    assert np.ptp(by_walls[:, 2]) < 0.15 and np.ptp(by_lines[:, 2]) > 0.4
+    assert by_lines[:, 2].mean() - by_walls[:, 2].mean() > 0.2
+    assert np.max(shapely.distance(lines.footprints.boundary,
+                                   shapely.points(by_lines[:, :2]))) < 0.05
+
+
 def test_a_dtm_five_metres_off_is_left_out_not_followed(street, tmp_path):
     options, scene = street
     store = scene.store
@@ -372,3 +396,27 @@ def test_terrain_cells_grow_where_tie_points_are_sparse():
     sparse = rng.uniform(0, 600, (40000, 2))  # 0.11 per m^2: an aerial block
     cell = cell_size(sparse, 6.0)
     assert 15.0 <= cell <= 20.0 and 0.11 * cell ** 2 >= POINTS_PER_CELL
+
+
+def test_a_nadir_mapping_flight_looks_straight_down_along_its_strips(street):
+    from colmap_citymodel.simulate.flight import plan_flight
+    from colmap_citymodel.simulate.scenario import FlightOptions
+    from colmap_citymodel.simulate.scene import GroundModel
+
+    _, scene = street
+    options = FlightOptions(mode="forward", waypoints=[[0, -10], [60, -10], [60, 10], [0, 10]],
+                            num_key_frames=12, spacing=10.0, spacing_jitter=0.5,
+                            distance_amplitude=0.0, flight_height=50.0, height_amplitude=0.0,
+                            pitch_deg=90.0, turn_smoothing=2.0,
+                            attitude_sigma_deg=(0.5, 0.5, 0.5))
+    flight = plan_flight(scene.store, options, 3, GroundModel(scene.store))
+    ground = GroundModel(scene.store)(flight.centres[:, :2])
+    assert np.allclose(flight.centres[:, 2] - ground, 50.0)
+    R = flight.rotations
+    assert np.allclose(np.linalg.det(R), 1.0)
+    assert np.all(R[:, 2, 2] < -0.999)  # the optical axis points down (within the jitter)
+    # the image's x axis is the heading's right: (0, -1) on the first strip (east), (0, 1) on
+    # the way back (west), the same for every image of a strip (no flip)
+    east, west = flight.centres[:, 1] < -9.5, flight.centres[:, 1] > 9.5
+    assert east.sum() >= 4 and west.sum() >= 3
+    assert np.all(R[east, 0, 1] < -0.99) and np.all(R[west, 0, 1] > 0.99)

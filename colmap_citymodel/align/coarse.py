@@ -68,11 +68,12 @@ class SurfaceDistance:
         """`threads`: of each query (0 or less: every core)."""
         from ..citymodel.visibility import visible_triangles
 
-        vertices, triangles, _ = visible_triangles(store, excluded_classes)
+        vertices, triangles, faces = visible_triangles(store, excluded_classes)
         if not len(triangles):  # nothing a camera sees: every face rather than none
-            vertices, triangles, _ = visible_triangles(store, ())
+            vertices, triangles, faces = visible_triangles(store, ())
         self.vertices = np.ascontiguousarray(vertices, np.float64)
         self.triangles = np.ascontiguousarray(triangles, np.int64)
+        self.triangle_faces, self.face_classes = faces, store.faces.semantic  # face, classes
         self.threads = max(int(threads), 0)
         self._grids: dict[float, object] = {}  # one triangle grid per radius asked for
 

@@ -36,6 +36,7 @@ logger = logging.getLogger(__name__)
 TERRAIN_CLASS = "TerrainSurface"
 TERRAIN_PREFIX = "terrain:"
 SIGMA_PREFIX = "sigma="
+#: Between a terrain face's unit sigma and its own local sigma in its part id.
 LOCAL_SEPARATOR = "/"
 
 
@@ -308,11 +309,15 @@ def block_terrain(store, points_local: np.ndarray, options) -> tuple:
     relief of the model files (`store.source`), else the buildings' feet."""
     from pathlib import Path
 
-    from .terrain import building_feet, check_against_feet, feet_terrain, read_dtm, read_relief
+    from .terrain import (building_feet, check_against_feet, feet_terrain, read_dtm,
+                          read_model_ground, read_relief)
 
     if options.source == "none" or not len(points_local):
         return store, {"source": "none"}
-    feet = building_feet(store)
+    files = [Path(p) for p in str(store.source).split(";") if p and Path(p).is_file()]
+    # With DTM files the model files are not read again: their walls' feet check the DTM.
+    ground = read_model_ground(files, store.crs) if files and not options.files else None
+    feet = building_feet(store, ground.intersections if ground is not None else None)
     xy = np.asarray(points_local, float)[:, :2] + store.origin[:2]
     bbox = np.array([xy.min(0) - 2 * options.cell, xy.max(0) + 2 * options.cell])
     warnings: list[str] = []
@@ -324,9 +329,9 @@ def block_terrain(store, points_local: np.ndarray, options) -> tuple:
             warnings.append("no DTM tile agrees with the buildings' feet: the terrain comes "
                             "from the model instead")
             terrain = None
-    if terrain is None:
-        files = [Path(p) for p in str(store.source).split(";") if p and Path(p).is_file()]
-        terrain = read_relief(files, store.crs, bbox, options.sigma) if files else None
+    if terrain is None and files:
+        ground = ground or read_model_ground(files, store.crs)
+        terrain = read_relief(files, store.crs, bbox, options.sigma, ground=ground)
         if terrain is not None:
             warnings += check_against_feet(terrain, feet, options.feet_tolerance)
             if not np.isfinite(terrain.heights).any():

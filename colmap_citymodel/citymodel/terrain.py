@@ -304,26 +304,53 @@ def check_dtm_file(path: Path) -> None:
 # -- 2. relief in the city model -----------------------------------------------------------------
 
 
+@dataclass
+class ModelGround:
+    """What the city model files say of the ground (model CRS): TIN relief triangles, and the
+    lines where each building meets the terrain (CityGML `lod1-4TerrainIntersection`)."""
+
+    triangles: np.ndarray  # (T, 3, 3)
+    intersections: dict[str, np.ndarray]  # building id -> (K, 3) points along its lines
+    names: list[str]  # the files
+
+
+def read_model_ground(paths, crs: CRSInfo) -> ModelGround:
+    """The relief triangles and terrain intersections of the city model files `paths`, in
+    `crs` (reprojected from the CRS a file names)."""
+    from .crs import reproject_points, same_crs
+
+    triangles, lines = [], {}
+    paths = [Path(p) for p in np.atleast_1d(paths)]
+    for path in paths:
+        if path.suffix.lower() in (".json", ".cityjson", ".jsonl"):
+            found, file_crs = _cityjson_relief(path)
+            found_lines = {}
+        else:
+            found, found_lines, file_crs = _citygml_ground(path)
+        other = file_crs is not None and not same_crs(file_crs, crs)
+        if len(found):
+            triangles.append(reproject_points(found.reshape(-1, 3), file_crs, crs).reshape(
+                -1, 3, 3) if other else found)
+        for building, points in found_lines.items():
+            points = reproject_points(points, file_crs, crs) if other else points
+            lines[building] = np.vstack([lines[building], points]) if building in lines \
+                else points
+    return ModelGround(np.concatenate(triangles) if triangles else np.zeros((0, 3, 3)), lines,
+                       [p.name for p in paths])
+
+
 def read_relief(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
-                spacing: float = GRID_SPACING) -> Terrain | None:
+                spacing: float = GRID_SPACING, ground: ModelGround | None = None
+                ) -> Terrain | None:
     """The TIN relief of the city model files (CityGML `dem:TINRelief`, CityJSON
-    `TINRelief`) interpolated onto the grid over `bbox_xy`; None when the files hold none."""
+    `TINRelief`) interpolated onto the grid over `bbox_xy`; None when the files hold none.
+    `ground`: the files' read_model_ground, when read already."""
     from scipy.interpolate import LinearNDInterpolator
 
-    from .crs import same_crs
-
-    triangles = []
-    for path in [Path(p) for p in np.atleast_1d(paths)]:
-        found, file_crs = _relief_triangles(path)
-        if len(found) and file_crs is not None and not same_crs(file_crs, crs):
-            from .crs import reproject_points
-
-            found = reproject_points(found.reshape(-1, 3), file_crs, crs).reshape(-1, 3, 3)
-        if len(found):
-            triangles.append(found)
-    if not triangles:
+    ground = ground if ground is not None else read_model_ground(paths, crs)
+    if not len(ground.triangles):
         return None
-    points = np.unique(np.concatenate(triangles).reshape(-1, 3), axis=0)
+    points = np.unique(ground.triangles.reshape(-1, 3), axis=0)
     bbox = np.asarray(bbox_xy, float) + [[-READ_MARGIN, -READ_MARGIN], [READ_MARGIN, READ_MARGIN]]
     x0, y0, nx, ny = empty_grid(bbox, spacing)
     near = np.all((points[:, :2] >= bbox[0] - 50) & (points[:, :2] <= bbox[1] + 50), axis=1)
@@ -335,39 +362,48 @@ def read_relief(paths, crs: CRSInfo, bbox_xy: np.ndarray, sigma: float,
         return None
     sigmas = np.where(np.isfinite(heights), float(sigma), np.nan)
     tiles = np.where(np.isfinite(heights), 0, -1).astype(np.int32)
-    logger.info("terrain: TIN relief of the city model, %d triangles", sum(map(len, triangles)))
-    return Terrain("relief", x0, y0, spacing, heights, sigmas, tiles,
-                   [Path(p).name for p in np.atleast_1d(paths)][:1])
+    logger.info("terrain: TIN relief of the city model, %d triangles", len(ground.triangles))
+    return Terrain("relief", x0, y0, spacing, heights, sigmas, tiles, ground.names[:1])
 
 
-def _relief_triangles(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
-    """(T, 3, 3) relief triangles of one city model file and the CRS it names."""
-    if path.suffix.lower() in (".json", ".cityjson", ".jsonl"):
-        return _cityjson_relief(path)
-    return _citygml_relief(path)
-
-
-def _citygml_relief(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
+def _citygml_ground(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], CRSInfo | None]:
+    """(T, 3, 3) relief triangles, {building id: (K, 3) terrain intersection points} of one
+    CityGML file, and the CRS it names."""
     from lxml import etree
 
     from .crs import resolve_crs
 
-    triangles, srs = [], None
-    for _, element in etree.iterparse(str(path), events=("end",), huge_tree=True):
+    triangles, lines, buildings, srs = [], {}, [], None
+    for event, element in etree.iterparse(str(path), events=("start", "end"), huge_tree=True):
         if not isinstance(element.tag, str):
             continue
         name = etree.QName(element).localname
+        if name == "Building":
+            if event == "start":
+                buildings.append(next((v for k, v in element.attrib.items()
+                                       if k.endswith("}id")), ""))
+            else:
+                buildings.pop()
+            continue
+        if event != "end":
+            continue
         if srs is None and element.get("srsName"):
             srs = element.get("srsName")
-        if name != "TINRelief":
-            continue
-        for ring in element.iter("{*}LinearRing"):
-            coords = _ring_coordinates(ring)
-            if len(coords) >= 3:
-                triangles.append(coords[:3])
-        element.clear()
+        if name == "TINRelief":
+            for ring in element.iter("{*}LinearRing"):
+                coords = _ring_coordinates(ring)
+                if len(coords) >= 3:
+                    triangles.append(coords[:3])
+            element.clear()
+        elif name.endswith("TerrainIntersection") and buildings:
+            found = [_ring_coordinates(curve) for curve in element.iter("{*}LineString")]
+            found = [c for c in found if len(c)]
+            if found:
+                lines.setdefault(buildings[0], []).extend(found)
+            element.clear()
     crs = resolve_crs(srs, path=path) if srs else None
-    return np.array(triangles, float).reshape(-1, 3, 3), crs
+    return (np.array(triangles, float).reshape(-1, 3, 3),
+            {b: np.vstack(c) for b, c in lines.items()}, crs)
 
 
 def _ring_coordinates(ring) -> np.ndarray:
@@ -430,8 +466,12 @@ LOWEST_EDGE = 0.05
 FOOT_OUTLINE = 0.3
 
 
-def building_feet(store) -> Feet:
-    """The feet of the buildings of `store` (citymodel.store.PlaneStore)."""
+def building_feet(store, intersections: dict[str, np.ndarray] | None = None) -> Feet:
+    """The feet of the buildings of `store` (citymodel.store.PlaneStore): a building's terrain
+    intersection lines where the model has them (`intersections`, model CRS, by building
+    id: the terrain along its walls, where a wall reaches down to the lowest ground around
+    it), else the lowest edges of its walls on the footprints' outline and its ground
+    surfaces."""
     import shapely
 
     walls = store.faces.semantic.mask("WallSurface")
@@ -463,8 +503,26 @@ def building_feet(store) -> Feet:
         # its lowest edge inside the footprint, above the ground: only the outline's count.
         edge = shapely.distance(footprints.boundary, shapely.points(pts[:, :2]))
         pts, owner = pts[edge < FOOT_OUTLINE], owner[edge < FOOT_OUTLINE]
-    return Feet(pts + store.origin, owner, list(store.faces.building_id.categories),
-                shapely.transform(footprints, lambda xy: xy + store.origin[:2]))
+    ids = list(store.faces.building_id.categories)
+    pts, owner = _with_intersections(pts + store.origin, owner, ids, intersections or {})
+    return Feet(pts, owner, ids, shapely.transform(footprints, lambda xy: xy + store.origin[:2]))
+
+
+def _with_intersections(points: np.ndarray, owner: np.ndarray, ids: list[str],
+                        intersections: dict[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """The foot `points` (CRS) of `owner` (index into `ids`), those of each building with
+    terrain intersection lines replaced by them."""
+    index = {b: k for k, b in enumerate(ids)}
+    found = [(index[b], np.asarray(line, float).reshape(-1, 3))
+             for b, line in intersections.items() if b in index and len(line)]
+    if not found:
+        return points, owner
+    replaced = np.isin(owner, [k for k, _ in found])
+    logger.info("terrain: the feet of %d building(s) from their terrain intersection lines",
+                len(found))
+    return (np.vstack([points[~replaced]] + [line for _, line in found]),
+            np.concatenate([owner[~replaced]] + [np.full(len(line), k, np.int64)
+                                                 for k, line in found]))
 
 
 def _densify(ring: np.ndarray) -> np.ndarray:

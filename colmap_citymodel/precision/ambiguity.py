@@ -3,14 +3,13 @@ the model, fit it at other horizontal placements too (a neighbouring house of th
 regular facade row); the best placement is compared with the best distinct one that GNSS does
 not rule out, as a ratio of their fits.
 
-The fit at a placement is the smooth share of tie points within `radius` of the model's
-faces that a horizontal shift moves them off (as align.coarse.near_share): walls and sloped
-roofs. A tie point on a level face (the ground, a flat roof) stays on it whatever the shift, so
-those faces score every placement alike and would only pull the ratio towards 1: a face whose
-slope is below asin(radius / distinct) keeps a point shifted by `distinct` within `radius` of
-its plane and is left out. Placements are scored on a grid of horizontal shifts; the
-alternative is the best local maximum at least `distinct` metres from the best one and inside
-the region GNSS allows (a callable telling, per shift, whether GNSS admits it).
+The fit at a placement is the smooth share of tie points within `radius` of the city model's
+faces (as align.coarse.near_share); the terrain refine adds (TerrainSurface faces, from a DTM or
+the buildings' feet) is left out: it is level and runs on round the block, so the tie points
+on the ground fit it at every horizontal shift alike and would only pull the ratio towards 1.
+Placements are scored on a grid of horizontal shifts; the alternative is the best local
+maximum at least `distinct` metres from the best one and inside the region GNSS allows (a
+callable telling, per shift, whether GNSS admits it).
 """
 
 from __future__ import annotations
@@ -22,6 +21,7 @@ import numpy as np
 
 from .._ext import load_core
 from ..align.coarse import subsample
+from ..citymodel.ground_faces import TERRAIN_CLASS
 
 logger = logging.getLogger(__name__)
 
@@ -86,23 +86,19 @@ class _Triangles:
         return grid(np.ascontiguousarray(points, np.float64).reshape(-1, 3), self.threads)
 
 
-def shift_sensitive(surface, radius: float, distinct: float):
-    """The part of `surface` (align.coarse.SurfaceDistance) whose fit a horizontal shift of
-    `distinct` m changes: its triangles sloped by at least asin(radius / distinct); None when
-    every face is flatter. A surface without triangles to read is returned as it is."""
-    vertices, triangles = getattr(surface, "vertices", None), getattr(surface, "triangles", None)
-    if vertices is None or triangles is None or not len(triangles):
+def without_terrain(surface):
+    """`surface` (align.coarse.SurfaceDistance) without its TerrainSurface triangles; None when
+    it has nothing else. A surface that does not tell its triangles' faces is returned as is."""
+    faces = getattr(surface, "triangle_faces", None)
+    classes = getattr(surface, "face_classes", None)
+    if faces is None or classes is None or not len(faces):
         return surface
-    corners = vertices[triangles]
-    normals = np.cross(corners[:, 1] - corners[:, 0], corners[:, 2] - corners[:, 0])
-    length = np.maximum(np.linalg.norm(normals, axis=1), 1e-300)
-    sine = np.sqrt(np.clip(1.0 - (normals[:, 2] / length) ** 2, 0.0, 1.0))
-    keep = sine >= min(radius / distinct, 1.0)
+    keep = ~classes.mask(TERRAIN_CLASS)[faces]
     if keep.all():
         return surface
     if not keep.any():
         return None
-    return _Triangles(vertices, triangles[keep], getattr(surface, "threads", 0))
+    return _Triangles(surface.vertices, surface.triangles[keep], getattr(surface, "threads", 0))
 
 
 def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
@@ -110,12 +106,11 @@ def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
     """The best horizontal placement of `points` within +- `reach` m and the best distinct
     one (a local maximum at least `distinct` m away) that `admitted` ((K, 2) shifts -> (K,)
     bool, whether GNSS allows the block there) lets through. `surface(points, within)`:
-    distances to the model (align.coarse.SurfaceDistance); only its faces that a shift of
-    `distinct` moves a point off (shift_sensitive) score. Without such faces, no alternative."""
-    surface = shift_sensitive(surface, radius, distinct)
+    distances to the model (align.coarse.SurfaceDistance); its terrain does not score
+    (without_terrain). Without other faces, no alternative."""
+    surface = without_terrain(surface)
     if surface is None:
-        logger.info("placement test: every face near the block is level; a horizontal shift "
-                    "changes no tie point's fit")
+        logger.info("placement test: no model face but the terrain near the block")
         return Placement(0.0, 0.0, None, np.zeros(2))
     sample = subsample(np.asarray(points, float), SAMPLE_POINTS)
     step = max(STEP, 2.0 * reach / (GRID_SIDE - 1))

@@ -76,7 +76,9 @@ logger = logging.getLogger(__name__)
 CHUNK_ROWS = 6000
 #: Camera-side unknowns up to which `cofactors` inverts the reduced normal matrix densely
 #: ("auto"); above, by selected inversion (precision.selected), exact on its pattern.
-DENSE_MAX_UNKNOWNS = 3000
+DENSE_MAX_UNKNOWNS = 1000
+#: ... and up to which a singular one (a datum defect) falls back to the dense pseudo-inverse.
+DENSE_FALLBACK_MAX = 6000
 #: BLAS threads of the precision step: its dense blocks are a few hundred unknowns wide, where
 #: more threads gain little on an idle machine and lose many times over on a busy one.
 BLAS_THREADS = 1
@@ -266,15 +268,14 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None, *,
     jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
                              shape=(crs.num_rows, crs.num_cols))
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
-    jacobian = jacobian / problem.options.sigma_image
+    factors = np.full(jacobian.shape[0], 1.0 / problem.options.sigma_image)
     relaxation = problem.hold_relaxation
     if len(relaxation) and relax_holds:
         # The holds of what the planes do not fix (the scale, the height) count at GNSS's sigma
         # of it, not at the tighter one that keeps the solve there.
         first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
-        factors = np.ones(jacobian.shape[0])
-        factors[first:first + len(relaxation)] = relaxation
-        jacobian = sp.diags(factors) @ jacobian
+        factors[first:first + len(relaxation)] *= relaxation
+    jacobian.data *= np.repeat(factors, np.diff(jacobian.indptr))  # rows scaled in place
     return jacobian, layout
 
 
@@ -352,13 +353,23 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     for g in GROUPS:
         bounds[g] = (first, first + problem.counts[g])
         first += problem.counts[g]
+    q_cc = None
     if selected:
         from .selected import SelectedInverse
 
         n_blocks = len(layout.sizes) - num_points
-        q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
-                               layout.sizes[:n_blocks])
+        try:
+            q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
+                                   layout.sizes[:n_blocks])
+        except np.linalg.LinAlgError:  # singular: a datum defect, for the pseudo-inverse
+            if method == "selected" or nc > DENSE_FALLBACK_MAX:
+                raise
+            logger.info("precision: the reduced normal matrix is singular; dense inverse")
+    if q_cc is not None:
         defect = 0
+        logger.info("precision: selected inverse of %d camera-side unknowns, %d levels (widest "
+                    "%d), border %d, %.1f s", nc, q_cc.num_levels, max(q_cc.sizes, default=0),
+                    len(q_cc.levels.border), time.perf_counter() - start)
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
                                                 redundancy, points)
     else:
@@ -634,6 +645,46 @@ def image_jacobian(rec: pycolmap.Reconstruction, image_id: int) -> np.ndarray:
         diff[3:] = (diff[3:] + np.pi) % (2 * np.pi) - np.pi
         out[:, k] = diff / (2 * POSE_STEP)
     return out
+
+
+def image_jacobians(rec: pycolmap.Reconstruction, image_ids
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """`_image_quantities` (N, 6) and `image_jacobian` (N, 6, 6) of many images at once (the
+    same central differences, vectorised over the images)."""
+    r_f, t_f, r_s, t_s = [], [], [], []
+    for image_id in image_ids:
+        image = rec.image(image_id)
+        frame = rec.frame(image.frame_id)
+        r_f.append(np.asarray(frame.rig_from_world.rotation.matrix()))
+        t_f.append(np.asarray(frame.rig_from_world.translation))
+        sensor = (pycolmap.Rigid3d() if image.is_ref_in_frame()
+                  else rec.rig(frame.rig_id).sensor_from_rig(image.camera.sensor_id))
+        r_s.append(np.asarray(sensor.rotation.matrix()))
+        t_s.append(np.asarray(sensor.translation))
+    r_f, t_f = np.array(r_f).reshape(-1, 3, 3), np.array(t_f).reshape(-1, 3)
+    r_s, t_s = np.array(r_s).reshape(-1, 3, 3), np.array(t_s).reshape(-1, 3)
+
+    def quantities(rotation: np.ndarray, translation: np.ndarray) -> np.ndarray:
+        r_c = r_s @ rotation
+        t_c = np.einsum("kij,kj->ki", r_s, translation) + t_s
+        centre = -np.einsum("kji,kj->ki", r_c, t_c)
+        if not len(r_c):
+            return np.zeros((0, 6))
+        angles = Rotation.from_matrix(r_c.transpose(0, 2, 1) @ PHOTOGRAMMETRIC_FLIP)
+        return np.hstack([centre, angles.as_euler("XYZ")])
+
+    jacobians = np.empty((len(r_f), 6, 6))
+    for k in range(6):
+        delta = np.zeros(6)
+        delta[k] = POSE_STEP
+        moved = []
+        for sign in (1.0, -1.0):
+            turn = Rotation.from_rotvec(2.0 * sign * delta[:3]).as_matrix()
+            moved.append(quantities(turn @ r_f, t_f + sign * delta[3:]))
+        diff = moved[0] - moved[1]
+        diff[:, 3:] = (diff[:, 3:] + np.pi) % (2 * np.pi) - np.pi
+        jacobians[:, :, k] = diff / (2 * POSE_STEP)
+    return quantities(r_f, t_f), jacobians
 
 
 # -- check points --------------------------------------------------------------------------------
@@ -1054,15 +1105,17 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     t1 = time.perf_counter()
     image_ids, names, centres, angles, image_cov, num_obs = [], [], [], [], [], []
     image_cov_generalisation = []
-    for image_id in rec.reg_image_ids():
+    frame_columns = {key: slice(start, start + size) for (kind, key), start, size
+                     in zip(layout.names, layout.starts, layout.sizes) if kind == "frame"}
+    wanted = [i for i in rec.reg_image_ids()
+              if (c := frame_columns.get(rec.image(i).frame_id)) is not None
+              and c.stop - c.start == 6]  # a constant or gauge-reduced frame has none
+    all_values, jacobians = image_jacobians(rec, wanted)
+    for image_id, values, g in zip(wanted, all_values, jacobians):
         image = rec.image(image_id)
-        columns = layout.columns("frame", image.frame_id)
-        if columns is None or columns.stop - columns.start != 6:
-            continue  # a constant or gauge-reduced frame has no full covariance
-        g = image_jacobian(rec, image_id)
+        columns = frame_columns[image.frame_id]
         image_ids.append(image_id)
         names.append(image.name)
-        values = _image_quantities(rec, image, rec.frame(image.frame_id).rig_from_world)
         centres.append(values[:3])
         angles.append(np.degrees(values[3:]))
         image_cov.append(s0sq * g @ cof.q_cc[columns, columns] @ g.T)

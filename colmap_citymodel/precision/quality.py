@@ -9,8 +9,8 @@ failed (refine hands back the GNSS-only block):
   against the covariance of both (GNSS with a bias as large as its stated sigma, planes with
   their generalisation), is significant (chi-square, level `alpha`);
 - the placement is ambiguous: a distinct placement that GNSS admits fits the tie points nearly
-  as well as the best one (ratio below `ambiguity_ratio`), on the faces a horizontal shift
-  moves them off (walls, sloped roofs; level ground fits every shift alike).
+  as well as the best one (ratio below `ambiguity_ratio`), on the city model's faces (the
+  terrain, level round the block, fits every shift alike).
 weak: a direction rests on GNSS alone, the radius that holds the stated position error with
 `tolerance_confidence` exceeds the user's tolerance, or the
 assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
@@ -52,7 +52,7 @@ class QualityThresholds:
     faces this many times sigma_dtp before the model counts as not fitting the block."""
     ambiguity_ratio: float = 1.1
     """The best placement must fit the tie points (share within NEAR_DISTANCE of the model's
-    walls and sloped faces) this many times better than the best distinct placement GNSS
+    faces, the terrain left out) this many times better than the best distinct placement GNSS
     admits; else the pose is ambiguous. A block slid along a facade row that only walls
     parallel to the slide hold scores about 1; one that cross walls and corners confirm, well
     above."""

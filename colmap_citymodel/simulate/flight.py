@@ -1,5 +1,6 @@
 """Flights of the simulator: camera centres and orientations along a street (sideways or
-forward looking) or on an orbit around one building."""
+forward looking), along waypoints (a mapping flight's strips, pitch 90 deg: a nadir camera)
+or on an orbit around one building."""
 
 from __future__ import annotations
 
@@ -133,11 +134,17 @@ def plan_flight(store, options: FlightOptions, seed: int, ground: GroundModel) -
 
 def _camera_rotation(yaw: float, pitch_deg: float, jitter: np.ndarray) -> np.ndarray:
     """cam_from_world for a heading `yaw` (rad, jitter included), tilted down by pitch_deg plus
-    jitter[1] and rolled by jitter[2] (rad)."""
+    jitter[1] and rolled by jitter[2] (rad). The image's x axis is the heading's right, also
+    for a nadir camera (pitch 90 deg: the image's top points along the heading)."""
     pitch = math.radians(pitch_deg) + jitter[1]
     fwd = np.array([math.cos(yaw) * math.cos(pitch), math.sin(yaw) * math.cos(pitch),
                     -math.sin(pitch)])
-    return _look_rotation(fwd, jitter[2])
+    x = np.array([math.sin(yaw), -math.cos(yaw), 0.0])
+    y = np.cross(fwd, x)
+    roll = jitter[2]
+    if roll:
+        x, y = math.cos(roll) * x + math.sin(roll) * y, -math.sin(roll) * x + math.cos(roll) * y
+    return np.stack([x, y, fwd])
 
 
 def _flight(options: FlightOptions, centres: np.ndarray, rotations: np.ndarray,

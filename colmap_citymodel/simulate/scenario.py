@@ -58,7 +58,7 @@ class FlightOptions:
     flight_height: float = 12.0  # mean height above ground (m)
     height_amplitude: float = 5.0  # height profile +-
     height_period: float = 110.0
-    pitch_deg: float = 20.0  # camera tilted down
+    pitch_deg: float = 20.0  # camera tilted down (deg; 90: a nadir camera)
     attitude_sigma_deg: tuple[float, float, float] = (2.0, 1.5, 1.0)  # yaw, pitch, roll jitter
     turn_smoothing: float = 5.0  # heading: path tangent averaged over +-this (m)
     start_xy: list[float] | None = None  # local; default: the footprints' lower-left corner
