@@ -255,3 +255,21 @@ def test_gnss_whose_residuals_exceed_its_sigma_is_weighed_by_them():
     better = observed + rng.normal(0.0, 0.5 * sigmas) + [4.0, -3.0, 6.0]
     assert gnss_variance_factor(better, observed, sigmas) == 1.0
     assert gnss_variance_factor(observed[:2] + 9.0, observed[:2], sigmas[:2]) == 1.0
+
+
+def test_without_gnss_the_images_sigmas_carry_the_blocks_rotation():
+    """Without GNSS the shifts' sigmas are still those of the images' centres: a street's walls
+    and roofs hold the block's tilt only so well, which moves images 50 m along the street by
+    more than the tie points' centroid."""
+    rng = np.random.default_rng(5)
+    store = street_store()
+    points, faces = tie_points_on(store, 60, rng)
+    cameras = np.column_stack([np.linspace(-50, 75, 40), np.zeros(40), np.full(40, 20.0)])
+    at_centroid = observability(points, store.normals[faces], faces, None, None, 0.2,
+                                GENERALISATION, tilts=face_tilts(store, faces, GENERALISATION))
+    at_images = observability(points, store.normals[faces], faces, None, None, 0.2,
+                              GENERALISATION, tilts=face_tilts(store, faces, GENERALISATION),
+                              image_positions=cameras)
+    for axis in ("E", "N", "U"):
+        assert at_images[axis]["sigma"] >= at_centroid[axis]["sigma"]
+    assert at_images["U"]["sigma"] > 1.2 * at_centroid["U"]["sigma"]

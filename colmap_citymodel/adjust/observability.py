@@ -259,11 +259,13 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   tilts: dict[int, FaceTilt] | None = None, gnss_bias_sigmas=None,
                   terrain: dict[int, tuple[int, float]] | None = None,
                   model_bias_sigma: float = 0.0, per_point: bool = False,
-                  weights_sigmas: np.ndarray | None = None) -> dict:
+                  weights_sigmas: np.ndarray | None = None,
+                  image_positions: np.ndarray | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both. The stated
-    shifts' `sigma` and `sigma_gnss_with_bias` are those of the images' centres (at the GNSS
-    positions; `image_sigmas`): a short block's uncertain rotation moves its far images.
+    shifts' `sigma` and `sigma_gnss_with_bias` are those of the images' centres (at
+    `image_positions`, default the GNSS positions; `image_sigmas`): a short block's uncertain
+    rotation moves its far images.
     `gnss_free_axes`: the shifts along which a GNSS offset is estimated (GNSS fixes none);
     `tilts`: the tilt errors of the planes (`face_tilts`, by group), else offsets only;
     `gnss_bias_sigmas` ((3,) m): the part of the GNSS error common to the block. `sigma` (what
@@ -297,7 +299,8 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
     s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
     s_stated = s_both
-    at = gnss_positions if has_gnss else None
+    at = image_positions if image_positions is not None else (
+        gnss_positions if has_gnss else None)
     images_both = image_sigmas(_inverse(planes + biased), np.isfinite(s_both), at, centre)
     images_biased = image_sigmas(_inverse(biased), np.isfinite(s_biased), at, centre)
     images_stated = images_both
@@ -461,7 +464,10 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          else 0.0,
                          per_point=from_data
                          and options.adjustment.face_weighting == "per_point",
-                         weights_sigmas=weights_sigmas)
+                         weights_sigmas=weights_sigmas,
+                         image_positions=None if priors is not None else np.array(
+                             [image.projection_center() for image in rec.images.values()
+                              if image.has_pose]).reshape(-1, 3))
 
 
 # -- the faces' fit: generalisation sigma from the data ----------------------------------------
