@@ -292,6 +292,7 @@ class Cofactors:
     seconds: float
     system: tuple | None = None  # (j_c, j_p, b = W^-1 E, w_inv) when asked to keep them
     normal: sp.csr_matrix | None = None  # the reduced normal matrix S, with `system`
+    far_rows: np.ndarray | None = None  # rows of J left out of `normal` (selected: low rank)
 
 
 def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
@@ -348,19 +349,22 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     w_inv = np.linalg.inv(w) if num_points else w
     b = (_bsr_blocks(w_inv) @ e).tocsr() if num_points else sp.csr_matrix((0, nc))
     selected = method == "selected" or (method == "auto" and nc > DENSE_MAX_UNKNOWNS)
-    s = (j_c.T @ j_c) - e.T @ b
     bounds, first = {}, 0
     for g in GROUPS:
         bounds[g] = (first, first + problem.counts[g])
         first += problem.counts[g]
+    n_blocks = len(layout.sizes) - num_points
+    far = _far_rows(j_c, bounds, layout, n_blocks) if selected else np.zeros(0, np.int64)
+    near = np.setdiff1d(np.arange(j_c.shape[0]), far) if len(far) else slice(None)
+    j_near = j_c[near]
+    s = (j_near.T @ j_near) - e.T @ b
     q_cc = None
     if selected:
         from .selected import SelectedInverse
 
-        n_blocks = len(layout.sizes) - num_points
         try:
             q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
-                                   layout.sizes[:n_blocks])
+                                   layout.sizes[:n_blocks], low_rank=j_c[far])
         except np.linalg.LinAlgError:  # singular: a datum defect, for the pseudo-inverse
             if method == "selected" or nc > DENSE_FALLBACK_MAX:
                 raise
@@ -371,8 +375,10 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
                     "%d), border %d, %.1f s", nc, q_cc.num_levels, max(q_cc.sizes, default=0),
                     len(q_cc.levels.border), time.perf_counter() - start)
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
-                                                redundancy, points)
+                                                redundancy, points, far)
     else:
+        if len(far):
+            s = s + j_c[far].T @ j_c[far]
         s = s.toarray()
         q_cc, defect = _inverse(0.5 * (s + s.T))
         q_points, trace = _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy,
@@ -382,7 +388,26 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
                      time.perf_counter() - start,
                      (j_c, j_p, b, w_inv) if keep_system else None,
-                     sp.csr_matrix(s) if keep_system else None)
+                     sp.csr_matrix(s) if keep_system else None,
+                     far if q_cc is not None and not isinstance(q_cc, np.ndarray) else None)
+
+
+def _far_rows(j_c: sp.csr_matrix, bounds: dict, layout: _Layout, n_blocks: int) -> np.ndarray:
+    """Rows of the holds (group "scale") that couple two parameter blocks (baselines between
+    images half the block apart): for the selected inverse, a low-rank term."""
+    lo, hi = bounds["scale"]
+    if hi == lo:
+        return np.zeros(0, np.int64)
+    block_of = np.repeat(np.arange(n_blocks), layout.sizes[:n_blocks])
+    rows = j_c[lo:hi]
+    counts = np.diff(rows.indptr)
+    blocks = block_of[rows.indices]
+    nonempty = counts > 0
+    first = rows.indptr[:-1][nonempty]
+    spans = np.zeros(hi - lo, bool)
+    spans[nonempty] = (np.minimum.reduceat(blocks, first)
+                       != np.maximum.reduceat(blocks, first))
+    return lo + np.flatnonzero(spans)
 
 
 def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
@@ -399,8 +424,10 @@ def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
                          relax_holds=False)
     start = time.perf_counter()
     j_c = cof.system[0]
-    held = j_c[rows]
-    s = cof.normal + held.T @ sp.diags(1.0 / relaxation ** 2 - 1.0) @ held
+    far = np.zeros(0, np.int64) if cof.far_rows is None else cof.far_rows - first
+    near = np.setdiff1d(np.arange(len(relaxation)), far)
+    held = j_c[first + near]
+    s = cof.normal + held.T @ sp.diags(1.0 / relaxation[near] ** 2 - 1.0) @ held
     s = 0.5 * (s + s.T)
     layout = cof.layout
     if isinstance(cof.q_cc, np.ndarray):
@@ -409,7 +436,9 @@ def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
         from .selected import SelectedInverse
 
         n_blocks = len(layout.sizes) - len(layout.point_ids)
-        q_cc, defect = SelectedInverse(s, layout.starts[:n_blocks], layout.sizes[:n_blocks]), 0
+        q_cc, defect = SelectedInverse(
+            s, layout.starts[:n_blocks], layout.sizes[:n_blocks],
+            low_rank=sp.diags(1.0 / relaxation[far]) @ j_c[first + far]), 0
     return Cofactors(layout, q_cc, cof.q_points_conditional, cof.q_points_conditional, {},
                      defect, time.perf_counter() - start, cof.system, None)
 
@@ -445,9 +474,10 @@ def _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
     return q_points, trace
 
 
-def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points
+def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points, far
                           ) -> tuple[np.ndarray, dict[str, float]]:
-    """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors)."""
+    """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors); the
+    `far` rows' traces from its low-rank term."""
     from .point_cofactors import point_terms
 
     num_points = len(w_inv)
@@ -456,8 +486,13 @@ def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, point
         if not redundancy or hi == lo:
             continue
         jc_g, jp_g = j_c[lo:hi], j_p[lo:hi]
+        inside = far[(far >= lo) & (far < hi)] - lo
+        if len(inside):
+            jc_g = j_c[lo + np.setdiff1d(np.arange(hi - lo), inside)]
         u_g = (jc_g.T @ jc_g).tocoo()
         trace[g] = float(np.sum(u_g.data * q_cc.pattern_values(u_g.row, u_g.col)))
+        if len(inside):
+            trace[g] += q_cc.low_rank_trace()
         if jp_g.nnz:
             e_groups[g] = jp_g
             w_groups[g] = _block_diagonal_3x3(jp_g.T @ jp_g, num_points)
