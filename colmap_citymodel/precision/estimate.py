@@ -357,14 +357,17 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     far = _far_rows(j_c, bounds, layout, n_blocks) if selected else np.zeros(0, np.int64)
     near = np.setdiff1d(np.arange(j_c.shape[0]), far) if len(far) else slice(None)
     j_near = j_c[near]
-    s = (j_near.T @ j_near) - e.T @ b
     q_cc = None
     if selected:
+        from .point_cofactors import reduced_normal
         from .selected import SelectedInverse
 
+        s, levels = reduced_normal((j_near.T @ j_near).tocsr(), e, b,
+                                   np.asarray(layout.starts[:n_blocks], np.int64),
+                                   np.asarray(layout.sizes[:n_blocks], np.int64))
         try:
             q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
-                                   layout.sizes[:n_blocks], low_rank=j_c[far])
+                                   layout.sizes[:n_blocks], low_rank=j_c[far], levels=levels)
         except np.linalg.LinAlgError:  # singular: a datum defect, for the pseudo-inverse
             if method == "selected" or nc > DENSE_FALLBACK_MAX:
                 raise
@@ -377,8 +380,7 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
                                                 redundancy, points, far)
     else:
-        if len(far):
-            s = s + j_c[far].T @ j_c[far]
+        s = (j_c.T @ j_c) - e.T @ b
         s = s.toarray()
         q_cc, defect = _inverse(0.5 * (s + s.T))
         q_points, trace = _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy,

@@ -81,12 +81,15 @@ def _bfs_levels(graph: sp.csr_matrix) -> np.ndarray:
     return level
 
 
-def order_levels(s: sp.csr_matrix, starts: np.ndarray, sizes: np.ndarray) -> Levels:
-    """Levels of the parameter blocks (`starts`, `sizes`: their columns in `s`)."""
-    nc = s.shape[0]
+def order_levels(s: sp.csr_matrix | None, starts: np.ndarray, sizes: np.ndarray,
+                 graph: sp.csr_matrix | None = None) -> Levels:
+    """Levels of the parameter blocks (`starts`, `sizes`: their columns in `s`), from the
+    coupling of `s` or a given block coupling `graph` (num_blocks x num_blocks)."""
     num_blocks = len(starts)
-    block_of = np.repeat(np.arange(num_blocks), sizes)
-    graph = _block_graph(s, block_of, num_blocks)
+    nc = int(np.sum(sizes))
+    if graph is None:
+        graph = _block_graph(s, np.repeat(np.arange(num_blocks), sizes), num_blocks)
+    graph = sp.csr_matrix(graph)
     degree = np.diff(graph.indptr)
     is_border = degree > max(BORDER_SHARE * num_blocks, MIN_BORDER_DEGREE)
     inner = np.flatnonzero(~is_border)
@@ -117,16 +120,26 @@ def order_levels(s: sp.csr_matrix, starts: np.ndarray, sizes: np.ndarray) -> Lev
     return Levels(perm.astype(np.int64), bounds, perm[bounds[-1]:], column_level, local)
 
 
+def window_columns(levels: Levels, level: int) -> np.ndarray:
+    """Original columns of levels `level`, `level + 1` and the border, in that order."""
+    b = levels.bounds
+    hi = b[min(level + 2, len(b) - 1)]
+    return np.concatenate([levels.perm[b[level]:hi], levels.border])
+
+
 class SelectedInverse:
     """Q = S^-1 on the coupling pattern of S, and products Q x (see the module docstring)."""
 
-    def __init__(self, s: sp.spmatrix, starts, sizes, low_rank: sp.spmatrix | None = None):
+    def __init__(self, s: sp.spmatrix, starts, sizes, low_rank: sp.spmatrix | None = None,
+                 levels: Levels | None = None):
         """`s` (sparse, symmetric positive definite), the parameter blocks' column `starts` and
         `sizes`; `low_rank`: rows H whose H^T H is added to `s` by Woodbury instead (rows
-        coupling unknowns far apart, which would merge the levels)."""
+        coupling unknowns far apart, which would merge the levels); `levels`: the ordering
+        when known (`order_levels` of the same coupling)."""
         s = sp.csr_matrix(s)
         self.nc = s.shape[0]
-        self.levels = order_levels(s, np.asarray(starts, np.int64), np.asarray(sizes, np.int64))
+        self.levels = levels if levels is not None else order_levels(
+            s, np.asarray(starts, np.int64), np.asarray(sizes, np.int64))
         p = self.levels.perm
         sp_ = s[p][:, p].tocsr()
         bounds = self.levels.bounds
@@ -289,9 +302,7 @@ class SelectedInverse:
     def full_window(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         """(original columns, dense Q on them) for levels `level`, `level + 1` and the
         border: every entry a tie point whose unknowns start at `level` needs."""
-        b = self.levels.bounds
-        hi = b[min(level + 2, self.num_levels)]
-        columns = np.concatenate([self.levels.perm[b[level]:hi], self.levels.border])
+        columns = window_columns(self.levels, level)
         inner = self.window(level)
         out = np.zeros((len(columns), len(columns)))
         out[:len(inner), :len(inner)] = inner
