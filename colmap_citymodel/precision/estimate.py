@@ -581,14 +581,15 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     reduced = g_c - np.asarray((b.T @ g_p).todense())
     d_c = cof.q_cc @ reduced
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
-    # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p
-    cross = reduced.T @ d_c + np.asarray((g_p.T @ w_g).todense())
+    # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p, of the offsets' columns
+    offsets = slice(0, len(faces))
+    cross = (reduced[:, offsets].T @ d_c[:, offsets]
+             + np.asarray((g_p[:, offsets].T @ w_g[:, offsets]).todense()))
     points_cov = _consider_points(cof, b, w_g, d_c, num_points)
     counts = np.bincount(columns, minlength=len(faces))
     metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
     t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
     # The offsets' variance component (the tilt columns take no part in it).
-    cross = cross[:len(faces), :len(faces)]
     m = (np.diag(np.bincount(columns, weights=1.0 / row_sigma ** 2, minlength=len(faces)))
          - 0.5 * (cross + cross.T))
     estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
