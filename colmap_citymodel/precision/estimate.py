@@ -30,6 +30,14 @@ covariance needs; so the numbers reported here come from our own sparse normal m
 angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres
 X0, Y0, Z0 and omega, phi, kappa in the model frame (local = CRS minus origin, same axes).
 
+Above DENSE_MAX_UNKNOWNS camera-side unknowns S is assembled per level of its coupling and Q_cc
+is held only where the covariances need it (precision.selected, precision.point_cofactors:
+selected inversion, exact there), with products Q_cc x for everything else.
+
+The datum (adjust.observability) rests on errors the covariances do not all hold (GNSS's bias,
+the model's common shift): `datum_shift` adds a shift common to the block so that no image
+centre is stated more precise than the datum's sigma of a shift.
+
 Check points (`checkpoint_cofactors`): triangulated with the adjusted poses and, for their
 covariance, eliminated like tie points with their own image observations in the normal system
 (never on planes, never control): marginal, i.e. with the pose, plane and datum uncertainty.
