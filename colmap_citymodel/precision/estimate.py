@@ -587,13 +587,12 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     g_c = np.asarray((j_c.T @ unit).todense())  # (nc, 3F)
     g_p = (j_p.T @ unit).tocsr()  # (3P, 3F)
     reduced = g_c - np.asarray((b.T @ g_p).todense())
-    d_c = cof.q_cc @ reduced
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
     # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p, of the offsets' columns
     offsets = slice(0, len(faces))
-    cross = (reduced[:, offsets].T @ d_c[:, offsets]
+    d_offsets = cof.q_cc @ reduced[:, offsets]
+    cross = (reduced[:, offsets].T @ d_offsets
              + np.asarray((g_p[:, offsets].T @ w_g[:, offsets]).todense()))
-    points_cov = _consider_points(cof, b, w_g, d_c, num_points)
     counts = np.bincount(columns, minlength=len(faces))
     metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
     t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
@@ -603,6 +602,11 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
     if estimate or sigma is None:
         sigma = estimated
+    if sigma > 0:  # the responses to all consider parameters (times sigma^2 below)
+        d_c = np.hstack([d_offsets, cof.q_cc @ reduced[:, len(faces):]])
+        points_cov = _consider_points(cof, b, w_g, d_c, num_points)
+    else:  # sigma 0: the consider part is zero
+        d_c, points_cov = np.zeros_like(reduced), np.zeros((num_points, 3, 3))
     mean_offsets = np.bincount(columns, weights=metres, minlength=len(faces))
     return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
                                  estimated, counts, mean_offsets / np.maximum(counts, 1))
