@@ -13,6 +13,8 @@ Two weightings:
 - `per point`: every assigned point with the same sigma (sigma_dTP), as refine's f_dTP;
 - `per face`: each face's points share one face weight (the face's plane error is one error,
   not one per point), so a face with thousands of points counts as much as one with twenty.
+Each also with every point weighted by its own precision along its face's normal (`precision`,
+see its table).
 
 The similarity has priors at the truth: translation with the sigma a GNSS-only block has
 (the stated GNSS sigma / sqrt(images); unbiased, unlike the simulated GNSS), rotation 1 deg, scale
@@ -94,6 +96,50 @@ def true_block(workspace: Path):
     return points + origin, ids, centres + origin
 
 
+#: The image sigma (px) of the tie points' observations in `point_covariances`.
+SIGMA_PX = 1.0
+
+
+def point_covariances(workspace: Path, ids: np.ndarray, sigma_px: float = SIGMA_PX
+                      ) -> np.ndarray:
+    """(N, 3, 3) covariance (m^2) of each true tie point `ids` from its track's geometry: the
+    inverse of sum_i J_i^T J_i / sigma_px^2 over the truth's images that observe it, J_i the
+    2x3 derivative of the pinhole projection (the camera's focal lengths, distortion left out)
+    with respect to the point. Nearly parallel rays leave it long along them."""
+    truth = pycolmap.Reconstruction(str(workspace / "truth"))
+    rows, images = [], []
+    for row, point_id in enumerate(ids.tolist()):
+        for element in truth.points3D[point_id].track.elements:
+            rows.append(row)
+            images.append(element.image_id)
+    rows, images = np.array(rows), np.array(images)
+    order = sorted(truth.images)
+    slot = {image_id: k for k, image_id in enumerate(order)}
+    rotation = np.array([truth.images[i].cam_from_world().rotation.matrix() for i in order])
+    translation = np.array([truth.images[i].cam_from_world().translation for i in order])
+    focal = np.array([np.diag(truth.cameras[truth.images[i].camera_id].calibration_matrix())[:2]
+                      for i in order])
+    k = np.array([slot[i] for i in images.tolist()])
+    xyz = np.array([truth.points3D[i].xyz for i in ids.tolist()])[rows]
+    camera = np.einsum("kij,kj->ki", rotation[k], xyz) + translation[k]
+    z = camera[:, 2]
+    jac = np.zeros((len(k), 2, 3))
+    for axis in (0, 1):
+        jac[:, axis, axis] = focal[k, axis] / z
+        jac[:, axis, 2] = -focal[k, axis] * camera[:, axis] / z ** 2
+    jac = np.einsum("kab,kbc->kac", jac, rotation[k]) / sigma_px
+    information = np.zeros((len(ids), 3, 3))
+    np.add.at(information, rows, np.einsum("kai,kaj->kij", jac, jac))
+    return np.linalg.inv(information)
+
+
+def precision_weights(covariances: np.ndarray, normals: np.ndarray) -> np.ndarray:
+    """Each point's weight 1 / (sigma_dTP^2 + s_n^2), s_n its position sigma along its face's
+    normal (`covariances` projected on `normals`)."""
+    along = np.einsum("ki,kij,kj->k", normals, covariances, normals)
+    return 1.0 / (SIGMA_DTP ** 2 + along)
+
+
 def fit_similarity(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
                    weights: np.ndarray, centre: np.ndarray,
                    prior_sigmas: np.ndarray) -> np.ndarray:
@@ -126,11 +172,16 @@ def camera_error(points: np.ndarray, normals: np.ndarray, offsets: np.ndarray,
 #: The assignment at the truth: every point to its nearest visible face, also where a parallel
 #: surface is near (at the true pose the nearer one is right): the floor keeps all information.
 AT_TRUTH = AssignmentOptions(ambiguity_margin=0.0)
+#: A tie point whose sigma along its face's normal exceeds this (m) counts as imprecise in the
+#: tables: it holds the block less than a tenth as much as an exact one.
+IMPRECISE_SIGMA = 3 * SIGMA_DTP
 
 
-def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray
-          ) -> dict:
-    """The floor of one model variant; `block` is `true_block(workspace)`."""
+def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray,
+          covariances: np.ndarray | None = None) -> dict:
+    """The floor of one model variant; `block` is `true_block(workspace)`. With `covariances`
+    (`point_covariances` of the block's points) also the `precision` weightings: each point
+    weighted by `precision_weights`, every point alike or each face's points sharing it."""
     store = read_city_model(workspace / "models" / f"{variant}.gml")
     points_crs, ids, centres_crs = block
     points = store.to_local(points_crs)
@@ -144,8 +195,14 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
                                    np.full(3, ROTATION_SIGMA), [SCALE_SIGMA]])
     counts = np.bincount(faces, minlength=store.num_faces)
     out = {"points": int(mask.sum()), "faces": int(len(np.unique(faces)))}
-    weightings = (("per point", np.full(mask.sum(), 1.0 / SIGMA_DTP ** 2)),
-                  ("per face", 1.0 / SIGMA_DTP ** 2 / counts[faces]))
+    weightings = [("per point", np.full(mask.sum(), 1.0 / SIGMA_DTP ** 2)),
+                  ("per face", 1.0 / SIGMA_DTP ** 2 / counts[faces])]
+    if covariances is not None:
+        precise = precision_weights(covariances[mask], normals)
+        weightings += [("precision per point", precise),
+                       ("precision per face", precise / counts[faces])]
+        out["imprecise_points"] = int(np.sum(1.0 / precise - SIGMA_DTP ** 2
+                                             > IMPRECISE_SIGMA ** 2))
     for (name, weights), (suffix, priors) in itertools.product(
             weightings, (("", prior_sigmas), (", planes alone", LOOSE_PRIORS))):
         name += suffix
@@ -265,16 +322,53 @@ def reassigned_from_truth(workspace: Path, block, threshold: float, gnss_sigma: 
 SWEEP_THRESHOLDS = (0.45, 0.6, 0.8, 1.0)
 
 
-def threshold_sweep(workspace: Path, block, gnss_sigma: np.ndarray) -> dict:
+#: The window (m) at the truth that takes a face's whole visible part: refine's final 0.45 m
+#: plus the given model's 0.5 deg tilt per face acting at the farthest visible point of a face
+#: from its centroid in these blocks (~40 m: 0.35 m).
+WIDE_WINDOW_M = 0.8
+
+
+def compact(fit: dict) -> dict:
+    """A `floor` entry as camera-centre RMS per axis and 3D (m) and the fit's scale (ppm)."""
+    return {"E": fit["rms_x"], "N": fit["rms_y"], "U": fit["rms_z"], "3d": fit["rms_3d"],
+            "scale_ppm": fit["scale_ppm"]}
+
+
+def threshold_sweep(workspace: Path, block, gnss_sigma: np.ndarray,
+                    covariances: np.ndarray) -> dict:
     """The planes-alone floors of the given model with the truth assigned at each of
-    SWEEP_THRESHOLDS: {threshold: {"per point": rms_3d, "per face": rms_3d, "points": n}}."""
+    SWEEP_THRESHOLDS: {threshold: {"per point": rms_3d, "per face": rms_3d, "points": n,
+    "imprecise_points": n, "precision per point" / "precision per face": `compact`}}."""
     out = {}
     for threshold in SWEEP_THRESHOLDS:
-        f = floor(workspace, "original", block, threshold, gnss_sigma)
-        out[f"{threshold:g}"] = {"per point": f["per point, planes alone"]["rms_3d"],
-                                 "per face": f["per face, planes alone"]["rms_3d"],
-                                 "points": f["points"]}
+        f = floor(workspace, "original", block, threshold, gnss_sigma, covariances)
+        out[f"{threshold:g}"] = {
+            "per point": f["per point, planes alone"]["rms_3d"],
+            "per face": f["per face, planes alone"]["rms_3d"], "points": f["points"],
+            "imprecise_points": f["imprecise_points"],
+            **{k: compact(f[f"{k}, planes alone"])
+               for k in ("precision per point", "precision per face")}}
     return out
+
+
+def precision_table(rows: dict) -> list[str]:
+    """The planes-alone floors with each point weighted by its own precision, per case and
+    window at the truth (`threshold_sweep`'s rows)."""
+    keys = [f"{t:g}" for t in SWEEP_THRESHOLDS]
+    lines = ["| case | window (m) | points | imprecise | every point alike: 3D "
+             "| precision per point: E | N | U | 3D | scale | precision per face: E | N | U "
+             "| 3D | scale |", "|---" * 15 + "|"]
+    for case, found in rows.items():
+        for key in keys:
+            row = found[key]
+            cells = [f"{case}", key + (" (wide)" if float(key) == WIDE_WINDOW_M else ""),
+                     str(row["points"]), str(row["imprecise_points"]), f"{row['per point']:.3f}"]
+            for weighting in ("precision per point", "precision per face"):
+                fit = row[weighting]
+                cells += [f"{fit[a]:.3f}" for a in ("E", "N", "U", "3d")]
+                cells.append(f"{fit['scale_ppm'] / 1e4:+.2f} %")
+            lines.append("| " + " | ".join(cells) + " |")
+    return lines
 
 
 def threshold_table(rows: dict) -> list[str]:
@@ -557,13 +651,16 @@ def moved_truth_table(preferences: dict, blocks: dict, stores: dict, threshold: 
     return lines
 
 
-def comparison(rows: dict, robustness: dict) -> list[str]:
+def comparison(rows: dict, robustness: dict, sweeps: dict) -> list[str]:
     """Per case and direction with the given model: refine, GNSS only, the target and the
-    floor; a target below the floor cannot be met by a fit that takes these planes as given."""
+    floor; a target below the floor cannot be met by a fit that takes these planes as given.
+    Last the planes-alone floors with each point weighted by its own precision, at the
+    floor's window and at WIDE_WINDOW_M (`sweeps`: `threshold_sweep` per case)."""
     lines = ["| case | axis | fixed by | refine | GNSS only | target | floor per point "
              "| floor per face | target below both floors | per point, planes alone "
-             "| per face, planes alone |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| per face, planes alone | precision per point, planes alone | precision per "
+             f"face, planes alone | precision per point, {WIDE_WINDOW_M:g} m | precision per "
+             f"face, {WIDE_WINDOW_M:g} m |", "|---" * 15 + "|"]
     for case, variants in rows.items():
         run = robustness.get(case, {})
         refined = (run.get("refine") or {}).get("cameras")
@@ -582,11 +679,172 @@ def comparison(rows: dict, robustness: dict) -> list[str]:
             else:  # left to GNSS: no worse than GNSS only
                 target, below = f"<= {gnss_only[key]:.3f}", "-"
             loose = [floor_.get(f"{w}, planes alone", {}).get(key, float("nan"))
-                     for w in ("per point", "per face")]
+                     for w in ("per point", "per face", "precision per point",
+                               "precision per face")]
+            wide = sweeps.get(case, {}).get(f"{WIDE_WINDOW_M:g}", {})
+            loose += [wide.get(w, {}).get(axis, float("nan"))
+                      for w in ("precision per point", "precision per face")]
             lines.append(f"| {case} | {axis} | {source} | {refined[key]:.3f} | "
                          f"{gnss_only[key]:.3f} | {target} | {point:.3f} | {face:.3f} | {below} "
-                         f"| {loose[0]:.3f} | {loose[1]:.3f} |")
+                         "| " + " | ".join(f"{v:.3f}" for v in loose) + " |")
     return lines
+
+
+@dataclasses.dataclass
+class Runs:
+    """What `main` measures, per case: the true block, the floors per model variant, the
+    threshold sweep, the reassigning floors and (unless --no_refine) refine against the truth
+    with the case's given model."""
+    blocks: dict = dataclasses.field(default_factory=dict)
+    rows: dict = dataclasses.field(default_factory=dict)
+    sweeps: dict = dataclasses.field(default_factory=dict)
+    reassigned: dict = dataclasses.field(default_factory=dict)
+    preferences: dict = dataclasses.field(default_factory=dict)
+    stores: dict = dataclasses.field(default_factory=dict)
+
+
+FLOOR_TABLE = ["| case | model | points | faces | per point: X | Y | Z | 3D | per face: X | Y | Z "
+               "| 3D | planes alone, per point: 3D | per face: 3D | precision, planes alone, "
+               "per point: 3D | per face: 3D |", "|---" * 16 + "|"]
+
+
+def floor_row(case: str, variant: str, f: dict) -> str:
+    """One row of FLOOR_TABLE from a `floor` result."""
+    p, q = f["per point"], f["per face"]
+    loose = [f[f"{w}, planes alone"]["rms_3d"] for w in
+             ("per point", "per face", "precision per point", "precision per face")]
+    return (f"| {case} | {variant} | {f['points']} | {f['faces']} | "
+            f"{p['rms_x']:.3f} | {p['rms_y']:.3f} | {p['rms_z']:.3f} | {p['rms_3d']:.3f} | "
+            f"{q['rms_x']:.3f} | {q['rms_y']:.3f} | {q['rms_z']:.3f} | {q['rms_3d']:.3f} | "
+            + " | ".join(f"{v:.3f}" for v in loose) + " |")
+
+
+def run_case(case: str, args: argparse.Namespace, runs: Runs, table: list[str]) -> None:
+    """Everything `main` measures for one case, into `runs` (rows into `table`), printed as it
+    comes."""
+    workspace, gnss_sigma = ROBUST / case, np.array(args.gnss_sigma)
+    block = runs.blocks[case] = true_block(workspace)
+    covariances = point_covariances(workspace, block[1])
+    for variant in args.variants:
+        f = floor(workspace, variant, block, args.threshold, gnss_sigma, covariances)
+        runs.rows.setdefault(case, {})[variant] = f
+        table.append(floor_row(case, variant, f))
+        print(table[-1], flush=True)
+    runs.sweeps[case] = threshold_sweep(workspace, block, gnss_sigma, covariances)
+    print("\n".join(threshold_table({case: runs.sweeps[case]})[2:]), flush=True)
+    print("\n".join(precision_table({case: runs.sweeps[case]})[2:]), flush=True)
+    runs.reassigned[case] = reassigned_from_truth(workspace, block, args.threshold, gnss_sigma)
+    print("\n".join(reassigned_table({case: runs.reassigned[case]})[2:]), flush=True)
+    if not args.no_refine:
+        workspace_inputs = inputs(workspace)
+        runs.stores[case] = workspace_inputs[1]
+        runs.preferences[case] = refine_against_truth(workspace, workspace_inputs, block,
+                                                      args.threshold, gnss_sigma)
+        print("\n".join(preference_table({case: runs.preferences[case]})[2:]), flush=True)
+
+
+def floor_lines(args: argparse.Namespace, runs: Runs, table: list[str], robustness: dict,
+                commit: str) -> list[str]:
+    """model_floor.md up to the reassigning floors: the module text, the floors per model
+    variant, beside refine and the target, by threshold and each point by its precision."""
+    return [
+        "# The floor a model's errors set: the true block fitted onto the model's planes", "",
+        "Produced by", "", "    .venv/bin/python benchmarks/model_floor.py", "",
+        __doc__.split("\n\n", 1)[1].split("\nWrites")[0].strip(), "",
+        f"Robustness workspaces (workspaces/generated/robust), code {commit}; true tie "
+        f"points assigned directly at {args.threshold} m. Camera-centre RMS (m) after the "
+        "fit, per axis and 3D:", "", *table, "",
+        "With the given (`original`) model, beside refine's own camera-centre RMS and the "
+        "GNSS-only adjustment of the same block (the `robustness` section of "
+        "scenarios.json), the per-direction target of a direction the planes fix (<= 0.25 m "
+        "and >= 10x better than GNSS only); last the planes-alone floors with each point "
+        f"weighted by its own precision (below) at {args.threshold} m and at "
+        f"{WIDE_WINDOW_M:g} m:", "", *comparison(runs.rows, robustness, runs.sweeps), "",
+        "The planes-alone floors of the given model with the truth assigned at other "
+        "thresholds (m): where a face's model plane stands further off its surface than "
+        "the threshold, the assignment at the truth keeps only the points that happen to "
+        "lie near the plane, or none, and so leaves out the faces that would pull the "
+        "block most; at 1 m every face keeps all its points. A method away from the "
+        "truth cannot copy that cut:", "", *threshold_table(runs.sweeps), "",
+        PRECISION_TEXT.format(sigma_px=SIGMA_PX, sigma_dtp=SIGMA_DTP,
+                              imprecise=IMPRECISE_SIGMA, wide=WIDE_WINDOW_M), "",
+        *precision_table(runs.sweeps), ""]
+
+
+#: What the `precision` floors mean (model_floor.md).
+PRECISION_TEXT = (
+    "Each tie point weighted by its own precision. The floors above take every true tie point "
+    "as exactly known. In the adjustment a tie point is known only as well as its rays fix it: "
+    "one seen from far away along nearly parallel rays is moved along them onto its plane and "
+    "holds the block hardly at all. The `precision` floors weight each point's distance to its "
+    "plane by 1 / (sigma_dTP^2 + s_n^2), sigma_dTP = {sigma_dtp:g} m, s_n the point's own "
+    "position sigma along its face's normal from its track at the truth: the 3x3 covariance "
+    "(sum_i J_i^T J_i / sigma_px^2)^-1 of the point from the rays of the images that observe "
+    "it (sigma_px = {sigma_px:g} px, J_i the projection's derivative), projected on the "
+    "normal. `per face` divides these weights by the face's number of points, as above. "
+    "`imprecise`: points with s_n above {imprecise:g} m (less than a tenth of an exact point's "
+    "weight). The window at the truth matters as much: refine's final one cuts a face whose "
+    "model plane is tilted (0.5 deg in these models) where its visible part reaches far from "
+    "the face's centroid, where refine, away from the truth, takes it whole; {wide:g} m (wide) "
+    "adds the tilt over ~40 m, the farthest a visible point lies from its face's centroid in "
+    "these blocks. Camera-centre RMS (m) after the fit with the planes-alone priors, per axis "
+    "and 3D, and the fit's scale change; every point alike: the same fit unweighted, as in the "
+    "table above:")
+
+
+def refine_lines(args: argparse.Namespace, runs: Runs) -> list[str]:
+    """model_floor.md's tables of refine against the truth (empty with --no_refine)."""
+    if not runs.preferences:
+        return []
+    return [
+        "Which pose of the block the given model prefers: the true block at its true "
+        "pose and at the pose refine gave it (fit RMS: what is left of the similarity "
+        "between the true cameras and refine's, its bending), and refine's own tie "
+        f"points; tie points assigned directly at {args.threshold} m (refine's "
+        "cameras: its camera-centre RMS 3D against the truth in this run):", "",
+        *preference_table(runs.preferences), "",
+        f"The true block moved by {MOVE_M} m along each axis, scored the same way "
+        "(near score / face score; better: higher near score and lower face score "
+        "than the true block's):", "",
+        *moved_truth_table(runs.preferences, runs.blocks, runs.stores, args.threshold), "",
+        "Refine started at the truth: the true projection centres as GNSS (sigma "
+        f"{'/'.join(f'{v:g}' for v in args.gnss_sigma)} m, no bias), against refine "
+        "with the workspace's GNSS (3-5 m bias); camera-centre RMS against the truth "
+        "(m) of refine's own block (also where its verdict handed back the GNSS-only "
+        "one), and the two results' cameras apart:", "",
+        *started_at_truth_table(runs.preferences), "",
+        "Refine's last assignment judged at the truth: the SfM block moved onto the "
+        "true cameras by a similarity, its tie points then fitted onto the planes "
+        "they were assigned to (every point alike, the planes alone, as `per point, "
+        "planes alone` above), against the same fit with the points assigned afresh "
+        "at the truth; and the faces of refine's assignment whose points lie more "
+        f"than {OFF_FACE_M} m from the plane on average at the truth (at least "
+        f"{OFF_FACE_POINTS} points): where the first fit ends far from the second, "
+        "refine's assignment carries the error, and these faces hold points of "
+        "surfaces other than their own:", "",
+        *assignment_table(runs.preferences, args.threshold), ""]
+
+
+def reassigned_lines(runs: Runs) -> list[str]:
+    """model_floor.md's table of the reassigning floors."""
+    return [
+        "The floor of a method that assigns again wherever the block stands: the true "
+        "block of the given model, assigned and fitted (with the priors at the truth of "
+        f"the first table) {ICP_ROUNDS} times from its true pose, as refine's loop does; "
+        "camera-centre RMS 3D (m) where it settles. `at the plane`: refine's window "
+        "(|distance| below the threshold); `centred`: the window centred on the median "
+        f"offset of the points within {CENTRE_BAND} m of each face, so that a face's points "
+        "are taken from both sides of where they lie and the assignment does not follow "
+        "the block. `face units`: each face's offset and tilt as random effects (prior "
+        f"{SIGMA_FACE_UNIT} m at its edges) estimated with the similarity, the window "
+        "centred on where the last fit put each face's surface, the scale held to 1 % "
+        "(as the other columns) or 0.1 %. In brackets the fit's scale change (ppm): "
+        "with the faces free to move and tilt, shrinking the block shortens every "
+        "point's lever about its face and lowers the residuals of detail the model "
+        "does not hold, so the scale must come from elsewhere. Where these lie above "
+        "the floors of the first table, the truncation of a face's points at the truth "
+        "(which a method away from the truth cannot copy) made the floor:", "",
+        *reassigned_table(runs.reassigned), ""]
 
 
 def main() -> None:
@@ -598,135 +856,69 @@ def main() -> None:
     parser.add_argument("--no_refine", action="store_true",
                         help="leave out the fit of refine's block against the true one")
     args = parser.parse_args()
-    preferences, blocks, stores = {}, {}, {}
-    rows, reassigned, sweeps = {}, {}, {}
-    table = ["| case | model | points | faces | per point: X | Y | Z | 3D | per face: X | Y | Z "
-             "| 3D | planes alone, per point: 3D | per face: 3D |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    runs, table = Runs(), list(FLOOR_TABLE)
     print("\n".join(table))
     for case in args.cases:
-        block = blocks[case] = true_block(ROBUST / case)
-        for variant in args.variants:
-            f = floor(ROBUST / case, variant, block, args.threshold, np.array(args.gnss_sigma))
-            rows.setdefault(case, {})[variant] = f
-            p, q = f["per point"], f["per face"]
-            table.append(
-                f"| {case} | {variant} | {f['points']} | {f['faces']} | "
-                f"{p['rms_x']:.3f} | {p['rms_y']:.3f} | {p['rms_z']:.3f} | {p['rms_3d']:.3f} | "
-                f"{q['rms_x']:.3f} | {q['rms_y']:.3f} | {q['rms_z']:.3f} | {q['rms_3d']:.3f} | "
-                f"{f['per point, planes alone']['rms_3d']:.3f} | "
-                f"{f['per face, planes alone']['rms_3d']:.3f} |")
-            print(table[-1], flush=True)
-        sweeps[case] = threshold_sweep(ROBUST / case, block, np.array(args.gnss_sigma))
-        print("\n".join(threshold_table({case: sweeps[case]})[2:]), flush=True)
-        reassigned[case] = reassigned_from_truth(ROBUST / case, block, args.threshold,
-                                                 np.array(args.gnss_sigma))
-        print("\n".join(reassigned_table({case: reassigned[case]})[2:]), flush=True)
-        if not args.no_refine:
-            workspace_inputs = inputs(ROBUST / case)
-            stores[case] = workspace_inputs[1]
-            preferences[case] = refine_against_truth(ROBUST / case, workspace_inputs, block,
-                                                     args.threshold, np.array(args.gnss_sigma))
-            print("\n".join(preference_table({case: preferences[case]})[2:]), flush=True)
-    everything = update_json(RESULTS / "scenarios.json", ["model_floor"], rows)
-    if preferences:
-        update_json(RESULTS / "scenarios.json", ["model_preference"], preferences)
+        run_case(case, args, runs, table)
+    everything = update_json(RESULTS / "scenarios.json", ["model_floor"], runs.rows)
+    if runs.preferences:
+        update_json(RESULTS / "scenarios.json", ["model_preference"], runs.preferences)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
-    lines = ["# The floor a model's errors set: the true block fitted onto the model's planes", "",
-             "Produced by", "", "    .venv/bin/python benchmarks/model_floor.py", "",
-             __doc__.split("\n\n", 1)[1].split("\nWrites")[0].strip(), "",
-             f"Robustness workspaces (workspaces/generated/robust), code {commit}; true tie "
-             f"points assigned directly at {args.threshold} m. Camera-centre RMS (m) after the "
-             "fit, per axis and 3D:", "", table[0], table[1], *table[2:], "",
-             "With the given (`original`) model, beside refine's own camera-centre RMS and the "
-             "GNSS-only adjustment of the same block (the `robustness` section of "
-             "scenarios.json), the per-direction target of a direction the planes fix (<= 0.25 m "
-             "and >= 10x better than GNSS only):", "",
-             *comparison(rows, everything.get("robustness", {})), "",
-             "The planes-alone floors of the given model with the truth assigned at other "
-             "thresholds (m): where a face's model plane stands further off its surface than "
-             "the threshold, the assignment at the truth keeps only the points that happen to "
-             "lie near the plane, or none, and so leaves out the faces that would pull the "
-             "block most; at 1 m every face keeps all its points. A method away from the "
-             "truth cannot copy that cut:", "", *threshold_table(sweeps), "",
-             "The floor of a method that assigns again wherever the block stands: the true "
-             "block of the given model, assigned and fitted (with the priors at the truth of "
-             f"the first table) {ICP_ROUNDS} times from its true pose, as refine's loop does; "
-             "camera-centre RMS 3D (m) where it settles. `at the plane`: refine's window "
-             "(|distance| below the threshold); `centred`: the window centred on the median "
-             f"offset of the points within {CENTRE_BAND} m of each face, so that a face's points "
-             "are taken from both sides of where they lie and the assignment does not follow "
-             "the block. `face units`: each face's offset and tilt as random effects (prior "
-             f"{SIGMA_FACE_UNIT} m at its edges) estimated with the similarity, the window "
-             "centred on where the last fit put each face's surface, the scale held to 1 % "
-             "(as the other columns) or 0.1 %. In brackets the fit's scale change (ppm): "
-             "with the faces free to move and tilt, shrinking the block shortens every "
-             "point's lever about its face and lowers the residuals of detail the model "
-             "does not hold, so the scale must come from elsewhere. Where these lie above "
-             "the floors of the first table, the truncation of a face's points at the truth "
-             "(which a method away from the truth cannot copy) made the floor:", "",
-             *reassigned_table(reassigned), ""]
-    if preferences:
-        lines += ["Which pose of the block the given model prefers: the true block at its true "
-                  "pose and at the pose refine gave it (fit RMS: what is left of the similarity "
-                  "between the true cameras and refine's, its bending), and refine's own tie "
-                  f"points; tie points assigned directly at {args.threshold} m (refine's "
-                  "cameras: its camera-centre RMS 3D against the truth in this run):", "",
-                  *preference_table(preferences), "",
-                  f"The true block moved by {MOVE_M} m along each axis, scored the same way "
-                  "(near score / face score; better: higher near score and lower face score "
-                  "than the true block's):", "", *moved_truth_table(preferences, blocks,
-                                                                    stores, args.threshold),
-                  "",
-                  "Refine started at the truth: the true projection centres as GNSS (sigma "
-                  f"{'/'.join(f'{v:g}' for v in args.gnss_sigma)} m, no bias), against refine "
-                  "with the workspace's GNSS (3-5 m bias); camera-centre RMS against the truth "
-                  "(m) of refine's own block (also where its verdict handed back the GNSS-only "
-                  "one), and the two results' cameras apart:", "",
-                  *started_at_truth_table(preferences), "",
-                  "Refine's last assignment judged at the truth: the SfM block moved onto the "
-                  "true cameras by a similarity, its tie points then fitted onto the planes "
-                  "they were assigned to (every point alike, the planes alone, as `per point, "
-                  "planes alone` above), against the same fit with the points assigned afresh "
-                  "at the truth; and the faces of refine's assignment whose points lie more "
-                  f"than {OFF_FACE_M} m from the plane on average at the truth (at least "
-                  f"{OFF_FACE_POINTS} points): where the first fit ends far from the second, "
-                  "refine's assignment carries the error, and these faces hold points of "
-                  "surfaces other than their own:", "",
-                  *assignment_table(preferences, args.threshold), ""]
+    robustness = everything.get("robustness", {})
+    lines = (floor_lines(args, runs, table, robustness, commit) + reassigned_lines(runs)
+             + refine_lines(args, runs))
     (RESULTS / "model_floor.md").write_text("\n".join(lines))
-    floors = floor_summary(rows, everything.get("robustness", {}))
-    for case, found in sweeps.items():
+    floors = floor_summary(runs.rows, robustness, runs.sweeps)
+    for case, found in runs.sweeps.items():
         if case in floors:
             floors[case]["floors_by_threshold"] = found
-    for case, found in reassigned.items():
+    for case, found in runs.reassigned.items():
         if case in floors:
             floors[case]["reassigned_from_truth_3d"] = {k: v["rms_3d"] for k, v in found.items()}
     (RESULTS / "model_floor.json").write_text(json.dumps(floors, indent=1) + "\n")
 
 
-def floor_summary(rows: dict, robustness: dict, variant: str = "original") -> dict:
+def floor_summary(rows: dict, robustness: dict, sweeps: dict, variant: str = "original"
+                  ) -> dict:
     """model_floor.json: per case, the planes-alone floors of the given model (every point
-    alike, each face once; camera-centre RMS 3D and per axis) and refine's own result with its
+    alike, each face once, each point weighted by its own precision at the floor's window and
+    at WIDE_WINDOW_M; camera-centre RMS 3D and per axis) and refine's own result with its
     defaults on that model (the `robustness` section of scenarios.json, None if not run)."""
     out = {}
     for case, variants in rows.items():
         if variant not in variants:
             continue
         f = variants[variant]
-        point, face = f["per point, planes alone"], f["per face, planes alone"]
+        fits = [compact(f[f"{w}, planes alone"]) for w in
+                ("per point", "per face", "precision per point", "precision per face")]
+        wide = sweeps[case][f"{WIDE_WINDOW_M:g}"]
+        fits += [wide["precision per point"], wide["precision per face"]]
         cameras = (robustness.get(case, {}).get("refine") or {}).get("cameras") or {}
+        refined = {"E": cameras.get("rms_x"), "N": cameras.get("rms_y"),
+                   "U": cameras.get("rms_z")}
         out[case] = {
-            "floor_planes_per_point_3d": point["rms_3d"],
-            "floor_planes_per_face_3d": face["rms_3d"],
+            "floor_planes_per_point_3d": fits[0]["3d"],
+            "floor_planes_per_face_3d": fits[1]["3d"],
+            "floor_precision_per_point_3d": fits[2]["3d"],
+            "floor_precision_per_face_3d": fits[3]["3d"],
+            "floor_precision_wide_per_point_3d": fits[4]["3d"],
+            "floor_precision_wide_per_face_3d": fits[5]["3d"],
             "refine_3d": cameras.get("rms_3d"),
-            "per_axis": {"E": [point["rms_x"], face["rms_x"], cameras.get("rms_x")],
-                         "N": [point["rms_y"], face["rms_y"], cameras.get("rms_y")],
-                         "U": [point["rms_z"], face["rms_z"], cameras.get("rms_z")],
+            # Existing positions first: floor per point, per face, refine; then the rest.
+            "per_axis": {**{a: [fits[0][a], fits[1][a], refined[a], *(x[a] for x in fits[2:])]
+                            for a in "ENU"},
                          "columns": ["floor_planes_per_point", "floor_planes_per_face",
-                                     "refine"]},
-            "refine_code": robustness.get(case, {}).get("code"),
+                                     "refine", "floor_precision_per_point",
+                                     "floor_precision_per_face",
+                                     "floor_precision_wide_per_point",
+                                     "floor_precision_wide_per_face"]},
+            "precision_scale_ppm": {"per_point": fits[2]["scale_ppm"],
+                                    "per_face": fits[3]["scale_ppm"],
+                                    "wide_per_point": fits[4]["scale_ppm"],
+                                    "wide_per_face": fits[5]["scale_ppm"]},
+            "imprecise_points": f["imprecise_points"], "wide_window_m": WIDE_WINDOW_M,
+            "sigma_px": SIGMA_PX, "refine_code": robustness.get(case, {}).get("code"),
         }
     return out
 

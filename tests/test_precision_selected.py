@@ -63,6 +63,29 @@ def test_selected_inverse_equals_the_dense_inverse_on_its_pattern(many_levels):
         q.pattern_values(np.array([0]), np.array([s.shape[0] - 3]))
 
 
+def test_low_rank_rows_coupling_far_blocks(many_levels):
+    """Rows tying the first block to the last (baseline holds) enter by Woodbury: the levels
+    stay those of the rest, the inverse is that of the whole."""
+    s, starts, sizes = _chain_matrix()
+    n = s.shape[0]
+    rng = np.random.default_rng(2)
+    h = np.zeros((3, n))
+    h[:, :3] = rng.normal(size=(3, 3))
+    h[:, n - 8:n - 5] = rng.normal(size=(3, 3))
+    q = SelectedInverse(s, starts, sizes, low_rank=sp.csr_matrix(h))
+    assert q.num_levels > 3
+    dense = np.linalg.inv(s.toarray() + h.T @ h)
+    rows, cols = s.nonzero()
+    np.testing.assert_allclose(q.pattern_values(rows, cols), dense[rows, cols],
+                               atol=1e-9 * np.abs(dense).max())
+    block = np.arange(n - 8, n - 5)
+    np.testing.assert_allclose(q[block, block], dense[np.ix_(block, block)],
+                               atol=1e-9 * np.abs(dense).max())
+    rhs = rng.normal(size=n)
+    np.testing.assert_allclose(q @ rhs, dense @ rhs, atol=1e-8 * np.abs(dense @ rhs).max())
+    assert q.low_rank_trace() == pytest.approx(np.trace(h @ dense @ h.T), rel=1e-8)
+
+
 def test_singular_matrix_raises():
     s, starts, sizes = _chain_matrix(num_blocks=6)
     s = s.tolil()
@@ -162,6 +185,13 @@ def test_solve_weighted_cofactors_equal_a_new_system_at_the_solve_weights(many_l
 
     problem = _tiny(holds=holds)
     assert len(problem.hold_relaxation) == 5
+    dense = cofactors(problem, method="dense")
+    ours = cofactors(problem, method="selected")
+    assert len(ours.far_rows) == 2  # the two baselines, as a low-rank term
+    for g, r in dense.redundancy_by_group.items():
+        assert ours.redundancy_by_group[g] == pytest.approx(r, abs=1e-6)
+    np.testing.assert_allclose(ours.q_points, dense.q_points, rtol=1e-8,
+                               atol=1e-10 * np.abs(dense.q_points).max())
     for method in ("dense", "selected"):
         relaxed = cofactors(problem, keep_system=True, method=method, redundancy=False)
         fresh = cofactors(problem, keep_system=True, method=method, redundancy=False,

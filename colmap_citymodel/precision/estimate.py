@@ -30,6 +30,14 @@ covariance needs; so the numbers reported here come from our own sparse normal m
 angles as in Ceres' EigenQuaternionManifold), translation] propagated to projection centres
 X0, Y0, Z0 and omega, phi, kappa in the model frame (local = CRS minus origin, same axes).
 
+Above DENSE_MAX_UNKNOWNS camera-side unknowns S is assembled per level of its coupling and Q_cc
+is held only where the covariances need it (precision.selected, precision.point_cofactors:
+selected inversion, exact there), with products Q_cc x for everything else.
+
+The datum (adjust.observability) rests on errors the covariances do not all hold (GNSS's bias,
+the model's common shift): `datum_shift` adds a shift common to the block so that no image
+centre is stated more precise than the datum's sigma of a shift.
+
 Check points (`checkpoint_cofactors`): triangulated with the adjusted poses and, for their
 covariance, eliminated like tie points with their own image observations in the normal system
 (never on planes, never control): marginal, i.e. with the pose, plane and datum uncertainty.
@@ -292,6 +300,7 @@ class Cofactors:
     seconds: float
     system: tuple | None = None  # (j_c, j_p, b = W^-1 E, w_inv) when asked to keep them
     normal: sp.csr_matrix | None = None  # the reduced normal matrix S, with `system`
+    far_rows: np.ndarray | None = None  # rows of J left out of `normal` (selected: low rank)
 
 
 def _block_diagonal_3x3(matrix: sp.spmatrix, num: int) -> np.ndarray:
@@ -348,19 +357,25 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     w_inv = np.linalg.inv(w) if num_points else w
     b = (_bsr_blocks(w_inv) @ e).tocsr() if num_points else sp.csr_matrix((0, nc))
     selected = method == "selected" or (method == "auto" and nc > DENSE_MAX_UNKNOWNS)
-    s = (j_c.T @ j_c) - e.T @ b
     bounds, first = {}, 0
     for g in GROUPS:
         bounds[g] = (first, first + problem.counts[g])
         first += problem.counts[g]
+    n_blocks = len(layout.sizes) - num_points
+    far = _far_rows(j_c, bounds, layout, n_blocks) if selected else np.zeros(0, np.int64)
+    near = np.setdiff1d(np.arange(j_c.shape[0]), far) if len(far) else slice(None)
+    j_near = j_c[near]
     q_cc = None
     if selected:
+        from .point_cofactors import reduced_normal
         from .selected import SelectedInverse
 
-        n_blocks = len(layout.sizes) - num_points
+        s, levels = reduced_normal((j_near.T @ j_near).tocsr(), e, b,
+                                   np.asarray(layout.starts[:n_blocks], np.int64),
+                                   np.asarray(layout.sizes[:n_blocks], np.int64))
         try:
             q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
-                                   layout.sizes[:n_blocks])
+                                   layout.sizes[:n_blocks], low_rank=j_c[far], levels=levels)
         except np.linalg.LinAlgError:  # singular: a datum defect, for the pseudo-inverse
             if method == "selected" or nc > DENSE_FALLBACK_MAX:
                 raise
@@ -371,8 +386,9 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
                     "%d), border %d, %.1f s", nc, q_cc.num_levels, max(q_cc.sizes, default=0),
                     len(q_cc.levels.border), time.perf_counter() - start)
         q_points, trace = _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds,
-                                                redundancy, points)
+                                                redundancy, points, far)
     else:
+        s = (j_c.T @ j_c) - e.T @ b
         s = s.toarray()
         q_cc, defect = _inverse(0.5 * (s + s.T))
         q_points, trace = _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy,
@@ -382,7 +398,26 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
     return Cofactors(layout, q_cc, q_points, w_inv, redundancy_by_group, defect,
                      time.perf_counter() - start,
                      (j_c, j_p, b, w_inv) if keep_system else None,
-                     sp.csr_matrix(s) if keep_system else None)
+                     sp.csr_matrix(s) if keep_system else None,
+                     far if q_cc is not None and not isinstance(q_cc, np.ndarray) else None)
+
+
+def _far_rows(j_c: sp.csr_matrix, bounds: dict, layout: _Layout, n_blocks: int) -> np.ndarray:
+    """Rows of the holds (group "scale") that couple two parameter blocks (baselines between
+    images half the block apart): for the selected inverse, a low-rank term."""
+    lo, hi = bounds["scale"]
+    if hi == lo:
+        return np.zeros(0, np.int64)
+    block_of = np.repeat(np.arange(n_blocks), layout.sizes[:n_blocks])
+    rows = j_c[lo:hi]
+    counts = np.diff(rows.indptr)
+    blocks = block_of[rows.indices]
+    nonempty = counts > 0
+    first = rows.indptr[:-1][nonempty]
+    spans = np.zeros(hi - lo, bool)
+    spans[nonempty] = (np.minimum.reduceat(blocks, first)
+                       != np.maximum.reduceat(blocks, first))
+    return lo + np.flatnonzero(spans)
 
 
 def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
@@ -399,8 +434,10 @@ def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
                          relax_holds=False)
     start = time.perf_counter()
     j_c = cof.system[0]
-    held = j_c[rows]
-    s = cof.normal + held.T @ sp.diags(1.0 / relaxation ** 2 - 1.0) @ held
+    far = np.zeros(0, np.int64) if cof.far_rows is None else cof.far_rows - first
+    near = np.setdiff1d(np.arange(len(relaxation)), far)
+    held = j_c[first + near]
+    s = cof.normal + held.T @ sp.diags(1.0 / relaxation[near] ** 2 - 1.0) @ held
     s = 0.5 * (s + s.T)
     layout = cof.layout
     if isinstance(cof.q_cc, np.ndarray):
@@ -409,7 +446,9 @@ def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
         from .selected import SelectedInverse
 
         n_blocks = len(layout.sizes) - len(layout.point_ids)
-        q_cc, defect = SelectedInverse(s, layout.starts[:n_blocks], layout.sizes[:n_blocks]), 0
+        q_cc, defect = SelectedInverse(
+            s, layout.starts[:n_blocks], layout.sizes[:n_blocks],
+            low_rank=sp.diags(1.0 / relaxation[far]) @ j_c[first + far]), 0
     return Cofactors(layout, q_cc, cof.q_points_conditional, cof.q_points_conditional, {},
                      defect, time.perf_counter() - start, cof.system, None)
 
@@ -445,9 +484,10 @@ def _dense_point_terms(q_cc, j_c, j_p, b, w_inv, bounds, redundancy, points
     return q_points, trace
 
 
-def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points
+def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, points, far
                           ) -> tuple[np.ndarray, dict[str, float]]:
-    """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors)."""
+    """The same as `_dense_point_terms` from a `SelectedInverse` (point_cofactors); the
+    `far` rows' traces from its low-rank term."""
     from .point_cofactors import point_terms
 
     num_points = len(w_inv)
@@ -456,8 +496,13 @@ def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, point
         if not redundancy or hi == lo:
             continue
         jc_g, jp_g = j_c[lo:hi], j_p[lo:hi]
+        inside = far[(far >= lo) & (far < hi)] - lo
+        if len(inside):
+            jc_g = j_c[lo + np.setdiff1d(np.arange(hi - lo), inside)]
         u_g = (jc_g.T @ jc_g).tocoo()
         trace[g] = float(np.sum(u_g.data * q_cc.pattern_values(u_g.row, u_g.col)))
+        if len(inside):
+            trace[g] += q_cc.low_rank_trace()
         if jp_g.nnz:
             e_groups[g] = jp_g
             w_groups[g] = _block_diagonal_3x3(jp_g.T @ jp_g, num_points)
@@ -542,21 +587,26 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     g_c = np.asarray((j_c.T @ unit).todense())  # (nc, 3F)
     g_p = (j_p.T @ unit).tocsr()  # (3P, 3F)
     reduced = g_c - np.asarray((b.T @ g_p).todense())
-    d_c = cof.q_cc @ reduced
     w_g = (_bsr_blocks(w_inv) @ g_p).tocsr() if num_points else g_p
-    # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p
-    cross = reduced.T @ d_c + np.asarray((g_p.T @ w_g).todense())
-    points_cov = _consider_points(cof, b, w_g, d_c, num_points)
+    # g^T N^-1 g = (g_c - E^T W^-1 g_p)^T d_c + g_p^T W^-1 g_p, of the offsets' columns
+    offsets = slice(0, len(faces))
+    d_offsets = cof.q_cc @ reduced[:, offsets]
+    cross = (reduced[:, offsets].T @ d_offsets
+             + np.asarray((g_p[:, offsets].T @ w_g[:, offsets]).todense()))
     counts = np.bincount(columns, minlength=len(faces))
     metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
     t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
     # The offsets' variance component (the tilt columns take no part in it).
-    cross = cross[:len(faces), :len(faces)]
     m = (np.diag(np.bincount(columns, weights=1.0 / row_sigma ** 2, minlength=len(faces)))
          - 0.5 * (cross + cross.T))
     estimated = float(np.sqrt(max(0.0, (t @ t - s0_squared * np.trace(m)) / np.sum(m * m))))
     if estimate or sigma is None:
         sigma = estimated
+    if sigma > 0:  # the responses to all consider parameters (times sigma^2 below)
+        d_c = np.hstack([d_offsets, cof.q_cc @ reduced[:, len(faces):]])
+        points_cov = _consider_points(cof, b, w_g, d_c, num_points)
+    else:  # sigma 0: the consider part is zero
+        d_c, points_cov = np.zeros_like(reduced), np.zeros((num_points, 3, 3))
     mean_offsets = np.bincount(columns, weights=metres, minlength=len(faces))
     return GeneralisationEffects(faces, d_c, sigma ** 2 * points_cov, float(sigma), prior,
                                  estimated, counts, mean_offsets / np.maximum(counts, 1))

@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .selected import SelectedInverse
+from .selected import Levels, SelectedInverse, order_levels, window_columns
 
 logger = logging.getLogger(__name__)
 
@@ -79,6 +79,103 @@ def _rows_of(matrix: sp.csr_matrix, rows: np.ndarray) -> tuple[np.ndarray, np.nd
     return np.repeat(np.arange(len(rows)), counts), matrix.indices[flat], matrix.data[flat]
 
 
+def _level_chunks(levels: Levels, pattern: sp.csr_matrix):
+    """(level, window columns, where: column -> window index, chunk of points) over the points
+    by the first level of their unknowns, sorted along them and cut in CHUNK_POINTS."""
+    num_points = pattern.shape[0]
+    nc = len(levels.level_of)
+    t = np.diff(pattern.indptr)
+    level = levels.level_of[pattern.indices]
+    level = np.where(level < 0, np.iinfo(np.int64).max, level)
+    base = np.full(num_points, np.iinfo(np.int64).max)
+    nonempty = t > 0
+    base[nonempty] = np.minimum.reduceat(level, pattern.indptr[:-1][nonempty])
+    base[base == np.iinfo(np.int64).max] = 0
+    for lv in np.unique(base[nonempty]):
+        columns = window_columns(levels, int(lv))
+        where = np.full(nc, len(columns), np.int64)
+        where[columns] = np.arange(len(columns))
+        points = np.flatnonzero(nonempty & (base == lv))
+        first = _scatter(np.minimum.reduceat(where[pattern.indices],
+                                             pattern.indptr[:-1][nonempty]),
+                         nonempty, num_points)[points]
+        points = points[np.argsort(first, kind="stable")]  # neighbours share their unknowns
+        for lo in range(0, len(points), CHUNK_POINTS):
+            yield int(lv), columns, where, points[lo:lo + CHUNK_POINTS]
+
+
+def _scatter(values: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray:
+    out = np.zeros(size, values.dtype)
+    out[mask] = values
+    return out
+
+
+def _union(pattern: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray, width: int
+           ) -> np.ndarray:
+    _, columns, _ = _rows_of(pattern, chunk)
+    union = np.unique(where[columns])
+    if union[-1] == width:
+        raise RuntimeError("a tie point's unknowns outside its level window")
+    return union
+
+
+def _dense_rows(matrix: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray,
+                union: np.ndarray) -> np.ndarray:
+    """(c, 3, u) the chunk's rows of `matrix` (3P rows) in the window columns `union`."""
+    rows = (3 * chunk[:, None] + np.arange(3)).ravel()
+    slot, columns, values = _rows_of(matrix, rows)
+    out = np.zeros((len(chunk), 3, len(union)))
+    out[slot // 3, slot % 3, np.searchsorted(union, where[columns])] = values
+    return out
+
+
+def reduced_normal(u: sp.csr_matrix, e: sp.csr_matrix, b: sp.csr_matrix, starts: np.ndarray,
+                   sizes: np.ndarray) -> tuple[sp.csr_matrix, Levels]:
+    """S = U - E^T W^-1 E (b = W^-1 E) and its levels: the levels from the coupling of the
+    parameter blocks (U's and the tie points'), then E^T B per chunk of neighbouring points as
+    dense products, summed in dense level windows."""
+    num_points = b.shape[0] // 3
+    n_blocks = len(starts)
+    block_of = np.repeat(np.arange(n_blocks), sizes)
+    pattern = _point_pattern(b, num_points)
+    incidence = sp.csr_matrix((np.ones(pattern.nnz), block_of[pattern.indices],
+                               pattern.indptr.copy()), shape=(num_points, n_blocks))
+    incidence.sum_duplicates()
+    incidence.data[:] = 1.0
+    coo = u.tocoo()
+    graph = (incidence.T @ incidence + sp.csr_matrix(
+        (np.ones(coo.nnz), (block_of[coo.row], block_of[coo.col])), shape=(n_blocks,) * 2))
+    levels = order_levels(None, starts, sizes, graph=graph)
+    rows, cols, values = [], [], []
+    buffer = current = None
+    for lv, columns, where, chunk in _level_chunks(levels, pattern):
+        if buffer is None or lv != current[0]:
+            _emit(buffer, current, rows, cols, values)
+            buffer, current = np.zeros((len(columns),) * 2), (lv, columns)
+        union = _union(pattern, chunk, where, len(columns))
+        e_flat = _dense_rows(e, chunk, where, union).reshape(-1, len(union))
+        b_flat = _dense_rows(b, chunk, where, union).reshape(-1, len(union))
+        buffer[np.ix_(union, union)] += e_flat.T @ b_flat
+    _emit(buffer, current, rows, cols, values)
+    nc = len(levels.level_of)
+    reduction = sp.csr_matrix((np.concatenate(values) if values else np.zeros(0),
+                               (np.concatenate(rows) if rows else np.zeros(0, np.int64),
+                                np.concatenate(cols) if cols else np.zeros(0, np.int64))),
+                              shape=(nc, nc))
+    return (u - reduction).tocsr(), levels
+
+
+def _emit(buffer, current, rows, cols, values) -> None:
+    """The non-zeros of a level window's sum, in original columns."""
+    if buffer is None:
+        return
+    columns = current[1]
+    r, c = np.nonzero(buffer)
+    rows.append(columns[r])
+    cols.append(columns[c])
+    values.append(buffer[r, c])
+
+
 def point_terms(selected: SelectedInverse, b: sp.csr_matrix, w_inv: np.ndarray,
                 e_groups: dict[str, sp.csr_matrix], consider: Consider | None = None
                 ) -> tuple[np.ndarray, dict[str, float], np.ndarray | None]:
@@ -90,21 +187,11 @@ def point_terms(selected: SelectedInverse, b: sp.csr_matrix, w_inv: np.ndarray,
     if not num_points:
         return q_points, traces, consider_cov
     pattern = _point_pattern(b, num_points)
-    t = np.diff(pattern.indptr)
-    level = selected.levels.level_of[pattern.indices]
-    level = np.where(level < 0, np.iinfo(np.int64).max, level)
-    base = np.full(num_points, np.iinfo(np.int64).max)
-    nonempty = t > 0
-    base[nonempty] = np.minimum.reduceat(level, pattern.indptr[:-1][nonempty])
-    base[base == np.iinfo(np.int64).max] = 0
-    for lv in np.unique(base[nonempty]):
-        window = _Window(selected, int(lv), consider)
-        points = np.flatnonzero(nonempty & (base == lv))
-        first = np.minimum.reduceat(window.where[pattern.indices], pattern.indptr[:-1])[points]
-        points = points[np.argsort(first, kind="stable")]  # neighbours share their unknowns
-        for lo in range(0, len(points), CHUNK_POINTS):
-            chunk = points[lo:lo + CHUNK_POINTS]
-            window.terms(chunk, pattern, b, e_groups, q_points, traces, consider_cov)
+    window, current = None, None
+    for lv, _, where, chunk in _level_chunks(selected.levels, pattern):
+        if lv != current:
+            window, current = _Window(selected, lv, consider), lv
+        window.terms(chunk, pattern, b, e_groups, q_points, traces, consider_cov)
     return q_points, traces, consider_cov
 
 
@@ -122,18 +209,10 @@ class _Window:
             self.p = d @ d.T
 
     def _dense(self, matrix: sp.csr_matrix, chunk: np.ndarray, union: np.ndarray) -> np.ndarray:
-        """(c, 3, u) the chunk's rows of `matrix` (3P rows) in the columns `union`."""
-        rows = (3 * chunk[:, None] + np.arange(3)).ravel()
-        slot, columns, values = _rows_of(matrix, rows)
-        out = np.zeros((len(chunk), 3, len(union)))
-        out[slot // 3, slot % 3, np.searchsorted(union, self.where[columns])] = values
-        return out
+        return _dense_rows(matrix, chunk, self.where, union)
 
     def terms(self, chunk, pattern, b, e_groups, q_points, traces, consider_cov) -> None:
-        _, columns, _ = _rows_of(pattern, chunk)
-        union = np.unique(self.where[columns])
-        if union[-1] == len(self.columns):
-            raise RuntimeError("a tie point's unknowns outside its level window")
+        union = _union(pattern, chunk, self.where, len(self.columns))
         b_dense = self._dense(b, chunk, union)
         flat = b_dense.reshape(-1, len(union))
         bq = (flat @ self.q[np.ix_(union, union)]).reshape(b_dense.shape)

@@ -81,12 +81,15 @@ def _bfs_levels(graph: sp.csr_matrix) -> np.ndarray:
     return level
 
 
-def order_levels(s: sp.csr_matrix, starts: np.ndarray, sizes: np.ndarray) -> Levels:
-    """Levels of the parameter blocks (`starts`, `sizes`: their columns in `s`)."""
-    nc = s.shape[0]
+def order_levels(s: sp.csr_matrix | None, starts: np.ndarray, sizes: np.ndarray,
+                 graph: sp.csr_matrix | None = None) -> Levels:
+    """Levels of the parameter blocks (`starts`, `sizes`: their columns in `s`), from the
+    coupling of `s` or a given block coupling `graph` (num_blocks x num_blocks)."""
     num_blocks = len(starts)
-    block_of = np.repeat(np.arange(num_blocks), sizes)
-    graph = _block_graph(s, block_of, num_blocks)
+    nc = int(np.sum(sizes))
+    if graph is None:
+        graph = _block_graph(s, np.repeat(np.arange(num_blocks), sizes), num_blocks)
+    graph = sp.csr_matrix(graph)
     degree = np.diff(graph.indptr)
     is_border = degree > max(BORDER_SHARE * num_blocks, MIN_BORDER_DEGREE)
     inner = np.flatnonzero(~is_border)
@@ -117,13 +120,26 @@ def order_levels(s: sp.csr_matrix, starts: np.ndarray, sizes: np.ndarray) -> Lev
     return Levels(perm.astype(np.int64), bounds, perm[bounds[-1]:], column_level, local)
 
 
+def window_columns(levels: Levels, level: int) -> np.ndarray:
+    """Original columns of levels `level`, `level + 1` and the border, in that order."""
+    b = levels.bounds
+    hi = b[min(level + 2, len(b) - 1)]
+    return np.concatenate([levels.perm[b[level]:hi], levels.border])
+
+
 class SelectedInverse:
     """Q = S^-1 on the coupling pattern of S, and products Q x (see the module docstring)."""
 
-    def __init__(self, s: sp.spmatrix, starts, sizes):
+    def __init__(self, s: sp.spmatrix, starts, sizes, low_rank: sp.spmatrix | None = None,
+                 levels: Levels | None = None):
+        """`s` (sparse, symmetric positive definite), the parameter blocks' column `starts` and
+        `sizes`; `low_rank`: rows H whose H^T H is added to `s` by Woodbury instead (rows
+        coupling unknowns far apart, which would merge the levels); `levels`: the ordering
+        when known (`order_levels` of the same coupling)."""
         s = sp.csr_matrix(s)
         self.nc = s.shape[0]
-        self.levels = order_levels(s, np.asarray(starts, np.int64), np.asarray(sizes, np.int64))
+        self.levels = levels if levels is not None else order_levels(
+            s, np.asarray(starts, np.int64), np.asarray(sizes, np.int64))
         p = self.levels.perm
         sp_ = s[p][:, p].tocsr()
         bounds = self.levels.bounds
@@ -138,6 +154,28 @@ class SelectedInverse:
                                         np.eye(len(d))) if len(d) else np.zeros((0, 0))
         self.k = 0.5 * (self.k + self.k.T)
         self._takahashi()
+        self._low_rank(low_rank)
+
+    def _low_rank(self, h: sp.spmatrix | None) -> None:
+        """Q = Q0 - V M V^T with V = Q0 H^T, M = (I + H V)^-1 (Woodbury)."""
+        self.v, self.m = np.zeros((self.nc, 0)), np.zeros((0, 0))
+        if h is None or not h.shape[0]:
+            return
+        h = sp.csr_matrix(h)
+        self.v = self._base_matmul(h.T.toarray())
+        self.hv = np.asarray(h @ self.v)
+        inner = np.eye(h.shape[0]) + self.hv
+        self.m = np.linalg.inv(0.5 * (inner + inner.T))
+        self.m = 0.5 * (self.m + self.m.T)
+
+    def low_rank_trace(self) -> float:
+        """trace(H Q H^T) of the low-rank rows (Q H^T = V M)."""
+        return float(np.trace(self.hv @ self.m)) if self.v.shape[1] else 0.0
+
+    def _low_rank_part(self, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
+        """V M V^T on rows x cols (dense block; `cols` None: the same as rows)."""
+        left = self.v[rows] @ self.m
+        return left @ self.v[rows if cols is None else cols].T
 
     # -- factorisation ------------------------------------------------------------------------
 
@@ -194,6 +232,14 @@ class SelectedInverse:
     def __matmul__(self, rhs: np.ndarray) -> np.ndarray:
         """Q rhs for a dense (nc,) or (nc, r) right-hand side in the original column order."""
         rhs = np.asarray(rhs, float)
+        out = self._base_matmul(rhs)
+        if self.v.shape[1]:
+            out = out - (self.v @ (self.m @ (self.v.T @ rhs.reshape(self.nc, -1)))
+                         ).reshape(out.shape)
+        return out
+
+    def _base_matmul(self, rhs: np.ndarray) -> np.ndarray:
+        """Q0 rhs: without the low-rank rows."""
         flat = rhs.ndim == 1
         r = rhs.reshape(self.nc, -1)[self.levels.perm]
         n_a = int(self.levels.bounds[-1])
@@ -224,7 +270,10 @@ class SelectedInverse:
             else:
                 idx = self.window_offsets(lo)[lv[inner] - lo] + self.levels.local_of[columns[inner]]
                 out[np.ix_(inner, inner)] = self.window(lo)[np.ix_(idx, idx)]
-        return out + self._border_terms(columns)
+        out = out + self._border_terms(columns)
+        if self.v.shape[1]:
+            out -= self._low_rank_part(columns)
+        return out
 
     def window_offsets(self, level: int) -> np.ndarray:
         b = self.levels.bounds
@@ -253,15 +302,15 @@ class SelectedInverse:
     def full_window(self, level: int) -> tuple[np.ndarray, np.ndarray]:
         """(original columns, dense Q on them) for levels `level`, `level + 1` and the
         border: every entry a tie point whose unknowns start at `level` needs."""
-        b = self.levels.bounds
-        hi = b[min(level + 2, self.num_levels)]
-        columns = np.concatenate([self.levels.perm[b[level]:hi], self.levels.border])
+        columns = window_columns(self.levels, level)
         inner = self.window(level)
         out = np.zeros((len(columns), len(columns)))
         out[:len(inner), :len(inner)] = inner
         if self.y.shape[1]:
             r = self.border_rows(columns)
             out += r @ self.k @ r.T
+        if self.v.shape[1]:
+            out -= self._low_rank_part(columns)
         return columns, out
 
     def _border_terms(self, columns: np.ndarray) -> np.ndarray | float:
@@ -317,6 +366,9 @@ class SelectedInverse:
             hi = lo + 100_000
             rr, rc = self.border_rows(rows[lo:hi]), self.border_rows(cols[lo:hi])
             out[lo:hi] += np.sum((rr @ self.k) * rc, axis=1)
+        for lo in range(0, len(rows) if self.v.shape[1] else 0, 100_000):
+            hi = lo + 100_000
+            out[lo:hi] -= np.sum((self.v[rows[lo:hi]] @ self.m) * self.v[cols[lo:hi]], axis=1)
         return out
 
     @property
