@@ -352,16 +352,24 @@ class SelectedInverse:
         out = np.zeros(len(rows))
         inner = (lr >= 0) & (lc >= 0)
         ir, ic = self.levels.local_of[rows], self.levels.local_of[cols]
-        for k in range(self.num_levels):
-            same = inner & (lr == k) & (lc == k)
-            out[same] = self.diag[k][ir[same], ic[same]]
-            if k + 1 < self.num_levels:
-                down = inner & (lr == k + 1) & (lc == k)
-                out[down] = self.sub[k][ir[down], ic[down]]
-                up = inner & (lr == k) & (lc == k + 1)
-                out[up] = self.sub[k][ic[up], ir[up]]
         if np.any(inner & (np.abs(lr - lc) > 1)):
             raise ValueError("pairs more than one level apart are not held")
+        # pairs grouped by (row level, column level) with one sort, each group from its block
+        key = np.where(inner, lr * 3 + (lc - lr + 1), -1)
+        order = np.argsort(key, kind="stable")
+        keys, starts = np.unique(key[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        for group, lo, hi in zip(keys, starts, ends):
+            if group < 0:
+                continue
+            idx = order[lo:hi]
+            k, shift = divmod(int(group), 3)  # shift 1: same level, 0: column level below
+            if shift == 1:
+                out[idx] = self.diag[k][ir[idx], ic[idx]]
+            elif shift == 0:
+                out[idx] = self.sub[k - 1][ir[idx], ic[idx]]
+            else:
+                out[idx] = self.sub[k][ic[idx], ir[idx]]
         for lo in range(0, len(rows) if self.y.shape[1] else 0, 100_000):
             hi = lo + 100_000
             rr, rc = self.border_rows(rows[lo:hi]), self.border_rows(cols[lo:hi])
