@@ -345,8 +345,19 @@ class SelectedInverse:
             raise IndexError("only diagonal blocks of Q are held")
         return self.local(rows)
 
-    def pattern_values(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Q[rows[i], cols[i]] for pairs of coupled columns (vectorised)."""
+    def trace_with(self, u: sp.spmatrix) -> float:
+        """sum_ij u_ij Q_ij for a matrix `u` on the coupling pattern; the low-rank term as
+        sum((U V) * (V M)), not pair by pair."""
+        coo = sp.coo_matrix(u)
+        total = float(np.sum(coo.data * self.pattern_values(coo.row, coo.col, low_rank=False)))
+        if self.v.shape[1]:
+            total -= float(np.sum(np.asarray(sp.csr_matrix(u) @ self.v) * (self.v @ self.m)))
+        return total
+
+    def pattern_values(self, rows: np.ndarray, cols: np.ndarray, low_rank: bool = True
+                       ) -> np.ndarray:
+        """Q[rows[i], cols[i]] for pairs of coupled columns (vectorised); `low_rank` False:
+        without the low-rank term."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
         lr, lc = self.levels.level_of[rows], self.levels.level_of[cols]
         out = np.zeros(len(rows))
@@ -374,7 +385,7 @@ class SelectedInverse:
             hi = lo + 100_000
             rr, rc = self.border_rows(rows[lo:hi]), self.border_rows(cols[lo:hi])
             out[lo:hi] += np.sum((rr @ self.k) * rc, axis=1)
-        for lo in range(0, len(rows) if self.v.shape[1] else 0, 100_000):
+        for lo in range(0, len(rows) if self.v.shape[1] and low_rank else 0, 100_000):
             hi = lo + 100_000
             out[lo:hi] -= np.sum((self.v[rows[lo:hi]] @ self.m) * self.v[cols[lo:hi]], axis=1)
         return out
