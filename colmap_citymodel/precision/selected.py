@@ -159,6 +159,7 @@ class SelectedInverse:
     def _low_rank(self, h: sp.spmatrix | None) -> None:
         """Q = Q0 - V M V^T with V = Q0 H^T, M = (I + H V)^-1 (Woodbury)."""
         self.v, self.m = np.zeros((self.nc, 0)), np.zeros((0, 0))
+        self.vm = self.v
         if h is None or not h.shape[0]:
             return
         h = sp.csr_matrix(h)
@@ -167,6 +168,7 @@ class SelectedInverse:
         inner = np.eye(h.shape[0]) + self.hv
         self.m = np.linalg.inv(0.5 * (inner + inner.T))
         self.m = 0.5 * (self.m + self.m.T)
+        self.vm = self.v @ self.m
 
     def low_rank_trace(self) -> float:
         """trace(H Q H^T) of the low-rank rows (Q H^T = V M)."""
@@ -174,8 +176,7 @@ class SelectedInverse:
 
     def _low_rank_part(self, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
         """V M V^T on rows x cols (dense block; `cols` None: the same as rows)."""
-        left = self.v[rows] @ self.m
-        return left @ self.v[rows if cols is None else cols].T
+        return self.vm[rows] @ self.v[rows if cols is None else cols].T
 
     # -- factorisation ------------------------------------------------------------------------
 
@@ -351,7 +352,7 @@ class SelectedInverse:
         coo = sp.coo_matrix(u)
         total = float(np.sum(coo.data * self.pattern_values(coo.row, coo.col, low_rank=False)))
         if self.v.shape[1]:
-            total -= float(np.sum(np.asarray(sp.csr_matrix(u) @ self.v) * (self.v @ self.m)))
+            total -= float(np.sum(np.asarray(sp.csr_matrix(u) @ self.v) * self.vm))
         return total
 
     def pattern_values(self, rows: np.ndarray, cols: np.ndarray, low_rank: bool = True
@@ -387,7 +388,7 @@ class SelectedInverse:
             out[lo:hi] += np.sum((rr @ self.k) * rc, axis=1)
         for lo in range(0, len(rows) if self.v.shape[1] and low_rank else 0, 100_000):
             hi = lo + 100_000
-            out[lo:hi] -= np.sum((self.v[rows[lo:hi]] @ self.m) * self.v[cols[lo:hi]], axis=1)
+            out[lo:hi] -= np.sum(self.vm[rows[lo:hi]] * self.v[cols[lo:hi]], axis=1)
         return out
 
     @property
