@@ -491,7 +491,7 @@ class PrecisionOptions:
     max_images_auto: int = 2500
     """Image count up to which "auto" computes covariances. Above 1,000 camera-side unknowns the
     inverse is selected (only where sigmas need it), whose cost grows about linearly along a
-    street: at 2,000 images well under the refine's own time; memory grows with images x
+    street: at 2,000 images about 0.6 of the refine's own time; memory grows with images x
     planes."""
     alpha: float = 0.05
     """Significance level of the global model test (two-sided chi-square)."""

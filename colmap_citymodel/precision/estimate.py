@@ -499,8 +499,7 @@ def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, point
         inside = far[(far >= lo) & (far < hi)] - lo
         if len(inside):
             jc_g = j_c[lo + np.setdiff1d(np.arange(hi - lo), inside)]
-        u_g = (jc_g.T @ jc_g).tocoo()
-        trace[g] = float(np.sum(u_g.data * q_cc.pattern_values(u_g.row, u_g.col)))
+        trace[g] = q_cc.trace_with(jc_g.T @ jc_g)
         if len(inside):
             trace[g] += q_cc.low_rank_trace()
         if jp_g.nnz:

@@ -159,6 +159,7 @@ class SelectedInverse:
     def _low_rank(self, h: sp.spmatrix | None) -> None:
         """Q = Q0 - V M V^T with V = Q0 H^T, M = (I + H V)^-1 (Woodbury)."""
         self.v, self.m = np.zeros((self.nc, 0)), np.zeros((0, 0))
+        self.vm = self.v
         if h is None or not h.shape[0]:
             return
         h = sp.csr_matrix(h)
@@ -167,6 +168,7 @@ class SelectedInverse:
         inner = np.eye(h.shape[0]) + self.hv
         self.m = np.linalg.inv(0.5 * (inner + inner.T))
         self.m = 0.5 * (self.m + self.m.T)
+        self.vm = self.v @ self.m
 
     def low_rank_trace(self) -> float:
         """trace(H Q H^T) of the low-rank rows (Q H^T = V M)."""
@@ -174,8 +176,7 @@ class SelectedInverse:
 
     def _low_rank_part(self, rows: np.ndarray, cols: np.ndarray | None = None) -> np.ndarray:
         """V M V^T on rows x cols (dense block; `cols` None: the same as rows)."""
-        left = self.v[rows] @ self.m
-        return left @ self.v[rows if cols is None else cols].T
+        return self.vm[rows] @ self.v[rows if cols is None else cols].T
 
     # -- factorisation ------------------------------------------------------------------------
 
@@ -345,30 +346,49 @@ class SelectedInverse:
             raise IndexError("only diagonal blocks of Q are held")
         return self.local(rows)
 
-    def pattern_values(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
-        """Q[rows[i], cols[i]] for pairs of coupled columns (vectorised)."""
+    def trace_with(self, u: sp.spmatrix) -> float:
+        """sum_ij u_ij Q_ij for a matrix `u` on the coupling pattern; the low-rank term as
+        sum((U V) * (V M)), not pair by pair."""
+        coo = sp.coo_matrix(u)
+        total = float(np.sum(coo.data * self.pattern_values(coo.row, coo.col, low_rank=False)))
+        if self.v.shape[1]:
+            total -= float(np.sum(np.asarray(sp.csr_matrix(u) @ self.v) * self.vm))
+        return total
+
+    def pattern_values(self, rows: np.ndarray, cols: np.ndarray, low_rank: bool = True
+                       ) -> np.ndarray:
+        """Q[rows[i], cols[i]] for pairs of coupled columns (vectorised); `low_rank` False:
+        without the low-rank term."""
         rows, cols = np.asarray(rows, np.int64), np.asarray(cols, np.int64)
         lr, lc = self.levels.level_of[rows], self.levels.level_of[cols]
         out = np.zeros(len(rows))
         inner = (lr >= 0) & (lc >= 0)
         ir, ic = self.levels.local_of[rows], self.levels.local_of[cols]
-        for k in range(self.num_levels):
-            same = inner & (lr == k) & (lc == k)
-            out[same] = self.diag[k][ir[same], ic[same]]
-            if k + 1 < self.num_levels:
-                down = inner & (lr == k + 1) & (lc == k)
-                out[down] = self.sub[k][ir[down], ic[down]]
-                up = inner & (lr == k) & (lc == k + 1)
-                out[up] = self.sub[k][ic[up], ir[up]]
         if np.any(inner & (np.abs(lr - lc) > 1)):
             raise ValueError("pairs more than one level apart are not held")
+        # pairs grouped by (row level, column level) with one sort, each group from its block
+        key = np.where(inner, lr * 3 + (lc - lr + 1), -1)
+        order = np.argsort(key, kind="stable")
+        keys, starts = np.unique(key[order], return_index=True)
+        ends = np.append(starts[1:], len(order))
+        for group, lo, hi in zip(keys, starts, ends):
+            if group < 0:
+                continue
+            idx = order[lo:hi]
+            k, shift = divmod(int(group), 3)  # shift 1: same level, 0: column level below
+            if shift == 1:
+                out[idx] = self.diag[k][ir[idx], ic[idx]]
+            elif shift == 0:
+                out[idx] = self.sub[k - 1][ir[idx], ic[idx]]
+            else:
+                out[idx] = self.sub[k][ic[idx], ir[idx]]
         for lo in range(0, len(rows) if self.y.shape[1] else 0, 100_000):
             hi = lo + 100_000
             rr, rc = self.border_rows(rows[lo:hi]), self.border_rows(cols[lo:hi])
             out[lo:hi] += np.sum((rr @ self.k) * rc, axis=1)
-        for lo in range(0, len(rows) if self.v.shape[1] else 0, 100_000):
+        for lo in range(0, len(rows) if self.v.shape[1] and low_rank else 0, 100_000):
             hi = lo + 100_000
-            out[lo:hi] -= np.sum((self.v[rows[lo:hi]] @ self.m) * self.v[cols[lo:hi]], axis=1)
+            out[lo:hi] -= np.sum(self.vm[rows[lo:hi]] * self.v[cols[lo:hi]], axis=1)
         return out
 
     @property
