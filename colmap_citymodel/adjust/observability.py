@@ -253,6 +253,42 @@ def _sigmas(info: np.ndarray) -> np.ndarray:
     return sigma
 
 
+def _no_sharper(covariance: np.ndarray, s_both: np.ndarray, images_both: np.ndarray,
+                positions: np.ndarray | None, centre: np.ndarray):
+    """The datum's sigmas and its images' (`image_sigmas`) from refine's weighting
+    (`covariance`), never below the optimal weighting's (`s_both`, `images_both`)."""
+    determined = np.isfinite(s_both)
+    stated = np.maximum(s_both, np.sqrt(np.maximum(np.diag(covariance), 0.0)))
+    stated[~determined] = np.inf
+    images = np.maximum(images_both, image_sigmas(covariance, determined, positions, centre))
+    return stated, images
+
+
+def _leave_one_out(total: np.ndarray, per_plane: list[np.ndarray]) -> np.ndarray:
+    """(7,) the datum's sigmas from the planes with the most important one left out. A
+    direction that only one plane fixes rests on that plane's assignment being right (one roof
+    among facades): it counts for the planes only if it survives leaving any one out (judged
+    with the other parameters held, so that two parallel facades, which together also fix the
+    scale, still count for their normal direction)."""
+    if len(per_plane) < 2:
+        return np.full(7, np.inf)
+    diagonals = np.array([np.diag(total - info) for info in per_plane]).reshape(-1, 7)
+    return 1.0 / np.sqrt(np.maximum(diagonals.min(axis=0), 1e-30))
+
+
+def _source(s_planes: float, s_gnss: float, s_robust: float, limit: float) -> tuple[str, bool]:
+    """What fixes one datum parameter from the sigmas of planes, GNSS and the planes' leave-one-
+    out (`limit`: beyond it, nothing): planes, gnss, both or none; and whether the planes do,
+    robustly."""
+    g_ok = s_gnss < limit
+    p_ok = s_planes < limit and s_robust < (s_gnss if g_ok else limit)
+    if p_ok and (not g_ok or s_planes * DOMINANCE < s_gnss):
+        return "planes", p_ok
+    if g_ok and (not p_ok or s_gnss * DOMINANCE < s_planes):
+        return "gnss", p_ok
+    return ("both" if p_ok and g_ok else "none"), p_ok
+
+
 def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   gnss_positions: np.ndarray | None, gnss_sigmas: np.ndarray | None,
                   sigma_dtp: float, sigma_generalisation: float, gnss_free_axes=None,
@@ -298,43 +334,24 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
     s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
-    s_stated = s_both
     at = image_positions if image_positions is not None else (
         gnss_positions if has_gnss else None)
     images_both = image_sigmas(_inverse(planes + biased), np.isfinite(s_both), at, centre)
     images_biased = image_sigmas(_inverse(biased), np.isfinite(s_biased), at, centre)
-    images_stated = images_both
+    s_stated, images_stated = s_both, images_both
     if per_point and len(points):
         bias_part = (gnss_bias_part(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
                                     gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
         covariance = per_point_covariance(
             points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
             shared_sigmas, gnss, bias_part, model_bias_sigma, weights_sigmas)
-        s_stated = np.maximum(s_both, np.sqrt(np.maximum(np.diag(covariance), 0.0)))
-        s_stated[~np.isfinite(s_both)] = np.inf
-        images_stated = np.maximum(images_both, image_sigmas(
-            covariance, np.isfinite(s_both), at, centre))
-    # A direction that only one plane fixes rests on that plane's assignment being right (one
-    # roof among facades): it counts for the planes only if it survives leaving any one out
-    # (judged with the other parameters held, so that two parallel facades, which together
-    # also fix the scale, still count for their normal direction).
-    diagonals = np.array([np.diag(total - info) for info in per_plane]).reshape(-1, 7)
-    s_robust = (1.0 / np.sqrt(np.maximum(diagonals.min(axis=0), 1e-30)) if len(per_plane) > 1
-                else np.full(7, np.inf))
+        s_stated, images_stated = _no_sharper(covariance, s_both, images_both, at, centre)
+    s_robust = _leave_one_out(total, per_plane)
     out = {}
     for k, name in enumerate(DATUM):
         kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
         limit = UNDETERMINED[kind]
-        g_ok = s_gnss[k] < limit
-        p_ok = s_planes[k] < limit and s_robust[k] < (s_gnss[k] if g_ok else limit)
-        if p_ok and (not g_ok or s_planes[k] * DOMINANCE < s_gnss[k]):
-            source = "planes"
-        elif g_ok and (not p_ok or s_gnss[k] * DOMINANCE < s_planes[k]):
-            source = "gnss"
-        elif p_ok and g_ok:
-            source = "both"
-        else:
-            source = "none"
+        source, p_ok = _source(s_planes[k], s_gnss[k], s_robust[k], limit)
         factor = np.degrees(1.0) if kind == "rotation" else 1.0
         # Refine's weighting where the planes hold the direction; where GNSS alone does, the
         # loop holds it to GNSS (workflow.hold_gnss_height, scale priors), as weighed optimally.
