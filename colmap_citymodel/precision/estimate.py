@@ -1084,6 +1084,86 @@ def estimate_precision(problem: HybridProblem, **options) -> PrecisionResult:
         return _estimate_precision(problem, **options)
 
 
+def _image_blocks(rec: pycolmap.Reconstruction, cof: Cofactors, s0sq: float, effects):
+    """Per registered image with a 6-parameter frame in the cofactors: id, name, centre,
+    angles (deg), the 6x6 covariance of centre and angles, its number of tie points, and (with
+    `effects`) the generalisation-aware part of that covariance."""
+    layout = cof.layout
+    image_ids, names, centres, angles, image_cov, num_obs = [], [], [], [], [], []
+    image_cov_generalisation = []
+    frame_columns = {key: slice(start, start + size) for (kind, key), start, size
+                     in zip(layout.names, layout.starts, layout.sizes) if kind == "frame"}
+    wanted = [i for i in rec.reg_image_ids()
+              if (c := frame_columns.get(rec.image(i).frame_id)) is not None
+              and c.stop - c.start == 6]  # a constant or gauge-reduced frame has none
+    all_values, jacobians = image_jacobians(rec, wanted)
+    for image_id, values, g in zip(wanted, all_values, jacobians):
+        image = rec.image(image_id)
+        columns = frame_columns[image.frame_id]
+        image_ids.append(image_id)
+        names.append(image.name)
+        centres.append(values[:3])
+        angles.append(np.degrees(values[3:]))
+        image_cov.append(s0sq * g @ cof.q_cc[columns, columns] @ g.T)
+        if effects is not None:
+            d = g @ effects.camera[columns]
+            image_cov_generalisation.append(effects.sigma ** 2 * d @ d.T)
+        num_obs.append(image.num_points3D)
+    return image_ids, names, centres, angles, image_cov, num_obs, image_cov_generalisation
+
+
+def _scalar_sigmas(cof: Cofactors, s0sq: float, kind: str, count: int) -> list[float]:
+    """The sigma of each of `count` one-parameter blocks of `kind` in the cofactors (nan where
+    a block has no columns)."""
+    out = []
+    for k in range(count):
+        columns = cof.layout.columns(kind, k)
+        out.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
+                   if columns is not None else np.nan)
+    return out
+
+
+def _generalisation_extra(effects, estimate_generalisation: bool, image_cov_generalisation,
+                          vertex_cov_generalisation, checkpoints) -> dict:
+    """PrecisionResult's generalisation-aware fields: the estimate's record and the
+    covariances' generalisation parts of images, vertices, tie points and check points."""
+    extra = {"generalisation_estimate": {
+        "sigma_prior_m": effects.sigma_prior, "sigma_estimated_m": effects.sigma_estimated,
+        "sigma_used_m": effects.sigma, "estimated": bool(estimate_generalisation),
+        "plane_faces": effects.faces.tolist(), "plane_num_points": effects.num_points.tolist(),
+        "plane_mean_residual_m": effects.mean_residuals.tolist()}}
+    extra["image_cov_generalisation"] = np.array(image_cov_generalisation).reshape(-1, 6, 6)
+    extra["vertex_cov_generalisation"] = vertex_cov_generalisation
+    extra["point_cov_generalisation"] = effects.points_cov
+    if checkpoints is not None and checkpoints.b is not None:
+        d = checkpoints.b @ effects.camera  # (3N, F): check points follow the poses
+        extra["checkpoint_cov_generalisation"] = effects.sigma ** 2 * d @ d.T
+    return extra
+
+
+def _consider_generalisation(problem: HybridProblem, cof: Cofactors,
+                             sigma_generalisation: float | None, estimate: bool, variance,
+                             *, held: bool, free_system: bool):
+    """The planes' generalisation errors as consider parameters (`generalisation_effects`).
+    The response to them is the estimator's own: with the holds of what the planes do not fix
+    (the height, the scale) as tight as in the solve (`held`). At GNSS's sigma, the walls'
+    tilts would seem to move a block's height by metres, which the hold does not let them.
+    `free_system`: drop `cof`'s Jacobian, W^-1 E and S afterwards."""
+    t0 = time.perf_counter()
+    solve_cof = solve_weighted(problem, cof) if held else cof
+    effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
+                                     estimate=estimate, s0_squared=variance.sigma0_squared)
+    if held:
+        solve_cof.system = None
+    if free_system:
+        cof.system = cof.normal = None
+    logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
+                " %.1f s)", len(effects.faces), effects.sigma,
+                " estimated" if estimate else f"; the data say {effects.sigma_estimated:.3f} m",
+                time.perf_counter() - t0)
+    return effects
+
+
 def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                        alpha: float = 0.05, checkpoint_observations=None,
                        sigma_generalisation: float | None = None,
@@ -1129,60 +1209,20 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                                 alpha=alpha)
     effects = None
     if mode == "consider":
-        t0 = time.perf_counter()
-        # The response to the planes' errors is the estimator's own: with the holds of what
-        # the planes do not fix (the height, the scale) as tight as in the solve. At GNSS's
-        # sigma, the walls' tilts would seem to move a block's height by metres, which the
-        # hold does not let them.
-        solve_cof = solve_weighted(problem, cof) if held else cof
-        effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
-                                         estimate=estimate_generalisation,
-                                         s0_squared=variance.sigma0_squared)
-        if held:
-            solve_cof.system = None
-        if own_cofactors:
-            cof.system = cof.normal = None  # free the Jacobian, W^-1 E and S
+        effects = _consider_generalisation(problem, cof, sigma_generalisation,
+                                           estimate_generalisation, variance, held=held,
+                                           free_system=own_cofactors)
         sigma_generalisation = effects.sigma
-        logger.info("precision: generalisation-aware covariances for %d planes (sigma %.3f m%s,"
-                    " %.1f s)", len(effects.faces), effects.sigma,
-                    " estimated" if estimate_generalisation else
-                    f"; the data say {effects.sigma_estimated:.3f} m",
-                    time.perf_counter() - t0)
     s0sq = variance.sigma0_squared
     rec = problem.reconstruction
     layout = cof.layout
     t1 = time.perf_counter()
-    image_ids, names, centres, angles, image_cov, num_obs = [], [], [], [], [], []
-    image_cov_generalisation = []
-    frame_columns = {key: slice(start, start + size) for (kind, key), start, size
-                     in zip(layout.names, layout.starts, layout.sizes) if kind == "frame"}
-    wanted = [i for i in rec.reg_image_ids()
-              if (c := frame_columns.get(rec.image(i).frame_id)) is not None
-              and c.stop - c.start == 6]  # a constant or gauge-reduced frame has none
-    all_values, jacobians = image_jacobians(rec, wanted)
-    for image_id, values, g in zip(wanted, all_values, jacobians):
-        image = rec.image(image_id)
-        columns = frame_columns[image.frame_id]
-        image_ids.append(image_id)
-        names.append(image.name)
-        centres.append(values[:3])
-        angles.append(np.degrees(values[3:]))
-        image_cov.append(s0sq * g @ cof.q_cc[columns, columns] @ g.T)
-        if effects is not None:
-            d = g @ effects.camera[columns]
-            image_cov_generalisation.append(effects.sigma ** 2 * d @ d.T)
-        num_obs.append(image.num_points3D)
-    plane_sigma = []
-    for k in range(len(problem.blocks.faces)):
-        columns = layout.columns("plane_offset", k)
-        plane_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
-                           if columns is not None else np.nan)
+    (image_ids, names, centres, angles, image_cov, num_obs,
+     image_cov_generalisation) = _image_blocks(rec, cof, s0sq, effects)
+    plane_sigma = _scalar_sigmas(cof, s0sq, "plane_offset", len(problem.blocks.faces))
     vertex_cov, vertex_cov_generalisation = _vertex_blocks(problem, cof, s0sq, effects)
-    generalisation_sigma = []
-    for k in range(len(problem.blocks.generalisation)):
-        columns = layout.columns("plane_generalisation", k)
-        generalisation_sigma.append(np.sqrt(s0sq * cof.q_cc[columns, columns][0, 0])
-                                    if columns is not None else np.nan)
+    generalisation_sigma = _scalar_sigmas(cof, s0sq, "plane_generalisation",
+                                          len(problem.blocks.generalisation))
     checkpoints = None
     if checkpoint_observations is not None:
         from .checkpoints import triangulate_checkpoints
@@ -1195,17 +1235,9 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                     len(checkpoints.ids), time.perf_counter() - t2)
     extra = {"generalisation": mode, "generalisation_sigma": sigma_generalisation}
     if effects is not None:
-        extra["generalisation_estimate"] = {
-            "sigma_prior_m": effects.sigma_prior, "sigma_estimated_m": effects.sigma_estimated,
-            "sigma_used_m": effects.sigma, "estimated": bool(estimate_generalisation),
-            "plane_faces": effects.faces.tolist(), "plane_num_points": effects.num_points.tolist(),
-            "plane_mean_residual_m": effects.mean_residuals.tolist()}
-        extra["image_cov_generalisation"] = np.array(image_cov_generalisation).reshape(-1, 6, 6)
-        extra["vertex_cov_generalisation"] = vertex_cov_generalisation
-        extra["point_cov_generalisation"] = effects.points_cov
-        if checkpoints is not None and checkpoints.b is not None:
-            d = checkpoints.b @ effects.camera  # (3N, F): check points follow the poses
-            extra["checkpoint_cov_generalisation"] = effects.sigma ** 2 * d @ d.T
+        extra.update(_generalisation_extra(effects, estimate_generalisation,
+                                           image_cov_generalisation, vertex_cov_generalisation,
+                                           checkpoints))
     extra["datum_shift_variance"] = datum_shift(
         np.array(image_cov).reshape(-1, 6, 6)[:, :3, :3]
         + (extra["image_cov_generalisation"][:, :3, :3] if effects is not None else 0.0),
