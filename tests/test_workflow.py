@@ -547,9 +547,9 @@ def walls_only(store, tilt_deg=0.0):
 def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scene):
     """The walls-only street again, its height held: the generalisation-aware sigmas count
     how the planes' offsets and tilts move the estimate as it was solved, with the height held,
-    so they leave the height's sigma at what GNSS gives it (measured 0.22 against the classical
-    0.21 m; 0.52 m when the walls' response was taken with the hold at GNSS's sigma), while
-    they do raise the plan position's (0.10 m against 0.01 m)."""
+    so they leave the height's sigma at what GNSS gives it (the datum's, its bias common to the
+    block included: no image is stated more precise than that), while they do raise the plan
+    position's (0.10 m against 0.01 m)."""
     options = RefineOptions()
     options.adjustment.sigma_generalisation = 0.2
     options.precision.covariances = "on"
@@ -562,7 +562,8 @@ def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scen
         return np.sqrt(np.mean(np.diagonal(covariance, axis1=1, axis2=2)[:, :3], axis=0))
 
     classical, aware = rms_sigma(precision.image_cov), rms_sigma(precision.aware("image_cov"))
-    assert aware[2] < 1.3 * classical[2], (aware, classical)
+    datum = result.observability["U"]["sigma"]  # GNSS's, with its bias common to the block
+    assert aware[2] < 1.1 * max(classical[2], datum), (aware, classical, datum)
     assert np.all(aware[:2] > 5 * classical[:2]), (aware, classical)
 
 
