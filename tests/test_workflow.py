@@ -562,6 +562,8 @@ def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scen
         return np.sqrt(np.mean(np.diagonal(covariance, axis1=1, axis2=2)[:, :3], axis=0))
 
     classical, aware = rms_sigma(precision.image_cov), rms_sigma(precision.aware("image_cov"))
+    walls = rms_sigma(precision.image_cov + precision.image_cov_generalisation)
+    assert walls[2] < 1.3 * classical[2], (walls, classical)  # before the datum's shift
     datum = result.observability["U"]["sigma"]  # GNSS's, with its bias common to the block
     assert aware[2] < 1.1 * max(classical[2], datum), (aware, classical, datum)
     assert np.all(aware[:2] > 5 * classical[:2]), (aware, classical)
