@@ -19,10 +19,10 @@ import pycolmap
 
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
-from ..citymodel.ground_faces import (terrain_face_sigmas, terrain_faces, terrain_groups,
-                                     terrain_units)
+from ..citymodel.ground_faces import terrain_faces, terrain_groups, terrain_units
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
+from .problem import tie_sigmas
 
 logger = logging.getLogger(__name__)
 
@@ -458,11 +458,9 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
         selected = ~np.isin(faces, fit.outlier_faces)
     faces = faces[selected]
     unique = np.unique(faces)
-    rows = np.searchsorted(unique, faces)
-    dtp = options.adjustment.sigma_dtp
-    # As the adjustment weighs them (adjust.problem.tie_sigmas): a terrain unit as one point.
-    weights_sigmas = terrain_face_sigmas(store, unique, rows, np.full(len(unique), dtp),
-                                         dtp)[rows]
+    # As the adjustment weighs them: a terrain unit as one observation of its offset.
+    weights_sigmas = tie_sigmas(options.adjustment, store, unique, faces,
+                                assignment)[np.searchsorted(unique, faces)]
     gnss_sigmas = None
     if priors is not None:
         gnss_sigmas = np.asarray(priors.sigmas, float)
