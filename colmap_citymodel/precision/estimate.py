@@ -204,10 +204,13 @@ class _Layout:
     point_ids: np.ndarray
 
     def columns(self, kind: str, key: int) -> slice | None:
-        for (k, i), s, n in zip(self.names, self.starts, self.sizes):
-            if k == kind and i == key:
-                return slice(s, s + n)
-        return None
+        count, by_name = getattr(self, "_by_name", (-1, {}))
+        if count != len(self.names):  # a name -> columns map, the first of equal names
+            by_name = {}
+            for name, s, n in zip(self.names, self.starts, self.sizes):
+                by_name.setdefault(name, slice(s, s + n))
+            self._by_name = (len(self.names), by_name)
+        return by_name.get((kind, key))
 
 
 def _layout(problem: HybridProblem) -> _Layout:
@@ -618,8 +621,8 @@ def _consider_points(cof: Cofactors, b: sp.csr_matrix, w_g: sp.csr_matrix, d_c: 
         from .point_cofactors import Consider, consider_rows, point_terms
 
         h, columns = consider_rows(w_g, num_points)
-        return point_terms(cof.q_cc, b, cof.system[3], {},
-                           Consider(d_c, h, columns))[2]
+        return point_terms(cof.q_cc, b, cof.system[3], {}, Consider(d_c, h, columns),
+                           marginal=False)[2]
     points_cov = np.empty((num_points, 3, 3))
     chunk = max(1, CHUNK_ROWS // 3)
     for lo in range(0, num_points, chunk):

@@ -62,11 +62,15 @@ def consider_rows(w_g: sp.csr_matrix, num_points: int) -> tuple[np.ndarray, np.n
 
 
 def _point_pattern(b: sp.csr_matrix, num_points: int) -> sp.csr_matrix:
-    """(P, nc): the columns any of a point's three rows touches, sorted per row."""
-    pattern = (abs(b[0::3]) + abs(b[1::3]) + abs(b[2::3])).tocsr()
-    pattern.sort_indices()
-    if pattern.shape[0] != num_points:
+    """(P, nc): the columns any of a point's three rows touches, sorted per row (a point's
+    three rows are consecutive in `b`, so its entries are one run of b's arrays)."""
+    b = sp.csr_matrix(b)
+    if b.shape[0] != 3 * num_points:
         raise ValueError(f"{b.shape[0]} rows for {num_points} points")
+    pattern = sp.csr_matrix((np.abs(b.data), b.indices.copy(), b.indptr[0::3].copy()),
+                            shape=(num_points, b.shape[1]))
+    pattern.sum_duplicates()
+    pattern.eliminate_zeros()
     return pattern
 
 
@@ -82,32 +86,36 @@ def _rows_of(matrix: sp.csr_matrix, rows: np.ndarray) -> tuple[np.ndarray, np.nd
 def _level_chunks(levels: Levels, pattern: sp.csr_matrix):
     """(level, window columns, where: column -> window index, chunk of points) over the points
     by the first level of their unknowns, sorted along them and cut in CHUNK_POINTS."""
-    num_points = pattern.shape[0]
     nc = len(levels.level_of)
-    t = np.diff(pattern.indptr)
-    level = levels.level_of[pattern.indices]
-    level = np.where(level < 0, np.iinfo(np.int64).max, level)
-    base = np.full(num_points, np.iinfo(np.int64).max)
-    nonempty = t > 0
-    base[nonempty] = np.minimum.reduceat(level, pattern.indptr[:-1][nonempty])
-    base[base == np.iinfo(np.int64).max] = 0
-    for lv in np.unique(base[nonempty]):
-        columns = window_columns(levels, int(lv))
+    for lv, points in _points_by_level(levels, pattern):
+        columns = window_columns(levels, lv)
         where = np.full(nc, len(columns), np.int64)
         where[columns] = np.arange(len(columns))
-        points = np.flatnonzero(nonempty & (base == lv))
-        first = _scatter(np.minimum.reduceat(where[pattern.indices],
-                                             pattern.indptr[:-1][nonempty]),
-                         nonempty, num_points)[points]
-        points = points[np.argsort(first, kind="stable")]  # neighbours share their unknowns
         for lo in range(0, len(points), CHUNK_POINTS):
-            yield int(lv), columns, where, points[lo:lo + CHUNK_POINTS]
+            yield lv, columns, where, points[lo:lo + CHUNK_POINTS]
 
 
-def _scatter(values: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray:
-    out = np.zeros(size, values.dtype)
-    out[mask] = values
-    return out
+def _points_by_level(levels: Levels, pattern: sp.csr_matrix):
+    """(level, points) with the points (those with unknowns) grouped by the first level of
+    their unknowns, within a level sorted by their first unknown in the window's order (one
+    sort: a column's window index grows with its position in `levels.perm`)."""
+    nc = len(levels.level_of)
+    nonempty = np.flatnonzero(np.diff(pattern.indptr) > 0)
+    if not len(nonempty):
+        return
+    big = np.iinfo(np.int64).max
+    starts = pattern.indptr[:-1][nonempty]
+    level = levels.level_of[pattern.indices]
+    base = np.minimum.reduceat(np.where(level < 0, big, level), starts)
+    base[base == big] = 0
+    position = np.empty(nc, np.int64)
+    position[levels.perm] = np.arange(nc)
+    first = np.minimum.reduceat(position[pattern.indices], starts)
+    order = np.lexsort((first, base))  # stable: ties keep the points' order
+    points, base = nonempty[order], base[order]
+    bounds = np.flatnonzero(np.diff(base)) + 1
+    for chunk in np.split(np.arange(len(points)), bounds):
+        yield int(base[chunk[0]]), points[chunk]
 
 
 def _union(pattern: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray, width: int
@@ -177,20 +185,25 @@ def _emit(buffer, current, rows, cols, values) -> None:
 
 
 def point_terms(selected: SelectedInverse, b: sp.csr_matrix, w_inv: np.ndarray,
-                e_groups: dict[str, sp.csr_matrix], consider: Consider | None = None
+                e_groups: dict[str, sp.csr_matrix], consider: Consider | None = None,
+                marginal: bool = True
                 ) -> tuple[np.ndarray, dict[str, float], np.ndarray | None]:
-    """(marginal Q_pp (P, 3, 3), per group -2 sum E_g * B Q_cc, consider D D^T (P, 3, 3))."""
+    """(marginal Q_pp (P, 3, 3), per group -2 sum E_g * B Q_cc, consider D D^T (P, 3, 3)).
+    `marginal` False (with no `e_groups`): the consider part alone, without Q_cc's windows
+    (Q_pp is then W^-1)."""
     num_points = len(w_inv)
     q_points = np.array(w_inv, float, copy=True)
     traces = {g: 0.0 for g in e_groups}
     consider_cov = np.zeros((num_points, 3, 3)) if consider is not None else None
     if not num_points:
         return q_points, traces, consider_cov
+    if not marginal and e_groups:
+        raise ValueError("the groups' traces need the marginal cofactors")
     pattern = _point_pattern(b, num_points)
     window, current = None, None
     for lv, _, where, chunk in _level_chunks(selected.levels, pattern):
         if lv != current:
-            window, current = _Window(selected, lv, consider), lv
+            window, current = _Window(selected, lv, consider, marginal), lv
         window.terms(chunk, pattern, b, e_groups, q_points, traces, consider_cov)
     return q_points, traces, consider_cov
 
@@ -198,8 +211,12 @@ def point_terms(selected: SelectedInverse, b: sp.csr_matrix, w_inv: np.ndarray,
 class _Window:
     """Q_cc (and d_c d_c^T) on one level window, and the chunks of points it serves."""
 
-    def __init__(self, selected: SelectedInverse, level: int, consider: Consider | None):
-        self.columns, self.q = selected.full_window(level)
+    def __init__(self, selected: SelectedInverse, level: int, consider: Consider | None,
+                 marginal: bool = True):
+        if marginal:
+            self.columns, self.q = selected.full_window(level)
+        else:
+            self.columns, self.q = window_columns(selected.levels, level), None
         self.where = np.full(selected.nc, len(self.columns), np.int64)
         self.where[self.columns] = np.arange(len(self.columns))
         self.consider = consider
@@ -215,10 +232,11 @@ class _Window:
         union = _union(pattern, chunk, self.where, len(self.columns))
         b_dense = self._dense(b, chunk, union)
         flat = b_dense.reshape(-1, len(union))
-        bq = (flat @ self.q[np.ix_(union, union)]).reshape(b_dense.shape)
-        q_points[chunk] += np.einsum("kax,kbx->kab", bq, b_dense)
-        for g, e_g in e_groups.items():
-            traces[g] -= 2.0 * float(np.sum(self._dense(e_g, chunk, union) * bq))
+        if self.q is not None:
+            bq = (flat @ self.q[np.ix_(union, union)]).reshape(b_dense.shape)
+            q_points[chunk] += np.einsum("kax,kbx->kab", bq, b_dense)
+            for g, e_g in e_groups.items():
+                traces[g] -= 2.0 * float(np.sum(self._dense(e_g, chunk, union) * bq))
         if self.consider is None:
             return
         bp = (flat @ self.p[np.ix_(union, union)]).reshape(b_dense.shape)

@@ -153,7 +153,7 @@ class SelectedInverse:
         self.k = scipy.linalg.cho_solve(scipy.linalg.cho_factor(schur, lower=True),
                                         np.eye(len(d))) if len(d) else np.zeros((0, 0))
         self.k = 0.5 * (self.k + self.k.T)
-        self._takahashi()
+        self._diag = self._sub = None  # the selected inverse, formed when first read
         self._low_rank(low_rank)
 
     def _low_rank(self, h: sp.spmatrix | None) -> None:
@@ -213,10 +213,25 @@ class SelectedInverse:
                                                      trans="T")
         return z
 
+    @property
+    def diag(self) -> list[np.ndarray]:
+        """Z_kk: A^-1 on each level (Takahashi's recursion on first use; products Q x alone
+        do not need it)."""
+        if self._diag is None:
+            self._takahashi()
+        return self._diag
+
+    @property
+    def sub(self) -> list[np.ndarray]:
+        """Z_{k+1,k}: A^-1 between consecutive levels."""
+        if self._sub is None:
+            self._takahashi()
+        return self._sub
+
     def _takahashi(self) -> None:
         """Z_kk and Z_{k+1,k} of A^-1, from the last level back."""
         num = self.num_levels
-        self.diag, self.sub = [None] * num, [None] * max(num - 1, 0)
+        diag, sub = [None] * num, [None] * max(num - 1, 0)
         for k in range(num - 1, -1, -1):
             factor = self.chol[k]
             inverse = scipy.linalg.cho_solve((factor, True), np.eye(len(factor)))
@@ -224,9 +239,10 @@ class SelectedInverse:
                 # X = M_k L_k^-1, Z_{k+1,k} = -Z_{k+1,k+1} X, Z_kk = A_k'^-1 - Z_{k+1,k}^T X
                 x = scipy.linalg.solve_triangular(factor, self.below[k].T, lower=True,
                                                   trans="T").T
-                self.sub[k] = -self.diag[k + 1] @ x
-                inverse -= self.sub[k].T @ x
-            self.diag[k] = 0.5 * (inverse + inverse.T)
+                sub[k] = -diag[k + 1] @ x
+                inverse -= sub[k].T @ x
+            diag[k] = 0.5 * (inverse + inverse.T)
+        self._diag, self._sub = diag, sub
 
     # -- access ---------------------------------------------------------------------------------
 
@@ -393,4 +409,4 @@ class SelectedInverse:
 
     @property
     def sizes(self) -> list[int]:
-        return [len(d) for d in self.diag]
+        return np.diff(self.levels.bounds).tolist()
