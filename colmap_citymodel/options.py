@@ -246,6 +246,11 @@ class AdjustmentOptions:
     each at sigma^2 = sigma_dtp^2 + n sigma_face^2 (scaled so all tie points weigh together as per
     point), a face further off than sigma_face explains weighed less. Better where one face
     dominates a direction, worse where many faces fit well (docs/method.md, "Faces as units")."""
+    face_tilt_weights: bool = False
+    """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
+    sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
+    the model moves the surface most, weighs less. Off: every point of a face weighs alike
+    (docs/method.md, "Faces as units")."""
     face_test_alpha: float | None = 0.001
     """Significance level (per face, two-sided) of the test that drops a face whose points the
     other faces place further off than the generalisation error explains (an arcade behind a

@@ -6,6 +6,10 @@ the model's generalisation error explains (an arcade behind a facade, a set-back
 plane the model got wrong) is weighed less, by Huber's rule applied to the face's mean offset:
 with z = |mean offset| / sqrt(sigma_face^2 + sigma_dtp^2 / n), the face's weight is
 min(1, FACE_HUBER_K / z), i.e. its sigma grows by sqrt(z / FACE_HUBER_K).
+
+A face's model is also tilted (`tilt_axes`): with `AdjustmentOptions.face_tilt_weights` each
+tie point's sigma includes what that tilt moves the face at the point (`tilt_variances`,
+adjust.problem.tie_point_sigmas).
 """
 
 from __future__ import annotations
@@ -162,3 +166,37 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
         dropped[int(rows.faces[worst])] = float(z[worst])
         active[worst] = False
     return dropped
+
+
+
+def tilt_axes(store, face: int, sigma: float) -> np.ndarray:
+    """(2, 3) the principal tilt axes of `face` (in-plane) scaled by the sigma (rad) of its tilt
+    about them. Each vertex off by `sigma` (m) along the normal, independently, tilts the plane
+    fitted to them about their centroid with covariance sigma^2 (sum_j w_j w_j^T)^-1 (w_j: a
+    vertex's in-plane offset from the centroid); a narrow face's vertices are its neighbours'
+    too, so no axis tilts by more than sigma / R (R: the farthest vertex from the centroid). A
+    point at lever r moves by z_k a_k . r along the normal for z_k sigmas of tilt k."""
+    axes = store.rotations[int(face)][:, :2].T
+    vertices = store.vertices[store.face_vertex_ids(int(face))]
+    w = (vertices - vertices.mean(0)) @ axes.T
+    values, vectors = np.linalg.eigh(sigma ** 2 * np.linalg.pinv(w.T @ w))
+    radius = max(float(np.max(np.linalg.norm(w, axis=1))), 1e-9)
+    sigmas = np.minimum(np.sqrt(np.maximum(values, 0.0)), sigma / radius)
+    return (vectors * sigmas).T @ axes
+
+
+def tilt_variances(store, point_faces: np.ndarray, points: np.ndarray, sigma: float
+                   ) -> np.ndarray:
+    """(N,) per point, the variance (m^2) along its face's normal of the face's tilt error
+    (`tilt_axes`, each vertex off by `sigma`). `point_faces`: the face of each point;
+    `points`: (N, 3) in the store's frame."""
+    out = np.zeros(len(points))
+    if not len(points):
+        return out
+    order = np.argsort(point_faces, kind="stable")
+    faces, starts = np.unique(point_faces[order], return_index=True)
+    for face, rows in zip(faces, np.split(order, starts[1:])):
+        centroid = store.vertices[store.face_vertex_ids(int(face))].mean(0)
+        out[rows] = np.sum(((points[rows] - centroid) @ tilt_axes(store, face, sigma).T) ** 2,
+                           axis=1)
+    return out

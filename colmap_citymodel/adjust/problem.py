@@ -48,10 +48,10 @@ from .._ext import load_core
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import position_in_rig
-from ..citymodel.ground_faces import terrain_face_sigmas
+from ..citymodel.ground_faces import terrain_face_sigmas, terrain_mask
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
-from .faces import DEFAULT_SIGMA_FACE
+from .faces import DEFAULT_SIGMA_FACE, tilt_variances
 from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
@@ -293,6 +293,40 @@ def tie_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.ndarray,
     return terrain_face_sigmas(store, faces, rows, sigmas, options.sigma_dtp)
 
 
+#: The f_dTP sigmas of one face's tie points that include its tilt error
+#: (`AdjustmentOptions.face_tilt_weights`) are rounded to steps of this share, so that the
+#: points of a face share a few cost functions: 2 % in sigma moves a weight by 4 %, well
+#: within what the tilt's own sigma is known to.
+TILT_SIGMA_STEP = 0.02
+
+
+def tie_point_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.ndarray,
+                     point_faces: np.ndarray, points: np.ndarray, sigmas: np.ndarray,
+                     sigma_face: float | None = None) -> np.ndarray:
+    """(P,) the sigma (m) of each assigned point's f_dTP: its face's (`sigmas`, `tie_sigmas`),
+    with `options.face_tilt_weights` grown by the model face's tilt error at the point
+    (adjust.faces.tilt_variances, each vertex off by the faces' offset sigma): a face's
+    variance v grows to v (1 + t / u), t the tilt variance at the point, u what v stands for
+    per point (sigma_dtp^2; with `face_weighting` "face" sigma_face^2 + sigma_dtp^2 / n).
+    Terrain faces keep their units' sigma. Rounded to TILT_SIGMA_STEP."""
+    rows = np.searchsorted(faces, point_faces)
+    base = np.asarray(sigmas, float)[rows]
+    if not options.face_tilt_weights or not len(rows):
+        return base
+    if sigma_face is None:
+        sigma_face = (options.sigma_face if options.sigma_face is not None
+                      else DEFAULT_SIGMA_FACE)
+    tilt = tilt_variances(store, point_faces, points, sigma_face)
+    tilt[terrain_mask(store)[point_faces]] = 0.0
+    unit = np.full(len(faces), float(options.sigma_dtp) ** 2)
+    if options.face_weighting == "face":
+        counts = np.bincount(rows, minlength=len(faces))
+        unit = sigma_face ** 2 + unit / np.maximum(counts, 1)
+    grown = base * np.sqrt(1.0 + tilt / unit[rows])
+    step = np.log1p(TILT_SIGMA_STEP)
+    return base * np.exp(np.round(np.log(grown / base) / step) * step)
+
+
 class HybridProblem:
     """One hybrid adjustment problem built from the current state; solve() updates in place.
 
@@ -338,6 +372,7 @@ class HybridProblem:
         self.point_ids = np.zeros(0, np.int64)
         self.point_faces = np.zeros(0, np.int64)  # the face of each f_dTP row
         self.face_sigmas = np.zeros(0)  # the sigma of each face's f_dTP (blocks.faces order)
+        self._row_sigmas = np.zeros(0)  # the sigma of each f_dTP row (point_ids order)
         self.blocks = PlaneBlocks(faces=np.zeros(0, np.int64))
         self._generalisation_offsets = generalisation_offsets
         self.gnss = gnss
@@ -506,17 +541,16 @@ class HybridProblem:
         self.point_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
         self.face_sigmas = tie_sigmas(o, store, faces, self.point_faces, assignment)
-        tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
-                       else core.PointPlaneDistanceCost)
-        self._tie_costs = [tie_factory(sigma / o.sigma_image, r)
-                           for sigma, r in zip(self.face_sigmas, blocks.references)]
-        # The robust loss bends at the same distance (m) on every face.
-        self._tie_losses = ([pyceres.HuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma)
-                             for sigma in self.face_sigmas] if robust_planes
-                            else [None] * len(faces))
+        rec = self.reconstruction
+        self._row_sigmas = self._point_sigmas(current, faces, self.point_ids, self.point_faces,
+                                              self.face_sigmas, assignment)
+        self._tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
+                             else core.PointPlaneDistanceCost)
+        # One cost (its sigma) and loss per face and sigma (`_tie_cost`).
+        self._tie_costs: dict = {}
         self._with_offsets = with_offsets
         self._slot_of_face = slot_of_face
-        rec = self.reconstruction
+        self._references = blocks.references
 
         # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
         vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
@@ -591,18 +625,44 @@ class HybridProblem:
         self.counts["gen"] = len(blocks.generalisation)
         self.blocks = blocks
 
-    def _add_tie_block(self, point_id: int, face: int):
+    def _point_sigmas(self, model: PlaneStore, faces: np.ndarray, point_ids: np.ndarray,
+                      point_faces: np.ndarray, sigmas: np.ndarray, assignment: Assignment
+                      ) -> np.ndarray:
+        """`tie_point_sigmas` of the tie points `point_ids` at their current positions."""
+        o = self.options
+        if o.face_tilt_weights and len(point_ids):
+            rec = self.reconstruction
+            points = np.array([rec.point3D(int(i)).xyz for i in point_ids])
+        else:
+            points = np.zeros((len(point_ids), 3))
+        return tie_point_sigmas(o, model, faces, point_faces, points, sigmas,
+                                assignment.face_sigma)
+
+    def _tie_cost(self, k: int, sigma: float):
+        """The cost and loss of an f_dTP on face slot `k` at `sigma` (m), made once."""
+        key = (k, round(float(sigma), 9))
+        if key not in self._tie_costs:
+            o = self.options
+            # The robust loss bends at the same distance (m) on every face.
+            loss = (pyceres.HuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma)
+                    if self.robust_planes else None)
+            self._tie_costs[key] = (self._tie_factory(sigma / o.sigma_image,
+                                                      self._references[k]), loss)
+        return self._tie_costs[key]
+
+    def _add_tie_block(self, point_id: int, face: int, sigma: float):
         k = self._slot_of_face[face]
         blocks = self.blocks
+        cost, loss = self._tie_cost(k, sigma)
         return self.problem.add_residual_block(
-            self._tie_costs[k], self._tie_losses[k],
+            cost, loss,
             [self.reconstruction.point3D(point_id).xyz, blocks.normals[k], blocks.offsets[k]]
             + ([blocks.generalisation[k]] if self._with_offsets else []))
 
     def _add_tie_distances(self) -> None:
         """Group "dTP" (last): one block per assigned tie point, in the order of `point_ids`."""
-        self._tie_blocks = [self._add_tie_block(int(i), int(f))
-                            for i, f in zip(self.point_ids, self.point_faces)]
+        self._tie_blocks = [self._add_tie_block(int(i), int(f), s) for i, f, s in
+                            zip(self.point_ids, self.point_faces, self._row_sigmas)]
         self.counts["dTP"] = len(self.point_ids)
 
     def reassign(self, assignment: Assignment, current: PlaneStore, *,
@@ -641,18 +701,24 @@ class HybridProblem:
         if len(removed) + len(added) > MAX_REASSIGNED:
             return False
         ids, faces, blocks = list(self.point_ids), list(self.point_faces), self._tie_blocks
+        row_sigmas = list(self._row_sigmas)
         # Ceres puts the last block where one is removed: mirror that, from the highest
         # position down, so that every position still refers to the block it held.
         for j in removed[::-1]:
             self.problem.remove_residual_block(blocks[j])
             ids[j], faces[j], blocks[j] = ids[-1], faces[-1], blocks[-1]
-            ids.pop(), faces.pop(), blocks.pop()
-        for j in added:
-            blocks.append(self._add_tie_block(int(new_ids[j]), int(new_faces[j])))
+            row_sigmas[j] = row_sigmas[-1]
+            ids.pop(), faces.pop(), blocks.pop(), row_sigmas.pop()
+        added_sigmas = self._point_sigmas(current, self.blocks.faces, new_ids[added],
+                                          new_faces[added], self.face_sigmas, assignment)
+        for j, sigma in zip(added, added_sigmas):
+            blocks.append(self._add_tie_block(int(new_ids[j]), int(new_faces[j]), sigma))
             ids.append(new_ids[j])
             faces.append(new_faces[j])
+            row_sigmas.append(sigma)
         self.point_ids = np.asarray(ids, np.int64)
         self.point_faces = np.asarray(faces, np.int64)
+        self._row_sigmas = np.asarray(row_sigmas, float)
         self.counts["dTP"] = len(self.point_ids)
         self.exchanged = len(removed) + len(added)
         self._set_model(current)
@@ -704,7 +770,7 @@ class HybridProblem:
         """(dTP rows,) the sigma (m) each f_dTP row was weighted with."""
         if not len(self.point_faces):
             return np.zeros(0)
-        return self.face_sigmas[np.searchsorted(self.blocks.faces, self.point_faces)]
+        return np.asarray(self._row_sigmas, float)
 
     def solve(self) -> SolveReport:
         import time
