@@ -22,8 +22,10 @@ prints, on copies of the same input:
 - sigma_s: that precision step's seconds (variance factors, selected inversion, image and
   point covariances under the full stochastic model) and sigma_ratio = sigma_s / (refine_s -
   sigma_s), its share against the refine's own time; the median image centre sigma (the
-  largest axis, m) and coverage95, the share of images whose true centre error lies inside
-  their stated 95 % ellipsoid (chi-square, 3 degrees of freedom);
+  largest axis, m), the generalisation sigma the precision step propagated (m; the one given
+  with `--sigma_generalisation`, else the data's estimate) and coverage95, the share of
+  images whose true centre error lies inside their stated 95 % ellipsoid (chi-square, 3
+  degrees of freedom);
 - peak_rss_mb: the process's peak resident memory (ru_maxrss) at the end, and scene_rss_mb,
   its peak after synthesising the scene (before either adjustment);
 - the refine's iterations and seconds per stage, the camera centre RMS against the truth (m),
@@ -51,8 +53,8 @@ def peak_rss_mb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # kB on Linux
 
 
-def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None = None
-             ) -> dict:
+def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None = None,
+             sigma_generalisation: float | None = None) -> dict:
     """One size, in this process: synthesise, COLMAP's BA, refine. Returns the figures."""
     import logging
 
@@ -95,6 +97,7 @@ def run_size(num_images: int, bend: float, seed: int, colmap_limit: float | None
     del plain
 
     refine_options = RefineOptions()
+    refine_options.adjustment.sigma_generalisation = sigma_generalisation
     t, c = time.perf_counter(), time.process_time()
     result = refine(sfm, scene.store, scene.gnss(), refine_options, progress=False)
     figures["refine_s"] = time.perf_counter() - t
@@ -126,6 +129,7 @@ def sigma_figures(result, scene, refine_s: float) -> dict:
         return {"sigma_s": None, "sigma_ratio": None, "centre_sigma_m": None,
                 "coverage95": None}
     sigma_s = precision.seconds["total"]
+    used = precision.generalisation_sigma if precision.generalisation == "consider" else None
     cov = precision.aware("image_cov")[:, :3, :3]
     truth = {im.name: np.asarray(im.projection_center()) for im in scene.truth.images.values()}
     origin = np.asarray(scene.store.origin)
@@ -139,6 +143,7 @@ def sigma_figures(result, scene, refine_s: float) -> dict:
     sigma = np.sqrt(np.diagonal(cov, axis1=1, axis2=2)).max(axis=1)
     return {"sigma_s": sigma_s, "sigma_ratio": sigma_s / max(refine_s - sigma_s, 1e-9),
             "centre_sigma_m": float(np.median(sigma)), "coverage95": float(np.mean(inside)),
+            "sigma_generalisation_m": used,
             "sigma_stages_s": {k: round(v, 2) for k, v in precision.seconds.items()}}
 
 
@@ -170,15 +175,16 @@ def _bound(r: dict, upper: bool = False) -> str:
 
 def table(rows: list[dict]) -> str:
     out = ["| images | tie points | observations | colmap_ba_s | refine_s | refine_ratio | "
-           "sigma_s | sigma_ratio | peak_rss_mb | iterations | camera centre RMS m | "
-           "centre sigma m | coverage95 | verdict | load (1/5/15 min) |",
-           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+           "sigma_s | sigma_ratio | generalisation sigma m | peak_rss_mb | iterations | "
+           "camera centre RMS m | centre sigma m | coverage95 | verdict | load (1/5/15 min) |",
+           "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         out.append(f"| {r['images']} | {r['tie_points']} | {r['observations']} | "
                    f"{_bound(r)}{r['colmap_ba_s']:.1f} | {r['refine_s']:.1f} | "
                    f"{_bound(r, upper=True)}{r['refine_ratio']:.3f} | "
                    f"{_opt(r.get('sigma_s'), '.1f')} | {_opt(r.get('sigma_ratio'), '.3f')} | "
-                   f"{r['peak_rss_mb']:.0f} | {r['iterations']} | {r['camera_rms_m']:.3f} | "
+                   f"{_opt(r.get('sigma_generalisation_m'), '.3f')} | {r['peak_rss_mb']:.0f} | "
+                   f"{r['iterations']} | {r['camera_rms_m']:.3f} | "
                    f"{_opt(r.get('centre_sigma_m'), '.3f')} | "
                    f"{_opt(r.get('coverage95'), '.2f')} | {r['verdict']} | {' / '.join(f'{v:.1f}' for v in r['load'])} |")
     return "\n".join(out) + "\n"
@@ -197,11 +203,17 @@ def main() -> None:
                         help="stop COLMAP's adjustment after this many seconds (Ceres' "
                              "max_solver_time_in_seconds): its time is then a lower bound and "
                              "refine_ratio an upper bound, marked '>=' / '<='")
+    parser.add_argument("--sigma_generalisation", type=float, default=None,
+                        help="the model's generalisation sigma (m, AdjustmentOptions."
+                             "sigma_generalisation): the precision step then propagates the "
+                             "planes' offsets and tilts at this sigma (consider parameters); "
+                             "default: none given, the sigma estimated from the data")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # a child process's size
     args = parser.parse_args()
     if args.one is not None:
         print("RESULT " + json.dumps(run_size(args.one, args.bend, args.seed,
-                                              args.colmap_limit)), flush=True)
+                                              args.colmap_limit, args.sigma_generalisation)),
+              flush=True)
         return
 
     from bench_refine import code_version
@@ -213,7 +225,9 @@ def main() -> None:
         child = subprocess.run(
             [sys.executable, __file__, "--one", str(size), "--bend", str(args.bend),
              "--seed", str(args.seed)]
-            + (["--colmap_limit", str(args.colmap_limit)] if args.colmap_limit else []),
+            + (["--colmap_limit", str(args.colmap_limit)] if args.colmap_limit else [])
+            + (["--sigma_generalisation", str(args.sigma_generalisation)]
+               if args.sigma_generalisation is not None else []),
             capture_output=True, text=True)
         found = [ln for ln in child.stdout.splitlines() if ln.startswith("RESULT ")]
         if child.returncode or not found:
@@ -229,8 +243,10 @@ def main() -> None:
               f"{_opt(r.get('sigma_ratio'), '.3f')} peak_rss_mb {r['peak_rss_mb']:.0f}")
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
+        extra = ("" if args.sigma_generalisation is None
+                 else f" --sigma_generalisation {args.sigma_generalisation}")
         args.results.write_text(f"code {version}, `benchmarks/bench_scale.py --sizes "
-                                f"{' '.join(map(str, args.sizes))}`\n\n" + table(rows))
+                                f"{' '.join(map(str, args.sizes))}{extra}`\n\n" + table(rows))
         print(f"wrote {args.results}")
 
 

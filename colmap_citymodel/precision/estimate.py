@@ -276,8 +276,9 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None, *,
     evaluate.apply_loss_function = False
     evaluate.set_parameter_blocks(layout.blocks)
     crs = problem.problem.evaluate_jacobian(evaluate)
-    jacobian = sp.csr_matrix((np.asarray(crs.values), np.asarray(crs.cols), np.asarray(crs.rows)),
-                             shape=(crs.num_rows, crs.num_cols))
+    # pyceres hands lists over; a given dtype converts them in one pass
+    jacobian = sp.csr_matrix((np.array(crs.values, np.float64), np.array(crs.cols, np.int64),
+                              np.array(crs.rows, np.int64)), shape=(crs.num_rows, crs.num_cols))
     # Every group is evaluated in units of sigma_image (see adjust.problem's docstring).
     factors = np.full(jacobian.shape[0], 1.0 / problem.options.sigma_image)
     relaxation = problem.hold_relaxation
@@ -366,7 +367,7 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
         first += problem.counts[g]
     n_blocks = len(layout.sizes) - num_points
     far = _far_rows(j_c, bounds, layout, n_blocks) if selected else np.zeros(0, np.int64)
-    near = np.setdiff1d(np.arange(j_c.shape[0]), far) if len(far) else slice(None)
+    near = _other_rows(j_c.shape[0], far) if len(far) else slice(None)
     j_near = j_c[near]
     q_cc = None
     if selected:
@@ -405,6 +406,13 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
                      far if q_cc is not None and not isinstance(q_cc, np.ndarray) else None)
 
 
+def _other_rows(num: int, rows: np.ndarray) -> np.ndarray:
+    """The indices below `num` that are not in `rows`, sorted (setdiff1d without a sort)."""
+    keep = np.ones(num, bool)
+    keep[rows] = False
+    return np.flatnonzero(keep)
+
+
 def _far_rows(j_c: sp.csr_matrix, bounds: dict, layout: _Layout, n_blocks: int) -> np.ndarray:
     """Rows of the holds (group "scale") that couple two parameter blocks (baselines between
     images half the block apart): for the selected inverse, a low-rank term."""
@@ -426,8 +434,9 @@ def _far_rows(j_c: sp.csr_matrix, bounds: dict, layout: _Layout, n_blocks: int) 
 def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
     """`cof` (kept with its system, holds relaxed) re-weighted to the solve's own holds
     (`whitened_jacobian(relax_holds=False)`): the holds' rows touch camera-side unknowns only,
-    so S changes by J_h^T (1/f^2 - 1) J_h (f the relaxation factors) and nothing else does.
-    Falls back to a new `cofactors` where that does not hold. No point cofactors."""
+    so S changes by J_h^T (1/f^2 - 1) J_h (f the relaxation factors) and nothing else does;
+    with every hold row in the selected inverse's low-rank term, S stays and only that term
+    is scaled. Falls back to a new `cofactors` where that does not hold. No point cofactors."""
     relaxation = problem.hold_relaxation
     first = sum(problem.counts[g] for g in GROUPS[:GROUPS.index("scale")])
     rows = slice(first, first + len(relaxation))
@@ -438,11 +447,15 @@ def solve_weighted(problem: HybridProblem, cof: Cofactors) -> Cofactors:
     start = time.perf_counter()
     j_c = cof.system[0]
     far = np.zeros(0, np.int64) if cof.far_rows is None else cof.far_rows - first
-    near = np.setdiff1d(np.arange(len(relaxation)), far)
+    near = _other_rows(len(relaxation), far)
+    layout = cof.layout
+    if not len(near) and not isinstance(cof.q_cc, np.ndarray):  # S itself is the same
+        return Cofactors(layout, cof.q_cc.with_low_rank_scaled(1.0 / relaxation[far]),
+                         cof.q_points_conditional, cof.q_points_conditional, {}, 0,
+                         time.perf_counter() - start, cof.system, None)
     held = j_c[first + near]
     s = cof.normal + held.T @ sp.diags(1.0 / relaxation[near] ** 2 - 1.0) @ held
     s = 0.5 * (s + s.T)
-    layout = cof.layout
     if isinstance(cof.q_cc, np.ndarray):
         q_cc, defect = _inverse(s.toarray())
     else:
@@ -501,7 +514,7 @@ def _selected_point_terms(q_cc, j_c, j_p, b, e, w_inv, bounds, redundancy, point
         jc_g, jp_g = j_c[lo:hi], j_p[lo:hi]
         inside = far[(far >= lo) & (far < hi)] - lo
         if len(inside):
-            jc_g = j_c[lo + np.setdiff1d(np.arange(hi - lo), inside)]
+            jc_g = j_c[lo + _other_rows(hi - lo, inside)]
         trace[g] = q_cc.trace_with(jc_g.T @ jc_g)
         if len(inside):
             trace[g] += q_cc.low_rank_trace()
@@ -545,7 +558,8 @@ class GeneralisationEffects:
 
 
 def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float | None,
-                           *, estimate: bool = False, s0_squared: float = 1.0
+                           *, estimate: bool = False, s0_squared: float = 1.0,
+                           residuals: dict[str, np.ndarray] | None = None
                            ) -> GeneralisationEffects:
     """The generalisation-aware stochastic model for the classical estimate: the f_dTP errors
     of plane p share an offset o_p ~ N(0, sigma^2) that the adjustment does not estimate
@@ -566,7 +580,7 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     t_p = 1_p^T v (v the whitened residuals) and M = [1_p^T R 1_q], R = I - J N^-1 J^T,
     E[sum_p t_p^2] = sigma^2 ||M||_F^2 + s0^2 tr M, so
     sigma^2 = max(0, (sum t_p^2 - s0^2 tr M) / ||M||_F^2); `sigma` is then only the fallback
-    when there are no planes."""
+    when there are no planes. `residuals`: `problem.group_residuals()` when known."""
     if cof.system is None:
         raise ValueError("cofactors(problem, keep_system=True) is needed")
     j_c, j_p, b, w_inv = cof.system
@@ -596,7 +610,9 @@ def generalisation_effects(problem: HybridProblem, cof: Cofactors, sigma: float 
     cross = (reduced[:, offsets].T @ d_offsets
              + np.asarray((g_p[:, offsets].T @ w_g[:, offsets]).todense()))
     counts = np.bincount(columns, minlength=len(faces))
-    metres = problem.group_residuals()["dTP"] * row_sigma  # the f_dTP residuals in metres
+    if residuals is None:
+        residuals = problem.group_residuals()
+    metres = residuals["dTP"] * row_sigma  # the f_dTP residuals in metres
     t = np.bincount(columns, weights=metres / row_sigma ** 2, minlength=len(faces))
     # The offsets' variance component (the tilt columns take no part in it).
     m = (np.diag(np.bincount(columns, weights=1.0 / row_sigma ** 2, minlength=len(faces)))
@@ -1146,7 +1162,7 @@ def _generalisation_extra(effects, estimate_generalisation: bool, image_cov_gene
 
 def _consider_generalisation(problem: HybridProblem, cof: Cofactors,
                              sigma_generalisation: float | None, estimate: bool, variance,
-                             *, held: bool, free_system: bool):
+                             *, held: bool, free_system: bool, residuals=None):
     """The planes' generalisation errors as consider parameters (`generalisation_effects`).
     The response to them is the estimator's own: with the holds of what the planes do not fix
     (the height, the scale) as tight as in the solve (`held`). At GNSS's sigma, the walls'
@@ -1155,7 +1171,8 @@ def _consider_generalisation(problem: HybridProblem, cof: Cofactors,
     t0 = time.perf_counter()
     solve_cof = solve_weighted(problem, cof) if held else cof
     effects = generalisation_effects(problem, solve_cof, sigma_generalisation,
-                                     estimate=estimate, s0_squared=variance.sigma0_squared)
+                                     estimate=estimate, s0_squared=variance.sigma0_squared,
+                                     residuals=residuals)
     if held:
         solve_cof.system = None
     if free_system:
@@ -1214,7 +1231,7 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     if mode == "consider":
         effects = _consider_generalisation(problem, cof, sigma_generalisation,
                                            estimate_generalisation, variance, held=held,
-                                           free_system=own_cofactors)
+                                           free_system=own_cofactors, residuals=residuals)
         sigma_generalisation = effects.sigma
     s0sq = variance.sigma0_squared
     rec = problem.reconstruction

@@ -63,14 +63,19 @@ def consider_rows(w_g: sp.csr_matrix, num_points: int) -> tuple[np.ndarray, np.n
 
 def _point_pattern(b: sp.csr_matrix, num_points: int) -> sp.csr_matrix:
     """(P, nc): the columns any of a point's three rows touches, sorted per row (a point's
-    three rows are consecutive in `b`, so its entries are one run of b's arrays)."""
-    b = sp.csr_matrix(b)
-    if b.shape[0] != 3 * num_points:
-        raise ValueError(f"{b.shape[0]} rows for {num_points} points")
-    pattern = sp.csr_matrix((np.abs(b.data), b.indices.copy(), b.indptr[0::3].copy()),
-                            shape=(num_points, b.shape[1]))
+    three rows are consecutive in `b`, so its entries are one run of b's arrays). Kept on
+    `b` for the next pass over the same matrix (`b` is not changed in place)."""
+    cached = getattr(b, "_point_pattern_of", None)
+    if cached is not None and cached.shape[0] == num_points:
+        return cached
+    matrix = sp.csr_matrix(b)
+    if matrix.shape[0] != 3 * num_points:
+        raise ValueError(f"{matrix.shape[0]} rows for {num_points} points")
+    pattern = sp.csr_matrix((np.abs(matrix.data), matrix.indices.copy(),
+                             matrix.indptr[0::3].copy()), shape=(num_points, matrix.shape[1]))
     pattern.sum_duplicates()
     pattern.eliminate_zeros()
+    b._point_pattern_of = pattern
     return pattern
 
 
@@ -119,21 +124,29 @@ def _points_by_level(levels: Levels, pattern: sp.csr_matrix):
 
 
 def _union(pattern: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray, width: int
-           ) -> np.ndarray:
+           ) -> tuple[np.ndarray, np.ndarray]:
+    """(union, slot): the window indices of the chunk's unknowns, sorted, and each window
+    index's position in `union` (-1 where none)."""
     _, columns, _ = _rows_of(pattern, chunk)
-    union = np.unique(where[columns])
-    if union[-1] == width:
+    mark = np.zeros(width + 1, bool)
+    mark[where[columns]] = True
+    if mark[width]:
         raise RuntimeError("a tie point's unknowns outside its level window")
-    return union
+    union = np.flatnonzero(mark)
+    slot = np.full(width + 1, -1, np.int64)
+    slot[union] = np.arange(len(union))
+    return union, slot
 
 
 def _dense_rows(matrix: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray,
-                union: np.ndarray) -> np.ndarray:
-    """(c, 3, u) the chunk's rows of `matrix` (3P rows) in the window columns `union`."""
+                union: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
+    """(c, 3, u) the chunk's rows of `matrix` (3P rows) in the window columns of `union`
+    (`_union`)."""
+    union, slot = union
     rows = (3 * chunk[:, None] + np.arange(3)).ravel()
-    slot, columns, values = _rows_of(matrix, rows)
+    row, columns, values = _rows_of(matrix, rows)
     out = np.zeros((len(chunk), 3, len(union)))
-    out[slot // 3, slot % 3, np.searchsorted(union, where[columns])] = values
+    out[row // 3, row % 3, slot[where[columns]]] = values
     return out
 
 
@@ -161,9 +174,9 @@ def reduced_normal(u: sp.csr_matrix, e: sp.csr_matrix, b: sp.csr_matrix, starts:
             _emit(buffer, current, rows, cols, values)
             buffer, current = np.zeros((len(columns),) * 2), (lv, columns)
         union = _union(pattern, chunk, where, len(columns))
-        e_flat = _dense_rows(e, chunk, where, union).reshape(-1, len(union))
-        b_flat = _dense_rows(b, chunk, where, union).reshape(-1, len(union))
-        buffer[np.ix_(union, union)] += e_flat.T @ b_flat
+        e_flat = _dense_rows(e, chunk, where, union).reshape(-1, len(union[0]))
+        b_flat = _dense_rows(b, chunk, where, union).reshape(-1, len(union[0]))
+        buffer[np.ix_(union[0], union[0])] += e_flat.T @ b_flat
     _emit(buffer, current, rows, cols, values)
     nc = len(levels.level_of)
     reduction = sp.csr_matrix((np.concatenate(values) if values else np.zeros(0),
@@ -225,24 +238,26 @@ class _Window:
             d = consider.d_c[self.columns]
             self.p = d @ d.T
 
-    def _dense(self, matrix: sp.csr_matrix, chunk: np.ndarray, union: np.ndarray) -> np.ndarray:
+    def _dense(self, matrix: sp.csr_matrix, chunk: np.ndarray, union) -> np.ndarray:
         return _dense_rows(matrix, chunk, self.where, union)
 
     def terms(self, chunk, pattern, b, e_groups, q_points, traces, consider_cov) -> None:
-        union = _union(pattern, chunk, self.where, len(self.columns))
-        b_dense = self._dense(b, chunk, union)
+        union_slot = _union(pattern, chunk, self.where, len(self.columns))
+        union = union_slot[0]
+        b_dense = self._dense(b, chunk, union_slot)
         flat = b_dense.reshape(-1, len(union))
         if self.q is not None:
             bq = (flat @ self.q[np.ix_(union, union)]).reshape(b_dense.shape)
             q_points[chunk] += np.einsum("kax,kbx->kab", bq, b_dense)
             for g, e_g in e_groups.items():
-                traces[g] -= 2.0 * float(np.sum(self._dense(e_g, chunk, union) * bq))
+                traces[g] -= 2.0 * float(np.sum(self._dense(e_g, chunk, union_slot) * bq))
         if self.consider is None:
             return
         bp = (flat @ self.p[np.ix_(union, union)]).reshape(b_dense.shape)
         own = np.einsum("kax,kbx->kab", bp, b_dense)
         h = self.consider.h[chunk]
-        d = self.consider.d_c[self.columns[union]][:, self.consider.columns[chunk]]  # (u, c, 3)
+        d = self.consider.d_c[self.columns[union][:, None, None],
+                              self.consider.columns[chunk][None]]  # (u, c, 3)
         u = np.einsum("kax,xkj->kaj", b_dense, d)
         cross = h @ u.transpose(0, 2, 1)
         consider_cov[chunk] = own + h @ h.transpose(0, 2, 1) - cross - cross.transpose(0, 2, 1)

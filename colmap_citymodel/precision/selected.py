@@ -24,6 +24,7 @@ substitution. A singular S (a datum defect) raises numpy.linalg.LinAlgError.
 
 from __future__ import annotations
 
+import copy
 import logging
 from dataclasses import dataclass
 
@@ -160,15 +161,32 @@ class SelectedInverse:
         """Q = Q0 - V M V^T with V = Q0 H^T, M = (I + H V)^-1 (Woodbury)."""
         self.v, self.m = np.zeros((self.nc, 0)), np.zeros((0, 0))
         self.vm = self.v
+        self.h = sp.csr_matrix((0, self.nc))
         if h is None or not h.shape[0]:
             return
-        h = sp.csr_matrix(h)
-        self.v = self._base_matmul(h.T.toarray())
-        self.hv = np.asarray(h @ self.v)
-        inner = np.eye(h.shape[0]) + self.hv
+        self.h = sp.csr_matrix(h)
+        self.v = self._base_matmul(self.h.T.toarray())
+        self._set_inner(np.asarray(self.h @ self.v))
+
+    def _set_inner(self, hv: np.ndarray) -> None:
+        """M = (I + H V)^-1 and V M from H V."""
+        self.hv = hv
+        inner = np.eye(len(hv)) + hv
         self.m = np.linalg.inv(0.5 * (inner + inner.T))
         self.m = 0.5 * (self.m + self.m.T)
         self.vm = self.v @ self.m
+
+    def with_low_rank_scaled(self, scale: np.ndarray) -> "SelectedInverse":
+        """The inverse of the same S with the low-rank rows scaled, diag(scale) H: shares
+        the factorisation (and the selected inverse of S), V' = V diag(scale), no new solve."""
+        out = copy.copy(self)
+        if not self.v.shape[1]:
+            return out
+        scale = np.asarray(scale, float)
+        out.h = sp.csr_matrix(sp.diags(scale) @ self.h)
+        out.v = self.v * scale
+        out._set_inner(scale[:, None] * self.hv * scale)
+        return out
 
     def low_rank_trace(self) -> float:
         """trace(H Q H^T) of the low-rank rows (Q H^T = V M)."""
@@ -250,9 +268,9 @@ class SelectedInverse:
         """Q rhs for a dense (nc,) or (nc, r) right-hand side in the original column order."""
         rhs = np.asarray(rhs, float)
         out = self._base_matmul(rhs)
-        if self.v.shape[1]:
-            out = out - (self.v @ (self.m @ (self.v.T @ rhs.reshape(self.nc, -1)))
-                         ).reshape(out.shape)
+        if self.v.shape[1]:  # V M V^T rhs = V M H (Q0 rhs): H is sparse
+            flat = out.reshape(self.nc, -1)
+            out = (flat - self.vm @ np.asarray(self.h @ flat)).reshape(out.shape)
         return out
 
     def _base_matmul(self, rhs: np.ndarray) -> np.ndarray:
