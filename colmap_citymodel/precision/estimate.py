@@ -65,6 +65,7 @@ solve weights and the stated stochastic model agree for any sigma_image.
 from __future__ import annotations
 
 import logging
+import os
 import time
 from dataclasses import dataclass, field
 
@@ -274,6 +275,8 @@ def whitened_jacobian(problem: HybridProblem, layout: _Layout | None = None, *,
     layout = layout or _layout(problem)
     evaluate = pyceres.EvaluateOptions()
     evaluate.apply_loss_function = False
+    threads = problem.options.num_threads  # the solve's threads (the same Jacobian)
+    evaluate.num_threads = threads if threads > 0 else (os.cpu_count() or 1)
     evaluate.set_parameter_blocks(layout.blocks)
     crs = problem.problem.evaluate_jacobian(evaluate)
     # pyceres hands lists over; a given dtype converts them in one pass

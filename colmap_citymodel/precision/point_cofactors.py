@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.sparse as sp
 
-from .selected import Levels, SelectedInverse, order_levels, window_columns
+from .selected import Levels, SelectedInverse, WindowProducts, order_levels, window_columns
 
 logger = logging.getLogger(__name__)
 
@@ -40,6 +40,7 @@ class Consider:
     d_c: np.ndarray
     h: np.ndarray
     columns: np.ndarray
+    products: WindowProducts | None = None  # d_c d_c^T per level window (point_terms)
 
 
 def consider_rows(w_g: sp.csr_matrix, num_points: int) -> tuple[np.ndarray, np.ndarray]:
@@ -213,6 +214,8 @@ def point_terms(selected: SelectedInverse, b: sp.csr_matrix, w_inv: np.ndarray,
     if not marginal and e_groups:
         raise ValueError("the groups' traces need the marginal cofactors")
     pattern = _point_pattern(b, num_points)
+    if consider is not None:
+        consider.products = WindowProducts(selected.levels, consider.d_c)
     window, current = None, None
     for lv, _, where, chunk in _level_chunks(selected.levels, pattern):
         if lv != current:
@@ -235,8 +238,7 @@ class _Window:
         self.consider = consider
         self.p = None
         if consider is not None:
-            d = consider.d_c[self.columns]
-            self.p = d @ d.T
+            self.p = consider.products.window(level)
 
     def _dense(self, matrix: sp.csr_matrix, chunk: np.ndarray, union) -> np.ndarray:
         return _dense_rows(matrix, chunk, self.where, union)

@@ -128,6 +128,43 @@ def window_columns(levels: Levels, level: int) -> np.ndarray:
     return np.concatenate([levels.perm[b[level]:hi], levels.border])
 
 
+class WindowProducts:
+    """left[cols] right[cols]^T on the columns of each level window (`window_columns`),
+    assembled from per-level blocks. Consecutive windows share a level, whose own block is
+    kept from one window to the next (windows asked for in ascending order); the blocks
+    across levels are taken as symmetric."""
+
+    def __init__(self, levels: Levels, left: np.ndarray, right: np.ndarray | None = None):
+        self.levels, self.left = levels, left
+        self.right = left if right is None else right
+        self._kept: tuple[int, np.ndarray | None] = (-1, None)
+
+    def _own(self, level: int, columns: np.ndarray) -> np.ndarray:
+        if self._kept[0] != level:
+            left = self.left[columns]
+            right = left if self.right is self.left else self.right[columns]
+            self._kept = (level, left @ right.T)
+        return self._kept[1]
+
+    def window(self, level: int) -> np.ndarray:
+        b, perm = self.levels.bounds, self.levels.perm
+        parts = [perm[b[level]:b[level + 1]]]
+        if level + 2 < len(b):
+            parts.append(perm[b[level + 1]:b[level + 2]])
+        inner = len(parts)
+        parts.append(self.levels.border)
+        offsets = np.concatenate([[0], np.cumsum([len(p) for p in parts])])
+        out = np.empty((offsets[-1], offsets[-1]))
+        for i, rows in enumerate(parts):
+            for j in range(i + 1):
+                block = (self._own(level + i, rows) if i == j and i < inner
+                         else self.left[rows] @ self.right[parts[j]].T)
+                out[offsets[i]:offsets[i + 1], offsets[j]:offsets[j + 1]] = block
+                if i != j:
+                    out[offsets[j]:offsets[j + 1], offsets[i]:offsets[i + 1]] = block.T
+        return out
+
+
 class SelectedInverse:
     """Q = S^-1 on the coupling pattern of S, and products Q x (see the module docstring)."""
 
@@ -160,7 +197,8 @@ class SelectedInverse:
     def _low_rank(self, h: sp.spmatrix | None) -> None:
         """Q = Q0 - V M V^T with V = Q0 H^T, M = (I + H V)^-1 (Woodbury)."""
         self.v, self.m = np.zeros((self.nc, 0)), np.zeros((0, 0))
-        self.vm = self.v
+        self._vm = self.v
+        self._low_rank_windows = None
         self.h = sp.csr_matrix((0, self.nc))
         if h is None or not h.shape[0]:
             return
@@ -174,7 +212,15 @@ class SelectedInverse:
         inner = np.eye(len(hv)) + hv
         self.m = np.linalg.inv(0.5 * (inner + inner.T))
         self.m = 0.5 * (self.m + self.m.T)
-        self.vm = self.v @ self.m
+        self._vm = None  # V M, formed when first read
+        self._low_rank_windows = None
+
+    @property
+    def vm(self) -> np.ndarray:
+        """V M (nc, k)."""
+        if self._vm is None:
+            self._vm = self.v @ self.m
+        return self._vm
 
     def with_low_rank_scaled(self, scale: np.ndarray) -> "SelectedInverse":
         """The inverse of the same S with the low-rank rows scaled, diag(scale) H: shares
@@ -215,21 +261,44 @@ class SelectedInverse:
                 self.below.append(previous)
 
     def _solve_a(self, rhs: np.ndarray) -> np.ndarray:
-        """A^-1 rhs (rows in the permuted order of the non-border columns)."""
+        """A^-1 rhs (rows in the permuted order of the non-border columns). The forward sweep
+        takes a column from the first level where it is non-zero (zero before)."""
         b = self.levels.bounds
         z = np.array(rhs, float, copy=True)
+        flat = z.ndim == 1
+        z = z.reshape(len(z), -1)
+        order, active = self._by_first_level(z)
+        if order is not None:
+            z = z[:, order]
         for k in range(self.num_levels):  # L z = rhs
             lo, hi = b[k], b[k + 1]
+            n = active[k]
+            if not n:
+                continue
             if k:
-                z[lo:hi] -= self.below[k - 1] @ z[b[k - 1]:lo]
-            z[lo:hi] = scipy.linalg.solve_triangular(self.chol[k], z[lo:hi], lower=True)
+                z[lo:hi, :n] -= self.below[k - 1] @ z[b[k - 1]:lo, :n]
+            z[lo:hi, :n] = scipy.linalg.solve_triangular(self.chol[k], z[lo:hi, :n], lower=True)
         for k in range(self.num_levels - 1, -1, -1):  # L^T x = z
             lo, hi = b[k], b[k + 1]
             if k + 1 < self.num_levels:
                 z[lo:hi] -= self.below[k].T @ z[hi:b[k + 2]]
             z[lo:hi] = scipy.linalg.solve_triangular(self.chol[k], z[lo:hi], lower=True,
                                                      trans="T")
-        return z
+        if order is not None:
+            z[:, order] = z.copy()
+        return z.ravel() if flat else z
+
+    def _by_first_level(self, z: np.ndarray) -> tuple[np.ndarray | None, np.ndarray]:
+        """(column order by the first level where a column is non-zero, or None for one
+        column; per level the number of columns non-zero there or before, in that order)."""
+        if z.shape[1] < 2 or not len(z):
+            return None, np.full(self.num_levels, z.shape[1], np.int64)
+        nonzero = z != 0
+        first_row = np.where(nonzero.any(axis=0), nonzero.argmax(axis=0), len(z))
+        first = np.searchsorted(self.levels.bounds, first_row, side="right") - 1
+        order = np.argsort(first, kind="stable")
+        active = np.searchsorted(first[order], np.arange(self.num_levels), side="right")
+        return order, active
 
     @property
     def diag(self) -> list[np.ndarray]:
@@ -270,7 +339,7 @@ class SelectedInverse:
         out = self._base_matmul(rhs)
         if self.v.shape[1]:  # V M V^T rhs = V M H (Q0 rhs): H is sparse
             flat = out.reshape(self.nc, -1)
-            out = (flat - self.vm @ np.asarray(self.h @ flat)).reshape(out.shape)
+            out = (flat - self.v @ (self.m @ np.asarray(self.h @ flat))).reshape(out.shape)
         return out
 
     def _base_matmul(self, rhs: np.ndarray) -> np.ndarray:
@@ -345,7 +414,9 @@ class SelectedInverse:
             r = self.border_rows(columns)
             out += r @ self.k @ r.T
         if self.v.shape[1]:
-            out -= self._low_rank_part(columns)
+            if self._low_rank_windows is None:
+                self._low_rank_windows = WindowProducts(self.levels, self.vm, self.v)
+            out -= self._low_rank_windows.window(level)
         return columns, out
 
     def _border_terms(self, columns: np.ndarray) -> np.ndarray | float:
