@@ -379,7 +379,7 @@ def cofactors(problem: HybridProblem, *, redundancy: bool = True, keep_system: b
 
         s, levels = reduced_normal((j_near.T @ j_near).tocsr(), e, b,
                                    np.asarray(layout.starts[:n_blocks], np.int64),
-                                   np.asarray(layout.sizes[:n_blocks], np.int64))
+                                   np.asarray(layout.sizes[:n_blocks], np.int64), w_inv)
         try:
             q_cc = SelectedInverse(0.5 * (s + s.T), layout.starts[:n_blocks],
                                    layout.sizes[:n_blocks], low_rank=j_c[far], levels=levels)

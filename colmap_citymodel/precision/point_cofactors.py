@@ -152,10 +152,12 @@ def _dense_rows(matrix: sp.csr_matrix, chunk: np.ndarray, where: np.ndarray,
 
 
 def reduced_normal(u: sp.csr_matrix, e: sp.csr_matrix, b: sp.csr_matrix, starts: np.ndarray,
-                   sizes: np.ndarray) -> tuple[sp.csr_matrix, Levels]:
+                   sizes: np.ndarray, w_inv: np.ndarray | None = None
+                   ) -> tuple[sp.csr_matrix, Levels]:
     """S = U - E^T W^-1 E (b = W^-1 E) and its levels: the levels from the coupling of the
     parameter blocks (U's and the tie points'), then E^T B per chunk of neighbouring points as
-    dense products, summed in dense level windows."""
+    dense products, summed in dense level windows. `w_inv` ((P, 3, 3), W^-1): B's dense rows
+    as W_i^-1 E_i instead of gathered from `b`."""
     num_points = b.shape[0] // 3
     n_blocks = len(starts)
     block_of = np.repeat(np.arange(n_blocks), sizes)
@@ -175,8 +177,10 @@ def reduced_normal(u: sp.csr_matrix, e: sp.csr_matrix, b: sp.csr_matrix, starts:
             _emit(buffer, current, rows, cols, values)
             buffer, current = np.zeros((len(columns),) * 2), (lv, columns)
         union = _union(pattern, chunk, where, len(columns))
-        e_flat = _dense_rows(e, chunk, where, union).reshape(-1, len(union[0]))
-        b_flat = _dense_rows(b, chunk, where, union).reshape(-1, len(union[0]))
+        e_dense = _dense_rows(e, chunk, where, union)
+        b_dense = (_dense_rows(b, chunk, where, union) if w_inv is None
+                   else w_inv[chunk] @ e_dense)
+        e_flat, b_flat = e_dense.reshape(-1, len(union[0])), b_dense.reshape(-1, len(union[0]))
         buffer[np.ix_(union[0], union[0])] += e_flat.T @ b_flat
     _emit(buffer, current, rows, cols, values)
     nc = len(levels.level_of)

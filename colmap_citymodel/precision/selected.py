@@ -456,8 +456,10 @@ class SelectedInverse:
         sum((U V) * (V M)), not pair by pair."""
         coo = sp.coo_matrix(u)
         total = float(np.sum(coo.data * self.pattern_values(coo.row, coo.col, low_rank=False)))
-        if self.v.shape[1]:
-            total -= float(np.sum(np.asarray(sp.csr_matrix(u) @ self.v) * self.vm))
+        if self.v.shape[1]:  # over u's non-zero rows only
+            u = sp.csr_matrix(u)
+            rows = np.flatnonzero(np.diff(u.indptr))
+            total -= float(np.sum(np.asarray(u[rows] @ self.v) * self.vm[rows]))
         return total
 
     def pattern_values(self, rows: np.ndarray, cols: np.ndarray, low_rank: bool = True
