@@ -266,7 +266,8 @@ class SelectedInverse:
         b = self.levels.bounds
         z = np.array(rhs, float, copy=True)
         flat = z.ndim == 1
-        z = z.reshape(len(z), -1)
+        if flat:
+            z = z[:, None]
         order, active = self._by_first_level(z)
         if order is not None:
             z = z[:, order]
