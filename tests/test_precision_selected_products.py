@@ -91,3 +91,40 @@ def test_window_products_equal_the_dense_product(many_levels):
             np.testing.assert_allclose(products.window(level),
                                        left[columns] @ other[columns].T, rtol=1e-12,
                                        atol=1e-12)
+
+
+def test_solve_weights_with_every_hold_in_the_low_rank_term(many_levels):
+    """Holds of the scale alone (baselines between far images, all in the low-rank term): the
+    solve-weighted cofactors share the relaxed ones' factorisation and equal a new system at
+    the solve's weights."""
+    from colmap_citymodel.adjust.problem import BaselinePriors
+    from colmap_citymodel.precision.estimate import cofactors, solve_weighted
+
+    from test_precision_estimate import _tiny
+
+    def holds(rec):
+        ids = np.array(sorted(rec.reg_image_ids()))
+        centres = np.array([rec.image(int(i)).projection_center() for i in ids])
+        pairs = np.array([[ids[0], ids[-1]], [ids[1], ids[-2]]])
+        lengths = np.linalg.norm(centres[[0, 1]] - centres[[-1, -2]], axis=1)
+        return BaselinePriors(pairs, lengths, np.full(2, 0.01), tightening=10.0)
+
+    problem = _tiny(holds=holds)
+    assert len(problem.hold_relaxation) == 2
+    relaxed = cofactors(problem, keep_system=True, method="selected", redundancy=False)
+    assert len(relaxed.far_rows) == 2
+    fresh = cofactors(problem, keep_system=True, method="selected", redundancy=False,
+                      relax_holds=False, points=False)
+    ours = solve_weighted(problem, relaxed)
+    assert ours.q_cc.chol is relaxed.q_cc.chol  # no new factorisation
+    layout = fresh.layout
+    for (kind, key) in layout.names[:len(layout.names) - len(layout.point_ids)]:
+        columns = layout.columns(kind, key)
+        expected = np.asarray(fresh.q_cc[columns, columns])
+        np.testing.assert_allclose(ours.q_cc[columns, columns], expected,
+                                   atol=1e-9 * np.abs(expected).max())
+    rhs = np.random.default_rng(6).normal(size=(layout.num_c, 3))
+    np.testing.assert_allclose(ours.q_cc @ rhs, fresh.q_cc @ rhs,
+                               atol=1e-8 * np.abs(fresh.q_cc @ rhs).max())
+    relaxed_q = relaxed.q_cc @ rhs  # the relaxed system keeps its own weights
+    assert np.abs(relaxed_q - fresh.q_cc @ rhs).max() > 1e-6 * np.abs(relaxed_q).max()
