@@ -14,7 +14,13 @@ Two weightings:
 - `per face`: each face's points share one face weight (the face's plane error is one error,
   not one per point), so a face with thousands of points counts as much as one with twenty.
 Each also with every point weighted by its own precision along its face's normal (`precision`,
-see its table).
+see its table). And each point either on the nearest plane of the model variant within the
+window, or (`own surfaces`) on the face whose true surface it lies on (found against the
+`corrected` model, whose planes are the true surfaces'), however far the given plane stands
+off it: the nearest-plane cut drops the points of a face whose given plane stands further off
+than the window, which no method away from the truth can copy. Where a workspace has check
+points, each fit also moves the true images, the check points are triangulated there from
+their observations (with their image noise) and their RMS 3D error is the check-point floor.
 
 The similarity has priors at the truth: translation with the sigma a GNSS-only block has
 (the stated GNSS sigma / sqrt(images); unbiased, unlike the simulated GNSS), rotation 1 deg, scale
@@ -50,9 +56,12 @@ Writes benchmarks/results/model_floor.md (with refine's own figures and the per-
 target from the `robustness` section of scenarios.json beside the floor), the `model_floor`
 section of scenarios.json and benchmarks/results/model_floor.json (per case: the planes-alone
 floors of the given model, every point alike and each face once, and refine's own result).
+Other generated workspaces (`--cases long/Scn3 long/Scn4`, with `--results model_floor_long`)
+are compared on check points with their `refine_a` run in scenarios.json.
 
     .venv/bin/python benchmarks/model_floor.py [--cases drive orbit strip short]
         [--variants original corrected detailed] [--threshold 0.45] [--no_refine]
+        [--results model_floor]
 """
 
 from __future__ import annotations
@@ -70,13 +79,18 @@ import pycolmap
 
 from colmap_citymodel.assign.direct import assign_direct
 from colmap_citymodel.assign.direct import centred_surfaces as centred_on_faces
+from colmap_citymodel.citymodel.ground_faces import terrain_mask
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.options import AssignmentOptions
+from colmap_citymodel.precision.checkpoints import (evaluate_checkpoints,
+                                                    read_checkpoint_observations,
+                                                    read_checkpoints)
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
 from scenarios import centre_errors, inputs, truth_centres, update_json  # noqa: E402
-ROBUST = ROOT / "workspaces" / "generated" / "robust"
+GENERATED = ROOT / "workspaces" / "generated"
+ROBUST = GENERATED / "robust"
 RESULTS = ROOT / "benchmarks" / "results"
 # The per-direction target of the robustness cases where the planes fix a direction.
 TARGET_M, TARGET_GAIN = 0.25, 10.0
@@ -177,16 +191,36 @@ AT_TRUTH = AssignmentOptions(ambiguity_margin=0.0)
 IMPRECISE_SIGMA = 3 * SIGMA_DTP
 
 
+def own_surfaces(workspace: Path, store, points_crs: np.ndarray, ids: np.ndarray,
+                 threshold: float):
+    """The assignment of the true tie points to the surfaces they lie on: made against the
+    `corrected` model (the true surfaces' planes, without the given model's plane errors) and
+    carried to `store`'s faces, which are the same faces (same ids, same order) moved by the
+    given model's errors; None where the two models do not hold the same faces."""
+    surfaces = read_city_model(workspace / "models" / "corrected.gml")
+    same = (surfaces.num_faces == store.num_faces
+            and all(surfaces.faces.gml_id[f] == store.faces.gml_id[f]
+                    for f in range(store.num_faces)))
+    if not same:
+        return None
+    return assign_direct(surfaces.to_local(points_crs), ids, surfaces, threshold, AT_TRUTH)
+
+
 def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np.ndarray,
-          covariances: np.ndarray | None = None) -> dict:
+          covariances: np.ndarray | None = None, by_surface: bool = False) -> dict | None:
     """The floor of one model variant; `block` is `true_block(workspace)`. With `covariances`
     (`point_covariances` of the block's points) also the `precision` weightings: each point
-    weighted by `precision_weights`, every point alike or each face's points sharing it."""
+    weighted by `precision_weights`, every point alike or each face's points sharing it.
+    `by_surface`: each point on the face whose true surface it lies on (`own_surfaces`)
+    instead of the face nearest to it (None where that cannot be told)."""
     store = read_city_model(workspace / "models" / f"{variant}.gml")
     points_crs, ids, centres_crs = block
     points = store.to_local(points_crs)
     centres = store.to_local(centres_crs)
-    assignment = assign_direct(points, ids, store, threshold, AT_TRUTH)
+    assignment = (own_surfaces(workspace, store, points_crs, ids, threshold) if by_surface
+                  else assign_direct(points, ids, store, threshold, AT_TRUTH))
+    if assignment is None:
+        return None
     mask = assignment.assigned
     faces = assignment.face_index[mask]
     normals = store.normals[faces]
@@ -203,6 +237,7 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
                        ("precision per face", precise / counts[faces])]
         out["imprecise_points"] = int(np.sum(1.0 / precise - SIGMA_DTP ** 2
                                              > IMPRECISE_SIGMA ** 2))
+    checks = checkpoints_local(workspace, store)
     for (name, weights), (suffix, priors) in itertools.product(
             weightings, (("", prior_sigmas), (", planes alone", LOOSE_PRIORS))):
         name += suffix
@@ -211,7 +246,47 @@ def floor(workspace: Path, variant: str, block, threshold: float, gnss_sigma: np
                      "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
                      "translation": params[:3].tolist(),
                      "rotation_deg": np.degrees(params[3:6]).tolist(), "scale_ppm": params[6] * 1e6}
+        if checks is not None:
+            out[name]["checkpoints_3d"] = checkpoint_floor(checks, params, centres.mean(axis=0),
+                                                           store)
     return out
+
+
+@dataclasses.dataclass
+class Checks:
+    """A workspace's true block and check points: what `checkpoint_floor` triangulates."""
+    truth: pycolmap.Reconstruction
+    origin: np.ndarray  # of the truth's local frame (CRS)
+    points: dict  # id -> (3,) CRS
+    observations: list
+
+
+def checkpoints_local(workspace: Path, store) -> Checks | None:
+    """The workspace's true block, check points and their image observations, or None."""
+    if not (workspace / "checkpoint_observations.txt").exists():
+        return None
+    return Checks(pycolmap.Reconstruction(str(workspace / "truth")),
+                  np.loadtxt(workspace / "truth" / "origin.txt", comments="#")[:3],
+                  read_checkpoints(workspace / "checkpoints.txt"),
+                  read_checkpoint_observations(workspace / "checkpoint_observations.txt"))
+
+
+def checkpoint_floor(checks: Checks, params: np.ndarray, centre: np.ndarray, store) -> float:
+    """The check points' RMS 3D error (m) of the true block moved by a floor's similarity
+    (`params` about `centre`, in `store`'s local frame): each check point triangulated from
+    its observations (with their image noise) in the moved true images, as refine's check
+    points are in its block."""
+    from scipy.spatial.transform import Rotation
+
+    shift = checks.origin - store.origin  # truth's local frame -> store's
+    rotation = Rotation.from_rotvec(params[3:6]).as_matrix()
+    scale = 1.0 + params[6]
+    translation = scale * rotation @ (shift - centre) + centre + params[:3] - shift
+    moved = pycolmap.Reconstruction(checks.truth)
+    moved.transform(pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation), translation))
+    found = evaluate_checkpoints(moved, checks.points, checks.observations, checks.origin,
+                                 frame="local")
+    return float(found.rms_3d)
 
 
 #: Rounds of assignment and fit in `reassigned_from_truth`, and the band (m) in which a face's
@@ -516,7 +591,8 @@ def assignment_at_truth(workspace: Path, result, threshold: float,
     block by the similarity of their cameras (`pose_points`), and the similarity fit with
     every point weighted alike and the planes alone (`floor`'s) made twice, with refine's
     assignment and with the points assigned afresh at `threshold` at the truth; the faces
-    whose points lie further than OFF_FACE_M from their plane on average at the truth.
+    whose points lie further than OFF_FACE_M from their plane, or from their true surface,
+    on average at the truth (`off_faces`).
     `truth`, `origin`: the workspace's true block and its origin."""
     from colmap_citymodel.precision.checkpoints import helmert_transform
 
@@ -548,36 +624,89 @@ def assignment_at_truth(workspace: Path, result, threshold: float,
                 "rms": rms.tolist(), "rms_3d": float(np.sqrt(np.sum(rms ** 2))),
                 "scale_ppm": float(params[6] * 1e6)}
 
-    distances = (np.einsum("ij,ij->i", points[refine_rows], store.normals[refine_faces])
-                 + store.offsets[refine_faces])
-    off = []
-    for face in np.unique(refine_faces):
-        d = distances[refine_faces == face]
-        if len(d) >= OFF_FACE_POINTS and abs(d.mean()) > OFF_FACE_M:
-            off.append({"face": int(face), "points": int(len(d)), "mean_m": float(d.mean()),
-                        "normal": np.round(store.normals[face], 2).tolist(),
-                        "beyond_threshold": int(np.sum(np.abs(d) > threshold))})
     return {"refine": fit(refine_rows, refine_faces),
             "fresh": fit(np.flatnonzero(fresh.assigned), fresh.face_index[fresh.assigned]),
-            "off_faces": off, "camera_fit_rms": onto_truth.rms_3d}
+            "camera_fit_rms": onto_truth.rms_3d,
+            **off_faces(workspace, store, onto_truth.apply(
+                np.array([sfm.points3D[i].xyz for i in ids]))[refine_rows], refine_faces,
+                threshold)}
+
+
+def true_surface_distances(workspace: Path, store, points_crs: np.ndarray, faces: np.ndarray
+                           ) -> np.ndarray:
+    """Each point's signed distance (m) from the true surface of its face in `store`: that
+    face's plane in the `corrected` model (same id, parallel), NaN for faces it lacks
+    (terrain cells)."""
+    surfaces = read_city_model(workspace / "models" / "corrected.gml")
+    by_id = {}
+    for f in range(surfaces.num_faces):
+        by_id.setdefault(surfaces.faces.gml_id[f], []).append(f)
+    local = surfaces.to_local(points_crs)
+    out = np.full(len(faces), np.nan)
+    for face in np.unique(faces):
+        rows = np.flatnonzero(faces == face)
+        for twin in by_id.get(store.faces.gml_id[face], []):
+            if abs(surfaces.normals[twin] @ store.normals[face]) > 0.99:
+                out[rows] = local[rows] @ surfaces.normals[twin] + surfaces.offsets[twin]
+                break
+    return out
+
+
+def off_faces(workspace: Path, store, points_crs: np.ndarray, faces: np.ndarray,
+              threshold: float) -> dict:
+    """The faces of an assignment (at least OFF_FACE_POINTS points, true positions
+    `points_crs`) whose points lie further than OFF_FACE_M from the face on average, judged
+    twice: `off_faces` against the given model's plane (its plane error or points of another
+    surface), `off_own_surface` against the face's true surface (points of another surface);
+    terrain cells, which carry an offset unknown of their own, counted apart."""
+    terrain = terrain_mask(store)
+    given = np.einsum("ij,ij->i", store.to_local(points_crs), store.normals[faces]) \
+        + store.offsets[faces]
+    true = true_surface_distances(workspace, store, points_crs, faces)
+    out = {"off_faces": [], "off_own_surface": [], "terrain_cells_off": 0}
+    for face in np.unique(faces):
+        rows = faces == face
+        d = given[rows]
+        if len(d) < OFF_FACE_POINTS or abs(d.mean()) <= OFF_FACE_M:
+            continue
+        if terrain[face]:
+            out["terrain_cells_off"] += 1
+            continue
+        entry = {"face": int(face), "points": int(len(d)), "mean_m": float(d.mean()),
+                 "own_surface_m": float(np.mean(true[rows])),
+                 "normal": np.round(store.normals[face], 2).tolist(),
+                 "beyond_threshold": int(np.sum(np.abs(d) > threshold))}
+        out["off_faces"].append(entry)
+    for face in np.unique(faces[~terrain[faces]]):
+        d = true[faces == face]
+        if len(d) >= OFF_FACE_POINTS and np.isfinite(d).all() and abs(d.mean()) > OFF_FACE_M:
+            out["off_own_surface"].append({"face": int(face), "points": int(len(d)),
+                                           "mean_m": float(d.mean())})
+    return out
 
 
 def assignment_table(rows: dict, threshold: float) -> list[str]:
     lines = ["| case | assignment | points | faces | cameras after the fit: X | Y | Z | 3D "
-             "| scale (ppm) | faces off at the truth (points, mean distance) |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| scale (ppm) | faces off their given plane at the truth (points, mean distance; "
+             "from their true surface) | faces off their own surface | terrain cells off |",
+             "|---" * 12 + "|"]
     for case, row in rows.items():
         judged = row.get("assignment_at_truth")
         if not judged:
             continue
         for key, label in (("refine", "refine's last"), ("fresh", f"at the truth, {threshold} m")):
             f = judged[key]
-            off = ("; ".join(f"{o['points']} on a face with normal {o['normal']}, "
-                             f"{o['mean_m']:+.2f} m" for o in judged["off_faces"]) or "none"
-                   ) if key == "refine" else ""
+            off = own = cells = ""
+            if key == "refine":
+                off = "; ".join(f"{o['points']} on a face with normal {o['normal']}, "
+                                f"{o['mean_m']:+.2f} m ({o['own_surface_m']:+.2f} m)"
+                                for o in judged["off_faces"]) or "none"
+                own = "; ".join(f"{o['points']} at {o['mean_m']:+.2f} m"
+                                for o in judged["off_own_surface"]) or "none"
+                cells = str(judged["terrain_cells_off"])
             lines.append(f"| {case} | {label} | {f['points']} | {f['faces']} | "
                          f"{f['rms'][0]:.3f} | {f['rms'][1]:.3f} | {f['rms'][2]:.3f} | "
-                         f"{f['rms_3d']:.3f} | {f['scale_ppm']:.0f} | {off} |")
+                         f"{f['rms_3d']:.3f} | {f['scale_ppm']:.0f} | {off} | {own} | {cells} |")
     return lines
 
 
@@ -719,16 +848,56 @@ def floor_row(case: str, variant: str, f: dict) -> str:
             + " | ".join(f"{v:.3f}" for v in loose) + " |")
 
 
+#: The row of the given model's floor with each tie point on the face whose true surface it
+#: lies on (`own_surfaces`), however far the model's plane stands off it.
+OWN_SURFACES = "original, own surfaces"
+
+#: The floors of `own_surface_table`, planes alone: every point alike, each face once, each
+#: point by its own precision (alike / each face once).
+OWN_WEIGHTINGS = ("per point", "per face", "precision per point", "precision per face")
+
+
+def own_surface_table(rows: dict, robustness: dict) -> list[str]:
+    """Per case: refine's camera-centre RMS with the given model beside the planes-alone
+    floors with each tie point on its own surface (`OWN_SURFACES`), per axis and 3D, and
+    refine over the lower of the floors every point alike and each face once."""
+    lines = ["| case | axis | refine | " + " | ".join(OWN_WEIGHTINGS)
+             + " | refine / lower of per point and per face |", "|---" * 7 + "|"]
+    for case, variants in rows.items():
+        refined = ((robustness.get(case, {}).get("refine") or {}).get("cameras"))
+        own = variants.get(OWN_SURFACES)
+        if not (refined and own):
+            continue
+        for axis, key in (("E", "rms_x"), ("N", "rms_y"), ("U", "rms_z"), ("3D", "rms_3d")):
+            floors = [own[f"{w}, planes alone"][key] for w in OWN_WEIGHTINGS]
+            lines.append(f"| {case} | {axis} | {refined[key]:.3f} | "
+                         + " | ".join(f"{v:.3f}" for v in floors)
+                         + f" | {refined[key] / min(floors[:2]):.2f} |")
+    return lines
+
+
+def case_workspace(case: str) -> Path:
+    """A robustness case by name ("orbit"), any other generated workspace by its path under
+    workspaces/generated ("long/Scn3")."""
+    return GENERATED / case if "/" in case else ROBUST / case
+
+
 def run_case(case: str, args: argparse.Namespace, runs: Runs, table: list[str]) -> None:
     """Everything `main` measures for one case, into `runs` (rows into `table`), printed as it
     comes."""
-    workspace, gnss_sigma = ROBUST / case, np.array(args.gnss_sigma)
+    workspace, gnss_sigma = case_workspace(case), np.array(args.gnss_sigma)
     block = runs.blocks[case] = true_block(workspace)
     covariances = point_covariances(workspace, block[1])
     for variant in args.variants:
         f = floor(workspace, variant, block, args.threshold, gnss_sigma, covariances)
         runs.rows.setdefault(case, {})[variant] = f
         table.append(floor_row(case, variant, f))
+        print(table[-1], flush=True)
+    own = floor(workspace, "original", block, args.threshold, gnss_sigma, covariances,
+                by_surface=True)
+    if own is not None:
+        runs.rows[case][OWN_SURFACES] = own
+        table.append(floor_row(case, OWN_SURFACES, own))
         print(table[-1], flush=True)
     runs.sweeps[case] = threshold_sweep(workspace, block, gnss_sigma, covariances)
     print("\n".join(threshold_table({case: runs.sweeps[case]})[2:]), flush=True)
@@ -754,6 +923,7 @@ def floor_lines(args: argparse.Namespace, runs: Runs, table: list[str], robustne
         f"Robustness workspaces (workspaces/generated/robust), code {commit}; true tie "
         f"points assigned directly at {args.threshold} m. Camera-centre RMS (m) after the "
         "fit, per axis and 3D:", "", *table, "",
+        OWN_SURFACES_TEXT, "", *own_surface_table(runs.rows, robustness), "",
         "With the given (`original`) model, beside refine's own camera-centre RMS and the "
         "GNSS-only adjustment of the same block (the `robustness` section of "
         "scenarios.json), the per-direction target of a direction the planes fix (<= 0.25 m "
@@ -769,6 +939,21 @@ def floor_lines(args: argparse.Namespace, runs: Runs, table: list[str], robustne
         PRECISION_TEXT.format(sigma_px=SIGMA_PX, sigma_dtp=SIGMA_DTP,
                               imprecise=IMPRECISE_SIGMA, wide=WIDE_WINDOW_M), "",
         *precision_table(runs.sweeps), ""]
+
+
+#: What the `own surfaces` floors mean (model_floor.md).
+OWN_SURFACES_TEXT = (
+    f"`{OWN_SURFACES}`: each true tie point on the face whose true surface it lies on, found "
+    "against the `corrected` model (the true surfaces' planes) with the same window and carried "
+    "to the same face of the given model, whose planes stay as they are however far they stand "
+    "off their points. The other rows assign each point to the nearest plane of their own "
+    "model: where a given plane stands further than the window off its surface (its 0.2 m "
+    "shift and 0.5 deg tilt over a long wall), that cut keeps only the points that happen to "
+    "lie near the wrong plane and so drops the faces that would pull the block most, which no "
+    "method away from the truth can copy. This floor is what a method that puts every point "
+    "on its own surface and trusts the given planes inherits from the model. With the given "
+    "model, refine's camera-centre RMS (the `robustness` section of scenarios.json) beside "
+    "these floors (planes alone), per axis and 3D:")
 
 
 #: What the `precision` floors mean (model_floor.md).
@@ -818,10 +1003,13 @@ def refine_lines(args: argparse.Namespace, runs: Runs) -> list[str]:
         "they were assigned to (every point alike, the planes alone, as `per point, "
         "planes alone` above), against the same fit with the points assigned afresh "
         "at the truth; and the faces of refine's assignment whose points lie more "
-        f"than {OFF_FACE_M} m from the plane on average at the truth (at least "
-        f"{OFF_FACE_POINTS} points): where the first fit ends far from the second, "
-        "refine's assignment carries the error, and these faces hold points of "
-        "surfaces other than their own:", "",
+        f"than {OFF_FACE_M} m on average (at least {OFF_FACE_POINTS} points) from their "
+        "given plane at the truth (in brackets: from the face's true surface, its plane in "
+        "the `corrected` model), and from their own true surface. A face far from its "
+        "given plane but on its true surface is the model's plane error (0.2 m shift and "
+        "0.5 deg tilt per face), not a wrong assignment; a face far from its own surface "
+        "holds points of another surface. Terrain cells (their offsets are unknowns of "
+        "the adjustment) are only counted:", "",
         *assignment_table(runs.preferences, args.threshold), ""]
 
 
@@ -847,28 +1035,57 @@ def reassigned_lines(runs: Runs) -> list[str]:
         *reassigned_table(runs.reassigned), ""]
 
 
+def checkpoint_table(rows: dict, everything: dict) -> list[str]:
+    """Per generated workspace other than the robustness ones ("long/Scn3"): refine's
+    check-point RMS 3D (its `refine_a` run in scenarios.json's section of that sequence)
+    beside the planes-alone floors on the same check points, nearest plane and own surface,
+    and refine over the lower own-surface floor of every point alike and each face once."""
+    lines = ["| case | refine (check points) | nearest plane: per point | per face "
+             "| own surface: per point | per face | refine / lower own-surface floor |",
+             "|---" * 7 + "|"]
+    for case, variants in rows.items():
+        if "/" not in case or OWN_SURFACES not in variants:
+            continue
+        section, name = case.split("/", 1)
+        refined = (everything.get(section, {}).get(name, {}).get("refine_a") or {})
+        floors = [variants[key][f"{w}, planes alone"].get("checkpoints_3d", float("nan"))
+                  for key in ("original", OWN_SURFACES) for w in ("per point", "per face")]
+        ratio = refined.get("rms_3d", float("nan")) / min(floors[2:])
+        lines.append(f"| {case} | {refined.get('rms_3d', float('nan')):.3f} | "
+                     + " | ".join(f"{v:.3f}" for v in floors) + f" | {ratio:.2f} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--cases", nargs="+", default=["drive", "orbit", "strip", "short"])
+    parser.add_argument("--cases", nargs="+", default=["drive", "orbit", "strip", "short"],
+                        help="robustness cases, or workspaces under workspaces/generated "
+                             "(long/Scn3)")
     parser.add_argument("--variants", nargs="+", default=["original", "corrected", "detailed"])
     parser.add_argument("--threshold", type=float, default=0.45)
     parser.add_argument("--gnss_sigma", nargs=3, type=float, default=[3.0, 3.0, 5.0])
     parser.add_argument("--no_refine", action="store_true",
                         help="leave out the fit of refine's block against the true one")
+    parser.add_argument("--results", default="model_floor",
+                        help="name of the results (benchmarks/results/NAME.md and .json, and "
+                             "the section of scenarios.json)")
     args = parser.parse_args()
     runs, table = Runs(), list(FLOOR_TABLE)
     print("\n".join(table))
     for case in args.cases:
         run_case(case, args, runs, table)
-    everything = update_json(RESULTS / "scenarios.json", ["model_floor"], runs.rows)
+    everything = update_json(RESULTS / "scenarios.json", [args.results], runs.rows)
     if runs.preferences:
         update_json(RESULTS / "scenarios.json", ["model_preference"], runs.preferences)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
     robustness = everything.get("robustness", {})
-    lines = (floor_lines(args, runs, table, robustness, commit) + reassigned_lines(runs)
-             + refine_lines(args, runs))
-    (RESULTS / "model_floor.md").write_text("\n".join(lines))
+    checks = checkpoint_table(runs.rows, everything)
+    lines = (floor_lines(args, runs, table, robustness, commit)
+             + (["Check points (m, 3D RMS) of the other workspaces:", "", *checks, ""]
+                if len(checks) > 2 else [])
+             + reassigned_lines(runs) + refine_lines(args, runs))
+    (RESULTS / f"{args.results}.md").write_text("\n".join(lines))
     floors = floor_summary(runs.rows, robustness, runs.sweeps)
     for case, found in runs.sweeps.items():
         if case in floors:
@@ -876,7 +1093,20 @@ def main() -> None:
     for case, found in runs.reassigned.items():
         if case in floors:
             floors[case]["reassigned_from_truth_3d"] = {k: v["rms_3d"] for k, v in found.items()}
-    (RESULTS / "model_floor.json").write_text(json.dumps(floors, indent=1) + "\n")
+    (RESULTS / f"{args.results}.json").write_text(json.dumps(floors, indent=1) + "\n")
+
+
+def own_surface_summary(own: dict | None) -> dict:
+    """model_floor.json's keys of the `OWN_SURFACES` floors (planes alone): 3D and per axis."""
+    if own is None:
+        return {}
+    out = {}
+    for w in OWN_WEIGHTINGS:
+        fit = compact(own[f"{w}, planes alone"])
+        key = "floor_own_surfaces_" + w.replace(" ", "_")
+        out[key + "_3d"] = fit["3d"]
+        out[key + "_axes"] = {a: fit[a] for a in "ENU"}
+    return out
 
 
 def floor_summary(rows: dict, robustness: dict, sweeps: dict, variant: str = "original"
@@ -917,6 +1147,7 @@ def floor_summary(rows: dict, robustness: dict, sweeps: dict, variant: str = "or
                                     "per_face": fits[3]["scale_ppm"],
                                     "wide_per_point": fits[4]["scale_ppm"],
                                     "wide_per_face": fits[5]["scale_ppm"]},
+            **own_surface_summary(variants.get(OWN_SURFACES)),
             "imprecise_points": f["imprecise_points"], "wide_window_m": WIDE_WINDOW_M,
             "sigma_px": SIGMA_PX, "refine_code": robustness.get(case, {}).get("code"),
         }
