@@ -505,11 +505,31 @@ class HybridProblem:
 
     def _add_model(self, core, store: PlaneStore, current: PlaneStore, assignment: Assignment,
                    robust_planes: bool) -> None:
-        o = self.options
-        problem = self.problem
+        """The model's unknowns and observations: the planes, the generalisation offsets (if
+        estimated), the f_dTP's weights (added last, `_add_tie_distances`), the vertices with
+        their f_dVT and f_VT, the corrected model's datum condition and the offsets' priors."""
         faces = assignment.faces
+        blocks, slot_of_face = self._add_planes(current, faces)
+        with_offsets = self._add_generalisation_blocks(blocks, faces)
+        self._prepare_tie_distances(core, store, current, assignment, blocks, slot_of_face,
+                                    with_offsets)
+        released = self._add_vertices(core, store, current, assignment, blocks, slot_of_face)
+        if released and self.options.sigma_correction_datum is not None:
+            self._add_correction_datum(core, store, blocks)
+        # Group "gen" last: the priors of the generalisation offsets.
+        if with_offsets:
+            o = self.options
+            prior = core.ScalarPriorCost(0.0, o.sigma_generalisation / o.sigma_image)
+            for block in blocks.generalisation:
+                self.problem.add_residual_block(prior, None, [block])
+        self.counts["gen"] = len(blocks.generalisation)
+        self.blocks = blocks
+
+    def _add_planes(self, current: PlaneStore, faces: np.ndarray
+                    ) -> tuple[PlaneBlocks, dict[int, int]]:
+        """Each face's normal (on the unit sphere) and offset as unknowns at `current`."""
+        problem = self.problem
         blocks = PlaneBlocks(faces=faces)
-        slot_of_face = {int(f): k for k, f in enumerate(faces)}
         sphere = pyceres.SphereManifold(3)
         for f in faces:
             # Offsets refer to a point on the plane, so that normal and offset are
@@ -522,8 +542,12 @@ class HybridProblem:
             problem.add_parameter_block(blocks.normals[-1], 3)
             problem.set_manifold(blocks.normals[-1], sphere)
             problem.add_parameter_block(blocks.offsets[-1], 1)
+        return blocks, {int(f): k for k, f in enumerate(faces)}
 
-        # Generalisation-aware model: an offset unknown per plane, shared by its tie points.
+    def _add_generalisation_blocks(self, blocks: PlaneBlocks, faces: np.ndarray) -> bool:
+        """Generalisation-aware model: an offset unknown per plane, shared by its tie points
+        (only with `generalisation_offsets` and sigma_generalisation set); True if added."""
+        o = self.options
         with_offsets = self._generalisation_offsets and o.sigma_generalisation is not None
         if with_offsets and not o.sigma_generalisation > 0:
             from ..errors import InputError
@@ -533,55 +557,76 @@ class HybridProblem:
         if with_offsets:
             for _ in faces:
                 blocks.generalisation.append(np.zeros(1, dtype=np.float64))
-                problem.add_parameter_block(blocks.generalisation[-1], 1)
+                self.problem.add_parameter_block(blocks.generalisation[-1], 1)
+        return with_offsets
 
-        # f_dTP (added last, `_add_tie_distances`): one residual per assigned tie point, in
-        # the order of `point_ids`; one cost (its sigma) and loss per face.
+    def _prepare_tie_distances(self, core, store: PlaneStore, current: PlaneStore,
+                               assignment: Assignment, blocks: PlaneBlocks,
+                               slot_of_face: dict[int, int], with_offsets: bool) -> None:
+        """The f_dTP's points, faces and weights (added last, `_add_tie_distances`): one
+        residual per assigned tie point, in the order of `point_ids`; one cost (its sigma)
+        and loss per face and sigma (`_tie_cost`)."""
+        o = self.options
+        faces = assignment.faces
         assigned = assignment.assigned
         self.point_ids = np.asarray(assignment.point_ids[assigned], np.int64)
         self.point_faces = np.asarray(assignment.face_index[assigned], np.int64)
         self.face_sigmas = tie_sigmas(o, store, faces, self.point_faces, assignment)
-        rec = self.reconstruction
         self._row_sigmas = self._point_sigmas(current, faces, self.point_ids, self.point_faces,
                                               self.face_sigmas, assignment)
         self._tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
                              else core.PointPlaneDistanceCost)
-        # One cost (its sigma) and loss per face and sigma (`_tie_cost`).
         self._tie_costs: dict = {}
         self._with_offsets = with_offsets
         self._slot_of_face = slot_of_face
         self._references = blocks.references
 
-        # Vertices of the planes in the problem, each with f_VT and f_dVT to its planes.
+    def _add_held_planes(self, core, store: PlaneStore, current: PlaneStore,
+                         assignment: Assignment, blocks: PlaneBlocks
+                         ) -> tuple[set[int], dict[int, int], list]:
+        """Model correction: the vertices of the faces the images see well are released; a
+        released vertex stays on the given (constant) plane of each of its faces that is not
+        corrected. Returns the released vertices, each held face's slot and its f_dVT cost."""
+        o = self.options
+        problem = self.problem
+        rec = self.reconstruction
+        points = np.full((len(assignment.point_ids), 3), np.nan)
+        points[assignment.assigned] = [rec.point3D(int(i)).xyz for i in self.point_ids]
+        selection = select_corrected_faces(current, assignment, points, o)
+        blocks.correction = selection
+        held_slot: dict[int, int] = {}
+        held_costs = []
+        for k, f in enumerate(selection.held):
+            held_slot[int(f)] = k
+            reference = store.vertices[store.face_vertex_ids(f)].mean(axis=0)
+            normal = np.array(store.normals[f], dtype=np.float64)
+            blocks.held_normals.append(normal)
+            blocks.held_offsets.append(np.array([store.offsets[f] + normal @ reference],
+                                                dtype=np.float64))
+            problem.add_parameter_block(blocks.held_normals[-1], 3)
+            problem.add_parameter_block(blocks.held_offsets[-1], 1)
+            problem.set_parameter_block_constant(blocks.held_normals[-1])
+            problem.set_parameter_block_constant(blocks.held_offsets[-1])
+            held_costs.append(core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image,
+                                                          reference))
+        return set(selection.released.tolist()), held_slot, held_costs
+
+    def _add_vertices(self, core, store: PlaneStore, current: PlaneStore,
+                      assignment: Assignment, blocks: PlaneBlocks,
+                      slot_of_face: dict[int, int]) -> set[int]:
+        """The vertices of the planes in the problem, each with f_dVT to its planes (and to the
+        held planes of a corrected model) and f_VT; returns the released vertices."""
+        o = self.options
+        problem = self.problem
+        faces = assignment.faces
         vertex_ids = np.unique(np.concatenate([store.face_vertex_ids(f) for f in faces]))
         blocks.vertex_ids = vertex_ids
         indptr, indices = store.vertex_faces
         vertex_costs = [core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image, r)
                         for r in blocks.references]
-        # Model correction: the vertices of the faces the images see well are released; a
-        # released vertex stays on the given plane of each of its faces that is not corrected.
-        released: set[int] = set()
-        held_slot: dict[int, int] = {}
-        held_costs = []
-        if self.releases_model:
-            points = np.full((len(assignment.point_ids), 3), np.nan)
-            points[assigned] = [rec.point3D(int(i)).xyz for i in self.point_ids]
-            selection = select_corrected_faces(current, assignment, points, o)
-            blocks.correction = selection
-            released = set(selection.released.tolist())
-            for k, f in enumerate(selection.held):
-                held_slot[int(f)] = k
-                reference = store.vertices[store.face_vertex_ids(f)].mean(axis=0)
-                normal = np.array(store.normals[f], dtype=np.float64)
-                blocks.held_normals.append(normal)
-                blocks.held_offsets.append(np.array([store.offsets[f] + normal @ reference],
-                                                    dtype=np.float64))
-                problem.add_parameter_block(blocks.held_normals[-1], 3)
-                problem.add_parameter_block(blocks.held_offsets[-1], 1)
-                problem.set_parameter_block_constant(blocks.held_normals[-1])
-                problem.set_parameter_block_constant(blocks.held_offsets[-1])
-                held_costs.append(core.PointPlaneDistanceCost(o.sigma_dvt / o.sigma_image,
-                                                              reference))
+        released, held_slot, held_costs = (
+            self._add_held_planes(core, store, current, assignment, blocks)
+            if self.releases_model else (set(), {}, []))
         corrected = set() if blocks.correction is None else set(blocks.correction.faces.tolist())
         n_dvt = 0
         for v in vertex_ids:
@@ -608,22 +653,18 @@ class HybridProblem:
                                             sigma_released if int(v) in released else sigma_vt),
                 None, [vertex])
         self.counts["VT"] = 3 * len(vertex_ids)
-        if released and o.sigma_correction_datum is not None:
-            # The corrected model keeps the given model's datum (one condition of up to 7 rows).
-            ids, matrix, reference = datum_condition(store, blocks.correction,
-                                                     o.sigma_correction_datum / o.sigma_image)
-            if len(matrix):
-                slots = np.searchsorted(vertex_ids, ids)
-                problem.add_residual_block(core.LinearPointsConditionCost(matrix, reference),
-                                           None, [blocks.vertices[k] for k in slots])
-                self.counts["VT"] += len(matrix)
-        # Group "gen" last: the priors of the generalisation offsets.
-        if with_offsets:
-            prior = core.ScalarPriorCost(0.0, o.sigma_generalisation / o.sigma_image)
-            for block in blocks.generalisation:
-                problem.add_residual_block(prior, None, [block])
-        self.counts["gen"] = len(blocks.generalisation)
-        self.blocks = blocks
+        return released
+
+    def _add_correction_datum(self, core, store: PlaneStore, blocks: PlaneBlocks) -> None:
+        """The corrected model keeps the given model's datum (one condition of up to 7 rows)."""
+        o = self.options
+        ids, matrix, reference = datum_condition(store, blocks.correction,
+                                                 o.sigma_correction_datum / o.sigma_image)
+        if len(matrix):
+            slots = np.searchsorted(blocks.vertex_ids, ids)
+            self.problem.add_residual_block(core.LinearPointsConditionCost(matrix, reference),
+                                            None, [blocks.vertices[k] for k in slots])
+            self.counts["VT"] += len(matrix)
 
     def _point_sigmas(self, model: PlaneStore, faces: np.ndarray, point_ids: np.ndarray,
                       point_faces: np.ndarray, sigmas: np.ndarray, assignment: Assignment
