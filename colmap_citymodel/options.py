@@ -243,9 +243,10 @@ class AdjustmentOptions:
     face_weighting: str = "per_point"
     """How the f_dTP of one face weigh. "per_point": each an independent observation at
     sigma_dtp (Unger). "face" (adjust.faces): a face's error is one error shared by its n points,
-    each at sigma^2 = sigma_dtp^2 + n sigma_face^2 (scaled so all tie points weigh together as per
-    point), a face further off than sigma_face explains weighed less. Better where one face
-    dominates a direction, worse where many faces fit well (docs/method.md, "Faces as units")."""
+    each at sigma^2 = sigma_dtp^2 + n sigma_face^2, so a face counts as one observation of its
+    offset; use it with GNSS's common bias estimated (`gnss_offset` "all"), which the model no
+    longer outweighs. Better where few faces hold a direction (an orbit, a drive), worse where
+    one roof holds the height and tilt (docs/method.md, "Faces as units")."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of

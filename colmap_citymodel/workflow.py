@@ -100,6 +100,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     estimate_offset = priors is not None and priors.estimates_offset
+    if o_adj.face_weighting == "face" and priors is not None and not estimate_offset:
+        logger.warning("faces as units weigh each face as one observation of its offset: "
+                       "the GNSS's common bias, not estimated (--gnss_bias auto), pulls the "
+                       "block as far as the faces let it")
     if estimate_offset:
         priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
         priors.fit_offset(rec)

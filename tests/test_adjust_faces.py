@@ -26,8 +26,9 @@ def test_a_face_counts_as_one_observation_of_its_offset():
     face_weight = counts / sigmas ** 2  # what each face's points weigh together
     # Within a few per cent of one another however many points a face has ...
     assert face_weight[:3].max() / face_weight[:3].min() < 1.25
-    # ... and the tie points together weigh as many points at sigma_dtp would.
-    assert face_weight.sum() == pytest.approx(counts.sum() / options.sigma_dtp ** 2)
+    # ... each that of one observation of its offset with its points' own noise.
+    np.testing.assert_allclose(
+        face_weight[:3], 1 / (0.2 ** 2 + options.sigma_dtp ** 2 / counts[:3]), rtol=1e-12)
     # A small sigma_face leaves small faces nearly per point and caps the large ones.
     tight = face_sigmas(AdjustmentOptions(face_weighting="face", sigma_face=0.02),
                         np.repeat(np.arange(4), counts), 4)

@@ -262,8 +262,9 @@ def face_sigmas(options: AdjustmentOptions, rows: np.ndarray, num_faces: int,
                 ) -> np.ndarray:
     """(num_faces,) the sigma (m) of each face's f_dTP: sigma_dtp, or with `face_weighting`
     "face" sqrt(sigma_dtp^2 + n sigma_face^2) times the face's outlier factor (`factors`, 1:
-    none), n the face's points (`rows`: the face slot of each assigned point); sigma_face:
-    `sigma_face`, else the option's, else DEFAULT_SIGMA_FACE."""
+    none), n the face's points (`rows`: the face slot of each assigned point), so that a face's
+    points together weigh as one observation of its offset, 1 / (sigma_face^2 + sigma_dtp^2 /
+    n); sigma_face: `sigma_face`, else the option's, else DEFAULT_SIGMA_FACE."""
     if sigma_face is None:
         sigma_face = (options.sigma_face if options.sigma_face is not None
                       else DEFAULT_SIGMA_FACE)
@@ -273,12 +274,6 @@ def face_sigmas(options: AdjustmentOptions, rows: np.ndarray, num_faces: int,
         sigmas = np.sqrt(options.sigma_dtp ** 2 + counts * sigma_face ** 2)
         if factors is not None:
             sigmas = sigmas * factors
-        # Scaled so that the tie points together weigh as in the classical model: the balance
-        # between the model and GNSS stays; only the faces' shares change.
-        total = np.sum(counts) / options.sigma_dtp ** 2
-        weighted = np.sum(counts / sigmas ** 2)
-        if weighted > 0:
-            sigmas = sigmas * np.sqrt(weighted / total)
     return sigmas
 
 
