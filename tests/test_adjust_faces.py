@@ -180,3 +180,26 @@ def test_an_arcade_2_m_behind_the_model_does_not_pull_the_block(street_scene, de
                     progress=False)
     assert not np.any(result.assignment.face_index == same_face(result, store, face))
     assert camera_rms(result, street_scene) < 0.03
+
+
+def test_faces_as_units_want_the_gnss_bias_estimated(street_scene, arcade):
+    """Faces as units weigh the model as one observation per face, so a GNSS bias the
+    adjustment does not know pulls the block further than per point; estimated beside them
+    (--gnss_bias auto) it does not."""
+    from colmap_citymodel.block.gnss import GNSSObservations
+
+    store, _ = arcade
+    scene = street_scene
+    biased = GNSSObservations(scene.gnss_names, scene.gnss_positions_crs + [3.0, -4.0, 2.0],
+                              scene.gnss_sigmas, scene.store.crs, "synthetic")
+
+    def error(gnss_offset: str) -> float:
+        options = faces_as_units()
+        options.adjustment.gnss_offset = gnss_offset
+        result = refine(scene.sfm, store, biased, options, progress=False)
+        return float(np.sqrt(np.mean(np.square(centre_errors(result.reconstruction,
+                                                               scene.truth)))))
+
+    pulled, estimated = error("none"), error("all")
+    assert estimated < 0.008
+    assert estimated < 0.7 * pulled
