@@ -168,7 +168,6 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
     return dropped
 
 
-
 def tilt_axes(store, face: int, sigma: float) -> np.ndarray:
     """(2, 3) the principal tilt axes of `face` (in-plane) scaled by the sigma (rad) of its tilt
     about them. Each vertex off by `sigma` (m) along the normal, independently, tilts the plane

@@ -68,6 +68,7 @@ import logging
 import os
 import time
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 import pyceres
@@ -204,14 +205,16 @@ class _Layout:
     num_c: int
     point_ids: np.ndarray
 
+    @cached_property
+    def _by_name(self) -> dict[tuple[str, int], slice]:
+        """Name -> columns, the first of equal names."""
+        out: dict[tuple[str, int], slice] = {}
+        for name, s, n in zip(self.names, self.starts, self.sizes):
+            out.setdefault(name, slice(s, s + n))
+        return out
+
     def columns(self, kind: str, key: int) -> slice | None:
-        count, by_name = getattr(self, "_by_name", (-1, {}))
-        if count != len(self.names):  # a name -> columns map, the first of equal names
-            by_name = {}
-            for name, s, n in zip(self.names, self.starts, self.sizes):
-                by_name.setdefault(name, slice(s, s + n))
-            self._by_name = (len(self.names), by_name)
-        return by_name.get((kind, key))
+        return self._by_name.get((kind, key))
 
 
 def _layout(problem: HybridProblem) -> _Layout:
