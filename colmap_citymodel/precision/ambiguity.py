@@ -10,6 +10,14 @@ on the ground fit it at every horizontal shift alike and would only pull the rat
 Placements are scored on a grid of horizontal shifts; the alternative is the best local
 maximum at least `distinct` metres from the best one and inside the region GNSS allows (a
 callable telling, per shift, whether GNSS admits it).
+
+The height is tested apart (height_fit): the same fit over vertical shifts of the tie points
+at the refined horizontal placement. Walls fit most heights alike, so two heights may fit
+nearly equally well and a ratio would not separate them; what is tested is whether another
+height fits significantly better than the refined one (a one-sided paired test of the tie
+points' fits at both, the points of one CELL metres cell counting as one sample). Where GNSS
+does not hold the height (its bias estimated), only the model tells a block that settled a
+storey off from one that did not.
 """
 
 from __future__ import annotations
@@ -18,6 +26,7 @@ import logging
 from dataclasses import dataclass
 
 import numpy as np
+from scipy import stats
 
 from .._ext import load_core
 from ..align.coarse import subsample
@@ -32,6 +41,12 @@ SAMPLE_POINTS = 3000
 #: (at most GRID_SIDE steps a side) and score with a near radius of that step.
 STEP = 0.5
 GRID_SIDE = 61
+#: Step (m) of the vertical shifts: half the near radius, so that a level face's peak (2 radii
+#: wide) is sampled close to its top.
+HEIGHT_STEP = 0.25
+#: Side (m) of the cells whose tie points count as one sample in the height test: about a LOD2
+#: face's extent; the points of one face share its generalisation error, not independent ones.
+CELL = 10.0
 
 
 @dataclass
@@ -134,3 +149,75 @@ def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
     alternative = candidates[int(np.argmax(scores[candidates]))]
     return Placement(float(scores[best]), float(scores[alternative]), grid[alternative],
                      grid[best])
+
+
+@dataclass
+class HeightFit:
+    """The refined height's fit and the best distinct height's (vertical shifts, m), with the
+    one-sided p-value that the other fits better (number of heights tried taken into
+    account); 1 without another height."""
+
+    here_share: float
+    here_shift: float
+    other_share: float
+    other_shift: float | None
+    z: float
+    p: float
+
+    def todict(self) -> dict:
+        return {"here_share": self.here_share, "here_shift_m": self.here_shift,
+                "other_share": self.other_share, "other_shift_m": self.other_shift,
+                "z": float(self.z) if np.isfinite(self.z) else None, "p": self.p}
+
+
+def _point_fits(sample: np.ndarray, surface, shifts: np.ndarray, radius: float) -> np.ndarray:
+    """(len(shifts), len(sample)) smooth fit of each point moved up by each shift: 1 on the
+    surface, 0 from `radius` on."""
+    out = np.empty((len(shifts), len(sample)))
+    for k, dz in enumerate(shifts):
+        u = np.clip(surface(sample + [0.0, 0.0, dz], radius) / radius, 0.0, 1.0)
+        out[k] = (1.0 - u * u) ** 2
+    return out
+
+
+def paired_z(gain: np.ndarray, positions: np.ndarray, cell: float) -> float:
+    """Mean of `gain` (per point) over its standard error, the points of one `cell` m cube of
+    `positions` summed into one sample (cluster-robust): inf where every cell gains alike."""
+    n = len(gain)
+    _, cells = np.unique(np.floor(positions / cell).astype(np.int64), axis=0,
+                         return_inverse=True)
+    sums = np.bincount(cells.ravel(), weights=gain - gain.mean())
+    variance = np.sum(sums ** 2) / n ** 2 * len(sums) / max(len(sums) - 1, 1)
+    if variance <= 0:
+        return float(np.copysign(np.inf, gain.mean())) if gain.mean() else 0.0
+    return float(gain.mean() / np.sqrt(variance))
+
+
+def height_fit(points: np.ndarray, surface, reach: float, admitted, *, radius: float = 0.5,
+               distinct: float = 2.0) -> HeightFit:
+    """Vertical shifts of `points` within +- `reach` m: the refined height's fit (the best
+    within `radius` of it) against the best local maximum at least `distinct` away that
+    `admitted` ((K,) shifts -> (K,) bool, GNSS allows it) lets through; `surface` as in
+    placement_fit (its terrain does not score)."""
+    surface = without_terrain(surface)
+    sample = subsample(np.asarray(points, float), SAMPLE_POINTS)
+    shifts = np.arange(-np.floor(reach / HEIGHT_STEP), np.floor(reach / HEIGHT_STEP) + 1
+                       ) * HEIGHT_STEP
+    if surface is None or not len(sample):
+        return HeightFit(0.0, 0.0, 0.0, None, 0.0, 1.0)
+    fits = _point_fits(sample, surface, shifts, radius)
+    scores = fits.mean(axis=1)
+    own = np.abs(shifts) <= radius  # the refined height's own peak
+    here = int(np.flatnonzero(own)[np.argmax(scores[own])])
+    near = np.abs(shifts) < distinct
+    padded = np.pad(scores, 1, constant_values=-np.inf)
+    maxima = (scores >= padded[:-2]) & (scores >= padded[2:])
+    candidates = np.flatnonzero(maxima & ~near & (scores > 0)
+                                & np.asarray(admitted(shifts), bool))
+    if not len(candidates):
+        return HeightFit(float(scores[here]), float(shifts[here]), 0.0, None, 0.0, 1.0)
+    other = int(candidates[np.argmax(scores[candidates])])
+    z = paired_z(fits[other] - fits[here], sample, CELL)
+    p = min(1.0, float(stats.norm.sf(z)) * len(candidates))
+    return HeightFit(float(scores[here]), float(shifts[here]), float(scores[other]),
+                     float(shifts[other]), z, p)

@@ -10,7 +10,9 @@ failed (refine hands back the GNSS-only block):
   their generalisation), is significant (chi-square, level `alpha`);
 - the placement is ambiguous: a distinct placement that GNSS admits fits the tie points nearly
   as well as the best one (ratio below `ambiguity_ratio`), on the city model's faces (the
-  terrain, level round the block, fits every shift alike).
+  terrain, level round the block, fits every shift alike);
+- the block lands on another height: a height GNSS admits fits the tie points significantly
+  better than the refined one (paired test, level `alpha`).
 weak: a direction rests on GNSS alone, the radius that holds the stated position error with
 `tolerance_confidence` exceeds the user's tolerance, or the
 assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
@@ -33,7 +35,7 @@ from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
 from ..options import GENERALISATION_SIGMA, RefineOptions
-from .ambiguity import placement_fit
+from .ambiguity import height_fit, placement_fit
 
 logger = logging.getLogger(__name__)
 
@@ -44,8 +46,8 @@ class QualityThresholds:
     ratio; the user's position tolerance is `PrecisionOptions.tolerance`."""
 
     alpha: float = 0.001
-    """Significance level of each test (model fit, model against GNSS): a block whose model
-    and GNSS are as their error models state fails a test with this probability."""
+    """Significance level of each test (model fit, model against GNSS, another height): a block
+    whose model and GNSS are as their error models state fails a test with this probability."""
     fit_band: float = 2.5
     """Tolerance band of the model's fit: the faces' generalisation sigma may be this many
     times the a priori one (0.2 m, or sigma_generalisation) and the tie points' scatter on their
@@ -189,6 +191,14 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
         failed.append(f"the placement is ambiguous: shifted by {shift[0]:+.1f} / {shift[1]:+.1f} "
                       f"m (E / N) the tie points fit the model nearly as well (ratio "
                       f"{placement['ratio']:.2f} < {t.ambiguity_ratio:g})")
+    height = metrics.get("height_placement")
+    if height and height["p"] < t.alpha:
+        up = height["other_shift_m"]
+        failed.append(f"the block lands on another height: moved {abs(up):.1f} m "
+                      f"{'up' if up > 0 else 'down'}, the tie points fit the model's faces "
+                      f"significantly better (share "
+                      f"{height['other_share']:.2f} against {height['here_share']:.2f}, "
+                      f"p {height['p']:.1e})")
     free = metrics.get("gnss_alone") or []
     if free:
         weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
@@ -315,6 +325,9 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
     if len(points):
         metrics["placement"] = placement_metrics(points, surface, metrics.get("shift_enu_m"),
                                                  gnss_covariance, t)
+        metrics["height_placement"] = height_metrics(points, surface,
+                                                     metrics.get("shift_enu_m"),
+                                                     gnss_covariance, t)
     return quality_verdict(metrics, t, options.precision.tolerance)
 
 
@@ -346,3 +359,25 @@ def placement_metrics(points: np.ndarray, surface, shift, covariance, t: Quality
     placement = placement_fit(points, surface, reach, admitted, radius=NEAR_DISTANCE,
                               distinct=DISTINCT)
     return {**placement.todict(), "reach_m": reach}
+
+
+def height_metrics(points: np.ndarray, surface, shift, covariance, t: QualityThresholds
+                   ) -> dict:
+    """The height test's figures (precision.ambiguity.height_fit): heights within the range
+    GNSS admits around the GNSS-only block (its U variance in `covariance`, with its bias; the
+    chi-square bound at `t.alpha`), at most PLACEMENT_REACH from the refined one; within
+    PLACEMENT_REACH where GNSS does not hold the height (its bias estimated)."""
+    if shift is None or covariance is None or not np.isfinite(covariance[2, 2]):
+        reach = PLACEMENT_REACH
+
+        def admitted(shifts):
+            return np.ones(len(shifts), bool)
+    else:
+        bound = float(stats.chi2.ppf(1.0 - t.alpha, 1)) * float(covariance[2, 2])
+        reach = min(PLACEMENT_REACH, float(np.sqrt(bound)) + abs(float(shift[2])))
+
+        def admitted(shifts):
+            return (np.asarray(shifts) + float(shift[2])) ** 2 <= bound
+    height = height_fit(points, surface, reach, admitted, radius=NEAR_DISTANCE,
+                        distinct=DISTINCT)
+    return {**height.todict(), "reach_m": reach}
