@@ -12,6 +12,7 @@
 #include "colmap_citymodel/linear_points_condition.h"
 #include "colmap_citymodel/plane_ransac.h"
 #include "colmap_citymodel/point_plane_distance.h"
+#include "colmap_citymodel/point_plane_effects_distance.h"
 #include "colmap_citymodel/point_plane_offset_distance.h"
 #include "colmap_citymodel/point_position_prior.h"
 #include "colmap_citymodel/projection_center_offset_prior.h"
@@ -103,6 +104,30 @@ PYBIND11_MODULE(_core, m) {
       "residual = (n.(X - reference)/|n| + d + o) / sigma.\nParameter blocks: point (3), "
       "normal (3, use pyceres.SphereManifold(3)), offset (1), generalisation "
       "offset (1).");
+
+  m.def(
+      "PointPlaneEffectsDistanceCost",
+      [](double sigma, const Eigen::Vector3d& reference,
+         const Eigen::Matrix<double, 2, 3>& tilt_axes, double length0,
+         bool scaled) -> ceres::CostFunction* {
+        CheckSigma(sigma, "sigma");
+        CheckFinite(reference, "reference");
+        if (!tilt_axes.allFinite()) throw std::invalid_argument("tilt_axes must be finite");
+        if (scaled) CheckSigma(length0, "length0");
+        return PointPlaneEffectsDistanceCostFunctor::Create(sigma, reference, tilt_axes,
+                                                            length0, scaled);
+      },
+      "sigma"_a,
+      "reference"_a,
+      "tilt_axes"_a,
+      "length0"_a,
+      "scaled"_a,
+      kTake,
+      "Point-to-face distance with the face's generalisation error as a random effect\n"
+      "e = (offset, tilt 1, tilt 2), in the block's units: residual = (n.(X - reference)/|n|\n"
+      "+ d + e0 + e1 a1.(X - reference) + e2 a2.(X - reference)) / (sigma s), a_k the rows of\n"
+      "tilt_axes, s = |C_a - C_b| / length0 (1 unless scaled).\nParameter blocks: point (3),\n"
+      "normal (3), offset (1), effects (3), rig_from_world (7) of two frames.");
 
   m.def(
       "ScalarPriorCost",
