@@ -246,7 +246,9 @@ class AdjustmentOptions:
     each at sigma^2 = sigma_dtp^2 + n sigma_face^2, so a face counts as one observation of its
     offset; use it with GNSS's common bias estimated (`gnss_offset` "all"), which the model no
     longer outweighs. Better where few faces hold a direction (an orbit, a drive), worse where
-    one roof holds the height and tilt (docs/method.md, "Faces as units")."""
+    one roof holds the height and tilt (docs/method.md, "Faces as units"). "offsets": each
+    face's offset an unknown with the prior N(0, sigma_face^2), its points at sigma_dtp about it
+    in the block's units (adjust.problem); also with GNSS's bias estimated."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
@@ -352,7 +354,7 @@ def _check_number(name: str, value, source) -> None:
 #: Options that take one of a few words.
 CHOICES = {"adjustment.image_loss": ("none", "huber", "cauchy"),
            "adjustment.gnss_offset": ("none", "height", "all"),
-           "adjustment.face_weighting": ("per_point", "face"),
+           "adjustment.face_weighting": ("per_point", "face", "offsets"),
            "assignment.method": ("direct", "msac", "roi_msac", "auto"),
            "assignment.window": ("plane", "centred"),
            "assignment.auto_indirect_method": ("msac", "roi_msac"),

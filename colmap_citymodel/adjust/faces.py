@@ -54,6 +54,13 @@ def face_offsets(problem, options: AdjustmentOptions, sigma_face: float | None =
     metres = problem.residuals["dTP"] * options.sigma_dtp
     counts = np.bincount(slots, minlength=len(faces))
     offsets = np.bincount(slots, weights=metres, minlength=len(faces)) / np.maximum(counts, 1)
+    # With the offsets estimated, a face's points sit at its offset: the distance from the
+    # plane is the mean residual less it.
+    estimated = problem.blocks.generalisation_slots
+    if estimated and options.face_weighting == "offsets":
+        slots_with = np.fromiter(estimated.keys(), np.int64, len(estimated))
+        values = problem.blocks.generalisation_array[list(estimated.values())]
+        offsets[slots_with] -= values
     spread = np.sqrt(sigma_face ** 2 + options.sigma_dtp ** 2 / np.maximum(counts, 1))
     return FaceOffsets(faces, counts, offsets, np.abs(offsets) / spread)
 

@@ -213,7 +213,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # A sliding window's frames held from the window before keep the orientation count.
             warnings += check_datum(store, assignment, priors is not None,
                                     observability_before if pose_priors is None else None)
-            if priors is not None and priors.estimates_offset:
+            if priors is not None and priors.estimates_offset and not priors.bias_is_random:
                 refusal = offset_refusal(observability_before, priors.offset_axes)
                 if refusal:
                     raise DatumError(
@@ -295,7 +295,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         seconds["hybrid_solves"] += time.perf_counter() - t1
         current = model_after_solve(current, final)
         last = final
-        if o_adj.face_weighting == "face" and o_adj.sigma_face is None:
+        if o_adj.face_weighting in ("face", "offsets") and o_adj.sigma_face is None:
             estimated = estimate_sigma_face(face_offsets(final, o_adj, sigma_face), o_adj)
             sigma_face = estimated if estimated is not None else sigma_face
         face_factors = outlier_factors(final, o_adj, sigma_face)

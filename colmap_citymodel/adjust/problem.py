@@ -51,7 +51,7 @@ from ..block.reconstruction import position_in_rig
 from ..citymodel.ground_faces import terrain_face_sigmas, terrain_mask
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
-from .faces import DEFAULT_SIGMA_FACE, tilt_variances
+from .faces import DEFAULT_SIGMA_FACE, tilt_axes, tilt_variances
 from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
@@ -180,6 +180,9 @@ class PlaneBlocks:
     vertices: list[np.ndarray] = field(default_factory=list)
     # Per face (1): its generalisation offset o_p; empty in the classical model.
     generalisation: list[np.ndarray] = field(default_factory=list)
+    # Face slot -> index in `generalisation` (every slot, or with `face_weighting` "offsets"
+    # the model's faces: terrain cells keep their units' weights instead).
+    generalisation_slots: dict[int, int] = field(default_factory=dict)
     # Per face (3): the constant point on the plane (the face's vertex centroid) that its
     # offset refers to: the plane is n.(X - reference) + offset = 0 (see offset_array).
     references: list[np.ndarray] = field(default_factory=list)
@@ -210,8 +213,9 @@ class PlaneBlocks:
 
     @property
     def generalisation_array(self) -> np.ndarray:
-        """(F,) generalisation offsets o_p (m): the tie points' surface is n.X + d + o_p = 0."""
-        return np.array(self.generalisation).reshape(-1)
+        """(F,) generalisation offsets o_p (m): the tie points' surface is n.X + d + o_p = 0
+        (at the face's reference point, where its tilts do not move it)."""
+        return np.array([g[0] for g in self.generalisation], dtype=np.float64)
 
 
 IMAGE_LOSSES = {"huber": pycolmap.LossFunctionType.HUBER,
@@ -287,6 +291,15 @@ def tie_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.ndarray,
                          assignment.face_sigma)
     return terrain_face_sigmas(store, faces, rows, sigmas, options.sigma_dtp)
 
+
+#: Generalisation effects per face with `face_weighting` "offsets": its offset (m) and its tilts
+#: about its two principal axes (in sigmas of each, adjust.faces.tilt_axes).
+EFFECTS = 3
+
+#: The shortest distance (m) between two frames that measures the block's scale for the
+#: tie points' relief (`face_weighting` "offsets"): below it (a camera turning on the spot)
+#: the distances stay in metres.
+MIN_SCALE_BASE = 1.0
 
 #: The f_dTP sigmas of one face's tie points that include its tilt error
 #: (`AdjustmentOptions.face_tilt_weights`) are rounded to steps of this share, so that the
@@ -488,13 +501,16 @@ class HybridProblem:
     def _add_offset_prior(self, core, gnss: GNSSPriors | None) -> None:
         """Group "offset" (last): the prior N(0, sigma^2) of each unknown offset component."""
         self.counts["offset"] = 0
-        if self.gnss_offset is None or not gnss.offset_prior_sigma:
+        if self.gnss_offset is None or gnss.offset_prior_sigma is None \
+                or not np.all(np.asarray(gnss.offset_prior_sigma) > 0):
             return
-        sigma = gnss.offset_prior_sigma / self.options.sigma_image
+        axes = np.asarray(gnss.offset_axes, bool)
+        sigma = (np.broadcast_to(np.asarray(gnss.offset_prior_sigma, float), (3,))[axes]
+                 / self.options.sigma_image)
         if len(self.gnss_offset) == 1:
-            cost = core.ScalarPriorCost(0.0, sigma)
+            cost = core.ScalarPriorCost(0.0, float(sigma[0]))
         else:
-            cost = core.PointPositionPriorCost(np.zeros(3), np.full(3, sigma))
+            cost = core.PointPositionPriorCost(np.zeros(3), sigma)
         self.problem.add_residual_block(cost, None, [self.gnss_offset])
         self.counts["offset"] = len(self.gnss_offset)
 
@@ -505,7 +521,7 @@ class HybridProblem:
         their f_dVT and f_VT, the corrected model's datum condition and the offsets' priors."""
         faces = assignment.faces
         blocks, slot_of_face = self._add_planes(current, faces)
-        with_offsets = self._add_generalisation_blocks(blocks, faces)
+        with_offsets = self._add_generalisation_blocks(blocks, faces, store, assignment)
         self._prepare_tie_distances(core, store, current, assignment, blocks, slot_of_face,
                                     with_offsets)
         released = self._add_vertices(core, store, current, assignment, blocks, slot_of_face)
@@ -513,11 +529,8 @@ class HybridProblem:
             self._add_correction_datum(core, store, blocks)
         # Group "gen" last: the priors of the generalisation offsets.
         if with_offsets:
-            o = self.options
-            prior = core.ScalarPriorCost(0.0, o.sigma_generalisation / o.sigma_image)
-            for block in blocks.generalisation:
-                self.problem.add_residual_block(prior, None, [block])
-        self.counts["gen"] = len(blocks.generalisation)
+            self._add_effect_priors(core, blocks)
+        self.counts["gen"] = int(sum(len(b) for b in blocks.generalisation))
         self.blocks = blocks
 
     def _add_planes(self, current: PlaneStore, faces: np.ndarray
@@ -539,10 +552,37 @@ class HybridProblem:
             problem.add_parameter_block(blocks.offsets[-1], 1)
         return blocks, {int(f): k for k, f in enumerate(faces)}
 
-    def _add_generalisation_blocks(self, blocks: PlaneBlocks, faces: np.ndarray) -> bool:
+    def _add_effect_priors(self, core, blocks: PlaneBlocks) -> None:
+        """The priors of the faces' generalisation effects: N(0, sigma^2) of each offset and,
+        with `face_weighting` "offsets", N(0, 1) of its two tilts (in their sigmas)."""
+        if self.options.face_weighting == "offsets":
+            prior = core.PointPositionPriorCost(
+                np.zeros(EFFECTS), np.array([self._offset_sigma, 1.0, 1.0])
+                / self.options.sigma_image)
+        else:
+            prior = core.ScalarPriorCost(0.0, self._offset_sigma / self.options.sigma_image)
+        for block in blocks.generalisation:
+            self.problem.add_residual_block(prior, None, [block])
+
+    def _add_generalisation_blocks(self, blocks: PlaneBlocks, faces: np.ndarray,
+                                   store: PlaneStore, assignment: Assignment) -> bool:
         """Generalisation-aware model: an offset unknown per plane, shared by its tie points
-        (only with `generalisation_offsets` and sigma_generalisation set); True if added."""
+        (with `face_weighting` "offsets" on the model's faces, its prior sigma the faces'
+        offset sigma; else only with `generalisation_offsets` and sigma_generalisation set,
+        on every plane); True if added."""
         o = self.options
+        if o.face_weighting == "offsets":
+            self._offset_sigma = next(s for s in (assignment.face_sigma, o.sigma_face,
+                                                  DEFAULT_SIGMA_FACE) if s is not None)
+            self._scale_frames, self._scale_base = self._far_frames()
+            if self._scale_frames is None:
+                return False
+            for k in np.flatnonzero(~terrain_mask(store)[faces]):
+                blocks.generalisation_slots[int(k)] = len(blocks.generalisation)
+                blocks.generalisation.append(np.zeros(EFFECTS, dtype=np.float64))
+                self.problem.add_parameter_block(blocks.generalisation[-1], EFFECTS)
+            return bool(blocks.generalisation)
+        self._offset_sigma = o.sigma_generalisation
         with_offsets = self._generalisation_offsets and o.sigma_generalisation is not None
         if with_offsets and not o.sigma_generalisation > 0:
             from ..errors import InputError
@@ -550,7 +590,8 @@ class HybridProblem:
             raise InputError("adjustment.sigma_generalisation must be > 0 (or unset for the "
                              f"classical model), got {o.sigma_generalisation}")
         if with_offsets:
-            for _ in faces:
+            for k in range(len(faces)):
+                blocks.generalisation_slots[k] = k
                 blocks.generalisation.append(np.zeros(1, dtype=np.float64))
                 self.problem.add_parameter_block(blocks.generalisation[-1], 1)
         return with_offsets
@@ -569,8 +610,19 @@ class HybridProblem:
         self.face_sigmas = tie_sigmas(o, store, faces, self.point_faces, assignment)
         self._row_sigmas = self._point_sigmas(current, faces, self.point_ids, self.point_faces,
                                               self.face_sigmas, assignment)
-        self._tie_factory = (core.PointPlaneOffsetDistanceCost if with_offsets
-                             else core.PointPlaneDistanceCost)
+        self._tie_factory = lambda sigma, reference, k: core.PointPlaneDistanceCost(sigma,
+                                                                                    reference)
+        self._offset_factory = lambda sigma, reference, k: core.PointPlaneOffsetDistanceCost(
+            sigma, reference)
+        if self.options.face_weighting == "offsets" and blocks.generalisation_slots:
+            effects = core.PointPlaneEffectsDistanceCost
+            faces_of = np.asarray(faces)
+
+            def factory(sigma, reference, k):
+                axes = tilt_axes(current, int(faces_of[k]), self._offset_sigma)
+                return effects(sigma, reference, axes, max(self._scale_base, MIN_SCALE_BASE),
+                               self._scale_base >= MIN_SCALE_BASE)
+            self._offset_factory = factory
         self._tie_costs: dict = {}
         self._with_offsets = with_offsets
         self._slot_of_face = slot_of_face
@@ -682,8 +734,11 @@ class HybridProblem:
             # The robust loss bends at the same distance (m) on every face.
             loss = (pyceres.HuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma)
                     if self.robust_planes else None)
-            self._tie_costs[key] = (self._tie_factory(sigma / o.sigma_image,
-                                                      self._references[k]), loss)
+            factory = (self._offset_factory
+                       if self._with_offsets and k in self.blocks.generalisation_slots
+                       else self._tie_factory)
+            self._tie_costs[key] = (factory(sigma / o.sigma_image, self._references[k], k),
+                                    loss)
         return self._tie_costs[key]
 
     def _add_tie_block(self, point_id: int, face: int, sigma: float):
@@ -693,7 +748,50 @@ class HybridProblem:
         return self.problem.add_residual_block(
             cost, loss,
             [self.reconstruction.point3D(point_id).xyz, blocks.normals[k], blocks.offsets[k]]
-            + ([blocks.generalisation[k]] if self._with_offsets else []))
+            + self._effect_blocks(k))
+
+    def _effect_blocks(self, k: int) -> list:
+        """The generalisation offset of face slot `k` (if it has one) and, with
+        `face_weighting` "offsets", the two frames that give the block's scale."""
+        blocks = self.blocks
+        if not self._with_offsets:
+            return []
+        g = blocks.generalisation_slots.get(k)
+        if g is None:
+            return []
+        frames = list(self._scale_frames) if self.options.face_weighting == "offsets" else []
+        return [blocks.generalisation[g]] + frames
+
+    def _effects_reweighted(self, assignment: Assignment) -> bool:
+        """True where the faces' effects' prior sigma (`face_weighting` "offsets") would
+        change by more than REWEIGHT_TOLERANCE for `assignment`."""
+        if self.options.face_weighting != "offsets" or not self.blocks.generalisation:
+            return False
+        sigma = next(s for s in (assignment.face_sigma, self.options.sigma_face,
+                                 DEFAULT_SIGMA_FACE) if s is not None)
+        return abs(sigma / self._offset_sigma - 1.0) > REWEIGHT_TOLERANCE
+
+    def _far_frames(self) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
+        """The rig_from_world blocks of two frames far apart (the one furthest from the
+        frames' centroid and the one furthest from it) and their rig origins' distance (m):
+        the block's scale is that distance over this one (None: fewer than two frames)."""
+        rec = self.reconstruction
+        frames = {}
+        for image_id in rec.reg_image_ids():
+            frame = rec.frame(rec.image(image_id).frame_id)
+            if self.problem.has_parameter_block(frame.rig_from_world.params):
+                frames[frame.frame_id] = frame
+        ids = list(frames)
+        if len(ids) < 2:
+            return None, 0.0
+        centres = np.array([frames[i].rig_from_world.inverse().translation for i in ids])
+        a = int(np.argmax(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
+        b = int(np.argmax(np.linalg.norm(centres - centres[a], axis=1)))
+        if a == b:
+            b = (a + 1) % len(ids)
+        length0 = float(np.linalg.norm(centres[a] - centres[b]))
+        return ((frames[ids[a]].rig_from_world.params, frames[ids[b]].rig_from_world.params),
+                length0)
 
     def _add_tie_distances(self) -> None:
         """Group "dTP" (last): one block per assigned tie point, in the order of `point_ids`."""
@@ -714,7 +812,8 @@ class HybridProblem:
         if (self.releases_model or not self.counts.get("dTP") or not hasattr(self, "_tie_blocks")
                 or robust_planes != self.robust_planes or baselines is not self.baselines
                 or pose_priors is not self.pose_priors
-                or not np.array_equal(assignment.faces, self.blocks.faces)):
+                or not np.array_equal(assignment.faces, self.blocks.faces)
+                or self._effects_reweighted(assignment)):
             return False
         assigned = assignment.assigned
         new_ids = np.asarray(assignment.point_ids[assigned], np.int64)

@@ -1,0 +1,78 @@
+"""Faces' generalisation errors as random effects (AdjustmentOptions.face_weighting
+"offsets"): each face's offset and tilts are unknowns with priors, shared by its points, and
+what is left of a point's distance (the surface's relief, its noise) is measured in the
+block's own units, so that free offsets do not let the block shrink."""
+
+import numpy as np
+import pytest
+
+from colmap_citymodel.adjust import problem as problem_module
+from colmap_citymodel.options import RefineOptions
+from colmap_citymodel.precision.checkpoints import helmert_transform
+from colmap_citymodel.simulate.synthetic import (StreetSceneOptions, centre_errors,
+                                                 make_street_scene)
+from colmap_citymodel.workflow import refine
+
+
+def face_effects(gnss_offset: str = "all") -> RefineOptions:
+    options = RefineOptions()
+    options.adjustment.face_weighting = "offsets"
+    options.adjustment.gnss_offset = gnss_offset
+    return options
+
+
+def camera_rms(result, scene) -> float:
+    return float(np.sqrt(np.mean(np.square(centre_errors(result.reconstruction,
+                                                         scene.truth)))))
+
+
+def block_scale(result, scene) -> float:
+    """The refined block's scale against the truth's (1: right; < 1: too large)."""
+    truth = {im.name: im.projection_center() for im in scene.truth.images.values()}
+    images = [im for im in result.reconstruction.images.values() if im.has_pose]
+    return helmert_transform(np.array([truth[im.name] for im in images]),
+                             np.array([im.projection_center() for im in images])).scale
+
+
+@pytest.fixture(scope="module")
+def rough_street():
+    """The synthetic street with 0.25 m of relief on every facade and roof (window recesses,
+    balconies, roof furniture), which no LOD2 model holds."""
+    return make_street_scene(StreetSceneOptions(seed=7, relief_sigma=0.25))
+
+
+def test_free_offsets_keep_the_block_scale_with_the_relief_in_block_units(rough_street,
+                                                                          monkeypatch):
+    scene = rough_street
+    result = refine(scene.sfm, scene.store, scene.gnss(), face_effects(), progress=False)
+    assert abs(block_scale(result, scene) - 1) < 2e-3
+    assert camera_rms(result, scene) < 0.05
+    # The same model with the distances in metres: shrinking the block shrinks the relief's
+    # residuals, and the faces' free offsets let it.
+    monkeypatch.setattr(problem_module, "MIN_SCALE_BASE", float("inf"))
+    metres = refine(scene.sfm, scene.store, scene.gnss(), face_effects(), progress=False)
+    assert block_scale(metres, scene) - 1 > 5e-3
+    assert camera_rms(metres, scene) > 4 * camera_rms(result, scene)
+
+
+def test_the_faces_effects_stay_within_their_priors_on_a_right_model(street_scene):
+    result = refine(street_scene.sfm, street_scene.store, street_scene.gnss(), face_effects(),
+                    progress=False)
+    assert camera_rms(result, street_scene) < 0.02
+    precision = result.precision
+    offsets = precision.plane_generalisation
+    sigmas = precision.plane_generalisation_sigma
+    assert len(offsets) and np.all(np.isfinite(sigmas))
+    # The model is right up to 3 cm of relief: no face's offset beyond 3 of its sigmas, the
+    # sigmas no larger than the prior's (the faces' own estimate of it).
+    assert np.all(np.abs(offsets) < 3 * sigmas)
+    assert np.all(sigmas <= result.assignment.face_sigma + 1e-9)
+
+
+def test_an_arcade_behind_the_model_does_not_pull_the_block(street_scene):
+    from test_adjust_faces import arcade_model
+
+    store, _ = arcade_model(street_scene, 2.0)
+    result = refine(street_scene.sfm, store, street_scene.gnss(), face_effects(),
+                    progress=False)
+    assert camera_rms(result, street_scene) < 0.03
