@@ -106,6 +106,9 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                        "block as far as the faces let it")
     if estimate_offset:
         priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
+    elif o_adj.face_weighting == "offsets" and priors is not None:
+        estimate_offset = gnss_bias_as_random_effect(priors, o_adj)
+    if estimate_offset:
         priors.fit_offset(rec)
     surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
     all_ids, points = tie_points(rec, exclude_point_ids)
@@ -320,12 +323,36 @@ def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneS
     coarse = coarse_alignment(points, centres, up, view, store, surface,
                               np.median(priors.sigmas, axis=0), straight,
                               options.workflow.coarse_search_sigmas,
-                              free_height=bool(priors.offset_axes[2]))
+                              free_height=bool(priors.free_offset_axes[2]))
     if objective(rec, coarse.sim3) < objective(rec):
         rec.transform(coarse.sim3)
         return coarse, True
     logger.info("coarse alignment kept the GNSS-only position (no better objective)")
     return coarse, False
+
+
+def _sigma_record(sigma) -> float | list[float] | None:
+    """A prior sigma (one, or one per axis) as report.json holds it."""
+    if sigma is None or np.ndim(sigma) == 0:
+        return None if sigma is None else float(sigma)
+    return [float(v) for v in sigma]
+
+
+def gnss_bias_as_random_effect(priors, o_adj) -> bool:
+    """With the faces' errors as unknowns (`face_weighting` "offsets") the GNSS error common to
+    the block is one too, with the prior N(0, b^2) per axis, b its share of the stated sigmas
+    (`gnss_bias_share`, observability.gnss_bias_sigmas): the model then holds the block as
+    many faces as it sees, and a bias GNSS shares over all images does not pull it. True if
+    set (GNSS with sigmas and a share > 0)."""
+    from .adjust.observability import gnss_bias_sigmas
+
+    bias = gnss_bias_sigmas(priors, o_adj.gnss_bias_share)
+    if bias is None:
+        return False
+    priors.offset_axes = np.ones(3, bool)
+    priors.offset_prior_sigma = bias
+    priors.bias_is_random = True
+    return True
 
 
 def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
@@ -335,8 +362,12 @@ def start_gnss_offset(priors, rec: pycolmap.Reconstruction) -> dict:
     offset = priors.fit_offset(rec).copy()
     axes = np.asarray(priors.offset_axes, bool)
     prior = priors.offset_prior_sigma
-    record = {"start_m": offset[axes].tolist(), "prior_sigma_m": prior, "prior_dropped": False}
-    if prior and np.any(np.abs(offset[axes]) > 3.0 * prior):
+    record = {"start_m": offset[axes].tolist(), "prior_sigma_m": _sigma_record(prior),
+              "prior_dropped": False}
+    if priors.bias_is_random:
+        logger.info("GNSS bias at the start: %s m (prior sigma %s m)",
+                    np.round(offset[axes], 2).tolist(), np.round(prior, 2).tolist())
+    elif prior and np.any(np.abs(offset[axes]) > 3.0 * prior):
         logger.info("the GNSS positions are %s m off the block on the model: more than 3 x %g m, "
                     "so the GNSS offset is estimated without its prior (another height system, "
                     "heights above take-off?)", np.round(offset[axes], 2).tolist(), prior)
@@ -364,7 +395,8 @@ def offset_report(priors, observability: dict, start: dict | None, gnss) -> dict
                            "GNSS heights as read"),
            "geoid": geoid,
            "prior_m": 0.0, **(start or {}),
-           "prior_sigma_used_m": priors.offset_prior_sigma}
+           "prior_sigma_used_m": _sigma_record(priors.offset_prior_sigma),
+           "random_effect": bool(priors.bias_is_random)}
     if axes.all():
         out["bias_enu_m"] = priors.offset.tolist()
         out["bias_sigma_enu_m"] = [None if np.isnan(v) else float(v) for v in sigma]

@@ -471,7 +471,7 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          priors.observed_points(rec) if priors is not None else None,
                          gnss_sigmas,
                          options.adjustment.sigma_dtp, sigma_gen,
-                         priors.offset_axes if priors is not None else None,
+                         priors.free_offset_axes if priors is not None else None,
                          face_tilts(store, faces, sigma_gen),
                          gnss_bias_sigmas(priors, options.adjustment.gnss_bias_share),
                          terrain=terrain_faces(store, faces),

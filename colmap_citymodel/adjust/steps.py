@@ -142,7 +142,7 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
     gnss = {}
     if priors is not None:
         gnss = dict(antennas=priors.observed_points(rec), gnss=priors.observed,
-                    gnss_sigmas=priors.sigmas, gnss_free_axes=priors.offset_axes)
+                    gnss_sigmas=priors.sigmas, gnss_free_axes=priors.free_offset_axes)
     result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
                                   options.sigma_dtp, options.plane_loss_scale,
                                   scale_sigma=scale_sigma, **gnss)

@@ -24,7 +24,9 @@ class GNSSPriors:
     (a height offset between height systems, a bias common to the flight). Its components named
     by `offset_axes` are unknowns of the adjustment, fixed by the model planes (`--gnss_height_offset
     auto`: U; `--gnss_bias auto`: E, N, U), with the prior N(0, offset_prior_sigma^2) about the
-    positions as read, or free (None); the others stay 0."""
+    positions as read (one sigma, or one per axis E N U), or free (None); the others stay 0.
+    `bias_is_random`: the offset is the GNSS error common to the block, a random effect with its
+    prior (never dropped): GNSS keeps its level at that sigma (`free_offset_axes` none)."""
 
     image_ids: np.ndarray  # (N,) int
     positions: np.ndarray  # (N, 3)
@@ -34,7 +36,8 @@ class GNSSPriors:
     lever_arm: np.ndarray | None = None
     offset: np.ndarray = field(default_factory=lambda: np.zeros(3))  # (3,) metres, E N U
     offset_axes: np.ndarray = field(default_factory=lambda: np.zeros(3, bool))  # (3,) bool
-    offset_prior_sigma: float | None = None
+    offset_prior_sigma: float | np.ndarray | None = None
+    bias_is_random: bool = False
 
     def __len__(self) -> int:
         return len(self.image_ids)
@@ -42,6 +45,14 @@ class GNSSPriors:
     @property
     def estimates_offset(self) -> bool:
         return bool(np.any(self.offset_axes))
+
+    @property
+    def free_offset_axes(self) -> np.ndarray:
+        """(3,) bool: the axes along which GNSS keeps no level of its own (an offset estimated
+        without a prior of the GNSS's bias)."""
+        if self.bias_is_random:
+            return np.zeros(3, bool)
+        return np.asarray(self.offset_axes, bool)
 
     @property
     def observed(self) -> np.ndarray:

@@ -243,7 +243,7 @@ def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit
     positions = priors.observed_points(rec)
     centre = positions.mean(0)
     bias = np.median(np.asarray(priors.sigmas, float), axis=0)
-    gnss = gnss_information(positions, priors.sigmas, centre, priors.offset_axes, bias)
+    gnss = gnss_information(positions, priors.sigmas, centre, priors.free_offset_axes, bias)
     keep = ~np.isin(faces, fit.outlier_faces)
     planes = np.zeros((7, 7))
     if keep.any():
