@@ -76,3 +76,33 @@ def test_an_arcade_behind_the_model_does_not_pull_the_block(street_scene):
     result = refine(street_scene.sfm, store, street_scene.gnss(), face_effects(),
                     progress=False)
     assert camera_rms(result, street_scene) < 0.03
+
+
+def biased_gnss(scene, bias):
+    from colmap_citymodel.block.gnss import GNSSObservations
+
+    return GNSSObservations(scene.gnss_names, scene.gnss_positions_crs + np.asarray(bias),
+                            scene.gnss_sigmas, scene.store.crs, "synthetic")
+
+
+def test_the_gnss_bias_is_a_random_effect_beside_the_faces(street_scene):
+    """A 5.4 m GNSS bias, not asked for: the faces' effects estimate it beside them with its
+    prior (its share of the stated sigmas), and the block lands on the model."""
+    options = face_effects(gnss_offset="none")
+    result = refine(street_scene.sfm, street_scene.store,
+                    biased_gnss(street_scene, [3.0, -4.0, 2.0]), options, progress=False)
+    assert camera_rms(result, street_scene) < 0.02
+    offset = result.gnss_offset
+    assert offset is not None and offset["random_effect"]
+    assert np.allclose(offset["prior_sigma_used_m"], [1.5, 1.5, 2.5])
+    assert result.quality.verdict != "failed"
+
+
+def test_a_model_placed_elsewhere_is_not_taken_for_a_gnss_bias(street_scene):
+    """The model 25 m off where the GNSS puts the block: the bias the faces would need lies far
+    outside its prior, and the verdict fails."""
+    store = street_scene.store
+    shifted = store.with_vertices(store.vertices + [25.0, 0.0, 0.0])
+    result = refine(street_scene.sfm, shifted, street_scene.gnss(), face_effects("none"),
+                    progress=False)
+    assert result.quality.verdict == "failed"

@@ -610,6 +610,7 @@ class HybridProblem:
         self.face_sigmas = tie_sigmas(o, store, faces, self.point_faces, assignment)
         self._row_sigmas = self._point_sigmas(current, faces, self.point_ids, self.point_faces,
                                               self.face_sigmas, assignment)
+        self._tilt_axes: dict[int, np.ndarray] = {}  # face slot -> (2, 3), "offsets"
         self._tie_factory = lambda sigma, reference, k: core.PointPlaneDistanceCost(sigma,
                                                                                     reference)
         self._offset_factory = lambda sigma, reference, k: core.PointPlaneOffsetDistanceCost(
@@ -619,7 +620,8 @@ class HybridProblem:
             faces_of = np.asarray(faces)
 
             def factory(sigma, reference, k):
-                axes = tilt_axes(current, int(faces_of[k]), self._offset_sigma)
+                axes = self._tilt_axes.setdefault(
+                    k, tilt_axes(current, int(faces_of[k]), self._offset_sigma))
                 return effects(sigma, reference, axes, max(self._scale_base, MIN_SCALE_BASE),
                                self._scale_base >= MIN_SCALE_BASE)
             self._offset_factory = factory
@@ -761,6 +763,31 @@ class HybridProblem:
             return []
         frames = list(self._scale_frames) if self.options.face_weighting == "offsets" else []
         return [blocks.generalisation[g]] + frames
+
+    def face_effect_shifts(self, point_ids: np.ndarray) -> np.ndarray:
+        """(len(point_ids), 3) m: where the faces' estimated effects (`face_weighting`
+        "offsets") put each tie point relative to its given face, undone: the move along the
+        face's normal by its offset and tilts at the point; zero for points on no face with
+        effects."""
+        out = np.zeros((len(point_ids), 3))
+        blocks = self.blocks
+        if self.options.face_weighting != "offsets" or not blocks.generalisation:
+            return out
+        row = {int(p): k for k, p in enumerate(point_ids)}
+        slots = np.searchsorted(blocks.faces, self.point_faces)
+        rec = self.reconstruction
+        for point_id, k in zip(self.point_ids, slots):
+            g = blocks.generalisation_slots.get(int(k))
+            r = row.get(int(point_id))
+            if g is None or r is None:
+                continue
+            effects = blocks.generalisation[g]
+            lever = rec.point3D(int(point_id)).xyz - blocks.references[k]
+            move = effects[0] + effects[1:] @ (self._tilt_axes.get(int(k), np.zeros((2, 3)))
+                                               @ lever)
+            normal = blocks.normals[k] / np.linalg.norm(blocks.normals[k])
+            out[r] = normal * move
+        return out
 
     def _effects_reweighted(self, assignment: Assignment) -> bool:
         """True where the faces' effects' prior sigma (`face_weighting` "offsets") would
