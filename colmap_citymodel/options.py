@@ -241,14 +241,12 @@ class AdjustmentOptions:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
     face_weighting: str = "per_point"
-    """How the f_dTP of one face weigh. "per_point": each an independent observation at
-    sigma_dtp (Unger). "face" (adjust.faces): a face's error is one error shared by its n points,
-    each at sigma^2 = sigma_dtp^2 + n sigma_face^2, so a face counts as one observation of its
-    offset; use it with GNSS's common bias estimated (`gnss_offset` "all"), which the model no
-    longer outweighs. Better where few faces hold a direction (an orbit, a drive), worse where
-    one roof holds the height and tilt (docs/method.md, "Faces as units"). "offsets": each
-    face's offset an unknown with the prior N(0, sigma_face^2), its points at sigma_dtp about it
-    in the block's units (adjust.problem); also with GNSS's bias estimated."""
+    """How a face's shared error enters. "per_point": every f_dTP independent at sigma_dtp
+    (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2, a face one observation
+    of its offset (with `gnss_offset` "all"). "offsets": each face's offset and tilts unknowns
+    with priors (sigma_face), the relief in the block's units, GNSS's common bias an unknown with
+    its prior (gnss_bias_share); closer on generalised models, not on drives along one facade
+    row (docs/method.md, "Faces as units", "Faces' errors as unknowns")."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
@@ -259,9 +257,10 @@ class AdjustmentOptions:
     other faces place further off than the generalisation error explains (an arcade behind a
     facade, a set-back storey; adjust.faces.snooped_faces). None: no face is dropped."""
     sigma_face: float | None = None
-    """With `face_weighting` "face": the sigma (m) of a face's offset error, shared by all its
-    tie points. None: estimated from the faces' mean offsets after each solve (adjust.faces),
-    starting from 0.20 m, Unger's typical size of a LOD2 model's generalisation effects (5.3)."""
+    """With `face_weighting` "face" or "offsets": the sigma (m) of a face's offset error, shared
+    by all its tie points. None: estimated from the faces' mean offsets after each solve
+    (adjust.faces), starting from 0.20 m, Unger's typical size of a LOD2 model's generalisation
+    effects (5.3)."""
     estimate_generalisation: bool = False
     """Experimental: also estimate the o_p (unknowns with that prior, f_dTP becomes
     (n.X + d + o_p) / sigma_dTP) in a re-solve after refine's assignment loop. Off: with the
