@@ -9,23 +9,13 @@ from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.precision.ambiguity import paired_z
 from colmap_citymodel.precision.quality import QualityThresholds, height_metrics, \
     quality_verdict
+from test_verdict import box
 
 #: A storey's height (m).
 STOREY = 3.0
 #: GNSS's shift covariance with its bias estimated: the height free (as shift_covariances
 #: gives it where the offset takes the common shift).
 BIAS_FREE = np.diag([np.inf, np.inf, np.inf])
-
-
-def box(x0, y0, width, depth, height):
-    """Four walls and a flat roof of a house (rings counter-clockwise seen from outside)."""
-    x1, y1 = x0 + width, y0 + depth
-    return [np.array(r, float) for r in (
-        [(x0, y0, 0), (x1, y0, 0), (x1, y0, height), (x0, y0, height)],
-        [(x1, y0, 0), (x1, y1, 0), (x1, y1, height), (x1, y0, height)],
-        [(x1, y1, 0), (x0, y1, 0), (x0, y1, height), (x1, y1, height)],
-        [(x0, y1, 0), (x0, y0, 0), (x0, y0, height), (x0, y1, height)],
-        [(x0, y0, height), (x1, y0, height), (x1, y1, height), (x0, y1, height)])]
 
 
 def block_of_houses():
