@@ -296,6 +296,10 @@ def tie_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.ndarray,
 #: about its two principal axes (in sigmas of each, adjust.faces.tilt_axes).
 EFFECTS = 3
 
+#: Tie points of a face whose images give the frames that measure the block's scale there:
+#: enough to find the face's far-apart observers, few enough to stay cheap on large faces.
+FRAMES_SAMPLE_POINTS = 200
+
 #: The shortest distance (m) between two frames that measures the block's scale for the
 #: tie points' relief (`face_weighting` "offsets"): below it (a camera turning on the spot)
 #: the distances stay in metres.
@@ -333,6 +337,17 @@ def tie_point_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.nd
     grown = base * np.sqrt(1.0 + tilt / unit[rows])
     step = np.log1p(TILT_SIGMA_STEP)
     return base * np.exp(np.round(np.log(grown / base) / step) * step)
+
+
+def _far_pair(ids: np.ndarray, centres: dict) -> tuple[int, int, float]:
+    """Two of the frames `ids` (at least two) far apart: the one furthest from their centroid
+    and the one furthest from it, and their distance (m)."""
+    xyz = np.array([centres[int(f)] for f in ids])
+    a = int(np.argmax(np.linalg.norm(xyz - xyz.mean(axis=0), axis=1)))
+    b = int(np.argmax(np.linalg.norm(xyz - xyz[a], axis=1)))
+    if a == b:
+        b = (a + 1) % len(ids)
+    return int(ids[a]), int(ids[b]), float(np.linalg.norm(xyz[a] - xyz[b]))
 
 
 class HybridProblem:
@@ -574,8 +589,7 @@ class HybridProblem:
         if o.face_weighting == "offsets":
             self._offset_sigma = next(s for s in (assignment.face_sigma, o.sigma_face,
                                                   DEFAULT_SIGMA_FACE) if s is not None)
-            self._scale_frames, self._scale_base = self._far_frames()
-            if self._scale_frames is None:
+            if len(self._frame_blocks()) < 2:
                 return False
             for k in np.flatnonzero(~terrain_mask(store)[faces]):
                 blocks.generalisation_slots[int(k)] = len(blocks.generalisation)
@@ -618,12 +632,15 @@ class HybridProblem:
         if self.options.face_weighting == "offsets" and blocks.generalisation_slots:
             effects = core.PointPlaneEffectsDistanceCost
             faces_of = np.asarray(faces)
+            self._face_frames = self._faces_far_frames(
+                blocks.generalisation_slots, np.searchsorted(faces, self.point_faces))
 
             def factory(sigma, reference, k):
                 axes = self._tilt_axes.setdefault(
                     k, tilt_axes(current, int(faces_of[k]), self._offset_sigma))
-                return effects(sigma, reference, axes, max(self._scale_base, MIN_SCALE_BASE),
-                               self._scale_base >= MIN_SCALE_BASE)
+                base = self._face_frames[k][2]
+                return effects(sigma, reference, axes, max(base, MIN_SCALE_BASE),
+                               base >= MIN_SCALE_BASE)
             self._offset_factory = factory
         self._tie_costs: dict = {}
         self._with_offsets = with_offsets
@@ -761,7 +778,8 @@ class HybridProblem:
         g = blocks.generalisation_slots.get(k)
         if g is None:
             return []
-        frames = list(self._scale_frames) if self.options.face_weighting == "offsets" else []
+        frames = (list(self._face_frames[k][:2]) if self.options.face_weighting == "offsets"
+                  else [])
         return [blocks.generalisation[g]] + frames
 
     def face_effect_shifts(self, point_ids: np.ndarray) -> np.ndarray:
@@ -798,27 +816,36 @@ class HybridProblem:
                                  DEFAULT_SIGMA_FACE) if s is not None)
         return abs(sigma / self._offset_sigma - 1.0) > REWEIGHT_TOLERANCE
 
-    def _far_frames(self) -> tuple[tuple[np.ndarray, np.ndarray] | None, float]:
-        """The rig_from_world blocks of two frames far apart (the one furthest from the
-        frames' centroid and the one furthest from it) and their rig origins' distance (m):
-        the block's scale is that distance over this one (None: fewer than two frames)."""
+    def _frame_blocks(self) -> dict[int, np.ndarray]:
+        """{frame id: its rig_from_world block} of the frames in the problem."""
         rec = self.reconstruction
-        frames = {}
+        out = {}
         for image_id in rec.reg_image_ids():
             frame = rec.frame(rec.image(image_id).frame_id)
             if self.problem.has_parameter_block(frame.rig_from_world.params):
-                frames[frame.frame_id] = frame
-        ids = list(frames)
-        if len(ids) < 2:
-            return None, 0.0
-        centres = np.array([frames[i].rig_from_world.inverse().translation for i in ids])
-        a = int(np.argmax(np.linalg.norm(centres - centres.mean(axis=0), axis=1)))
-        b = int(np.argmax(np.linalg.norm(centres - centres[a], axis=1)))
-        if a == b:
-            b = (a + 1) % len(ids)
-        length0 = float(np.linalg.norm(centres[a] - centres[b]))
-        return ((frames[ids[a]].rig_from_world.params, frames[ids[b]].rig_from_world.params),
-                length0)
+                out[frame.frame_id] = frame.rig_from_world.params
+        return out
+
+    def _faces_far_frames(self, with_effects, slots: np.ndarray) -> dict[int, tuple]:
+        """Per face slot with effects: (rig_from_world of two frames, their rig origins'
+        distance m) of the two frames furthest apart among those that see the face's tie
+        points (`with_effects`: those slots; `slots`: the slot of each assigned point): the
+        block's scale where the face is, which the block's bending far away does not change.
+        Faces seen from one frame only take the problem's two frames furthest apart."""
+        rec = self.reconstruction
+        blocks = self._frame_blocks()
+        ids = np.fromiter(blocks, np.int64, len(blocks))
+        centres = {int(f): rec.frame(int(f)).rig_from_world.inverse().translation for f in ids}
+        whole = _far_pair(ids, centres)
+        out = {}
+        for k in with_effects:
+            points = self.point_ids[slots == k][:FRAMES_SAMPLE_POINTS]
+            seen = {rec.image(el.image_id).frame_id for p in points
+                    for el in rec.point3D(int(p)).track.elements}
+            seen = np.array([f for f in seen if f in blocks], np.int64)
+            a, b, length = _far_pair(seen, centres) if len(seen) >= 2 else whole
+            out[k] = (blocks[a], blocks[b], length)
+        return out
 
     def _add_tie_distances(self) -> None:
         """Group "dTP" (last): one block per assigned tie point, in the order of `point_ids`."""
