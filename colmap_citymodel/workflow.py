@@ -341,9 +341,9 @@ def _sigma_record(sigma) -> float | list[float] | None:
 def gnss_bias_as_random_effect(priors, o_adj) -> bool:
     """With the faces' errors as unknowns (`face_weighting` "offsets") the GNSS error common to
     the block is one too, with the prior N(0, b^2) per axis, b its share of the stated sigmas
-    (`gnss_bias_share`, observability.gnss_bias_sigmas): the model then holds the block as
-    many faces as it sees, and a bias GNSS shares over all images does not pull it. True if
-    set (GNSS with sigmas and a share > 0)."""
+    (`gnss_bias_share`, observability.gnss_bias_sigmas): the model, which then weighs about
+    as many observations as it has faces, is not pulled by a bias GNSS shares over all its
+    images. True if set (GNSS with sigmas and a share > 0)."""
     from .adjust.observability import gnss_bias_sigmas
 
     bias = gnss_bias_sigmas(priors, o_adj.gnss_bias_share)
