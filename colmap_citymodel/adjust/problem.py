@@ -787,24 +787,33 @@ class HybridProblem:
         "offsets") put each tie point relative to its given face, undone: the move along the
         face's normal by its offset and tilts at the point; zero for points on no face with
         effects."""
+        point_ids = np.asarray(point_ids, np.int64)
         out = np.zeros((len(point_ids), 3))
         blocks = self.blocks
-        if self.options.face_weighting != "offsets" or not blocks.generalisation:
+        if self.options.face_weighting != "offsets" or not blocks.generalisation \
+                or not len(self.point_ids):
             return out
-        row = {int(p): k for k, p in enumerate(point_ids)}
-        slots = np.searchsorted(blocks.faces, self.point_faces)
+        order = np.argsort(self.point_ids)
+        found = np.searchsorted(self.point_ids, point_ids, sorter=order)
+        found = np.minimum(found, len(order) - 1)
+        rows = order[found]
+        here = self.point_ids[rows] == point_ids
+        slots = np.searchsorted(blocks.faces, self.point_faces[rows])
+        effect_of = np.full(len(blocks.faces), -1)
+        for k, g in blocks.generalisation_slots.items():
+            effect_of[k] = g
+        here &= effect_of[slots] >= 0
+        if not here.any():
+            return out
+        slots = slots[here]
+        effects = np.array(blocks.generalisation)[effect_of[slots]]
         rec = self.reconstruction
-        for point_id, k in zip(self.point_ids, slots):
-            g = blocks.generalisation_slots.get(int(k))
-            r = row.get(int(point_id))
-            if g is None or r is None:
-                continue
-            effects = blocks.generalisation[g]
-            lever = rec.point3D(int(point_id)).xyz - blocks.references[k]
-            move = effects[0] + effects[1:] @ (self._tilt_axes.get(int(k), np.zeros((2, 3)))
-                                               @ lever)
-            normal = blocks.normals[k] / np.linalg.norm(blocks.normals[k])
-            out[r] = normal * move
+        xyz = np.array([rec.point3D(int(p)).xyz for p in point_ids[here]])
+        lever = xyz - np.array(blocks.references)[slots]
+        axes = np.array([self._tilt_axes.get(int(k), np.zeros((2, 3))) for k in slots])
+        move = effects[:, 0] + np.einsum("pk,pkj,pj->p", effects[:, 1:], axes, lever)
+        normals = np.array(blocks.normals)[slots]
+        out[here] = normals / np.linalg.norm(normals, axis=1, keepdims=True) * move[:, None]
         return out
 
     def _effects_reweighted(self, assignment: Assignment) -> bool:
