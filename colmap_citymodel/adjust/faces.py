@@ -24,6 +24,15 @@ from ..options import AdjustmentOptions
 #: model's generalisation effects (5.3).
 DEFAULT_SIGMA_FACE = 0.20
 
+def sigma_face_in_use(options: AdjustmentOptions, estimated: float | None = None) -> float:
+    """The faces' offset sigma (m) a solve uses: `estimated` (the faces' own, an assignment's
+    `face_sigma`), else `options.sigma_face`, else DEFAULT_SIGMA_FACE."""
+    for sigma in (estimated, options.sigma_face):
+        if sigma is not None:
+            return float(sigma)
+    return DEFAULT_SIGMA_FACE
+
+
 #: Huber's constant for a face's mean offset, in sigmas of what the model's generalisation
 #: error and the points' own noise allow: within it a face keeps its full weight (2: a face
 #: further off happens by chance about once in twenty).

@@ -40,7 +40,7 @@ from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
 from .datum import check_datum
-from .faces import (DEFAULT_SIGMA_FACE, estimate_sigma_face, face_offsets, outlier_factors,
+from .faces import (estimate_sigma_face, face_offsets, outlier_factors, sigma_face_in_use,
                     snooped_faces)
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import BaselinePriors, HybridProblem, PosePriors
@@ -124,7 +124,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     face_factors: dict[int, float] = {}  # faces the adjustment weighs less (adjust.faces)
     dropped_faces: dict[int, float] = {}  # faces no tie point goes to (adjust.faces), their z
     # The sigma of the faces' offsets (m): given, or estimated from them after each solve.
-    sigma_face = o_adj.sigma_face if o_adj.sigma_face is not None else DEFAULT_SIGMA_FACE
+    sigma_face = sigma_face_in_use(o_adj)
     # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem).
     reusable: HybridProblem | None = None
     solved: Assignment | None = None  # the assignment of the last solve (original weights)

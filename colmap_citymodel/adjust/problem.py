@@ -51,7 +51,7 @@ from ..block.reconstruction import position_in_rig
 from ..citymodel.ground_faces import terrain_face_sigmas, terrain_mask
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
-from .faces import DEFAULT_SIGMA_FACE, tilt_axes, tilt_variances
+from .faces import sigma_face_in_use, tilt_axes, tilt_variances
 from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
@@ -269,9 +269,7 @@ def face_sigmas(options: AdjustmentOptions, rows: np.ndarray, num_faces: int,
     none), n the face's points (`rows`: the face slot of each assigned point), so that a face's
     points together weigh as one observation of its offset, 1 / (sigma_face^2 + sigma_dtp^2 /
     n); sigma_face: `sigma_face`, else the option's, else DEFAULT_SIGMA_FACE."""
-    if sigma_face is None:
-        sigma_face = (options.sigma_face if options.sigma_face is not None
-                      else DEFAULT_SIGMA_FACE)
+    sigma_face = sigma_face_in_use(options, sigma_face)
     sigmas = np.full(num_faces, float(options.sigma_dtp))
     if options.face_weighting == "face":
         counts = np.bincount(rows, minlength=num_faces)
@@ -325,9 +323,7 @@ def tie_point_sigmas(options: AdjustmentOptions, store: PlaneStore, faces: np.nd
     base = np.asarray(sigmas, float)[rows]
     if not options.face_tilt_weights or not len(rows):
         return base
-    if sigma_face is None:
-        sigma_face = (options.sigma_face if options.sigma_face is not None
-                      else DEFAULT_SIGMA_FACE)
+    sigma_face = sigma_face_in_use(options, sigma_face)
     tilt = tilt_variances(store, point_faces, points, sigma_face)
     tilt[terrain_mask(store)[point_faces]] = 0.0
     unit = np.full(len(faces), float(options.sigma_dtp) ** 2)
@@ -587,8 +583,7 @@ class HybridProblem:
         on every plane); True if added."""
         o = self.options
         if o.face_weighting == "offsets":
-            self._offset_sigma = next(s for s in (assignment.face_sigma, o.sigma_face,
-                                                  DEFAULT_SIGMA_FACE) if s is not None)
+            self._offset_sigma = sigma_face_in_use(o, assignment.face_sigma)
             if len(self._frame_blocks()) < 2:
                 return False
             for k in np.flatnonzero(~terrain_mask(store)[faces]):
@@ -821,8 +816,7 @@ class HybridProblem:
         change by more than REWEIGHT_TOLERANCE for `assignment`."""
         if self.options.face_weighting != "offsets" or not self.blocks.generalisation:
             return False
-        sigma = next(s for s in (assignment.face_sigma, self.options.sigma_face,
-                                 DEFAULT_SIGMA_FACE) if s is not None)
+        sigma = sigma_face_in_use(self.options, assignment.face_sigma)
         return abs(sigma / self._offset_sigma - 1.0) > REWEIGHT_TOLERANCE
 
     def _frame_blocks(self) -> dict[int, np.ndarray]:
@@ -846,9 +840,11 @@ class HybridProblem:
         ids = np.fromiter(blocks, np.int64, len(blocks))
         centres = {int(f): rec.frame(int(f)).rig_from_world.inverse().translation for f in ids}
         whole = _far_pair(ids, centres)
+        order = np.argsort(slots, kind="stable")
+        starts = np.searchsorted(slots[order], np.arange(max(with_effects, default=-1) + 2))
         out = {}
         for k in with_effects:
-            points = self.point_ids[slots == k][:FRAMES_SAMPLE_POINTS]
+            points = self.point_ids[order[starts[k]:starts[k + 1]]][:FRAMES_SAMPLE_POINTS]
             seen = {rec.image(el.image_id).frame_id for p in points
                     for el in rec.point3D(int(p)).track.elements}
             seen = np.array([f for f in seen if f in blocks], np.int64)

@@ -87,10 +87,15 @@ class SurfaceDistance:
         return grid(np.ascontiguousarray(points, np.float64).reshape(-1, 3), self.threads)
 
 
+def near_weights(distances: np.ndarray, radius: float) -> np.ndarray:
+    """Each point's smooth nearness to a surface: (1 - (d/r)^2)^2 for d < r, 0 beyond."""
+    u = np.clip(np.asarray(distances) / radius, 0.0, 1.0)
+    return (1.0 - u * u) ** 2
+
+
 def near_share(distances: np.ndarray, radius: float) -> float:
-    """Smooth share of points within `radius` of a surface: mean of (1 - (d/r)^2)^2, d < r."""
-    u = np.clip(distances / radius, 0.0, 1.0)
-    return float(np.mean((1.0 - u * u) ** 2)) if len(u) else 0.0
+    """Smooth share of points within `radius` of a surface: the mean of `near_weights`."""
+    return float(np.mean(near_weights(distances, radius))) if len(distances) else 0.0
 
 
 def subsample(points: np.ndarray, n: int, seed: int = 0) -> np.ndarray:

@@ -101,13 +101,12 @@ def face_table(result: RefineResult) -> list[dict]:
     the face's outlier factor), and "kept" or "downweighted" (adjust.faces); then the faces the
     face test dropped and the faces near the block that lie inside the city's volume, "dropped"
     (adjust.faces.snooped_faces, citymodel.visibility)."""
-    from ..adjust.faces import DEFAULT_SIGMA_FACE, FACE_HUBER_K
+    from ..adjust.faces import FACE_HUBER_K, sigma_face_in_use
     from ..citymodel.visibility import visibility
 
     o = result.options.adjustment
     store, factors = result.store, result.assignment.face_factors
-    sigma_face = next((s for s in (result.assignment.face_sigma, o.sigma_face)
-                       if s is not None), DEFAULT_SIGMA_FACE)
+    sigma_face = sigma_face_in_use(o, result.assignment.face_sigma)
     rows = []
     for face, d in sorted(result.plane_residuals().items()):
         factor = factors.get(face, 1.0)

@@ -22,6 +22,7 @@ storey off from one that did not.
 
 from __future__ import annotations
 
+import itertools
 import logging
 from dataclasses import dataclass
 
@@ -29,7 +30,7 @@ import numpy as np
 from scipy import stats
 
 from .._ext import load_core
-from ..align.coarse import subsample
+from ..align.coarse import near_weights, subsample
 from ..citymodel.ground_faces import TERRAIN_CLASS
 
 logger = logging.getLogger(__name__)
@@ -74,14 +75,14 @@ class Placement:
 
 
 def _local_maxima(scores: np.ndarray) -> np.ndarray:
-    """bool mask of the grid cells no lower than any of their 8 neighbours."""
+    """bool mask of the cells of a grid (a line, a plane) no lower than any of their
+    neighbours (2 on a line, 8 on a plane)."""
     padded = np.pad(scores, 1, constant_values=-np.inf)
-    n, m = scores.shape
     mask = np.ones_like(scores, bool)
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            if di or dj:
-                mask &= scores >= padded[1 + di:1 + di + n, 1 + dj:1 + dj + m]
+    for step in itertools.product((-1, 0, 1), repeat=scores.ndim):
+        if any(step):
+            mask &= scores >= padded[tuple(slice(1 + d, 1 + d + n)
+                                           for d, n in zip(step, scores.shape))]
     return mask
 
 
@@ -138,8 +139,8 @@ def placement_fit(points: np.ndarray, surface, reach: float, admitted, *,
         chunk = grid[start:start + batch]
         shifts = np.column_stack([chunk, np.zeros(len(chunk))])
         moved = (sample[None, :, :] + shifts[:, None, :]).reshape(-1, 3)
-        u = np.clip(surface(moved, radius).reshape(len(shifts), -1) / radius, 0.0, 1.0)
-        scores[start:start + batch] = np.mean((1.0 - u * u) ** 2, axis=1)
+        scores[start:start + batch] = np.mean(
+            near_weights(surface(moved, radius).reshape(len(shifts), -1), radius), axis=1)
     best = int(np.argmax(scores))
     maxima = _local_maxima(scores.reshape(len(offsets), len(offsets))).ravel()
     far = np.linalg.norm(grid - grid[best], axis=1) >= distinct
@@ -173,11 +174,8 @@ class HeightFit:
 def _point_fits(sample: np.ndarray, surface, shifts: np.ndarray, radius: float) -> np.ndarray:
     """(len(shifts), len(sample)) smooth fit of each point moved up by each shift: 1 on the
     surface, 0 from `radius` on."""
-    out = np.empty((len(shifts), len(sample)))
-    for k, dz in enumerate(shifts):
-        u = np.clip(surface(sample + [0.0, 0.0, dz], radius) / radius, 0.0, 1.0)
-        out[k] = (1.0 - u * u) ** 2
-    return out
+    return np.array([near_weights(surface(sample + [0.0, 0.0, dz], radius), radius)
+                     for dz in shifts]).reshape(len(shifts), len(sample))
 
 
 def paired_z(gain: np.ndarray, positions: np.ndarray, cell: float) -> float:
@@ -210,9 +208,7 @@ def height_fit(points: np.ndarray, surface, reach: float, admitted, *, radius: f
     own = np.abs(shifts) <= radius  # the refined height's own peak
     here = int(np.flatnonzero(own)[np.argmax(scores[own])])
     near = np.abs(shifts) < distinct
-    padded = np.pad(scores, 1, constant_values=-np.inf)
-    maxima = (scores >= padded[:-2]) & (scores >= padded[2:])
-    candidates = np.flatnonzero(maxima & ~near & (scores > 0)
+    candidates = np.flatnonzero(_local_maxima(scores) & ~near & (scores > 0)
                                 & np.asarray(admitted(shifts), bool))
     if not len(candidates):
         return HeightFit(float(scores[here]), float(shifts[here]), 0.0, None, 0.0, 1.0)
