@@ -184,6 +184,19 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
     return dropped
 
 
+def vertex_tilt_covariance(store, face: int, sigma: float
+                           ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`face`'s vertices' centroid, its two in-plane axes (2, 3) and the covariance (2, 2,
+    rad^2) of its plane's tilt about them when each vertex is off by `sigma` (m) along the
+    normal, independently: sigma^2 (sum_j w_j w_j^T)^-1, w_j a vertex's in-plane offset from the
+    centroid."""
+    axes = store.rotations[int(face)][:, :2].T
+    vertices = store.vertices[store.face_vertex_ids(int(face))]
+    centroid = vertices.mean(0)
+    w = (vertices - centroid) @ axes.T
+    return centroid, axes, sigma ** 2 * np.linalg.pinv(w.T @ w)
+
+
 def tilt_axes(store, face: int, sigma: float) -> np.ndarray:
     """(2, 3) the principal tilt axes of `face` (in-plane) scaled by the sigma (rad) of its tilt
     about them. Each vertex off by `sigma` (m) along the normal, independently, tilts the plane
@@ -191,11 +204,10 @@ def tilt_axes(store, face: int, sigma: float) -> np.ndarray:
     vertex's in-plane offset from the centroid); a narrow face's vertices are its neighbours'
     too, so no axis tilts by more than sigma / R (R: the farthest vertex from the centroid). A
     point at lever r moves by z_k a_k . r along the normal for z_k sigmas of tilt k."""
-    axes = store.rotations[int(face)][:, :2].T
-    vertices = store.vertices[store.face_vertex_ids(int(face))]
-    w = (vertices - vertices.mean(0)) @ axes.T
-    values, vectors = np.linalg.eigh(sigma ** 2 * np.linalg.pinv(w.T @ w))
-    radius = max(float(np.max(np.linalg.norm(w, axis=1))), 1e-9)
+    centroid, axes, covariance = vertex_tilt_covariance(store, face, sigma)
+    values, vectors = np.linalg.eigh(covariance)
+    lever = store.vertices[store.face_vertex_ids(int(face))] - centroid
+    radius = max(float(np.max(np.linalg.norm(lever @ axes.T, axis=1))), 1e-9)
     sigmas = np.minimum(np.sqrt(np.maximum(values, 0.0)), sigma / radius)
     return (vectors * sigmas).T @ axes
 

@@ -22,6 +22,7 @@ from ..block.priors import GNSSPriors
 from ..citymodel.ground_faces import terrain_faces, terrain_groups, terrain_units
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
+from .faces import vertex_tilt_covariance
 from .problem import tie_sigmas
 
 logger = logging.getLogger(__name__)
@@ -72,15 +73,8 @@ def face_tilts(store: PlaneStore, faces, sigma_generalisation: float) -> dict[in
     plane fitted to the vertices, g^2 (sum_i w_i w_i^T)^-1, w_i a vertex's in-plane offset from
     their centroid. About g / L for a face of length L: 0.1 deg along a 100 m facade row,
     1.1 deg on a 10 m cross wall."""
-    out = {}
-    for face in np.unique(np.asarray(faces, np.int64)):
-        axes = store.rotations[face][:, :2].T
-        vertices = store.vertices[store.face_vertex_ids(int(face))]
-        centroid = vertices.mean(0)
-        w = (vertices - centroid) @ axes.T
-        out[int(face)] = FaceTilt(centroid, axes,
-                                  sigma_generalisation ** 2 * np.linalg.pinv(w.T @ w))
-    return out
+    return {int(face): FaceTilt(*vertex_tilt_covariance(store, face, sigma_generalisation))
+            for face in np.unique(np.asarray(faces, np.int64))}
 
 
 def common_shift_eliminated(info: np.ndarray, sigma: float) -> np.ndarray:
