@@ -214,7 +214,16 @@ class AdjustmentOptions:
     min_triangulation_angle: float = 1.5
     """Degrees; tie points below it are removed with the image outliers in step 2."""
     refine_intrinsics: bool = False
-    """Interior orientation is fixed in the source; COLMAP may refine focal length/distortion."""
+    """Refine each camera's focal length and distortion in every solve (the principal point
+    held), as COLMAP's own bundle adjuster does. False: held as the reconstruction states them,
+    unless the test below finds them off: free, a forward-looking drive's focal length trades
+    against its motion in depth and its block can land metres off."""
+    intrinsics_test_alpha: float | None = 0.001
+    """Significance level of step 2's test whether the images show the interior orientation
+    off: the bundle adjustment without the model is solved again with focal length and
+    distortion free, and where its chi-square drops by more than chance allows at this level
+    (k1 off by 7e-4, 1.5 px in the corners, bends a long block by decimetres), they are refined
+    from then on. None: no test."""
     max_solver_iterations: int = 300
     """Ceres iterations per solve (COLMAP: 100); a drifted block needs more to converge."""
     max_images_direct_solver: int = 4000
@@ -293,7 +302,8 @@ class AdjustmentOptions:
 #: Largest magnitude of a float option: beyond any setting that means something.
 MAX_OPTION_VALUE = 1e15
 #: Options whose value is a probability, strictly between 0 and 1.
-PROBABILITIES = ("assignment.msac_confidence", "precision.alpha")
+PROBABILITIES = ("assignment.msac_confidence", "precision.alpha",
+                 "adjustment.intrinsics_test_alpha")
 
 
 def _as_float(value, name: str, source) -> float:

@@ -41,7 +41,7 @@ import pycolmap
 
 from .adjust.loop import adjustment_loop
 from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
-from .adjust.steps import model_after_solve, step2_bundle_adjustment
+from .adjust.steps import model_after_solve, step2_bundle_adjustment, check_intrinsics
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .block.gnss import read_gnss
@@ -93,6 +93,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
     warnings: list[str] = []
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
+    intrinsics = check_intrinsics(rec, priors, options, report2)
+    if intrinsics is not None and intrinsics.refined:
+        options = copy.deepcopy(options)
+        options.adjustment.refine_intrinsics = True
     gnss_only = gnss_only_sim3 = None
     if priors is not None:
         gnss_only, gnss_only_sim3 = pycolmap.Reconstruction(rec), sim3
@@ -202,6 +206,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         sliding_window=windows.todict(options) if windows is not None else None,
         loop_stopped_by=loop.stopped_by, georegistration=located)
     result.terrain = terrain_record
+    result.intrinsics = intrinsics.todict() if intrinsics is not None else None
     return result
 
 

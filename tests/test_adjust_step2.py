@@ -87,3 +87,35 @@ def test_the_repeated_solve_takes_out_what_the_eliminated_observations_did(stree
                 o.elimination_threshold * o.sigma_image, o.min_triangulation_angle)
         results[repeat] = apart_rms(rec)
     assert results[True] < 0.6 * results[False], results
+
+
+def stated_k1(rec: pycolmap.Reconstruction, k1: float) -> None:
+    """Every camera becomes a SIMPLE_RADIAL one that states a radial distortion `k1` (the
+    images have none)."""
+    for camera in rec.cameras.values():
+        fx, _, cx, cy = camera.params
+        camera.model = pycolmap.CameraModelId.SIMPLE_RADIAL
+        camera.params = np.array([fx, cx, cy, k1])
+
+
+def test_the_interior_orientation_is_refined_only_where_the_images_show_it_off(street_scene):
+    from colmap_citymodel.adjust.steps import check_intrinsics
+
+    results = {}
+    for k1 in (0.0, -0.003):
+        rec = pycolmap.Reconstruction(street_scene.sfm)
+        stated_k1(rec, k1)
+        _, priors, _ = georegister(rec, street_scene.store, street_scene.gnss(), None)
+        options = RefineOptions()
+        report, _ = step2_bundle_adjustment(rec, priors, options)
+        results[k1] = check_intrinsics(rec, priors, options, report), rec
+    held, rec = results[0.0]
+    assert not held.refined and held.p_value > 0.001, held
+    found, rec = results[-0.003]
+    assert found.refined and found.p_value < 1e-6, found
+    # The distortion went back most of the way to what the images have (0).
+    camera = next(iter(rec.cameras.values()))
+    assert abs(camera.params[3]) < 0.3 * 0.003, camera.params
+    options = RefineOptions()
+    options.adjustment.intrinsics_test_alpha = None
+    assert check_intrinsics(rec, None, options, found) is None

@@ -5,10 +5,12 @@ after a solve."""
 from __future__ import annotations
 
 import logging
+from dataclasses import dataclass, replace
 
 import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation
+from scipy.stats import chi2
 
 from ..align.georegister import transform_points
 from ..align.objective import BlockObjective
@@ -66,6 +68,51 @@ def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | Non
                 "%d image observations eliminated", report.ceres_iterations, report.seconds,
                 report.rms["image"] * o.sigma_image, eliminated)
     return report, int(eliminated)
+
+
+@dataclass
+class IntrinsicsTest:
+    """Step 2's test of the cameras' interior orientation: how much the chi-square of the
+    bundle adjustment without the model drops when each camera's focal length and distortion
+    are free (in units of its variance factor), on how many degrees of freedom, its p-value,
+    and whether they are refined from then on."""
+
+    drop: float
+    dof: int
+    p_value: float
+    refined: bool
+
+    def todict(self) -> dict:
+        return {"chi2_drop": self.drop, "dof": self.dof, "p_value": self.p_value,
+                "refined": self.refined}
+
+
+def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
+                    options: RefineOptions, held: SolveReport) -> IntrinsicsTest | None:
+    """After step 2 with the interior orientation held (`held` its report): solve a copy
+    again with each camera's focal length and distortion free; where the chi-square drops by
+    more than chance allows at `intrinsics_test_alpha` (a likelihood-ratio test, the drop over
+    the freed solve's variance factor against chi-square with as many degrees of freedom as
+    parameters freed), `rec` is solved so too. None: no test (refined anyway, or off)."""
+    o = options.adjustment
+    if o.refine_intrinsics or o.intrinsics_test_alpha is None:
+        return None
+    freed_options = replace(o, refine_intrinsics=True)
+    trial = pycolmap.Reconstruction(rec)
+    freed = HybridProblem(trial, None, None, gnss, freed_options, robust_images=False,
+                          robust_planes=False).solve()
+    dof = freed.num_unknowns - held.num_unknowns
+    drop = (sum(held.sum_squares.values()) - sum(freed.sum_squares.values())) \
+        / freed.sigma0_squared
+    p_value = float(chi2.sf(max(drop, 0.0), dof)) if dof > 0 else 1.0
+    refined = p_value < o.intrinsics_test_alpha
+    if refined:
+        HybridProblem(rec, None, None, gnss, freed_options, robust_images=False,
+                      robust_planes=False).solve()
+    logger.info("interior orientation: chi-square %.1f lower with focal length and distortion "
+                "free (%d parameters, p = %.2g): %s", drop, dof, p_value,
+                "refined from here on" if refined else "held as given")
+    return IntrinsicsTest(float(drop), int(dof), p_value, bool(refined))
 
 
 #: Fractions of an alignment round's similarity tried, in this order, when the whole of it

@@ -54,6 +54,8 @@ class RefineResult:
     # The terrain the ground tie points were held to (citymodel.ground_faces.block_terrain:
     # source, tiles, cells, warnings; "residuals" per terrain unit after the last solve).
     terrain: dict = field(default_factory=dict)
+    # Step 2's test of the interior orientation (adjust.steps.IntrinsicsTest.todict) or None.
+    intrinsics: dict | None = None
     coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
     # The estimated constant GNSS offset (--gnss_height_offset auto, --gnss_bias auto) with its
     # sigma, start value, prior and the geoid the heights came through; None when not estimated.

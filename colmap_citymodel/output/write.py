@@ -166,6 +166,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "workflow": result.options.workflow.mode,
         "sliding_window": result.sliding_window,
         "terrain": result.terrain,
+        "intrinsics": result.intrinsics,
     }
 
 
