@@ -116,6 +116,9 @@ def test_written_output_is_georeferenced(refined, tmp_path, scene):
     assert report["num_planes"] == refined.assignment.num_faces
     assert len(report["iterations"]) == len(refined.iterations)
     assert (out / "report.md").read_text().startswith("# colmap-citymodel refine report")
+    # The synthetic street's camera is the one its images were made with: the test holds it.
+    assert report["intrinsics"]["refined"] is False and report["intrinsics"]["dof"] >= 1
+    assert "Interior orientation: held" in (out / "report.md").read_text()
     header = (out / "assignments.ply").read_bytes()[:300].decode(errors="ignore")
     assert "property double x" in header
     assert f"element vertex {rec.num_points3D()}" in header

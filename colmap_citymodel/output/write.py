@@ -219,6 +219,12 @@ def report_markdown(report: dict) -> str:
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
     lines += terrain_lines(report.get("terrain"))
+    intrinsics = report.get("intrinsics")
+    if intrinsics:
+        lines += [f"Interior orientation: {'refined' if intrinsics['refined'] else 'held'} "
+                  f"(step 2 with focal length and distortion free: chi-square "
+                  f"{intrinsics['chi2_drop']:.1f} lower on {intrinsics['dof']} parameters, "
+                  f"p = {intrinsics['p_value']:.2g}).", ""]
     offset = report.get("gnss_height_offset")
     if offset:
         sigma = f" +- {offset['sigma_m']:.2f}" if offset["sigma_m"] is not None else ""
