@@ -41,7 +41,7 @@ import pycolmap
 
 from .adjust.loop import adjustment_loop
 from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
-from .adjust.steps import model_after_solve, step2_bundle_adjustment, check_intrinsics
+from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .block.gnss import read_gnss
@@ -95,6 +95,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
     intrinsics = check_intrinsics(rec, priors, options, report2)
     if intrinsics is not None and intrinsics.refined:
+        rec = intrinsics.freed
         options = copy.deepcopy(options)
         options.adjustment.refine_intrinsics = True
     gnss_only = gnss_only_sim3 = None

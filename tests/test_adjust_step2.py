@@ -108,14 +108,14 @@ def test_the_interior_orientation_is_refined_only_where_the_images_show_it_off(s
         _, priors, _ = georegister(rec, street_scene.store, street_scene.gnss(), None)
         options = RefineOptions()
         report, _ = step2_bundle_adjustment(rec, priors, options)
-        results[k1] = check_intrinsics(rec, priors, options, report), rec
-    held, rec = results[0.0]
+        results[k1] = check_intrinsics(rec, priors, options, report)
+    held = results[0.0]
     assert not held.refined and held.p_value > 0.001, held
-    found, rec = results[-0.003]
+    found = results[-0.003]
     assert found.refined and found.p_value < 1e-6, found
     # The distortion went back most of the way to what the images have (0).
-    camera = next(iter(rec.cameras.values()))
+    camera = next(iter(found.freed.cameras.values()))
     assert abs(camera.params[3]) < 0.3 * 0.003, camera.params
     options = RefineOptions()
     options.adjustment.intrinsics_test_alpha = None
-    assert check_intrinsics(rec, None, options, found) is None
+    assert check_intrinsics(found.freed, None, options, report) is None

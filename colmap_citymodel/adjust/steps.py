@@ -5,7 +5,7 @@ after a solve."""
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import pycolmap
@@ -81,6 +81,8 @@ class IntrinsicsTest:
     dof: int
     p_value: float
     refined: bool
+    # The block solved with them free (what refine continues with when `refined`).
+    freed: pycolmap.Reconstruction | None = field(default=None, repr=False)
 
     def todict(self) -> dict:
         return {"chi2_drop": self.drop, "dof": self.dof, "p_value": self.p_value,
@@ -93,7 +95,8 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
     again with each camera's focal length and distortion free; where the chi-square drops by
     more than chance allows at `intrinsics_test_alpha` (a likelihood-ratio test, the drop over
     the freed solve's variance factor against chi-square with as many degrees of freedom as
-    parameters freed), `rec` is solved so too. None: no test (refined anyway, or off)."""
+    parameters freed), refine continues with that solution (`IntrinsicsTest.freed`). None: no
+    test (refined anyway, or off)."""
     o = options.adjustment
     if o.refine_intrinsics or o.intrinsics_test_alpha is None:
         return None
@@ -106,13 +109,10 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
         / freed.sigma0_squared
     p_value = float(chi2.sf(max(drop, 0.0), dof)) if dof > 0 else 1.0
     refined = p_value < o.intrinsics_test_alpha
-    if refined:
-        HybridProblem(rec, None, None, gnss, freed_options, robust_images=False,
-                      robust_planes=False).solve()
     logger.info("interior orientation: chi-square %.1f lower with focal length and distortion "
                 "free (%d parameters, p = %.2g): %s", drop, dof, p_value,
                 "refined from here on" if refined else "held as given")
-    return IntrinsicsTest(float(drop), int(dof), p_value, bool(refined))
+    return IntrinsicsTest(float(drop), int(dof), p_value, bool(refined), trial)
 
 
 #: Fractions of an alignment round's similarity tried, in this order, when the whole of it
