@@ -216,8 +216,8 @@ class AdjustmentOptions:
     refine_intrinsics: bool = False
     """Refine each camera's focal length and distortion in every solve (the principal point
     held), as COLMAP's own bundle adjuster does. False: held as the reconstruction states them,
-    unless the test below finds them off: free, a forward-looking drive's focal length trades
-    against its motion in depth and its block can land metres off."""
+    unless the test below finds them off: free, a drive's focal length trades against its
+    motion in depth and its block can land metres off."""
     intrinsics_test_alpha: float | None = 0.001
     """Significance level of step 2's test whether the images show the interior orientation
     off: the bundle adjustment without the model is solved again with focal length and

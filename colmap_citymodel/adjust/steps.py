@@ -107,7 +107,7 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
     dof = freed.num_unknowns - held.num_unknowns
     drop = (sum(held.sum_squares.values()) - sum(freed.sum_squares.values())) \
         / freed.sigma0_squared
-    p_value = float(chi2.sf(max(drop, 0.0), dof)) if dof > 0 else 1.0
+    p_value = float(chi2.sf(max(drop, 0.0), dof)) if dof > 0 and np.isfinite(drop) else 1.0
     refined = p_value < o.intrinsics_test_alpha
     logger.info("interior orientation: chi-square %.1f lower with focal length and distortion "
                 "free (%d parameters, p = %.2g): %s", drop, dof, p_value,
