@@ -88,7 +88,7 @@ class IntrinsicsTest:
     dof: int
     p_value: float
     refined: bool
-    # The block solved with them free (what refine continues with when `refined`).
+    # The block solved with them free, kept only when `refined` (refine continues with it).
     freed: pycolmap.Reconstruction | None = field(default=None, repr=False)
 
     def todict(self) -> dict:
@@ -121,7 +121,8 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
     logger.info("interior orientation: chi-square %.1f lower with focal length and distortion "
                 "free (%d parameters, p = %.2g): %s", drop, dof, p_value,
                 "refined from here on" if refined else "held as given")
-    return IntrinsicsTest(float(drop), int(dof), p_value, bool(refined), trial)
+    return IntrinsicsTest(float(drop), int(dof), p_value, bool(refined),
+                          trial if refined else None)
 
 
 #: Fractions of an alignment round's similarity tried, in this order, when the whole of it
