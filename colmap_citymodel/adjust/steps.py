@@ -71,9 +71,10 @@ def step2_bundle_adjustment(rec: pycolmap.Reconstruction, gnss: GNSSPriors | Non
 
 
 #: Solver iterations of the interior-orientation test's solve. A partial solve lowers the
-#: chi-square by less than a converged one, so the test only gets more conservative; the later
-#: solves converge. On the long sequence (1.5 px of unstated distortion) 5 iterations give a
-#: drop of 335 (p 1e-73) in 7.5 s, a converged solve 592 in 40 s.
+#: chi-square by less than a converged one, so the test only gets more conservative; where it
+#: finds them off, the solve is then converged. On the long sequence (1.5 px of unstated
+#: distortion) 5 iterations give a drop of 335 (p 1e-73) in 7.5 s, a converged solve 592 in
+#: 40 s; where the interior orientation is right, the test costs those few iterations only.
 INTRINSICS_TEST_ITERATIONS = 5
 
 
@@ -102,9 +103,9 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
     again with each camera's focal length and distortion free; where the chi-square drops by
     more than chance allows at `intrinsics_test_alpha` (a likelihood-ratio test, the drop over
     the freed solve's variance factor against chi-square with as many degrees of freedom as
-    parameters freed; `INTRINSICS_TEST_ITERATIONS` solver iterations), refine continues from
-    that solve (`IntrinsicsTest.freed`) and every later one converges it. None: no test
-    (refined anyway, or off)."""
+    parameters freed; `INTRINSICS_TEST_ITERATIONS` solver iterations), that solve is
+    converged and refine continues from it (`IntrinsicsTest.freed`). None: no test (refined
+    anyway, or off)."""
     o = options.adjustment
     if o.refine_intrinsics or o.intrinsics_test_alpha is None:
         return None
@@ -118,6 +119,9 @@ def check_intrinsics(rec: pycolmap.Reconstruction, gnss: GNSSPriors | None,
         / freed.sigma0_squared
     p_value = float(chi2.sf(max(drop, 0.0), dof)) if dof > 0 and np.isfinite(drop) else 1.0
     refined = p_value < o.intrinsics_test_alpha
+    if refined:  # the later hybrid solves start from a converged block, as step 2's do
+        HybridProblem(trial, None, None, gnss, replace(o, refine_intrinsics=True),
+                      robust_images=False, robust_planes=False).solve()
     logger.info("interior orientation: chi-square %.1f lower with focal length and distortion "
                 "free (%d parameters, p = %.2g): %s", drop, dof, p_value,
                 "refined from here on" if refined else "held as given")
