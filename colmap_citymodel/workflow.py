@@ -92,29 +92,14 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     timer["georegistration"] = time.perf_counter() - timer["start"]
 
     warnings: list[str] = []
-    report2, eliminated2 = step2_bundle_adjustment(rec, priors, options)
-    intrinsics = check_intrinsics(rec, priors, options, report2)
-    if intrinsics is not None and intrinsics.refined:
-        rec = intrinsics.freed
-        options = copy.deepcopy(options)
-        options.adjustment.refine_intrinsics = True
+    rec, options, report2, eliminated2, intrinsics = adjust_without_model(rec, priors, options)
     gnss_only = gnss_only_sim3 = None
     if priors is not None:
         gnss_only, gnss_only_sim3 = pycolmap.Reconstruction(rec), sim3
     timer["step2"] = time.perf_counter() - timer["start"] - timer["georegistration"]
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
-    estimate_offset = priors is not None and priors.estimates_offset
-    if o_adj.face_weighting == "face" and priors is not None and not estimate_offset:
-        logger.warning("faces as units weigh each face as one observation of its offset: "
-                       "the GNSS's common bias, not estimated (--gnss_bias auto), pulls the "
-                       "block as far as the faces let it")
-    if estimate_offset:
-        priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
-    elif o_adj.face_weighting == "offsets" and priors is not None:
-        estimate_offset = gnss_bias_as_random_effect(priors, o_adj)
-    if estimate_offset:
-        priors.fit_offset(rec)
+    estimate_offset = gnss_offset_unknowns(priors, o_adj, rec)
     surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
     all_ids, points = tie_points(rec, exclude_point_ids)
     objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
@@ -209,6 +194,37 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     result.terrain = terrain_record
     result.intrinsics = intrinsics.todict() if intrinsics is not None else None
     return result
+
+
+def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOptions):
+    """Step 2 and its test of the interior orientation (adjust.steps.check_intrinsics). Returns
+    the block to go on with (step 2's, or the one solved with focal length and distortion free
+    where the test finds them off, with options that refine them from then on), the options,
+    step 2's report, its eliminated observations and the test (None: not run)."""
+    report, eliminated = step2_bundle_adjustment(rec, priors, options)
+    intrinsics = check_intrinsics(rec, priors, options, report)
+    if intrinsics is not None and intrinsics.refined:
+        rec = intrinsics.freed
+        options = copy.deepcopy(options)
+        options.adjustment.refine_intrinsics = True
+    return rec, options, report, eliminated, intrinsics
+
+
+def gnss_offset_unknowns(priors, o_adj, rec: pycolmap.Reconstruction) -> bool:
+    """Whether a GNSS offset common to the block is an unknown (`gnss_offset`, or the random
+    effect of `face_weighting` "offsets"); if so, its prior set and its start fitted to `rec`."""
+    estimate_offset = priors is not None and priors.estimates_offset
+    if o_adj.face_weighting == "face" and priors is not None and not estimate_offset:
+        logger.warning("faces as units weigh each face as one observation of its offset: "
+                       "the GNSS's common bias, not estimated (--gnss_bias auto), pulls the "
+                       "block as far as the faces let it")
+    if estimate_offset:
+        priors.offset_prior_sigma = o_adj.sigma_gnss_offset or None
+    elif o_adj.face_weighting == "offsets" and priors is not None:
+        estimate_offset = gnss_bias_as_random_effect(priors, o_adj)
+    if estimate_offset:
+        priors.fit_offset(rec)
+    return estimate_offset
 
 
 def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,

@@ -724,12 +724,11 @@ def test_a_camera_stated_with_a_wrong_distortion_is_refined_and_the_block_lands(
     # The camera states k1 = -0.003 (about 2.6 px in the image corners) its images do not
     # have: step 2's test finds it, and refine lands about as close as with the right camera;
     # held as stated, the block bends away from the truth.
+    from test_adjust_step2 import stated_k1
+
     def with_wrong_k1():
         rec = pycolmap.Reconstruction(scene.sfm)
-        for camera in rec.cameras.values():
-            fx, _, cx, cy = camera.params
-            camera.model = pycolmap.CameraModelId.SIMPLE_RADIAL
-            camera.params = np.array([fx, cx, cy, -0.003])
+        stated_k1(rec, -0.003)
         return rec
 
     found = refine(with_wrong_k1(), scene.store, scene.gnss(), RefineOptions(), progress=False)
