@@ -39,7 +39,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from .adjust.loop import adjustment_loop
+from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
@@ -251,9 +251,9 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
         warnings += windows.warnings
         timer["sliding_window"] = windows.seconds
     try:
-        loop = adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
-                               exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
-                               scale_sigma=scale_sigma, progress=progress)
+        loop = staged_adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
+                                      exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
+                                      scale_sigma=scale_sigma, progress=progress)
     except DatumError as error:
         if located is None:
             raise

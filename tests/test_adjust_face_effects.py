@@ -128,3 +128,20 @@ def test_the_placement_test_sees_the_points_where_their_faces_estimates_put_them
                         lambda self, ids: np.zeros((len(ids), 3)))
     as_they_lie = best_share()
     assert seen > as_they_lie + 0.03
+
+
+def test_the_faces_errors_start_where_every_point_alike_placed_the_block(street_scene):
+    """Two loops: every tie point alike from the wide first threshold on, then the faces'
+    errors as unknowns from that block, never at a wider threshold than the first loop's last;
+    the block lands on the model with GNSS 5.4 m off."""
+    result = refine(street_scene.sfm, street_scene.store,
+                    biased_gnss(street_scene, [3.0, -4.0, 2.0]), face_effects("none"),
+                    progress=False)
+    phases = [record.phase for record in result.iterations]
+    first = [record for record in result.iterations if record.phase == "loop"]
+    second = [record for record in result.iterations if record.phase == "faces"]
+    assert first and second and phases == ["loop"] * len(first) + ["faces"] * len(second)
+    assert [record.iteration for record in result.iterations] == list(range(len(phases)))
+    assert first[0].threshold > 1.0
+    assert max(record.threshold for record in second) <= first[-1].threshold + 1e-9
+    assert camera_rms(result, street_scene) < 0.03

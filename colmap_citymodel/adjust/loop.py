@@ -91,10 +91,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     exclude_point_ids: set[int] | None = None,
                     gnss_only: pycolmap.Reconstruction | None = None,
                     scale_sigma: float | None = None, progress: bool = True,
-                    pose_priors: PosePriors | None = None) -> LoopResult:
+                    pose_priors: PosePriors | None = None,
+                    hold_runaway_scale: bool = True) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
-    `scale_sigma` let the loop hold the block's scale where the planes cannot give it.
+    `scale_sigma` let the loop hold the block's scale where the planes cannot give it, and,
+    with `hold_runaway_scale`, from a solve on that changes it further than GNSS allows.
     `pose_priors`: frames held near given poses in every solve (a sliding window's images
     kept from the window before)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
@@ -251,7 +253,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # scale further than GNSS allows is undone and repeated with the scale held.
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
             if gnss_only is not None and not (baselines is not None and baselines.holds_scale) \
-            and scale_sigma else None
+            and scale_sigma and hold_runaway_scale else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
@@ -298,6 +300,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         if o_adj.face_weighting in ("face", "offsets") and o_adj.sigma_face is None:
             estimated = estimate_sigma_face(face_offsets(final, o_adj, sigma_face), o_adj)
             sigma_face = estimated if estimated is not None else sigma_face
+            logger.info("iteration %d: the faces' offsets spread by %.3f m", iteration,
+                        sigma_face)
         face_factors = outlier_factors(final, o_adj, sigma_face)
         if face_factors:
             logger.info("iteration %d: %d faces weighed less, their mean offsets beyond the "

@@ -18,7 +18,8 @@ class IterationRecord:
     robust: SolveReport | None  # None: no |v| / sigma above the threshold, no robust solve
     final: SolveReport
     relative_change: float
-    phase: str = "loop"  # "loop": steps 3-4; "correction": with the model corrected
+    phase: str = "loop"  # "loop": steps 3-4; "faces": their second loop with the faces' errors
+    # as unknowns (adjust.staged); "correction": with the model corrected
     camera_shift: float = float("nan")  # largest camera centre change of this iteration (m)
 
 

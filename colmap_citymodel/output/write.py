@@ -270,8 +270,9 @@ def report_markdown(report: dict) -> str:
               "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for it in report["iterations"]:
         rms = it["solve"]["rms"]
-        label = f"{it['iteration']} (model correction)" \
-            if it.get("phase") == "correction" else it["iteration"]
+        label = {"correction": f"{it['iteration']} (model correction)",
+                 "faces": f"{it['iteration']} (faces' errors)"}.get(it.get("phase"),
+                                                                     it["iteration"])
         lines.append(
             f"| {label} | {it['threshold']:.3f} | {it['num_assigned_points']} | "
             f"{it['num_planes']} | {it['num_eliminated_dTP']} | " + " | ".join(

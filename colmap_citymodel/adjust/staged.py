@@ -1,0 +1,67 @@
+"""The faces' errors as unknowns, started where every tie point alike has brought the block.
+
+With `AdjustmentOptions.face_weighting` "offsets" each face's offset and tilts are unknowns
+with priors (adjust.problem). Far from the model (the first, wide assignment thresholds) many
+tie points sit on faces that are not theirs, and faces free to move by their generalisation
+error follow them: the block's scale and position wander off with the wrong points (a drive
+along one row of facades grew by 9 % in its first solve). Every point alike, on faces held
+where the model has them, is the robust way there. So the loop runs twice:
+
+1. every tie point alike (`face_weighting` "per_point") from the start, as Unger's loop;
+2. from its result, at its last threshold and without the similarity rounds, with the faces'
+   errors as unknowns, until that loop converges.
+
+Where the first loop diverged the block is not on the model, and no stochastic model brings it
+there: the second is not run. The second loop starts on the model, at the assignment's final
+threshold: a scale change there is what the faces' positions say, not wrong points pulling,
+so it does not hold the block's scale at the GNSS-only one for a large change (it still holds
+it where the planes do not fix the scale at all).
+"""
+
+from __future__ import annotations
+
+import copy
+import logging
+from dataclasses import replace
+
+from .loop import LoopResult, adjustment_loop
+
+logger = logging.getLogger(__name__)
+
+
+def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs
+                           ) -> LoopResult:
+    """adjust.loop.adjustment_loop, in two stages with `face_weighting` "offsets" (module
+    docstring); `kwargs` go to both loops."""
+    if options.adjustment.face_weighting != "offsets":
+        return adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs)
+    alike = copy.deepcopy(options)
+    alike.adjustment.face_weighting = "per_point"
+    first = adjustment_loop(rec, store, priors, alike, objective, all_ids, **kwargs)
+    if first.diverged is not None:
+        logger.info("the faces' errors are not estimated: the loop with every tie point alike "
+                    "diverged (%s)", first.diverged)
+        return first
+    effects = copy.deepcopy(options)
+    effects.assignment.max_threshold = first.threshold
+    effects.assignment.indirect_max_threshold = first.threshold
+    effects.workflow.alignment_rounds = 0
+    logger.info("the faces' errors as unknowns, from the block every tie point alike placed "
+                "(threshold %.2f m)", first.threshold)
+    second = adjustment_loop(first.reconstruction, store, priors, effects, objective, all_ids,
+                             **kwargs, hold_runaway_scale=False)
+    return _joined(first, second)
+
+
+def _joined(first: LoopResult, second: LoopResult) -> LoopResult:
+    """The second loop's result with the first loop's iterations before its own (numbered on,
+    phase "faces"), the two moves, the first loop's observability, both warnings and seconds."""
+    offset = len(first.iterations)
+    iterations = first.iterations + [replace(record, iteration=record.iteration + offset,
+                                             phase="faces") for record in second.iterations]
+    seconds = dict(first.seconds)
+    for key, value in second.seconds.items():
+        seconds[key] = seconds.get(key, 0.0) + value
+    return replace(second, iterations=iterations, move=second.move * first.move,
+                   observability_before=first.observability_before,
+                   warnings=first.warnings + second.warnings, seconds=seconds)
