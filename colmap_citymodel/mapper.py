@@ -301,6 +301,9 @@ class ModelGlobalAdjustment:
         priors = self.priors(rec)
         options = copy.deepcopy(self.options)
         options.workflow.max_iterations = self.mapper_options.hybrid_iterations
+        # Mapping's adjustments keep the growing block on the model; the faces' errors as
+        # unknowns are left to refine's adjustment after it (adjust.staged).
+        options.adjustment.face_weighting = "per_point"
         if self.records and self.records[-1].kind == "hybrid":
             options.workflow.alignment_rounds = 0  # the adjustment before placed the block
         work = pycolmap.Reconstruction(rec)

@@ -244,6 +244,9 @@ def _window_priors(priors: GNSSPriors | None, image_ids: set[int]) -> GNSSPriors
 def _window_options(options: RefineOptions, first: bool) -> RefineOptions:
     window = copy.deepcopy(options)
     window.adjustment.refine_intrinsics = False
+    # The windows bring the block onto the model; the faces' errors as unknowns are estimated
+    # by the global loop after them, from where they left it (adjust.staged).
+    window.adjustment.face_weighting = "per_point"
     if not first:  # the window before placed it: no similarity moves of the whole window
         window.workflow.alignment_rounds = 0
     return window
