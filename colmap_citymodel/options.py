@@ -249,15 +249,14 @@ class AdjustmentOptions:
     average out over its points (Unger 6.3, Table 12), as consider parameters (precision.estimate:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
-    face_weighting: str = "offsets"
-    """How a face's shared error enters. "offsets" (default): each face's offset and tilts
-    unknowns with priors (sigma_face), the relief in the block's units, GNSS's common bias an
-    unknown with its prior (gnss_bias_share), estimated in a second loop from where every point
-    alike placed the block (adjust.staged): a face's error is one error, not one per point.
-    "per_point": every f_dTP independent at sigma_dtp (Unger; the `correct_model` preset, whose
-    correction frees the faces itself). "face": each point at sigma^2 = sigma_dtp^2 +
-    n sigma_face^2, a face one observation of its offset (with `gnss_offset` "all").
-    docs/method.md, "Faces as units", "Faces' errors as unknowns"."""
+    face_weighting: str = "per_point"
+    """How a face's shared error enters. "per_point": every f_dTP independent at sigma_dtp
+    (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2, a face one observation
+    of its offset (with `gnss_offset` "all"). "offsets": each face's offset and tilts unknowns
+    with priors (sigma_face), the relief in the block's units, GNSS's common bias an unknown with
+    its prior (gnss_bias_share), in a second loop from where every point alike placed the block
+    (adjust.staged); closer on generalised models (docs/method.md, "Faces as units", "Faces'
+    errors as unknowns")."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
@@ -602,7 +601,6 @@ class RefineOptions:
             return options
         if name == "correct_model":
             options.adjustment.correct_model = True
-            options.adjustment.face_weighting = "per_point"
             return options
         raise InputError(f"unknown preset {name!r}; use generalised, detailed or correct_model")
 

@@ -78,7 +78,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     """
     from .align.coarse import SurfaceDistance
 
-    options = options or RefineOptions()
+    options = with_correction_alike(options or RefineOptions())
     if options.workflow.mode == "sliding_window":  # bad window sizes before any work
         from .adjust.sliding_window import check_window_options
 
@@ -194,6 +194,17 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     result.terrain = terrain_record
     result.intrinsics = intrinsics.todict() if intrinsics is not None else None
     return result
+
+
+def with_correction_alike(options: RefineOptions) -> RefineOptions:
+    """`options`, or with `correct_model` a copy that weighs every tie point alike: the
+    correction frees the vertices of the faces the images see, estimating their errors there,
+    not as offsets and tilts beside them."""
+    if not (options.adjustment.correct_model and options.adjustment.face_weighting == "offsets"):
+        return options
+    options = copy.deepcopy(options)
+    options.adjustment.face_weighting = "per_point"
+    return options
 
 
 def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOptions):
