@@ -128,7 +128,7 @@ def test_checkpoint_covariance_equals_the_dense_inverse_with_the_checkpoints_as_
 
 
 def _street(seed: int, shift_sigma: float = 0.2, offsets: bool = False,
-            precision_options=None):
+            precision_options=None, face_weighting: str = "per_point"):
     """A 30-image street whose LOD2 model has per-plane shifts N(0, shift_sigma) along the
     normals (no tilts); truth poses as initial values, GNSS with a 1 m bias stated as 3/3/5 m.
     One hybrid solve (classical, or with estimated offsets), then Delta of 25 check points and
@@ -150,8 +150,10 @@ def _street(seed: int, shift_sigma: float = 0.2, offsets: bool = False,
     point_ids, xyz = tie_points(truth, exclude=used)
     assignment = assign(xyz, point_ids, model, 0.6, AssignmentOptions(min_points_per_plane=5))
     # Unger's sigma_dTP (0.2 m); the plane shifts are the generalisation error.
+    # With the faces' errors as unknowns their prior is sigma_face (0.2 m), no other.
     options = AdjustmentOptions(sigma_dtp=0.2, sigma_generalisation=(
-        shift_sigma if precision_options is None else None))
+        shift_sigma if precision_options is None and face_weighting != "offsets" else None),
+        face_weighting=face_weighting)
     problem = HybridProblem(pycolmap.Reconstruction(truth), model, assignment, priors, options,
                             robust_images=False, robust_planes=False,
                             generalisation_offsets=offsets)
@@ -316,6 +318,19 @@ def test_estimated_offsets_recover_the_plane_shifts():
     assert "generalisation_aware" in evaluation.covariances
     assert "classical" not in evaluation.covariances
     assert precision.summary()["generalisation_offsets"]["num_planes"] == len(estimated)
+
+
+def test_check_point_sigmas_with_the_faces_errors_as_unknowns():
+    """Each face's offset and tilts estimated with their prior (sigma_face 0.2 m, the planes'
+    true shift sigma): the check points' sigmas are that model's own, stated with the prior
+    they were estimated with, and cover the errors the shifted planes leave."""
+    streets = [_street(seed, face_weighting="offsets") for seed in (11, 12, 13)]
+    for evaluation, precision, _ in streets:
+        assert precision.generalisation == "estimated"
+        assert precision.generalisation_sigma == pytest.approx(0.2)
+        assert "N(0, 0.200^2 m^2)" in evaluation.sigma_notes["generalisation_aware"]
+    ratio = _pooled_ratio([e for e, _, _ in streets], "generalisation_aware")
+    assert np.all((ratio > 0.4) & (ratio < 2.0)), ratio
 
 
 def test_delta_sigma_table_in_the_evaluation(streets):

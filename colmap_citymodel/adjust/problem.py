@@ -575,6 +575,11 @@ class HybridProblem:
         for block in blocks.generalisation:
             self.problem.add_residual_block(prior, None, [block])
 
+    @property
+    def offset_prior_sigma(self) -> float | None:
+        """The prior sigma (m) of the faces' offsets estimated in this problem (None: none)."""
+        return self._offset_sigma if len(self.blocks.generalisation) else None
+
     def _add_generalisation_blocks(self, blocks: PlaneBlocks, faces: np.ndarray,
                                    store: PlaneStore, assignment: Assignment) -> bool:
         """Generalisation-aware model: an offset unknown per plane, shared by its tie points

@@ -1220,7 +1220,7 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
     mode = "none"
     if len(problem.blocks.generalisation):
         mode = "estimated"
-        sigma_generalisation = problem.options.sigma_generalisation
+        sigma_generalisation = problem.offset_prior_sigma
     elif (sigma_generalisation is not None or estimate_generalisation) \
             and problem.counts["dTP"]:
         mode = "consider"
