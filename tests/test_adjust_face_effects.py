@@ -145,3 +145,23 @@ def test_the_faces_errors_start_where_every_point_alike_placed_the_block(street_
     assert first[0].threshold > 1.0
     assert max(record.threshold for record in second) <= first[-1].threshold + 1e-9
     assert camera_rms(result, street_scene) < 0.03
+
+
+def test_a_model_correction_and_the_sliding_windows_weigh_every_point_alike(street_scene):
+    """A model correction frees the faces' vertices, which estimate their errors there: with
+    it refine weighs every tie point alike throughout. The sliding window's windows do too,
+    and the global loop after them estimates the faces' errors from where they left it."""
+    options = face_effects("none")
+    options.adjustment.correct_model = True
+    corrected = refine(street_scene.sfm, street_scene.store, street_scene.gnss(), options,
+                       progress=False)
+    phases = {record.phase for record in corrected.iterations}
+    assert "correction" in phases and "faces" not in phases
+    assert camera_rms(corrected, street_scene) < 0.02
+    options = face_effects("none")
+    options.workflow.mode = "sliding_window"
+    options.workflow.window_size, options.workflow.window_new = 30, 10
+    windows = refine(street_scene.sfm, street_scene.store, street_scene.gnss(), options,
+                     progress=False)
+    assert "faces" in {record.phase for record in windows.iterations}
+    assert camera_rms(windows, street_scene) < 0.02
