@@ -251,12 +251,10 @@ class AdjustmentOptions:
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
     face_weighting: str = "per_point"
     """How a face's shared error enters. "per_point": every f_dTP independent at sigma_dtp
-    (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2, a face one observation
-    of its offset (with `gnss_offset` "all"). "offsets": each face's offset and tilts unknowns
-    with priors (sigma_face), the relief in the block's units, GNSS's common bias an unknown with
-    its prior (gnss_bias_share), in a second loop from where every point alike placed the block
-    (adjust.staged); closer on generalised models (docs/method.md, "Faces as units", "Faces'
-    errors as unknowns")."""
+    (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2 (with `gnss_offset`
+    "all"). "offsets": each face's offset and tilts unknowns with priors (sigma_face), GNSS's
+    common bias one too (gnss_bias_share), in a second loop from where every point alike placed
+    the block (adjust.staged); closer on generalised models (docs/method.md, "Faces as units")."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
