@@ -60,8 +60,9 @@ class CorrectionProblem(HybridProblem):
                  **kwargs):
         # The correction frees the vertices of the faces the images see: their errors are
         # estimated there, not as offsets and tilts beside them (every tie point alike).
-        super().__init__(reconstruction, store, assignment, gnss,
-                         dataclasses.replace(options, face_weighting="per_point"), **kwargs)
+        if options.face_weighting == "offsets":
+            options = dataclasses.replace(options, face_weighting="per_point")
+        super().__init__(reconstruction, store, assignment, gnss, options, **kwargs)
 
     def hold_block(self, free_assigned_points: bool = False) -> None:
         """Poses, intrinsics and tie points constant: only the model moves. With

@@ -4,7 +4,7 @@ With `AdjustmentOptions.face_weighting` "offsets" each face's offset and tilts a
 with priors (adjust.problem). Far from the model (the first, wide assignment thresholds) many
 tie points sit on faces that are not theirs, and faces free to move by their generalisation
 error follow them: the block's scale and position wander off with the wrong points (a drive
-along one row of facades grew by 9 % in its first solve). Every point alike, on faces held
+along one row of facades grew by 8.7 % in its first solve). Every point alike, on faces held
 where the model has them, is the robust way there. So the loop runs twice:
 
 1. every tie point alike (`face_weighting` "per_point") from the start, as Unger's loop;
