@@ -323,14 +323,17 @@ def test_estimated_offsets_recover_the_plane_shifts():
 def test_check_point_sigmas_with_the_faces_errors_as_unknowns():
     """Each face's offset and tilts estimated with their prior (sigma_face 0.2 m, the planes'
     true shift sigma): the check points' sigmas are that model's own, stated with the prior
-    they were estimated with, and cover the errors the shifted planes leave."""
+    they were estimated with, not scaled below it by a variance factor under 1, and cover the
+    errors the shifted planes leave."""
     streets = [_street(seed, face_weighting="offsets") for seed in (11, 12, 13)]
     for evaluation, precision, _ in streets:
         assert precision.generalisation == "estimated"
         assert precision.generalisation_sigma == pytest.approx(0.2)
         assert "N(0, 0.200^2 m^2)" in evaluation.sigma_notes["generalisation_aware"]
+    # The streets' images fit at half their stated sigma (s0 0.49): scaled by s0 the sigmas
+    # were up to 1.8x optimistic in Z (Delta / sigma 1.27 / 1.29 / 1.79).
     ratio = _pooled_ratio([e for e, _, _ in streets], "generalisation_aware")
-    assert np.all((ratio > 0.4) & (ratio < 2.0)), ratio
+    assert np.all((ratio > 0.4) & (ratio < 1.3)), ratio
 
 
 def test_delta_sigma_table_in_the_evaluation(streets):

@@ -961,6 +961,9 @@ class PrecisionResult:
     scaled by s0^2: sigma_generalisation is absolute) or "estimated" (the offsets were unknowns
     of the solve: the covariances above already include them)."""
     generalisation_sigma: float | None = None
+    covariance_factor: float | None = None
+    """The factor the covariances above are their cofactors times: s0^2, or at least 1 with
+    the offsets estimated ("estimated"). None: no covariances."""
     generalisation_estimate: dict = field(default_factory=dict)
     """Consider mode: the a priori and the data's sigma of the offsets (moments of the planes'
     mean f_dTP residuals, `generalisation_effects`) and which one was used."""
@@ -1240,6 +1243,11 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
                                            free_system=own_cofactors, residuals=residuals)
         sigma_generalisation = effects.sigma
     s0sq = variance.sigma0_squared
+    if mode == "estimated":
+        # s0 < 1 says the observations fit better than stated; the faces' offsets and the GNSS
+        # bias rest on their priors, whose fit s0 does not measure: their sigmas are not
+        # scaled below the a priori ones (the consider model adds their part unscaled too).
+        s0sq = max(s0sq, 1.0)
     rec = problem.reconstruction
     layout = cof.layout
     t1 = time.perf_counter()
@@ -1259,7 +1267,8 @@ def _estimate_precision(problem: HybridProblem, *, covariances: bool = True,
             checkpoint_observations)
         logger.info("precision: %d check points with covariances (%.1f s)",
                     len(checkpoints.ids), time.perf_counter() - t2)
-    extra = {"generalisation": mode, "generalisation_sigma": sigma_generalisation}
+    extra = {"generalisation": mode, "generalisation_sigma": sigma_generalisation,
+             "covariance_factor": s0sq}
     if effects is not None:
         extra.update(_generalisation_extra(effects, estimate_generalisation,
                                            image_cov_generalisation, vertex_cov_generalisation,
@@ -1345,7 +1354,7 @@ def vertex_covariances(problem: HybridProblem, precision: PrecisionResult | None
         return ids, precision.vertex_cov, note
     start = time.perf_counter()
     if precision is not None:
-        s0sq = precision.variance.sigma0_squared
+        s0sq = precision.covariance_factor or precision.variance.sigma0_squared
     else:
         s0sq = variance_factors(problem.group_residuals(), problem.num_unknowns()).sigma0_squared
     cof = cofactors(problem, redundancy=False, points=False)

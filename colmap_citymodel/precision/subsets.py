@@ -244,7 +244,7 @@ def inner_precision(problem: HybridProblem, precision: PrecisionResult,
         raise RuntimeError("the precision result does not belong to these cofactors")
     _, _, b, w_inv = cof.system
     num_points = len(layout.point_ids)
-    s0sq = precision.variance.sigma0_squared
+    s0sq = precision.covariance_factor or precision.variance.sigma0_squared
 
     centre = precision.points.mean(0)
     g = similarity_basis(precision.points, centre)  # (P, 3, 7)
