@@ -34,6 +34,7 @@ import copy
 import logging
 import time
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -262,9 +263,12 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
         warnings += windows.warnings
         timer["sliding_window"] = windows.seconds
     try:
-        loop = staged_adjustment_loop(rec, store, priors, loop_options, objective, all_ids,
-                                      exclude_point_ids=exclude_point_ids, gnss_only=gnss_only,
-                                      scale_sigma=scale_sigma, progress=progress)
+        loop = staged_adjustment_loop(
+            rec, store, priors, loop_options, objective, all_ids,
+            placed=partial(first_loop_gate, surface=surface, priors=priors, gnss_only=gnss_only,
+                           scale_sigma=scale_sigma, exclude_point_ids=exclude_point_ids),
+            exclude_point_ids=exclude_point_ids, gnss_only=gnss_only, scale_sigma=scale_sigma,
+            progress=progress)
     except DatumError as error:
         if located is None:
             raise
@@ -273,6 +277,20 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
         raise ModelOnlyFailure(f"the block was found on the model, yet {error.message}",
                                {**located, "verdict": "failed"}, error.path) from None
     return windows, loop
+
+
+def first_loop_gate(first, options, *, surface, priors, gnss_only, scale_sigma,
+                    exclude_point_ids) -> str | None:
+    """The quality gate on the block the loop with every tie point alike placed (before the
+    faces' errors are estimated from it, adjust.staged): its reasons when it fails, else None."""
+    rec = first.reconstruction
+    _, points = tie_points(rec, exclude_point_ids)
+    observability = assigned_observability(points, first.assignment, first.current, priors, rec,
+                                           options, from_data=True)
+    quality = measure_quality(rec, gnss_only, surface, priors, first.assignment, first.last,
+                              observability, points, options, first.diverged, scale_sigma,
+                              first.unsettled_shift, store=first.current)
+    return "; ".join(quality.reasons) if quality.verdict == "failed" else None
 
 
 @dataclass

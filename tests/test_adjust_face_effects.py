@@ -165,3 +165,17 @@ def test_a_model_correction_and_the_sliding_windows_weigh_every_point_alike(stre
                      progress=False)
     assert "faces" in {record.phase for record in windows.iterations}
     assert camera_rms(windows, street_scene) < 0.02
+
+
+def test_the_faces_errors_do_not_establish_a_placement_the_first_loop_fails():
+    """The street's model 30 m north of where GNSS puts the block: every point alike, a
+    neighbouring placement fits about as well (the gate fails it as ambiguous). Estimated
+    from there, the faces' effects would make that placement look unique; they refine a
+    placement, they do not establish one, so they are not estimated and the block fails."""
+    from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
+
+    scene = make_street_scene(StreetSceneOptions(seed=11))
+    store = scene.store.with_vertices(scene.store.vertices + [0.0, 30.0, 0.0])
+    result = refine(scene.sfm, store, scene.gnss(), face_effects("none"), progress=False)
+    assert "faces" not in {record.phase for record in result.iterations}
+    assert result.quality.verdict == "failed"

@@ -11,8 +11,9 @@ where the model has them, is the robust way there. So the loop runs twice:
 2. from its result, at its last threshold and without the similarity rounds, with the faces'
    errors as unknowns, until that loop converges.
 
-Where the first loop diverged the block is not on the model, and no stochastic model brings it
-there: the second is not run. The second loop starts on the model, at the assignment's final
+Where the first loop diverged, or its block fails the quality gate (`placed`, given by the
+workflow: a model that does not fit, an ambiguous placement), the block is not on the model,
+and the faces' effects refine a placement, they do not establish one: the second is not run. The second loop starts on the model, at the assignment's final
 threshold: a scale change there is what the faces' positions say, not wrong points pulling,
 so it does not hold the block's scale at the GNSS-only one for a large change (it still holds
 it where the planes do not fix the scale at all).
@@ -22,6 +23,7 @@ from __future__ import annotations
 
 import copy
 import logging
+from collections.abc import Callable
 from dataclasses import replace
 
 from .loop import LoopResult, adjustment_loop
@@ -29,18 +31,21 @@ from .loop import LoopResult, adjustment_loop
 logger = logging.getLogger(__name__)
 
 
-def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs
-                           ) -> LoopResult:
+def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
+                           placed: Callable[[LoopResult, object], str | None] | None = None,
+                           **kwargs) -> LoopResult:
     """adjust.loop.adjustment_loop, in two stages with `face_weighting` "offsets" (module
-    docstring); `kwargs` go to both loops."""
+    docstring); `kwargs` go to both loops. `placed(first, options)`: why the first loop's
+    block is not placed on the model (its quality gate failed), None if it is."""
     if options.adjustment.face_weighting != "offsets":
         return adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs)
     alike = copy.deepcopy(options)
     alike.adjustment.face_weighting = "per_point"
     first = adjustment_loop(rec, store, priors, alike, objective, all_ids, **kwargs)
-    if first.diverged is not None:
-        logger.info("the faces' errors are not estimated: the loop with every tie point alike "
-                    "diverged (%s)", first.diverged)
+    why = (f"the loop with every tie point alike diverged ({first.diverged})"
+           if first.diverged is not None else placed(first, alike) if placed else None)
+    if why:
+        logger.info("the faces' errors are not estimated: %s", why)
         return first
     effects = copy.deepcopy(options)
     effects.assignment.max_threshold = first.threshold
