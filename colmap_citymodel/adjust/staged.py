@@ -13,10 +13,11 @@ where the model has them, is the robust way there. So the loop runs twice:
 
 Where the first loop diverged, or its block fails the quality gate (`placed`, given by the
 workflow: a model that does not fit, an ambiguous placement), the block is not on the model,
-and the faces' effects refine a placement, they do not establish one: the second is not run. The second loop starts on the model, at the assignment's final
-threshold: a scale change there is what the faces' positions say, not wrong points pulling,
-so it does not hold the block's scale at the GNSS-only one for a large change (it still holds
-it where the planes do not fix the scale at all).
+and the faces' effects refine a placement, they do not establish one: the second is not run.
+The second loop starts on the model, at the assignment's final threshold: a scale change
+there is what the faces' positions say, not wrong points pulling, so it does not hold the
+block's scale at the GNSS-only one for a large change (it still holds it where the planes do
+not fix the scale at all).
 """
 
 from __future__ import annotations
