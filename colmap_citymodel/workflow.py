@@ -139,9 +139,10 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
         corrected, rec, current, last, assignment = correct_model(
             rec, store, current, last, assignment, priors, options, loop, objective,
             exclude_point_ids, timer, warnings)
-    point_ids, points = tie_points(rec, exclude_point_ids)
-    observability = assigned_observability(points, assignment, current, priors, rec, options,
-                                           from_data=True)
+    observability, quality = block_quality(
+        rec, assignment, current, last, loop.diverged, loop.unsettled_shift, options,
+        surface=surface, priors=priors, gnss_only=gnss_only, scale_sigma=scale_sigma,
+        exclude_point_ids=exclude_point_ids)
     if terrain_record.get("num_faces"):
         terrain_record["residuals"] = terrain_residuals(current, assignment, np.array(
             [rec.point3D(int(i)).xyz for i in assignment.point_ids]).reshape(-1, 3))
@@ -149,9 +150,6 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                    if estimate_offset else None)
     if gnss_offset is not None:
         logger.info(offset_line(gnss_offset))
-    quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
-                              points, options, loop.diverged, scale_sigma,
-                              loop.unsettled_shift, store=current)
     if located is not None and isinstance(quality.metrics, dict):
         quality.metrics["location_score_ratio"] = located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
@@ -279,17 +277,26 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
     return windows, loop
 
 
-def first_loop_gate(first, options, *, surface, priors, gnss_only, scale_sigma,
-                    exclude_point_ids) -> str | None:
-    """The quality gate on the block the loop with every tie point alike placed (before the
-    faces' errors are estimated from it, adjust.staged): its reasons when it fails, else None."""
-    rec = first.reconstruction
+def block_quality(rec, assignment, current, last, diverged, unsettled_shift, options, *,
+                  surface, priors, gnss_only, scale_sigma, exclude_point_ids):
+    """The observability (from the data) of an adjusted block and the quality gate's verdict
+    on it (precision.quality.measure_quality)."""
     _, points = tie_points(rec, exclude_point_ids)
-    observability = assigned_observability(points, first.assignment, first.current, priors, rec,
-                                           options, from_data=True)
-    quality = measure_quality(rec, gnss_only, surface, priors, first.assignment, first.last,
-                              observability, points, options, first.diverged, scale_sigma,
-                              first.unsettled_shift, store=first.current)
+    observability = assigned_observability(points, assignment, current, priors, rec, options,
+                                           from_data=True)
+    quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
+                              points, options, diverged, scale_sigma, unsettled_shift,
+                              store=current)
+    return observability, quality
+
+
+def first_loop_gate(first, options, **context) -> str | None:
+    """The quality gate on the block the loop with every tie point alike placed (before the
+    faces' errors are estimated from it, adjust.staged): its reasons when it fails, else None.
+    `context`: block_quality's keywords."""
+    _, quality = block_quality(first.reconstruction, first.assignment, first.current,
+                               first.last, first.diverged, first.unsettled_shift, options,
+                               **context)
     return "; ".join(quality.reasons) if quality.verdict == "failed" else None
 
 

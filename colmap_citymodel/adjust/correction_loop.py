@@ -39,7 +39,7 @@ from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
-from ..options import AdjustmentOptions, RefineOptions
+from ..options import RefineOptions
 from .model_correction import CorrectionSelection
 from .problem import BaselinePriors, HybridProblem
 from .record import IterationRecord
@@ -55,14 +55,6 @@ class CorrectionProblem(HybridProblem):
     releases_model = True
     block_held = False
     points_free = 0  # tie points left unknown in a held block
-
-    def __init__(self, reconstruction, store, assignment, gnss, options: AdjustmentOptions,
-                 **kwargs):
-        # The correction frees the vertices of the faces the images see: their errors are
-        # estimated there, not as offsets and tilts beside them (every tie point alike).
-        if options.face_weighting == "offsets":
-            options = dataclasses.replace(options, face_weighting="per_point")
-        super().__init__(reconstruction, store, assignment, gnss, options, **kwargs)
 
     def hold_block(self, free_assigned_points: bool = False) -> None:
         """Poses, intrinsics and tie points constant: only the model moves. With
