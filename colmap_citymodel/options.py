@@ -249,7 +249,7 @@ class AdjustmentOptions:
     average out over its points (Unger 6.3, Table 12), as consider parameters (precision.estimate:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
-    face_weighting: str = "per_point"
+    face_weighting: str = "offsets"
     """How a face's shared error enters. "per_point": every f_dTP independent at sigma_dtp
     (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2 (with `gnss_offset`
     "all"). "offsets": each face's offset and tilts unknowns with priors (sigma_face), GNSS's
@@ -596,6 +596,7 @@ class RefineOptions:
         if name == "detailed":
             options.adjustment.sigma_dtp = 0.05
             options.assignment.min_points_per_plane = 5
+            options.adjustment.face_weighting = "per_point"
             return options
         if name == "correct_model":
             options.adjustment.correct_model = True
