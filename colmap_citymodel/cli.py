@@ -126,7 +126,8 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
                           help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
     p.add_argument("--preset", default="generalised",
                    choices=["generalised", "detailed", "correct_model"],
-                   help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane; "
+                   help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane, "
+                        "every tie point alike instead of the faces' errors as unknowns; "
                         "correct_model: the images correct the model, see --write_model)")
     p.add_argument("--write_model", action="store_true", default=None,
                    help="correct the city model where the images see it well and write it back "

@@ -250,11 +250,12 @@ class AdjustmentOptions:
     the estimate stays classical, its covariance grows). Recommended: `GENERALISATION_SIGMA`.
     VCE ("gen"), or None with PrecisionOptions.generalisation_from_data, uses the data's value."""
     face_weighting: str = "offsets"
-    """How a face's shared error enters. "per_point": every f_dTP independent at sigma_dtp
-    (Unger). "face": each point at sigma^2 = sigma_dtp^2 + n sigma_face^2 (with `gnss_offset`
-    "all"). "offsets": each face's offset and tilts unknowns with priors (sigma_face), GNSS's
-    common bias one too (gnss_bias_share), in a second loop from where every point alike placed
-    the block (adjust.staged); closer on generalised models (docs/method.md, "Faces as units")."""
+    """How a face's shared error enters. "offsets" (default): each face's offset and tilts
+    unknowns with priors (sigma_face), GNSS's common bias one too (gnss_bias_share), in a
+    second loop from where every point alike placed the block (adjust.staged); closer on
+    generalised models (docs/method.md, "Faces as units"). "per_point": every f_dTP independent
+    at sigma_dtp (Unger; the detailed preset). "face": each point at sigma^2 = sigma_dtp^2 +
+    n sigma_face^2 (with `gnss_offset` "all")."""
     face_tilt_weights: bool = False
     """Each tie point's f_dTP also carries its model face's tilt error (each vertex off by
     sigma_face, adjust.faces.tilt_axes): a point far from the face's centroid, where a tilt of
@@ -588,8 +589,9 @@ class RefineOptions:
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":
-        """`generalised` (default, LOD2 as published), `detailed` (LOD3 / detailed LOD2) or
-        `correct_model` (generalised, then the faces the images see are corrected)."""
+        """`generalised` (default, LOD2 as published), `detailed` (LOD3 / detailed LOD2: its
+        faces are the surfaces themselves, every tie point weighs alike) or `correct_model`
+        (generalised, then the faces the images see are corrected)."""
         options = cls()
         if name in ("generalised", "generalized", "default"):
             return options

@@ -40,6 +40,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from .adjust.correction_loop import every_point_alike
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
@@ -196,13 +197,13 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
 
 def with_correction_alike(options: RefineOptions) -> RefineOptions:
-    """`options`, or with `correct_model` a copy that weighs every tie point alike: the
-    correction frees the vertices of the faces the images see, estimating their errors there,
-    not as offsets and tilts beside them."""
-    if not (options.adjustment.correct_model and options.adjustment.face_weighting == "offsets"):
+    """`options`, or with `correct_model` a copy that weighs every tie point alike
+    (adjust.correction_loop.every_point_alike) in the loop before the correction too."""
+    alike = every_point_alike(options.adjustment)
+    if not options.adjustment.correct_model or alike is options.adjustment:
         return options
     options = copy.deepcopy(options)
-    options.adjustment.face_weighting = "per_point"
+    options.adjustment = alike
     return options
 
 

@@ -78,7 +78,8 @@ def test_global_test_numbers():
 
 # -- a tiny bundle adjustment with a city model --------------------------------------------------
 
-def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3, holds=None):
+def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3, holds=None,
+          face_weighting: str = AdjustmentOptions.face_weighting):
     """12 images, ~230 points; image noise 1 px and GNSS noise of GNSS_SIGMA, so the stochastic
     model is right for sigma_scale = 1 (all stated sigmas multiplied by it)."""
     scene = make_street_scene(StreetSceneOptions(num_stations=4, point_spacing=2.5,
@@ -90,7 +91,8 @@ def _tiny(sigma_scale: float = 1.0, with_model: bool = True, seed: int = 3, hold
     priors = GNSSPriors(ids, centres + rng.normal(size=centres.shape) * GNSS_SIGMA,
                         np.tile(GNSS_SIGMA * sigma_scale, (len(ids), 1)))
     options = AdjustmentOptions(sigma_image=sigma_scale, sigma_dtp=0.03 * sigma_scale,
-                                sigma_dvt=0.01 * sigma_scale, sigma_vt=0.01 * sigma_scale)
+                                sigma_dvt=0.01 * sigma_scale, sigma_vt=0.01 * sigma_scale,
+                                face_weighting=face_weighting)
     store = assignment = None
     if with_model:
         point_ids, xyz = tie_points(rec)
@@ -221,9 +223,12 @@ def test_global_test_on_a_bundle_adjustment():
                                    np.median(right.point_sigmas, 0), rtol=0.01)
 
 
-def test_precision_of_images_and_points(tiny):
-    precision = estimate_precision(tiny)
-    rec = tiny.reconstruction
+def test_precision_of_images_and_points():
+    # Every tie point alike: the exact planes (sigma_dTP 0.03 m) hold the block's rotation too.
+    # With the faces' offsets and tilts free by their 0.2 m prior, GNSS alone holds it.
+    alike = _tiny(face_weighting="per_point")
+    precision = estimate_precision(alike)
+    rec = alike.reconstruction
     assert len(precision.image_ids) == rec.num_reg_images()
     assert len(precision.point_ids) == rec.num_points3D()
     sigma = precision.image_sigmas
@@ -233,6 +238,8 @@ def test_precision_of_images_and_points(tiny):
     np.testing.assert_allclose(precision.centres[0],
                                rec.image(int(precision.image_ids[0])).projection_center())
     assert np.all(precision.point_sigmas >= precision.point_sigmas_conditional - 1e-12)
+    free = estimate_precision(_tiny()).image_sigmas
+    assert np.median(free[:, 3:]) > 2 * np.median(sigma[:, 3:])
     summary = precision.summary()
     assert summary["redundancy_method"] == "hat_matrix" and summary["covariances"]
 

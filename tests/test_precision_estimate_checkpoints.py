@@ -95,7 +95,10 @@ def test_checkpoint_covariance_equals_the_dense_inverse_with_the_checkpoints_as_
     assignment = assign(xyz, point_ids, scene.store, 0.5,
                         AssignmentOptions(min_points_per_plane=5))
     # sigma_image 0.8 px: the whitening of our Jacobians and of COLMAP's must agree.
-    options = AdjustmentOptions(sigma_image=0.8, sigma_dtp=0.05, sigma_generalisation=0.1)
+    # The plane offsets as unknowns with sigma_generalisation's prior, beside every tie point
+    # alike (the faces' own offsets and tilts would take their place).
+    options = AdjustmentOptions(sigma_image=0.8, sigma_dtp=0.05, sigma_generalisation=0.1,
+                                face_weighting="per_point")
     # Same state for both problems (no solve): the same linearisation point.
     without = HybridProblem(pycolmap.Reconstruction(truth), scene.store, assignment, priors,
                             options, robust_images=False, robust_planes=False,

@@ -80,7 +80,9 @@ def test_covariances_after_refine(refined, scene):
 def test_report_files(refined, written):
     report = json.loads((written / "report.json").read_text())
     assert report["sigma0"] == pytest.approx(refined.precision.variance.sigma0)
-    assert set(report["sigma0_by_group"]) == {"image", "gnss", "dTP", "dVT", "VT"}
+    # With the faces' offsets and tilts and GNSS's common bias as unknowns: their priors too.
+    assert set(report["sigma0_by_group"]) == {"image", "gnss", "dTP", "dVT", "VT", "gen",
+                                              "offset"}
     test = report["global_test"]
     assert {"statistic", "redundancy", "p_value", "accepted"} <= set(test)
     assert test["accepted"] is False
@@ -166,6 +168,8 @@ def _street_checkpoints(scene, num: int = 12, seed: int = 0):
 def refined_with_checkpoints(scene):
     known, observations = _street_checkpoints(scene)
     options = RefineOptions()
+    # Every tie point alike: the classical sigmas beside the generalisation-aware ones.
+    options.adjustment.face_weighting = "per_point"
     options.adjustment.sigma_generalisation = 0.2
     result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False,
                     checkpoints=known, checkpoint_observations=observations)

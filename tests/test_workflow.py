@@ -322,6 +322,7 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     monkeypatch.setattr(loop_module, "_signature",
                         lambda assignment: next(counter).to_bytes(8, "little"))
     options = RefineOptions()
+    options.adjustment.face_weighting = "per_point"  # one loop
     options.workflow.max_iterations = 3
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_camera_shift = 0.0
@@ -358,6 +359,7 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     monkeypatch.setattr(loop_module, "_signature",
                         lambda assignment: next(counter).to_bytes(8, "little"))
     options = RefineOptions()
+    options.adjustment.face_weighting = "per_point"  # one loop
     # Direct assignment: from its first assignment at 2 m the loop needs several iterations
     # (the default's first iteration already leaves the cameras within millimetres here).
     options.assignment.method = "direct"
@@ -394,6 +396,7 @@ def test_the_loop_stops_before_a_solve_that_would_barely_change_anything(scene, 
                         lambda assignment: next(counter).to_bytes(8, "little"))
     monkeypatch.setattr(loop_module, "cameras_settled", lambda *args: False)
     options = RefineOptions()
+    options.adjustment.face_weighting = "per_point"  # one loop
     options.workflow.max_iterations = 6
     options.workflow.convergence_rms_change = 0.0
     tolerance = options.workflow.convergence_camera_shift
@@ -552,8 +555,10 @@ def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scen
     how the planes' offsets and tilts move the estimate as it was solved, with the height held,
     so they leave the height's sigma at what GNSS gives it (the datum's, its bias common to the
     block included: no image is stated more precise than that), while they do raise the plan
-    position's (0.10 m against 0.01 m)."""
+    position's (0.10 m against 0.01 m). Every tie point alike: the offsets and tilts are
+    considered, not estimated."""
     options = RefineOptions()
+    options.adjustment.face_weighting = "per_point"
     options.adjustment.sigma_generalisation = 0.2
     options.precision.covariances = "on"
     result = refine(scene.sfm, walls_only(scene.store, tilt_deg=0.1), scene.gnss(), options,

@@ -39,7 +39,7 @@ from ..assign.schedule import assign
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import tie_points
 from ..citymodel.store import PlaneStore
-from ..options import RefineOptions
+from ..options import AdjustmentOptions, RefineOptions
 from .model_correction import CorrectionSelection
 from .problem import BaselinePriors, HybridProblem
 from .record import IterationRecord
@@ -48,13 +48,28 @@ from .steps import RoofObservers, model_after_solve
 logger = logging.getLogger(__name__)
 
 
+def every_point_alike(options: AdjustmentOptions) -> AdjustmentOptions:
+    """`options`, or where they estimate the faces' offsets and tilts a copy that weighs every
+    tie point alike: a model correction frees the vertices of the faces the images see and
+    estimates their errors there, not as offsets and tilts beside them."""
+    if options.face_weighting != "offsets":
+        return options
+    return dataclasses.replace(options, face_weighting="per_point")
+
+
 class CorrectionProblem(HybridProblem):
     """A hybrid problem in which the images correct the faces they see well
-    (adjust.model_correction); `hold_block()` makes the block's unknowns constant."""
+    (adjust.model_correction), every tie point alike (`every_point_alike`); `hold_block()`
+    makes the block's unknowns constant."""
 
     releases_model = True
     block_held = False
     points_free = 0  # tie points left unknown in a held block
+
+    def __init__(self, reconstruction, store, assignment, gnss, options: AdjustmentOptions,
+                 **kwargs):
+        super().__init__(reconstruction, store, assignment, gnss, every_point_alike(options),
+                         **kwargs)
 
     def hold_block(self, free_assigned_points: bool = False) -> None:
         """Poses, intrinsics and tie points constant: only the model moves. With

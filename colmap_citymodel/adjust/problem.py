@@ -943,7 +943,7 @@ class HybridProblem:
         if self.options.refine_intrinsics:
             u += sum(len(c.params) - 2 for c in rec.cameras.values())  # principal point fixed
         u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
-        u += len(self.blocks.generalisation)
+        u += sum(len(block) for block in self.blocks.generalisation)
         u += 0 if self.gnss_offset is None else len(self.gnss_offset)
         return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
