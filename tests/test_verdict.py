@@ -253,3 +253,14 @@ def test_ok_means_within_the_tolerance_nineteen_times_in_twenty():
     assert quality_verdict(metrics, tolerance=0.25).verdict == "weak"
     metrics = {"position_sigma_m": float(np.sqrt(3) * 0.05), "position_sigmas_m": [0.05] * 3}
     assert quality_verdict(metrics, tolerance=0.25).verdict == "ok"
+
+
+def test_a_radius_just_beyond_the_tolerance_is_not_shown_as_the_tolerance():
+    # Only the 3D sigma stated: the radius is that sigma. 0.2504 m in centimetres would read
+    # "within 0.25 m ... more than the tolerance 0.25 m".
+    verdict = quality_verdict({"position_sigma_m": 0.2504})
+    reason = next(r for r in verdict.reasons if "lies within" in r)
+    assert "within 0.250 m" in reason and "tolerance 0.25 m" in reason
+    reason = next(r for r in quality_verdict({"position_sigma_m": 0.31}).reasons
+                  if "lies within" in r)
+    assert "within 0.31 m" in reason

@@ -208,7 +208,9 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
     radius = (confidence_radius(axes, t.tolerance_confidence) if axes is not None
               else sigma)
     if radius is not None and radius > tolerance:
-        weak.append(f"the block lies within {radius:.2f} m of its stated position with "
+        # Centimetres, or millimetres where centimetres would round to the tolerance itself.
+        shown = f"{radius:.2f}" if round(radius, 2) > tolerance else f"{radius:.3f}"
+        weak.append(f"the block lies within {shown} m of its stated position with "
                     f"{100 * t.tolerance_confidence:g} % probability (3D sigma {sigma:.2f} m), "
                     f"more than the tolerance {tolerance:g} m")
     if metrics.get("diverged"):
