@@ -15,12 +15,21 @@ the GNSS-only adjustment of the same block, and refine's verdict. Summary per bl
 the share of runs whose result ends within 0.25 m (RMS 3D) of the truth, and the number of runs
 that end further away with the verdict "ok" (a wrong result refine vouches for; must be 0).
 
+Where the given model lets a block end: per block, refine with the true projection centres
+as GNSS (no noise, no bias, stated sigma 3/3/5 m) on the given model and on the model's true
+surfaces (the workspace's `corrected` model). Started there, refine ends at the optimum its
+model offers near the truth: biased runs that land about as far off as that run land where the
+model puts the block, not where the GNSS bias left it. Beside it the chance that a block ends
+within the tolerance by refine's own stated position sigmas (E, N, U of the run started at the
+truth): how often a block with a model of this quality lands within it over the model's error
+realisations, where the benchmark draws only one.
+
 Writes benchmarks/results/capture.md and the `capture` section of
-benchmarks/results/scenarios.json (runs keyed block/bias/seed; a run with --cases or --quick
-replaces only its own runs).
+benchmarks/results/scenarios.json (runs keyed block/bias/seed, the runs started at the truth
+keyed block/model under `at_truth`; a run with --cases or --quick replaces only its own runs).
 
     .venv/bin/python benchmarks/bench_capture.py [--quick] [--cases demo drive]
-        [--levels 1 2 4 8 12] [--seeds 5]
+        [--levels 1 2 4 8 12] [--seeds 5] [--at_truth_only] [--tables_only]
 """
 
 from __future__ import annotations
@@ -104,6 +113,34 @@ def run_one(workspace: Path, truth: dict, gnss_db, level: float, seed: int) -> d
     return r
 
 
+#: Samples of the Monte Carlo chance of a 3D error within the tolerance from three axis sigmas.
+CHANCE_SAMPLES = 200_000
+
+
+def chance_within(sigmas, tolerance: float = TRUTH_TOLERANCE) -> float:
+    """P(|e| <= tolerance) for e ~ N(0, diag(sigmas^2)) (a generalised chi-square; Monte Carlo,
+    fixed seed): the share of blocks that end within the tolerance when their error is what the
+    stated sigmas say."""
+    draws = np.random.default_rng(0).standard_normal((CHANCE_SAMPLES, 3)) * np.asarray(sigmas)
+    return float(np.mean(np.sum(draws ** 2, axis=1) <= tolerance ** 2))
+
+
+def run_at_truth(workspace: Path, truth: dict, gnss_db, model: str | None) -> dict:
+    """Refine with the true projection centres as GNSS (no noise, no bias, stated sigma
+    STATED_SIGMA) on the given model (`model` None) or another variant of it."""
+    names = [n for n in gnss_db.image_names if n in truth]
+    gnss = dataclasses.replace(gnss_db, image_names=names,
+                               positions=np.array([truth[n] for n in names]),
+                               sigmas=np.tile(np.asarray(STATED_SIGMA), (len(names), 1)))
+    run = refine_with_quality(workspace, gnss, model=model)
+    sigmas = (run["quality_metrics"] or {}).get("position_sigmas_m")
+    return {"model": model or "given", "verdict": run["verdict"], "seconds": run["seconds"],
+            "refine": None if run["refined"] is None
+            else centre_errors(run["refined"], run["origin"], truth),
+            "stated_sigmas_m": sigmas,
+            "chance_within": None if sigmas is None else chance_within(sigmas)}
+
+
 def summarise(runs: dict) -> dict:
     out: dict = {}
     for r in runs.values():
@@ -137,6 +174,8 @@ def tables(section: dict) -> str:
             lines.append(f"| {case} | {level} | {s['runs']} | {s['share_within']:.0%} | "
                          f"{s['wrong_ok']} | {verdicts} | {s['median_refine_rms_3d']:.3f} | "
                          f"{s['median_gnss_only_rms_3d']:.3f} |")
+    if section.get("at_truth"):
+        lines += at_truth_table(section["at_truth"])
     total_wrong_ok = sum(s["wrong_ok"] for levels in section["summary"].values()
                          for s in levels.values())
     lines += ["", f"Runs further than {TRUTH_TOLERANCE} m from the truth with verdict ok: "
@@ -158,6 +197,29 @@ def tables(section: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
+def at_truth_table(at_truth: dict) -> list[str]:
+    lines = ["", "## Started at the truth", "",
+             "GNSS = the true projection centres (no noise, no bias, stated sigma 3/3/5 m). "
+             "`given`: the block's given model; `corrected`: the model's true surfaces. Stated "
+             "sigmas: refine's own position sigmas E, N, U of that run; chance within: the "
+             f"share of blocks within {TRUTH_TOLERANCE} m 3D when their error is what those "
+             "sigmas say (over the model's error realisations; the runs above share one).", "",
+             "| block | model | RMS E | N | U | 3D | verdict | stated sigmas E, N, U | "
+             f"chance within {TRUTH_TOLERANCE} m |",
+             "|---|---|---|---|---|---|---|---|---|"]
+    for key in sorted(at_truth):
+        r = at_truth[key]
+        m = r["refine"] or {}
+        errors = (" | ".join(f"{m[k]:.3f}" for k in ("rms_x", "rms_y", "rms_z", "rms_3d"))
+                  if "rms_3d" in m else "- | - | - | -")
+        sigmas = (", ".join(f"{v:.3f}" for v in r["stated_sigmas_m"])
+                  if r.get("stated_sigmas_m") else "-")
+        chance = f"{r['chance_within']:.0%}" if r.get("chance_within") is not None else "-"
+        lines.append(f"| {key.split('/')[0]} | {r['model']} | {errors} | {r['verdict']} | "
+                     f"{sigmas} | {chance} |")
+    return lines
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -168,6 +230,8 @@ def main() -> None:
                         help=f"seeds per block and bias (default {NUM_SEEDS})")
     parser.add_argument("--quick", action="store_true",
                         help=f"biases {QUICK_LEVELS} m and {QUICK_SEEDS} seeds")
+    parser.add_argument("--at_truth_only", action="store_true",
+                        help="only the runs started at the truth (no GNSS bias runs)")
     parser.add_argument("--tables_only", action="store_true",
                         help="only rewrite capture.md from results/scenarios.json")
     args = parser.parse_args()
@@ -187,7 +251,14 @@ def main() -> None:
               flush=True)
         truth = truth_centres(workspace)
         _, _, gnss_db = inputs(workspace)
-        for level in levels:
+        for model in (None, "corrected"):
+            r = run_at_truth(workspace, truth, gnss_db, model)
+            r["code"] = code_version()
+            print(f"  started at the truth, {r['model']} model: refine "
+                  f"{(r['refine'] or {}).get('rms_3d', float('nan')):.3f} m, verdict "
+                  f"{r['verdict']}", flush=True)
+            update_json(json_path, ["capture", "at_truth", f"{case}/{r['model']}"], r)
+        for level in [] if args.at_truth_only else levels:
             for seed in seeds:
                 r = run_one(workspace, truth, gnss_db, float(level), seed)
                 r["case"] = case
