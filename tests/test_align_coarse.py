@@ -19,3 +19,24 @@ def test_translation_search_reaches_gnss_six_sigma_off(street_scene, offset):
                                 np.array([3.0, 3.0, 5.0]))
     np.testing.assert_allclose(result.shift, offset, atol=0.25)
     assert result.share_after > 0.9 > 0.5 > result.share_before
+
+
+def test_translation_search_leaves_axes_where_gnss_is_better_than_its_grid(street_scene):
+    """GNSS of RTK quality (sigma 5 / 5 / 10 cm, below the search's 0.4 m finest kernel): the
+    block is not moved, although a shift of 0.3 m would put more tie points on the model (the
+    search's grid cannot place a block to centimetres; GNSS does). With street GNSS (3 / 3 /
+    5 m) the same block is moved by the search."""
+    from colmap_citymodel.align.coarse import PLACEMENT_RESOLUTION
+
+    points = np.array([p.xyz for p in street_scene.truth.points3D.values()])
+    offset = np.array([0.0, 0.6, 0.6])
+    surface = SurfaceDistance(street_scene.store)
+    precise = np.array([0.05, 0.05, 0.1])
+    assert np.all(precise < PLACEMENT_RESOLUTION)
+    held = search_translation(points - offset, surface, precise)
+    assert np.all(held.shift == 0.0) and held.share_after == held.share_before
+    moved = search_translation(points - offset, surface, np.array([3.0, 3.0, 5.0]))
+    assert np.linalg.norm(moved.shift - offset) < 0.25 < np.linalg.norm(offset)
+    # an axis with street GNSS is searched beside a held one
+    mixed = search_translation(points - offset, surface, np.array([0.05, 3.0, 0.1]))
+    assert mixed.shift[0] == 0.0 and mixed.shift[2] == 0.0 and abs(mixed.shift[1] - 0.6) < 0.25

@@ -533,6 +533,28 @@ def test_the_level_prior_holds_one_central_image_along_the_free_axes_only(scene)
     assert both.holds_scale and both.holds_level
 
 
+def test_the_level_prior_keeps_the_gnss_level_where_gnss_is_better_than_the_placement(scene):
+    """The coarse search and the similarity rounds moved the block 0.3 m down. With the
+    street's GNSS (sigma 3 / 3 / 5 m) the height is held where they put it; with GNSS of RTK
+    quality (5 / 5 / 10 cm: better than the placement's 0.4 m) where GNSS put it, the
+    GNSS-only block's level."""
+    from dataclasses import replace
+
+    from colmap_citymodel.adjust.scale import level_prior
+
+    gnss_only = pycolmap.Reconstruction(scene.sfm)
+    _, priors, _ = georegister(gnss_only, scene.store, scene.gnss(), None)
+    placed = pycolmap.Reconstruction(gnss_only)
+    placed.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), [0.0, 0.0, -0.3]))
+    axes = [False, False, True]
+    image, position, _ = level_prior(placed, priors, axes, gnss_only)
+    assert position[2] == pytest.approx(placed.image(image).projection_center()[2])
+    precise = replace(priors, sigmas=np.tile([0.05, 0.05, 0.1], (len(priors.sigmas), 1)))
+    image, position, _ = level_prior(placed, precise, axes, gnss_only)
+    assert position[2] == pytest.approx(gnss_only.image(image).projection_center()[2])
+    assert position[2] - placed.image(image).projection_center()[2] == pytest.approx(0.3)
+
+
 def walls_only(store, tilt_deg=0.0):
     """`store` without its roofs; each wall tilted by `tilt_deg` about its lowest edge (top
     outward): planes that fix the plan position but hardly the height."""
@@ -589,9 +611,9 @@ def test_a_height_the_planes_leave_to_gnss_stays_where_the_first_assignment_put_
 
     seen = []
 
-    def recording(block, priors, axes):
+    def recording(block, priors, axes, *args):
         seen.append({int(i): block.image(int(i)).projection_center() for i in priors.image_ids})
-        return level_prior(block, priors, axes)
+        return level_prior(block, priors, axes, *args)
 
     monkeypatch.setattr(loop_module, "level_prior", recording)
     options = RefineOptions()

@@ -226,7 +226,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 # Where the coarse search and the similarity rounds put the block: GNSS at
                 # full weight with every plane near it, roofs' edges seen from below too.
                 level = level_prior(rec, priors, left_to_gnss(observability_before) & HEIGHT
-                                    & o_w.hold_gnss_height)
+                                    & o_w.hold_gnss_height, gnss_only)
                 hold_scale = bool(scale_sigma) and observability_before.get(
                     "scale", {}).get("source") not in ("planes", "both")
                 baselines = baseline_priors(gnss_only, priors, scale_sigma,

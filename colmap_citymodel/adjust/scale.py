@@ -1,5 +1,6 @@
 """Holding the block's scale at the GNSS-only block's, and its height where the first
-assignment put it, where the planes cannot determine them."""
+assignment put it (where GNSS itself is precise: where GNSS put it), where the planes cannot
+determine them."""
 
 from __future__ import annotations
 
@@ -8,6 +9,7 @@ import logging
 import numpy as np
 import pycolmap
 
+from ..align.coarse import PLACEMENT_RESOLUTION
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import observer_centres
 from .problem import LEVEL_FREE, BaselinePriors
@@ -84,22 +86,32 @@ def baseline_priors(gnss_only: pycolmap.Reconstruction, priors: GNSSPriors,
 LEVEL_TIGHTENING = 10.0
 
 
-def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.ndarray
+def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.ndarray,
+                gnss_only: pycolmap.Reconstruction | None = None
                 ) -> tuple[int, np.ndarray, np.ndarray] | None:
     """The level of `block` along `axes` (bool (3,), E N U) as one image holds it: of its GNSS
     images, the one whose projection centre is nearest their centroid, that centre, and the
     sigmas that hold it there, the GNSS sigma of the mean of all positions / LEVEL_TIGHTENING
     (LEVEL_FREE elsewhere). One image near the middle leaves the block's rotations to the
-    planes and GNSS. None when no axis is held."""
+    planes and GNSS. Along axes whose GNSS sigma is below align.coarse.PLACEMENT_RESOLUTION
+    the level is that image's in `gnss_only` (the GNSS-only block): GNSS places the block
+    better there than the coarse search and the similarity rounds, whose tie points on planes
+    weigh alike, can. None when no axis is held."""
     axes = np.asarray(axes, bool)
     if not axes.any():
         return None
     ids = np.asarray(priors.image_ids)
     points = observer_centres(block, ids)
     anchor = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
+    position = np.array(points[anchor], dtype=np.float64)
+    precise = axes & (np.median(np.asarray(priors.sigmas, float), axis=0) < PLACEMENT_RESOLUTION)
+    if gnss_only is not None and precise.any():
+        start = observer_centres(gnss_only, ids[anchor:anchor + 1])[0]
+        position = np.where(precise, start, position)
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
     sigmas = np.where(axes, mean_sigma / LEVEL_TIGHTENING, LEVEL_FREE)
-    logger.info("the planes do not fix the block's %s: held where the first assignment put it "
-                "(sigma %s m)", "/".join(a for a, h in zip("ENU", axes) if h),
-                "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
-    return int(ids[anchor]), np.array(points[anchor], dtype=np.float64), sigmas
+    logger.info("the planes do not fix the block's %s: held where %s put it (sigma %s m)",
+                "/".join(a for a, h in zip("ENU", axes) if h),
+                "GNSS" if gnss_only is not None and precise[axes].all()
+                else "the first assignment", "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
+    return int(ids[anchor]), position, sigmas

@@ -39,6 +39,12 @@ logger = logging.getLogger(__name__)
 
 #: Coarse-to-fine levels of the translation search: (kernel radius, grid step), metres.
 TRANSLATION_LEVELS = ((2.0, 1.5), (1.0, 0.5), (0.4, 0.2))
+#: How closely the coarse placement puts a block (m): the translation search's finest kernel
+#: radius. Along an axis whose GNSS sigma is below it (RTK or PPK positions of an aerial
+#: block) GNSS places the block better: the search leaves that axis where GNSS put it, and so
+#: does the height the adjustment holds (adjust.scale.level_prior); one step of the search's
+#: grid would move the block off there by several GNSS sigmas.
+PLACEMENT_RESOLUTION = TRANSLATION_LEVELS[-1][0]
 #: Weight of the GNSS residuals in the block objective (align.objective) per squared GNSS
 #: sigma, relative to the share of tie points near the model.
 SHIFT_PENALTY = 0.01
@@ -182,17 +188,21 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
     sum(log(1 + (shift / sigmas)^2)).
 
     `sigmas` (3,) is the uncertainty of the block's position (GNSS sigma per axis); the search
-    covers +- `search_sigmas` of it. `height_range` (lowest, highest): the vertical shifts
-    searched instead, without penalty (the GNSS heights' level is unknown). The coarse level
-    scores every grid shift with a distance grid; the best `candidates` separate maxima are
-    refined on the finer levels.
+    covers +- `search_sigmas` of it, except along axes whose sigma is below
+    PLACEMENT_RESOLUTION (not searched: GNSS places the block better than the search can).
+    `height_range` (lowest, highest): the vertical shifts searched instead, without penalty
+    (the GNSS heights' level is unknown). The coarse level scores every grid shift with a
+    distance grid; the best `candidates` separate maxima are refined on the finer levels.
     """
     import time
 
     t0 = time.perf_counter()
     sigmas = np.maximum(np.asarray(sigmas, float), 1e-3)
     pts = subsample(points, MAX_SEARCH_POINTS)
-    high = search_sigmas * sigmas
+    held = sigmas < PLACEMENT_RESOLUTION
+    if height_range is not None:
+        held[2] = False
+    high = np.where(held, 0.0, search_sigmas * sigmas)
     low = -high
     penalty_sigmas = sigmas.copy()
     if height_range is not None:
@@ -222,7 +232,8 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
         offsets = np.arange(-np.floor(reach / step), np.floor(reach / step) + 1) * step
         local = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
         local = centre + local
-        local = local[np.all((local >= low - step) & (local <= high + step), axis=1)]
+        local = local[np.all((local >= low - step) & (local <= high + step), axis=1)
+                      & np.all(local[:, held] == 0.0, axis=1)]
         moved = (pts[None, :, :] + local[:, None, :]).reshape(-1, 3)
         d = surface(moved, radius).reshape(len(local), len(pts))
         u = np.clip(d / radius, 0.0, 1.0)
