@@ -11,7 +11,9 @@ import pytest
 
 from colmap_citymodel.citymodel.crs import user_crs
 from colmap_citymodel.citymodel.ground_faces import (
+    ROAD_UNIT,
     TERRAIN_CLASS,
+    TERRAIN_PREFIX,
     block_terrain,
     terrain_face_sigmas,
     terrain_mask,
@@ -160,7 +162,8 @@ def test_the_buildings_feet_give_a_terrain_whose_local_sigma_grows_away_from_the
     assert terrain.local_sigma(at_foot)[0] < 0.03
     mid_street = np.array([[X0 + 20.0, Y0 + 0.0]])  # 10 m from the facades, beyond the kerb
     assert terrain.sigma(mid_street)[0] == pytest.approx(0.3)
-    assert terrain.local_sigma(mid_street)[0] == pytest.approx(0.15 + 0.02 * 10, abs=0.05)
+    # its local error grows with the distance from the feet; the kerb's is the road unit's
+    assert terrain.local_sigma(mid_street)[0] == pytest.approx(0.02 * 10, abs=0.05)
     # the road lies a kerb below the feet; the pavement (3 m) at their height
     assert terrain.grid_height(mid_street)[0] - terrain.height(mid_street)[0] == \
         pytest.approx(0.15)
@@ -226,8 +229,15 @@ def test_feet_cells_split_at_the_pavement_and_the_road_does_not_outweigh_it(stre
     centres = np.array([p.representative_point().coords[0] for p in pieces])
     pavement = shapely.contains_xy(feet.footprints.buffer(3.0), centres[:, 0], centres[:, 1])
     assert pavement.sum() >= 5 and (~pavement).sum() >= 5  # cells cut at the pavement's edge
-    assert np.all(local[mask][pavement] < 0.1) and np.all(local[mask][~pavement] >= 0.15)
-    assert np.allclose(sigma[mask], 0.3)
+    assert np.all(local[mask][pavement] < 0.1)
+    # the pavements keep their buildings' units; all the road beyond them is one unit, the
+    # kerb's error (none where there is no kerb) one error of all of it
+    names = np.array(terrain_units(out)[2])
+    assert np.allclose(sigma[mask][pavement], 0.3)
+    assert np.allclose(sigma[mask][~pavement], np.hypot(0.3, 0.15), atol=1e-3)
+    road = set(unit[mask][~pavement])
+    assert len(road) == 1 and names[road.pop()] == TERRAIN_PREFIX + ROAD_UNIT
+    assert not set(unit[mask][pavement]) & set(unit[mask][~pavement])
     # the road pieces lie a kerb below the feet's heights, the pavement's at them
     plane_z = np.array([out.vertices[out.faces[int(f)].exterior][:, 2].mean()
                         for f in np.flatnonzero(mask)]) + out.origin[2]
@@ -237,9 +247,17 @@ def test_feet_cells_split_at_the_pavement_and_the_road_does_not_outweigh_it(stre
                      (smoothed(terrain, 6.0).grid_height(r) for r in ring_xy)]) - plane_z
     assert np.median(drop[~pavement]) == pytest.approx(0.15, abs=0.05)
     assert np.median(np.abs(drop[pavement])) < 0.05
-    # One building's unit: 50 points on its pavement, 1200 on the road beside it, which lies
-    # 0.2 m further down than its kerb. The unit's offset as the adjustment weighs it (a
-    # weighted mean, 1 / sigma^2 per point) follows the pavement.
+    # However many points the road holds, together they are one observation of its unit's
+    # offset: a road whose kerb is not there (a square) moves the block by one such error,
+    # not by the kerb's height.
+    road_faces = np.flatnonzero(mask)[~pavement][:4]
+    rows = np.repeat(np.arange(len(road_faces)), 300)
+    sigmas = terrain_face_sigmas(out, road_faces, rows, np.full(len(road_faces), 0.2), 0.2)
+    weight = np.sum(1.0 / np.repeat(sigmas, 300) ** 2)
+    assert weight <= 1.0 / np.hypot(0.3, 0.15) ** 2 * 1.01
+    # One building's unit: 50 points near its foot, 1200 further out where its local error
+    # is larger, 0.2 m lower. The unit's offset as the adjustment weighs it (a weighted mean,
+    # 1 / sigma^2 per point) follows the points near the foot.
     face_unit = np.zeros(7, np.int64)
     counts = np.array([50.0] + [200.0] * 6)
     loc = np.array([0.03] + [0.3] * 6)

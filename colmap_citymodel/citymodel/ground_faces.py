@@ -13,9 +13,11 @@ a point on a wall.
 A terrain's error is mostly one offset per source tile (a DTM tile's height reference, the
 feet of one building), not independent per cell: the tie points of all cells of one tile form
 one unit (`terrain_face_sigmas`), whose points together count as one observation of that
-offset with the terrain's sigma. Within a unit each cell weighs by how well it knows the
-unit's height: its points' mean, with the cell's local error (a road beyond the feet terrain's
-pavements), shared by its points. Each terrain face names its unit in its building id
+offset with the terrain's sigma. The feet terrain's road beyond the pavements is one unit of
+its own: it lies a kerb below the feet, or none where there is no kerb, and that error is the
+same along the whole road (its sigma: the feet's and the kerb's). Within a unit each cell
+weighs by how well it knows the unit's height: its points' mean, with the cell's local error
+(growing away from the feet), shared by its points. Each terrain face names its unit in its building id
 ("terrain:<tile>") and its sigmas in its part id ("sigma=<offset m>/<local m>"), so every copy
 of the store (moved vertices, shifted planes) keeps them.
 """
@@ -38,6 +40,9 @@ TERRAIN_PREFIX = "terrain:"
 SIGMA_PREFIX = "sigma="
 #: Between a terrain face's unit sigma and its own local sigma in its part id.
 LOCAL_SEPARATOR = "/"
+#: The terrain unit of the ground beyond a terrain's band (the feet terrain's road, a kerb
+#: below its pavements): how far off the drop is, is one error of all of it.
+ROAD_UNIT = "road beyond the pavements"
 
 
 def smoothed(terrain: Terrain, width: float) -> Terrain:
@@ -124,7 +129,7 @@ def _ring_faces(terrain: Terrain, rings: list[np.ndarray], cell: float):
         beyond = ~shapely.contains_xy(terrain.band, centres[:, 0], centres[:, 1])
         z = z - terrain.band_drop * np.repeat(beyond, counts)
     tile = terrain.tile(centres)
-    sigma, local = terrain.sigma(centres), terrain.local_sigma(centres, beyond)
+    sigma, local = terrain.sigma(centres), terrain.local_sigma(centres)
     out = []
     for k, (start, n) in enumerate(zip(starts, counts)):
         heights = z[start:start + n]
@@ -132,7 +137,10 @@ def _ring_faces(terrain: Terrain, rings: list[np.ndarray], cell: float):
             continue
         name = (terrain.tile_names[tile[k]] if tile[k] < len(terrain.tile_names)
                 else str(tile[k]))
-        out.append((np.c_[rings[k], heights], TERRAIN_PREFIX + str(name), float(sigma[k]),
+        unit_sigma = float(sigma[k])
+        if beyond[k]:  # the drop's error is one for all the road, not one per building
+            name, unit_sigma = ROAD_UNIT, float(np.hypot(unit_sigma, terrain.band_drop))
+        out.append((np.c_[rings[k], heights], TERRAIN_PREFIX + str(name), unit_sigma,
                     float(local[k]) if np.isfinite(local[k]) else 0.0))
     return out
 

@@ -61,8 +61,9 @@ class Terrain:
     # shapely geometry (CRS xy) along whose edge the ground steps (the feet terrain: the
     # footprints with their pavements); the cells are split there; None: not split
     band: object = None
-    # metres the ground lies below `heights` outside `band` (the feet terrain: a kerb); as
-    # much again is added to the local sigma there
+    # metres the ground lies below `heights` outside `band` (the feet terrain: a kerb); how
+    # far off that is, is one error of all the ground there (citymodel.ground_faces: the road
+    # is one terrain unit)
     band_drop: float = 0.0
 
     @property
@@ -122,21 +123,13 @@ class Terrain:
         outside)."""
         return self._nearest(self.sigmas, xy, np.nan)
 
-    def local_sigma(self, xy: np.ndarray, beyond: np.ndarray | None = None) -> np.ndarray:
-        """(N,) the sigma (m) of the height at `xy` beyond its tile's offset (nearest node,
-        plus `band_drop` outside the band, or where `beyond` says so; 0 for a terrain without
-        local errors, nan outside)."""
+    def local_sigma(self, xy: np.ndarray) -> np.ndarray:
+        """(N,) the sigma (m) of the height at `xy` beyond its tile's offset (nearest node;
+        0 for a terrain without local errors, nan outside). The band drop's own error is not
+        in it: it is one error of all the ground beyond the band, not one per place."""
         if self.local_sigmas is None:
             return np.where(np.isfinite(self.sigma(xy)), 0.0, np.nan)
-        local = self._nearest(self.local_sigmas, xy, np.nan)
-        if self.band is not None and self.band_drop:
-            if beyond is None:
-                import shapely
-
-                xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
-                beyond = ~shapely.contains_xy(self.band, xy[:, 0], xy[:, 1])
-            local = local + self.band_drop * beyond
-        return local
+        return self._nearest(self.local_sigmas, xy, np.nan)
 
     def tile(self, xy: np.ndarray) -> np.ndarray:
         """(N,) the tile index at `xy` (nearest node; -1 outside or without data)."""
@@ -547,8 +540,9 @@ FEET_REACH = 3.0
 
 #: Height (m) of a kerb: beyond the pavement the road lies about this much below the feet
 #: (city kerbs stand 0.10-0.18 m). The feet do not show it: the feet terrain puts the ground
-#: beyond its pavements this much lower, and counts as much again as its local error there
-#: (a square or a courtyard has no kerb).
+#: beyond its pavements this much lower. A square or a courtyard has no kerb, so the drop may
+#: be off by as much as itself, and by the same everywhere: all the ground beyond the
+#: pavements is one terrain unit whose offset sigma adds the kerb's (citymodel.ground_faces).
 KERB = 0.15
 
 
@@ -559,7 +553,8 @@ def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
     `bbox_xy`; one tile per building (the nearest foot's), whose offset has the sigma `sigma`
     (the building's ground height); a local sigma of `growth` per metre from the nearest
     foot. Beyond `reach` metres of the footprints (the pavement) the ground lies `kerb`
-    lower, with `kerb` more local sigma. None without feet."""
+    lower, its error one for all of it (citymodel.ground_faces: the road unit). None without
+    feet."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
     from scipy.spatial import cKDTree
 
