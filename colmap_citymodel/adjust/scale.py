@@ -110,8 +110,9 @@ def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.nda
         position = np.where(precise, start, position)
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
     sigmas = np.where(axes, mean_sigma / LEVEL_TIGHTENING, LEVEL_FREE)
+    by_gnss = gnss_only is not None and precise[axes].all()
     logger.info("the planes do not fix the block's %s: held where %s put it (sigma %s m)",
                 "/".join(a for a, h in zip("ENU", axes) if h),
-                "GNSS" if gnss_only is not None and precise[axes].all()
-                else "the first assignment", "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
+                "GNSS" if by_gnss else "the first assignment",
+                "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
     return int(ids[anchor]), position, sigmas

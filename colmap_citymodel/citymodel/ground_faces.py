@@ -17,9 +17,9 @@ offset with the terrain's sigma. The feet terrain's road beyond the pavements is
 its own: it lies a kerb below the feet, or none where there is no kerb, and that error is the
 same along the whole road (its sigma: the feet's and the kerb's). Within a unit each cell
 weighs by how well it knows the unit's height: its points' mean, with the cell's local error
-(growing away from the feet), shared by its points. Each terrain face names its unit in its building id
-("terrain:<tile>") and its sigmas in its part id ("sigma=<offset m>/<local m>"), so every copy
-of the store (moved vertices, shifted planes) keeps them.
+(growing away from the feet), shared by its points. Each terrain face names its unit in its
+building id ("terrain:<tile>") and its sigmas in its part id ("sigma=<offset m>/<local m>"),
+so every copy of the store (moved vertices, shifted planes) keeps them.
 """
 
 from __future__ import annotations
