@@ -455,13 +455,11 @@ class WorkflowOptions:
     assignment is the one the last solve used ends the loop without solving it again. False:
     a new problem every iteration (the same solution, set-up repeated)."""
     hold_gnss_height: bool = True
-    """Where the planes' information on the block's height is far weaker than GNSS's
-    (adjust.observability.left_to_gnss: each plane with its generalisation error), the height is
-    held where the coarse search and the first assignment put it (adjust.scale.level_prior;
-    where GNSS is more precise than that placement, where GNSS put it) until the assignment
-    gives the planes a say: per tie point, as the adjustment weighs them, walls tilted by a
-    fraction of a degree can seem to fix the height. False: the planes decide there, as their
-    f_dTP weigh."""
+    """Where the planes know the block's height far worse than GNSS (observability.left_to_gnss),
+    it is held where the coarse search and the first assignment put it (GNSS's level where GNSS
+    is more precise than they; adjust.scale.level_prior) until the planes get a say: per tie
+    point, walls tilted by a fraction of a degree can seem to fix the height. False: the planes
+    decide there, as their f_dTP weigh."""
     alternating_planes_shift: float = 0.1
     """Stop when the last four iterations alternated between two sets of planes (a face at the
     minimum number of points coming and going) and none of the last three moved a camera by more
