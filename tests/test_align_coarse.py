@@ -23,9 +23,9 @@ def test_translation_search_reaches_gnss_six_sigma_off(street_scene, offset):
 
 def test_translation_search_leaves_axes_where_gnss_is_better_than_its_grid(street_scene):
     """GNSS of RTK quality (sigma 5 / 5 / 10 cm, below the search's 0.4 m finest kernel): the
-    block is not moved, although a shift of 0.3 m would put more tie points on the model (the
-    search's grid cannot place a block to centimetres; GNSS does). With street GNSS (3 / 3 /
-    5 m) the same block is moved by the search."""
+    block is not moved, although moving it back by its 0.85 m offset would put more tie points
+    on the model (the search's grid cannot place a block to centimetres; GNSS does). With
+    street GNSS (3 / 3 / 5 m) the same block is moved by the search."""
     from colmap_citymodel.align.coarse import PLACEMENT_RESOLUTION
 
     points = np.array([p.xyz for p in street_scene.truth.points3D.values()])
