@@ -38,6 +38,10 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "benchmarks"))
+
+from scenarios import centre_errors, truth_centres  # noqa: E402  (not a package)
+
 RESULTS = ROOT / "benchmarks" / "results"
 CITY = ROOT / "tests" / "data" / "citygml" / "berlin" / "3910_5819.gml"
 CRS = "EPSG:25833"
@@ -151,7 +155,7 @@ def main(argv=None) -> int:
     report = json.loads((work / "precision" / "precision_subsets.json").read_text())
     refine_report = json.loads((work / "refined" / "report.json").read_text())
     simulation = json.loads((ws / "truth" / "simulation.json").read_text())
-    truth = model_centres(ws / "truth")
+    truth = truth_centres(ws)
     centres = {"GNSS/IMU poses as imported": centre_rms(work / "eo" / "sparse", truth),
                "refine (terrain from the buildings' feet)": centre_rms(work / "refined", truth),
                "refine --terrain none": centre_rms(work / "refined_none", truth)}
@@ -169,34 +173,28 @@ def main(argv=None) -> int:
     return 0
 
 
-def model_centres(model: Path) -> dict[str, np.ndarray]:
-    """Projection centres by image name of a COLMAP model, in the model CRS: a refine output
-    (georeference.json beside it: CRS, or local with its origin), import-eo's known-pose model
-    (origin.json one level up) or the simulation's truth (origin.txt beside it)."""
+def model_frame(model: Path):
+    """A COLMAP model and the origin of its frame in the model CRS: a refine output
+    (georeference.json beside it: CRS, or local with its origin) or import-eo's known-pose
+    model (origin.json one level up)."""
     import pycolmap
 
-    offset = np.zeros(3)
+    origin = np.zeros(3)
     georeference = model / "georeference.json"
     if georeference.exists():
         g = json.loads(georeference.read_text())
-        offset = np.zeros(3) if g["output_frame"] == "crs" else np.asarray(g["origin"])
+        origin = np.zeros(3) if g["output_frame"] == "crs" else np.asarray(g["origin"])
     elif (model.parent / "origin.json").exists():
-        offset = np.asarray(json.loads((model.parent / "origin.json").read_text())["origin"])
-    elif (model / "origin.txt").exists():
-        offset = np.loadtxt(model / "origin.txt", comments="#")
-    rec = pycolmap.Reconstruction(str(model))
-    return {im.name: im.projection_center() + offset for im in rec.images.values()
-            if im.has_pose}
+        origin = np.asarray(json.loads((model.parent / "origin.json").read_text())["origin"])
+    return pycolmap.Reconstruction(str(model)), origin
 
 
 def centre_rms(model: Path, truth: dict[str, np.ndarray]) -> dict:
-    """RMS (m) of the model's projection centres against `truth`, per axis and 3D."""
-    centres = model_centres(model)
-    names = [n for n in centres if n in truth]
-    d = np.array([centres[n] - truth[n] for n in names])
-    rms = np.sqrt(np.mean(d ** 2, axis=0))
-    return {"images": len(names), "E": float(rms[0]), "N": float(rms[1]), "U": float(rms[2]),
-            "3d": float(np.linalg.norm(rms))}
+    """RMS (m) of the model's projection centres against `truth` (model CRS), per axis and 3D
+    (scenarios.centre_errors)."""
+    e = centre_errors(*model_frame(model), truth)
+    return {"images": e["num_images"], "E": e["rms_x"], "N": e["rms_y"], "U": e["rms_z"],
+            "3d": e["rms_3d"]}
 
 
 def terrain_summary(report: dict) -> dict:

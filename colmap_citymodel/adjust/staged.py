@@ -27,6 +27,7 @@ import logging
 from collections.abc import Callable
 from dataclasses import replace
 
+from .correction_loop import every_point_alike
 from .loop import LoopResult, adjustment_loop
 
 logger = logging.getLogger(__name__)
@@ -41,7 +42,7 @@ def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
     if options.adjustment.face_weighting != "offsets":
         return adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs)
     alike = copy.deepcopy(options)
-    alike.adjustment.face_weighting = "per_point"
+    alike.adjustment = every_point_alike(alike.adjustment)
     first = adjustment_loop(rec, store, priors, alike, objective, all_ids, **kwargs)
     why = (f"the loop with every tie point alike diverged ({first.diverged})"
            if first.diverged is not None else placed(first, alike) if placed else None)
