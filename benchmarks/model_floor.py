@@ -56,11 +56,14 @@ Writes benchmarks/results/model_floor.md (with refine's own figures and the per-
 target from the `robustness` section of scenarios.json beside the floor), the `model_floor`
 section of scenarios.json and benchmarks/results/model_floor.json (per case: the planes-alone
 floors of the given model, every point alike and each face once, and refine's own result).
+With `--seeds 1 2 3 --results model_floor_seeds` each robustness case is also measured at other
+realisations of its block (other plane errors, GNSS and SfM noise), with a table of refine
+against its floors per realisation: one realisation's floor can be luck.
 Other generated workspaces (`--cases long/Scn3 long/Scn4`, with `--results model_floor_long`)
 are compared on check points with their `refine_a` run in scenarios.json.
 
     .venv/bin/python benchmarks/model_floor.py [--cases drive orbit strip short]
-        [--variants original corrected detailed] [--threshold 0.45] [--no_refine]
+        [--variants original corrected detailed] [--threshold 0.45] [--no_refine] [--seeds N ...]
         [--results model_floor]
 """
 
@@ -88,7 +91,8 @@ from colmap_citymodel.precision.checkpoints import (evaluate_checkpoints,
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "benchmarks"))
-from scenarios import centre_errors, inputs, truth_centres, update_json  # noqa: E402
+from scenarios import (ROBUST_CASES, build_robust_workspace, centre_errors,  # noqa: E402
+                       inputs, truth_centres, update_json)
 GENERATED = ROOT / "workspaces" / "generated"
 ROBUST = GENERATED / "robust"
 RESULTS = ROOT / "benchmarks" / "results"
@@ -541,6 +545,9 @@ def refine_against_truth(workspace: Path, workspace_inputs, block, threshold: fl
     centres = truth_centres(workspace)
     options = RefineOptions.preset("generalised")
     options.precision.covariances = "off"
+    dtm = sorted((workspace / "dtm").glob("*.tif"))  # as scenarios.refine_with_quality
+    if dtm:
+        options.terrain.files = tuple(str(p) for p in dtm)
     result = refine(rec, store, gnss, options, progress=False)
 
     def block_of(r):
@@ -1071,6 +1078,11 @@ def main() -> None:
     parser.add_argument("--cases", nargs="+", default=["drive", "orbit", "strip", "short"],
                         help="robustness cases, or workspaces under workspaces/generated "
                              "(long/Scn3)")
+    parser.add_argument("--seeds", nargs="+", type=int, default=[],
+                        help="each robustness case of --cases also built and measured at these "
+                             "seeds (other model errors, GNSS and SfM noise: other "
+                             "realisations of the same block), with a table of refine against "
+                             "its floors per realisation")
     parser.add_argument("--variants", nargs="+", default=["original", "corrected", "detailed"])
     parser.add_argument("--threshold", type=float, default=0.45)
     parser.add_argument("--gnss_sigma", nargs=3, type=float, default=[3.0, 3.0, 5.0])
@@ -1082,20 +1094,24 @@ def main() -> None:
     args = parser.parse_args()
     runs, table = Runs(), list(FLOOR_TABLE)
     print("\n".join(table))
-    for case in args.cases:
+    for case in with_seeds(args.cases, args.seeds):
         run_case(case, args, runs, table)
     everything = update_json(RESULTS / "scenarios.json", [args.results], runs.rows)
     if runs.preferences:
-        update_json(RESULTS / "scenarios.json", ["model_preference"], runs.preferences)
+        update_json(RESULTS / "scenarios.json", [
+            "model_preference" if args.results == "model_floor"
+            else f"{args.results}_preference"], runs.preferences)
     commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT,
                             capture_output=True, text=True).stdout.strip()
     robustness = everything.get("robustness", {})
     checks = checkpoint_table(runs.rows, everything)
     lines = (floor_lines(args, runs, table, robustness, commit)
              + ([CHECKPOINT_TEXT, "", *checks, ""] if len(checks) > 2 else [])
-             + reassigned_lines(runs) + refine_lines(args, runs))
+             + reassigned_lines(runs) + refine_lines(args, runs)
+             + (realisation_lines(args, runs) if args.seeds else []))
     (RESULTS / f"{args.results}.md").write_text("\n".join(lines))
-    floors = floor_summary(runs.rows, robustness, runs.sweeps)
+    floors = floor_summary(runs.rows, robustness if args.results == "model_floor" else {},
+                           runs.sweeps, runs.preferences)
     for case, found in runs.sweeps.items():
         if case in floors:
             floors[case]["floors_by_threshold"] = found
@@ -1103,6 +1119,66 @@ def main() -> None:
         if case in floors:
             floors[case]["reassigned_from_truth_3d"] = {k: v["rms_3d"] for k, v in found.items()}
     (RESULTS / f"{args.results}.json").write_text(json.dumps(floors, indent=1) + "\n")
+
+
+def with_seeds(cases: list[str], seeds: list[int]) -> list[str]:
+    """`cases`, each robustness case followed by its workspaces at `seeds` (built where
+    missing), named as generated workspaces ("robust/strip-seed1")."""
+    out = []
+    for case in cases:
+        out.append(case)
+        if case in ROBUST_CASES:
+            for seed in seeds:
+                build_robust_workspace(case, seed=seed)
+                out.append(f"robust/{case}-seed{seed}")
+    return out
+
+
+#: A refine within this factor of the lower of a realisation's two planes-alone floors is at
+#: the floor its model allows (the factor the floor's own spread between weightings spans).
+AT_FLOOR_FACTOR = 1.3
+
+
+def realisation_lines(args: argparse.Namespace, runs: Runs) -> list[str]:
+    """model_floor.md's table of refine against its floors per realisation of each case (its
+    own seed and `--seeds`): camera-centre RMS 3D and in plan (E, N) of refine's run in
+    `refine_against_truth`, the planes-alone floors at the window and on the points' own
+    surfaces, and refine over the lower of each pair."""
+    lines = [
+        "Refine against its floors per realisation: each robustness case at its own seed and "
+        f"at seeds {', '.join(map(str, args.seeds))} (other plane errors of the given model, "
+        "GNSS and SfM noise, the same city and flight). Camera-centre RMS (m), 3D and in plan "
+        f"(E, N); floors planes alone at the {args.threshold:g} m window and on the points' "
+        "own surfaces, per point / per face; last, refine over the lower floor of each pair "
+        f"(at most {AT_FLOOR_FACTOR} counts as at the floor). Where one realisation lies far "
+        "above its window floor and the others do not, that floor's cut at the truth (which "
+        "keeps only the points that happen to lie near a plane standing off its surface) "
+        "favoured it, not the method:", "",
+        "| case | refine 3D | refine plan | window: per point / per face (3D) | plan | "
+        "own surfaces: per point / per face (3D) | plan | refine / window floor: 3D | plan | "
+        "refine / own-surfaces floor: 3D | plan |",
+        "|---|---|---|---|---|---|---|---|---|---|---|"]
+
+    def plan(fit: dict) -> float:
+        return float(np.hypot(fit["E"], fit["N"]))
+
+    for case, preference in runs.preferences.items():
+        variants = runs.rows.get(case, {})
+        if "original" not in variants or OWN_SURFACES not in variants:
+            continue
+        cameras = preference["cameras"]
+        refined = {"3d": cameras["rms_3d"], "plan": float(np.hypot(cameras["rms_x"],
+                                                                    cameras["rms_y"]))}
+        cells, ratios = [], []
+        for key in ("original", OWN_SURFACES):
+            fits = [compact(variants[key][f"{w}, planes alone"])
+                    for w in ("per point", "per face")]
+            floors = {"3d": [f["3d"] for f in fits], "plan": [plan(f) for f in fits]}
+            cells += [" / ".join(f"{v:.3f}" for v in floors[k]) for k in ("3d", "plan")]
+            ratios += [f"{refined[k] / min(floors[k]):.2f}" for k in ("3d", "plan")]
+        lines.append(f"| {case} | {refined['3d']:.3f} | {refined['plan']:.3f} | "
+                     + " | ".join(cells + ratios) + " |")
+    return lines + [""]
 
 
 def own_surface_summary(own: dict | None) -> dict:
@@ -1118,12 +1194,13 @@ def own_surface_summary(own: dict | None) -> dict:
     return out
 
 
-def floor_summary(rows: dict, robustness: dict, sweeps: dict, variant: str = "original"
-                  ) -> dict:
+def floor_summary(rows: dict, robustness: dict, sweeps: dict, preferences: dict | None = None,
+                  variant: str = "original") -> dict:
     """model_floor.json: per case, the planes-alone floors of the given model (every point
     alike, each face once, each point weighted by its own precision at the floor's window and
     at WIDE_WINDOW_M; camera-centre RMS 3D and per axis) and refine's own result with its
-    defaults on that model (the `robustness` section of scenarios.json, None if not run)."""
+    defaults on that model (the `robustness` section of scenarios.json; failing that this
+    run's own refine, `preferences`; None if neither ran)."""
     out = {}
     for case, variants in rows.items():
         if variant not in variants:
@@ -1133,7 +1210,8 @@ def floor_summary(rows: dict, robustness: dict, sweeps: dict, variant: str = "or
                 ("per point", "per face", "precision per point", "precision per face")]
         wide = sweeps[case][f"{WIDE_WINDOW_M:g}"]
         fits += [wide["precision per point"], wide["precision per face"]]
-        cameras = (robustness.get(case, {}).get("refine") or {}).get("cameras") or {}
+        cameras = ((robustness.get(case, {}).get("refine") or {}).get("cameras")
+                   or (preferences or {}).get(case, {}).get("cameras") or {})
         refined = {"E": cameras.get("rms_x"), "N": cameras.get("rms_y"),
                    "U": cameras.get("rms_z")}
         out[case] = {
