@@ -925,7 +925,8 @@ def floor_lines(args: argparse.Namespace, runs: Runs, table: list[str], robustne
     variant, beside refine and the target, by threshold and each point by its precision."""
     return [
         "# The floor a model's errors set: the true block fitted onto the model's planes", "",
-        "Produced by", "", "    .venv/bin/python benchmarks/model_floor.py", "",
+        "Produced by", "", "    " + " ".join([".venv/bin/python benchmarks/model_floor.py",
+                                                 *sys.argv[1:]]), "",
         __doc__.split("\n\n", 1)[1].split("\nWrites")[0].strip(), "",
         f"Robustness workspaces (workspaces/generated/robust), code {commit}; true tie "
         f"points assigned directly at {args.threshold} m. Camera-centre RMS (m) after the "
@@ -1145,7 +1146,8 @@ def realisation_lines(args: argparse.Namespace, runs: Runs) -> list[str]:
     `refine_against_truth`, the planes-alone floors at the window and on the points' own
     surfaces, and refine over the lower of each pair."""
     lines = [
-        "Refine against its floors per realisation: each robustness case at its own seed and "
+        "## Refine against its floors per realisation", "",
+        "Each robustness case at its own seed and "
         f"at seeds {', '.join(map(str, args.seeds))} (other plane errors of the given model, "
         "GNSS and SfM noise, the same city and flight). Camera-centre RMS (m), 3D and in plan "
         f"(E, N); floors planes alone at the {args.threshold:g} m window and on the points' "
