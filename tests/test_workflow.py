@@ -533,6 +533,31 @@ def test_the_level_prior_holds_one_central_image_along_the_free_axes_only(scene)
     assert both.holds_scale and both.holds_level
 
 
+def test_a_solve_moving_the_block_further_than_gnss_allows_has_run_away(scene):
+    """A solve refines a placement: the mean move of the cameras along an axis is compared
+    with GNSS's datum sigma there (its mean, with the share common to the block)."""
+    from colmap_citymodel.adjust.scale import SHIFT_UNDO_SIGMAS, shift_runaway
+
+    rec = pycolmap.Reconstruction(scene.sfm)
+    _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
+    before = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
+    share = 0.5
+    mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / priors.sigmas ** 2, axis=0))
+    datum = np.sqrt(mean_sigma ** 2 + (share * np.median(priors.sigmas, axis=0)) ** 2)
+    within = before + SHIFT_UNDO_SIGMAS * datum * [0.95, -0.95, 0.95]
+    assert not shift_runaway(before, within, priors, share).any()
+    # Up by more in U only (a height that near-vertical walls' tilts alone held).
+    up = within + [0.0, 0.0, 0.1 * SHIFT_UNDO_SIGMAS * datum[2]]
+    assert shift_runaway(before, up, priors, share).tolist() == [False, False, True]
+    # Without a common share the datum is the mean's sigma alone: far tighter.
+    assert shift_runaway(before, within, priors, 0.0).all()
+    # A block turned about its centre does not move on average.
+    centre = before.mean(0)
+    turned = centre + (before - centre) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0],
+                                                      [0.0, 0.0, 1.0]])
+    assert not shift_runaway(before, turned, priors, share).any()
+
+
 def test_the_level_prior_keeps_the_gnss_level_where_gnss_is_better_than_the_placement(scene):
     """The coarse search and the similarity rounds moved the block 0.3 m down. With the
     street's GNSS (sigma 3 / 3 / 5 m) the height is held where they put it; with GNSS of RTK

@@ -43,10 +43,10 @@ from .datum import check_datum
 from .faces import (estimate_sigma_face, face_offsets, outlier_factors, sigma_face_in_use,
                     snooped_faces)
 from .observability import assigned_observability, left_to_gnss, offset_refusal
-from .problem import BaselinePriors, HybridProblem, PosePriors
+from .problem import LEVEL_FREE, BaselinePriors, HybridProblem, PosePriors
 from .record import IterationRecord, cameras_settled
 from .scale import (SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, level_prior,
-                    scale_change)
+                    scale_change, shift_runaway)
 from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
@@ -115,6 +115,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     total_move = pycolmap.Sim3d()
     baselines = None
     level = None  # scale.level_prior: the height held where the first assignment put it
+    runaway = np.zeros(3, bool)  # axes held since a solve ran away along them (shift_runaway)
     previous_rms = None
     last = None
     best = None  # (objective, iteration, reconstruction copy, assignment, current)
@@ -234,7 +235,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         elif assignment.num_assigned == 0 and priors is None and not pose_priors:
             raise DatumError("no tie point could be assigned to a model plane and there is no "
                              "GNSS: the datum is undefined", store.source)
-        if iteration > 0 and level is not None:
+        if iteration > 0 and level is not None and not runaway.any():
             # A height that the planes have come to fix (the first assignment, metres from the
             # model, saw other planes) is theirs from now on: released, never held again.
             if not np.any(left_to_gnss(assigned_observability(
@@ -254,6 +255,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
             if gnss_only is not None and not (baselines is not None and baselines.holds_scale) \
             and scale_sigma and hold_runaway_scale else None
+        # Until every axis is held, a solve that moves the block further than GNSS allows is
+        # undone and repeated with the level held along that axis.
+        guard_shift = (gnss_only is not None and priors is not None and pose_priors is None
+                       and not runaway.all())
+        before_shift = before_solve if before_solve is not None or not guard_shift else (
+            pycolmap.Reconstruction(rec), current, assignment, _offset(priors))
         robust_report = None
         outliers = np.zeros(0, np.int64)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
@@ -327,6 +334,26 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 rec, current, assignment, offset = before_solve
                 _restore_offset(priors, offset)
                 baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
+                last = reusable = solved = None  # `rec` is the copy from before the solve
+                continue
+        if guard_shift:
+            axes = shift_runaway(centres_before, camera_centres(rec).reshape(-1, 3), priors,
+                                 o_adj.gnss_bias_share) & ~runaway
+            if axes.any():
+                logger.warning("iteration %d moved the block by %s m along %s, further than "
+                               "GNSS allows: undone, %s held from now on", iteration,
+                               np.round(np.mean(camera_centres(rec).reshape(-1, 3)
+                                                - centres_before, axis=0)[axes], 1).tolist(),
+                               "/".join(np.array(list("ENU"))[axes]),
+                               "/".join(np.array(list("ENU"))[axes]))
+                rec, current, assignment, offset = before_shift
+                _restore_offset(priors, offset)
+                runaway |= axes
+                held = np.zeros(3, bool) if level is None else level[2] < LEVEL_FREE
+                level = level_prior(rec, priors, held | runaway, gnss_only)
+                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level,
+                                            hold_scale=baselines is not None
+                                            and baselines.holds_scale)
                 last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
 
