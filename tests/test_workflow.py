@@ -533,14 +533,16 @@ def test_the_level_prior_holds_one_central_image_along_the_free_axes_only(scene)
     assert both.holds_scale and both.holds_level
 
 
-def test_a_solve_moving_the_block_further_than_gnss_allows_has_run_away(scene):
-    """A solve refines a placement: the mean move of the cameras along an axis is compared
-    with GNSS's datum sigma there (its mean, with the share common to the block)."""
+def test_a_solve_moving_the_block_away_from_gnss_further_than_it_allows_has_run_away(scene):
+    """A solve refines a placement: the GNSS images' mean move along an axis away from GNSS's
+    positions is compared with GNSS's datum sigma there (its mean, with the share common to
+    the block); a move back towards GNSS is a wrong placement left, not a runaway."""
     from colmap_citymodel.adjust.scale import SHIFT_UNDO_SIGMAS, shift_runaway
 
     rec = pycolmap.Reconstruction(scene.sfm)
     _, priors, _ = georegister(rec, scene.store, scene.gnss(), None)
     before = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
+    before -= np.mean(before - priors.positions, axis=0)  # on GNSS's mean position
     share = 0.5
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / priors.sigmas ** 2, axis=0))
     datum = np.sqrt(mean_sigma ** 2 + (share * np.median(priors.sigmas, axis=0)) ** 2)
@@ -549,13 +551,18 @@ def test_a_solve_moving_the_block_further_than_gnss_allows_has_run_away(scene):
     # Up by more in U only (a height that near-vertical walls' tilts alone held).
     up = within + [0.0, 0.0, 0.1 * SHIFT_UNDO_SIGMAS * datum[2]]
     assert shift_runaway(before, up, priors, share).tolist() == [False, False, True]
+    # Back from there onto GNSS: out of a wrong placement, not away.
+    assert not shift_runaway(up, before, priors, share).any()
     # Without a common share the datum is the mean's sigma alone: far tighter.
     assert shift_runaway(before, within, priors, 0.0).all()
-    # A block turned about its centre does not move on average.
+    # A block turned about its centre does not move on average; unregistered images count not.
     centre = before.mean(0)
     turned = centre + (before - centre) @ np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0],
                                                       [0.0, 0.0, 1.0]])
     assert not shift_runaway(before, turned, priors, share).any()
+    lost = up.copy()
+    lost[: len(lost) // 2] = np.nan
+    assert shift_runaway(before, lost, priors, share).tolist() == [False, False, True]
 
 
 def test_the_level_prior_keeps_the_gnss_level_where_gnss_is_better_than_the_placement(scene):

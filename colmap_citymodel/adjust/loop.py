@@ -35,7 +35,7 @@ from ..assign.direct import centred_surfaces
 from ..assign.schedule import (assign, initial_threshold, next_threshold, resolve_method,
                                without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
-from ..block.reconstruction import TiePointReader, camera_centres
+from ..block.reconstruction import TiePointReader, camera_centres, observer_centres
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
@@ -261,6 +261,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                        and not runaway.all())
         before_shift = before_solve if before_solve is not None or not guard_shift else (
             pycolmap.Reconstruction(rec), current, assignment, _offset(priors))
+        observed_before = observer_centres(rec, priors.image_ids) if guard_shift else None
         robust_report = None
         outliers = np.zeros(0, np.int64)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
@@ -337,13 +338,14 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 last = reusable = solved = None  # `rec` is the copy from before the solve
                 continue
         if guard_shift:
-            axes = shift_runaway(centres_before, camera_centres(rec).reshape(-1, 3), priors,
+            observed = observer_centres(rec, priors.image_ids)
+            axes = shift_runaway(observed_before, observed, priors,
                                  o_adj.gnss_bias_share) & ~runaway
             if axes.any():
-                logger.warning("iteration %d moved the block by %s m along %s, further than "
-                               "GNSS allows: undone, %s held from now on", iteration,
-                               np.round(np.mean(camera_centres(rec).reshape(-1, 3)
-                                                - centres_before, axis=0)[axes], 1).tolist(),
+                logger.warning("iteration %d moved the block by %s m along %s, away from GNSS "
+                               "further than it allows: undone, %s held from now on", iteration,
+                               np.round(np.nanmean(observed - observed_before,
+                                                   axis=0)[axes], 1).tolist(),
                                "/".join(np.array(list("ENU"))[axes]),
                                "/".join(np.array(list("ENU"))[axes]))
                 rec, current, assignment, offset = before_shift

@@ -29,25 +29,35 @@ SCALE_RUNAWAY_SIGMAS = 3.0
 SCALE_UNDO_SIGMAS = 10.0
 
 
-#: A solve refines a placement: one that moves the cameras on average further along an axis
-#: than this many sigmas of GNSS's datum there (the mean position's sigma with the error common
-#: to the block) has run away along a direction the planes hardly fix (a height that only the
-#: small tilts of near-vertical walls hold). It is undone and repeated with that axis held.
+#: A solve refines a placement: one that moves the cameras on average further from GNSS's
+#: positions along an axis, by more than this many sigmas of GNSS's datum there (the mean
+#: position's sigma with the error common to the block), has run away along a direction the
+#: planes hardly fix (a height that only the small tilts of near-vertical walls hold). It is
+#: undone and repeated with that axis held. A move towards GNSS (out of a wrong placement) is
+#: not one.
 SHIFT_UNDO_SIGMAS = 5.0
 
 
 def shift_runaway(before: np.ndarray, after: np.ndarray, priors, bias_share: float
                   ) -> np.ndarray:
-    """bool (3,) E N U: the axes along which the cameras' mean move from `before` to `after`
-    ((N, 3) m, the same images) exceeds SHIFT_UNDO_SIGMAS of GNSS's datum sigma: the sigma of
-    the mean of its positions with `bias_share` of their stated sigma common to the block
-    (AdjustmentOptions.gnss_bias_share)."""
+    """bool (3,) E N U: the axes along which the GNSS images' mean move from `before` to
+    `after` ((N, 3) m, their centres in `priors.image_ids` order, nan where not registered)
+    leads away from GNSS's positions by more than SHIFT_UNDO_SIGMAS of GNSS's datum sigma: the
+    sigma of the mean of its positions with `bias_share` of their stated sigma common to the
+    block (AdjustmentOptions.gnss_bias_share)."""
     if before.shape != after.shape or not len(before) or not len(priors.sigmas):
+        return np.zeros(3, bool)
+    both = np.all(np.isfinite(before) & np.isfinite(after), axis=1)
+    if not both.any():
         return np.zeros(3, bool)
     sigmas = np.asarray(priors.sigmas, float)
     mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / sigmas ** 2, axis=0))
     datum = np.sqrt(mean_sigma ** 2 + (bias_share * np.median(sigmas, axis=0)) ** 2)
-    return np.abs(np.mean(after - before, axis=0)) > SHIFT_UNDO_SIGMAS * datum
+    positions = np.asarray(priors.positions, float)[both]
+    off_before = np.mean(before[both] - positions, axis=0)
+    off_after = np.mean(after[both] - positions, axis=0)
+    return (np.abs(off_after - off_before) > SHIFT_UNDO_SIGMAS * datum) \
+        & (np.abs(off_after) > np.abs(off_before))
 
 
 def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstruction,
