@@ -255,8 +255,8 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
             if gnss_only is not None and not (baselines is not None and baselines.holds_scale) \
             and scale_sigma and hold_runaway_scale else None
-        # Until every axis is held, a solve that moves the block further than GNSS allows is
-        # undone and repeated with the level held along that axis.
+        # Until every axis is held, a solve that moves the block away from GNSS further than
+        # GNSS allows (scale.shift_runaway) is undone and repeated with that axis held.
         guard_shift = (gnss_only is not None and priors is not None and pose_priors is None
                        and not runaway.all())
         before_shift = before_solve if before_solve is not None or not guard_shift else (
