@@ -342,12 +342,11 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             axes = shift_runaway(observed_before, observed, priors,
                                  o_adj.gnss_bias_share) & ~runaway
             if axes.any():
+                names = "/".join(a for a, on in zip("ENU", axes) if on)
                 logger.warning("iteration %d moved the block by %s m along %s, away from GNSS "
                                "further than it allows: undone, %s held from now on", iteration,
                                np.round(np.nanmean(observed - observed_before,
-                                                   axis=0)[axes], 1).tolist(),
-                               "/".join(np.array(list("ENU"))[axes]),
-                               "/".join(np.array(list("ENU"))[axes]))
+                                                   axis=0)[axes], 1).tolist(), names, names)
                 rec, current, assignment, offset = before_shift
                 _restore_offset(priors, offset)
                 runaway |= axes

@@ -12,6 +12,7 @@ import pycolmap
 from ..align.coarse import PLACEMENT_RESOLUTION
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import observer_centres
+from .observability import gnss_bias_sigmas
 from .problem import LEVEL_FREE, BaselinePriors
 
 logger = logging.getLogger(__name__)
@@ -50,14 +51,18 @@ def shift_runaway(before: np.ndarray, after: np.ndarray, priors, bias_share: flo
     both = np.all(np.isfinite(before) & np.isfinite(after), axis=1)
     if not both.any():
         return np.zeros(3, bool)
-    sigmas = np.asarray(priors.sigmas, float)
-    mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / sigmas ** 2, axis=0))
-    datum = np.sqrt(mean_sigma ** 2 + (bias_share * np.median(sigmas, axis=0)) ** 2)
+    bias = gnss_bias_sigmas(priors, bias_share)
+    datum = np.sqrt(gnss_mean_sigmas(priors) ** 2 + (0.0 if bias is None else bias ** 2))
     positions = np.asarray(priors.positions, float)[both]
     off_before = np.mean(before[both] - positions, axis=0)
     off_after = np.mean(after[both] - positions, axis=0)
     return (np.abs(off_after - off_before) > SHIFT_UNDO_SIGMAS * datum) \
         & (np.abs(off_after) > np.abs(off_before))
+
+
+def gnss_mean_sigmas(priors: GNSSPriors) -> np.ndarray:
+    """(3,) m: the sigma of the weighted mean of the GNSS positions per axis, E N U."""
+    return 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
 
 
 def scale_change(reference: pycolmap.Reconstruction, rec: pycolmap.Reconstruction,
@@ -139,8 +144,7 @@ def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.nda
     if gnss_only is not None and precise.any():
         start = observer_centres(gnss_only, ids[anchor:anchor + 1])[0]
         position = np.where(precise, start, position)
-    mean_sigma = 1.0 / np.sqrt(np.sum(1.0 / np.asarray(priors.sigmas, float) ** 2, axis=0))
-    sigmas = np.where(axes, mean_sigma / LEVEL_TIGHTENING, LEVEL_FREE)
+    sigmas = np.where(axes, gnss_mean_sigmas(priors) / LEVEL_TIGHTENING, LEVEL_FREE)
     by_gnss = gnss_only is not None and precise[axes].all()
     logger.info("the planes do not fix the block's %s: held where %s put it (sigma %s m)",
                 "/".join(a for a, h in zip("ENU", axes) if h),
