@@ -1135,8 +1135,8 @@ def with_seeds(cases: list[str], seeds: list[int]) -> list[str]:
     return out
 
 
-#: A refine within this factor of the lower of a realisation's two planes-alone floors is at
-#: the floor its model allows (the factor the floor's own spread between weightings spans).
+#: The tolerance against a realisation's floor: a refine within this factor of the lower of
+#: its two planes-alone floors counts as at the floor its model allows (30 % above it).
 AT_FLOOR_FACTOR = 1.3
 
 
