@@ -57,6 +57,23 @@ def test_the_faces_offset_sigma_comes_from_their_spread():
     assert estimate_sigma_face(offsets(np.full(few, 0.3), np.full(few, 50)), options) is None
 
 
+def test_terrain_cells_do_not_set_the_faces_offset_sigma():
+    # 20 walls and roofs off by 0.25 m, 200 terrain cells that fit a DTM to a centimetre (or,
+    # from the buildings' feet, 0.6 m off): the faces' sigma is the walls' and roofs' spread.
+    rng = np.random.default_rng(1)
+    options = AdjustmentOptions(face_weighting="offsets")
+    model = rng.normal(0, 0.25, 20)
+    for terrain in (rng.normal(0, 0.01, 200), rng.normal(0, 0.6, 200)):
+        found = offsets(np.concatenate([model, terrain]), np.full(220, 300))
+        is_model = np.arange(220) < 20
+        alone = estimate_sigma_face(offsets(model, np.full(20, 300)), options)
+        assert estimate_sigma_face(found, options, is_model) == pytest.approx(alone, rel=1e-12)
+        assert abs(estimate_sigma_face(found, options) - alone) > 0.1
+    assert 0.15 < alone < 0.35
+    # Fewer model faces than it takes: none, however many terrain cells.
+    assert estimate_sigma_face(found, options, np.arange(220) < MIN_FACES_FOR_SIGMA - 1) is None
+
+
 @pytest.fixture(scope="module")
 def arcade(street_scene):
     """The street's largest street-facing facade modelled 0.6 m in front of its true surface

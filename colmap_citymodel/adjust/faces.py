@@ -83,15 +83,19 @@ MIN_FACES_FOR_SIGMA = 12
 SIGMA_FACE_FLOOR = 0.02
 
 
-def estimate_sigma_face(found: FaceOffsets, options: AdjustmentOptions) -> float | None:
+def estimate_sigma_face(found: FaceOffsets, options: AdjustmentOptions,
+                        model_faces: np.ndarray | None = None) -> float | None:
     """The faces' offset sigma (m) from their mean offsets by moments: the mean of the
     squared offsets less their points' noise (sigma_dtp^2 / n), over the faces' number less the
-    block's seven datum parameters; None with fewer than MIN_FACES_FOR_SIGMA faces."""
-    faces = len(found.faces)
+    block's seven datum parameters; None with fewer than MIN_FACES_FOR_SIGMA faces.
+    `model_faces`: (F,) bool, the faces of `found` that are the city model's (terrain cells
+    have their own error model, a DTM's noise and tile offsets, and do not count)."""
+    keep = np.ones(len(found.faces), bool) if model_faces is None else np.asarray(model_faces)
+    faces = int(np.count_nonzero(keep))
     if faces < MIN_FACES_FOR_SIGMA:
         return None
-    noise = options.sigma_dtp ** 2 / np.maximum(found.counts, 1)
-    variance = (np.sum(found.offsets ** 2) - np.sum(noise)) / (faces - 7)
+    noise = options.sigma_dtp ** 2 / np.maximum(found.counts[keep], 1)
+    variance = (np.sum(found.offsets[keep] ** 2) - np.sum(noise)) / (faces - 7)
     return float(max(np.sqrt(max(variance, 0.0)), SIGMA_FACE_FLOOR))
 
 

@@ -36,6 +36,7 @@ from ..assign.schedule import (assign, initial_threshold, next_threshold, resolv
                                without_roof_points_seen_from_below)
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import TiePointReader, camera_centres, observer_centres
+from ..citymodel.ground_faces import terrain_mask
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
 from ..options import AssignmentOptions, RefineOptions
@@ -306,10 +307,13 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         current = model_after_solve(current, final)
         last = final
         if o_adj.face_weighting in ("face", "offsets") and o_adj.sigma_face is None:
-            estimated = estimate_sigma_face(face_offsets(final, o_adj, sigma_face), o_adj)
+            found = face_offsets(final, o_adj, sigma_face)
+            model_faces = ~terrain_mask(store)[found.faces]
+            estimated = estimate_sigma_face(found, o_adj, model_faces)
             sigma_face = estimated if estimated is not None else sigma_face
-            logger.info("iteration %d: the faces' offsets spread by %.3f m", iteration,
-                        sigma_face)
+            logger.info("iteration %d: the faces' offsets spread by %.3f m (%s, %d faces)",
+                        iteration, sigma_face, "estimated" if estimated is not None else "kept",
+                        np.count_nonzero(model_faces))
         face_factors = outlier_factors(final, o_adj, sigma_face)
         if face_factors:
             logger.info("iteration %d: %d faces weighed less, their mean offsets beyond the "
