@@ -169,6 +169,20 @@ def test_the_face_test_drops_the_face_the_others_contradict():
     assert snooped_faces(points, assignment, store, sigma_dtp=0.2, sigma_face=0.2) == {}
 
 
+def test_the_face_test_judges_only_its_candidates():
+    from colmap_citymodel.adjust.faces import snooped_faces
+
+    # The contradicted face is not a candidate (a terrain cell, with its own error model): it
+    # stays, and still helps place the block for the others, none of which is dropped.
+    points, assignment, store = faces_scene(1.0)
+    candidates = np.arange(store.num_faces) != 0
+    assert snooped_faces(points, assignment, store, sigma_dtp=0.2, sigma_face=0.2,
+                         candidates=candidates) == {}
+    # As a candidate the same face is dropped, with or without the mask naming it.
+    assert list(snooped_faces(points, assignment, store, sigma_dtp=0.2, sigma_face=0.2,
+                              candidates=np.ones(store.num_faces, bool))) == [0]
+
+
 def test_a_face_no_other_face_checks_is_kept():
     from colmap_citymodel.adjust.faces import snooped_faces
 

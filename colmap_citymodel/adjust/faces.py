@@ -136,7 +136,8 @@ def _face_rows(points: np.ndarray, assignment, store) -> _FaceRows:
 
 
 def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma_face: float,
-                  alpha: float = AdjustmentOptions.face_test_alpha) -> dict[int, float]:
+                  alpha: float = AdjustmentOptions.face_test_alpha,
+                  candidates: np.ndarray | None = None) -> dict[int, float]:
     """{face: z} of the faces the other faces contradict, dropped one at a time, worst first.
 
     The block's 7 parameters are fitted (linearised, each face weighing as one observation
@@ -146,7 +147,8 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
     per face and round (`AdjustmentOptions.face_test_alpha`). A face that held the block
     where it wanted shows its offset only when left out; a face the others cannot check
     (the only one fixing a direction) has a large prediction sigma and is kept. `points`:
-    the tie points in the order of `assignment.point_ids`.
+    the tie points in the order of `assignment.point_ids`; `candidates`: (store faces,) bool,
+    the faces the test may drop (None: all); the others only help place the block.
     """
     from scipy.stats import norm
 
@@ -168,10 +170,12 @@ def snooped_faces(points: np.ndarray, assignment, store, sigma_dtp: float, sigma
     critical = norm.isf(alpha / 2)
     dropped: dict[int, float] = {}
     active = np.ones(len(rows.faces), bool)
+    testable = (np.ones(len(rows.faces), bool) if candidates is None
+                else np.asarray(candidates, bool)[rows.faces])
     while np.count_nonzero(active) > 1:
         z = np.zeros(len(rows.faces))
         total_n, total_b = per_face_n[active].sum(0), per_face_b[active].sum(0)
-        for k in np.flatnonzero(active):
+        for k in np.flatnonzero(active & testable):
             normal = total_n - per_face_n[k]
             # The block's datum without face k. A direction the other faces leave free gets
             # only this tiny ridge: its variance, and so the prediction's sigma, is huge.

@@ -477,7 +477,8 @@ def without_contradicted_faces(assignment: Assignment, points: np.ndarray, curre
     o_adj = options.adjustment
     dropped_faces.update(snooped_faces(
         points, assignment.without(np.isin(assignment.face_index, list(dropped_faces))),
-        current, o_adj.sigma_dtp, sigma_face, o_adj.face_test_alpha))
+        current, o_adj.sigma_dtp, sigma_face, o_adj.face_test_alpha,
+        candidates=~terrain_mask(current)))
     off = np.isin(assignment.face_index, list(dropped_faces))
     if not np.any(off):
         return assignment
