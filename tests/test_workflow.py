@@ -335,6 +335,40 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
 
 
+def test_the_faces_loop_out_of_iterations_returns_its_last_iterate(scene, monkeypatch):
+    """The faces' loop (the second, with the faces' offsets and tilts as unknowns) measured by
+    the block objective against the given planes looks worse the further its offsets move the
+    points off them: out of iterations it returns its last iterate, not its first. The
+    objective worsens with every evaluation as above, so the first loop returns its
+    iteration 0 and the second would too by the objective."""
+    from colmap_citymodel.adjust import loop as loop_module
+    from colmap_citymodel.align.objective import BlockObjective
+
+    real = BlockObjective.__call__
+    calls = []
+
+    def worsening(self, rec, *args, **kwargs):
+        calls.append(None)
+        return real(self, rec, *args, **kwargs) + 1e-3 * len(calls)
+
+    counter = iter(range(10 ** 6))
+    monkeypatch.setattr(BlockObjective, "__call__", worsening)
+    monkeypatch.setattr(loop_module, "_signature",
+                        lambda assignment: next(counter).to_bytes(8, "little"))
+    options = RefineOptions()
+    assert options.adjustment.face_weighting == "offsets"  # two loops
+    options.workflow.max_iterations = 3
+    options.workflow.convergence_rms_change = 0.0
+    options.workflow.convergence_camera_shift = 0.0
+    options.workflow.solve_again_after_elimination = True
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert [it.phase for it in result.iterations].count("faces") == 3
+    notes = [w for w in result.warnings if "did not converge" in w]
+    assert len(notes) == 2, result.warnings
+    assert "iteration 0," in notes[0] and "the last iterate is the result" in notes[1]
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
 def test_the_loop_stops_when_an_assignment_repeats(scene, caplog):
     """With the RMS criterion off, the loop still ends once an iteration assigns exactly as an
     earlier one did (solving it again could only repeat that state)."""

@@ -93,13 +93,17 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     gnss_only: pycolmap.Reconstruction | None = None,
                     scale_sigma: float | None = None, progress: bool = True,
                     pose_priors: PosePriors | None = None,
-                    hold_runaway_scale: bool = True) -> LoopResult:
+                    hold_runaway_scale: bool = True,
+                    best_when_unsettled: bool = True) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
     `scale_sigma` let the loop hold the block's scale where the planes cannot give it, and,
     with `hold_runaway_scale`, from a solve on that changes it further than GNSS allows.
     `pose_priors`: frames held near given poses in every solve (a sliding window's images
-    kept from the window before)."""
+    kept from the window before). `best_when_unsettled`: a loop that runs out of iterations,
+    or swings between two sets of planes, returns its best iterate by the block objective;
+    False: its last (the faces' loop, whose estimated offsets move the points off the given
+    planes the objective measures them against)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     current = store
     threshold = initial_threshold(o_a)
@@ -424,17 +428,25 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                 f"the assignment alternated between {iterations[-1].num_faces} and "
                 f"{iterations[-2].num_faces} planes in iterations {iterations[-4].iteration}-"
                 f"{iteration}, moving no camera by more than "
-                f"{max(it.camera_shift for it in iterations[-3:]):.3f} m; iteration {best[1]}, "
-                f"the best by the block objective ({best[0]:.4f}), is the result")
+                f"{max(it.camera_shift for it in iterations[-3:]):.3f} m; "
+                + (f"iteration {best[1]}, the best by the block objective ({best[0]:.4f}), "
+                   "is the result" if best_when_unsettled else "the last is the result"))
             logger.info(warnings[-1])
-            keep_best = best[1] != iteration  # else the block is where it should stay
+            # The best iterate, unless it is this one (the block is where it should stay).
+            keep_best = best_when_unsettled and best[1] != iteration
             stopped_by = "alternating_planes"
             break
     else:
         # Out of iterations without settling (a slow creep of the block along what the planes
-        # leave free): the best iterate by the block objective is the result, not the last.
+        # leave free): the best iterate by the block objective is the result, not the last
+        # (unless `best_when_unsettled` is off).
         unsettled_shift = iterations[-1].camera_shift if iterations else None
-        if best is not None and best[2] is not None and last is not None \
+        if not best_when_unsettled and iterations:
+            warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
+                            f"iterations (the last moved the cameras by up to "
+                            f"{unsettled_shift:.3f} m); the last iterate is the result")
+            logger.info(warnings[-1])
+        elif best is not None and best[2] is not None and last is not None \
                 and best[1] != iterations[-1].iteration:
             warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
                             f"iterations; iteration {best[1]}, the best by the block objective "

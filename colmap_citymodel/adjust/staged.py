@@ -55,8 +55,11 @@ def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
     effects.workflow.alignment_rounds = 0
     logger.info("the faces' errors as unknowns, from the block every tie point alike placed "
                 "(threshold %.2f m)", first.threshold)
+    # Its last iterate is its result: the block objective measures the tie points against the
+    # given planes, which the faces' estimated offsets move them off on purpose, so the loop's
+    # first iterate, nearest the first loop's block, tends to look best.
     second = adjustment_loop(first.reconstruction, store, priors, effects, objective, all_ids,
-                             **kwargs, hold_runaway_scale=False)
+                             **kwargs, hold_runaway_scale=False, best_when_unsettled=False)
     return _joined(first, second)
 
 
