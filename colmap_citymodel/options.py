@@ -42,7 +42,9 @@ class AssignmentOptions:
     threshold_factor: float = 3.5
     """Later thresholds = factor x mean over planes of the per-plane mean distance."""
     min_threshold_sigmas: float = 2.0
-    """Lower bound of the threshold in units of sigma_dTP (2 x 0.2 m = 0.4 m)."""
+    """Lower bound of the threshold in units of the sigma of a tie point's distance from its
+    face's plane: sigma_dTP with every point alike (2 x 0.2 m = 0.4 m), with the faces' errors
+    as unknowns also their offset's (sqrt(0.2^2 + 0.2^2): 0.57 m)."""
     min_points_per_plane: int = 15
     """Planes with fewer assigned tie points get none (5 for a detailed model)."""
     planarity_threshold: float = 0.001

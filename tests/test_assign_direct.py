@@ -98,12 +98,12 @@ def test_threshold_schedule_follows_mean_distance_with_bounds():
     first = assign(points, np.arange(50), store, 2.0, options)
     mean_distance = np.mean(np.abs(first.distance[first.assigned]))
     expected = np.clip(3.5 * mean_distance, 0.4, 2.0)
-    assert next_threshold(first, points, store, options, sigma_dtp=0.2) == pytest.approx(expected)
+    assert next_threshold(first, points, store, options, sigma=0.2) == pytest.approx(expected)
     # Points very close to the plane: the lower bound 2 x sigma_dTP applies.
     close = wall_points(rng, 50, offset_sigma=0.001)
     a = assign(close, np.arange(50), store, 2.0, options)
-    assert next_threshold(a, close, store, options, sigma_dtp=0.2) == pytest.approx(0.4)
-    assert next_threshold(a, close, store, options, sigma_dtp=0.05) == pytest.approx(0.1)
+    assert next_threshold(a, close, store, options, sigma=0.2) == pytest.approx(0.4)
+    assert next_threshold(a, close, store, options, sigma=0.05) == pytest.approx(0.1)
 
 
 def test_without_unassigns_only_the_masked_points():

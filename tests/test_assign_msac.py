@@ -362,7 +362,7 @@ def test_threshold_upper_limit_depends_on_the_method():
         first = assign(points, ids, store, upper, options)
         assert first.num_assigned > 0, method
         # 3.5 x ~1.5 m is above both limits: the schedule stays at the method's upper limit
-        assert next_threshold(first, points, store, options, sigma_dtp=0.2) == upper
+        assert next_threshold(first, points, store, options, sigma=0.2) == upper
 
 
 def test_options_file_selects_the_method():

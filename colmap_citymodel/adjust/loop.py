@@ -39,7 +39,7 @@ from ..block.reconstruction import TiePointReader, camera_centres, observer_cent
 from ..citymodel.ground_faces import terrain_mask
 from ..citymodel.store import PlaneStore
 from ..errors import DatumError
-from ..options import AssignmentOptions, RefineOptions
+from ..options import AdjustmentOptions, AssignmentOptions, RefineOptions
 from .datum import check_datum
 from .faces import (estimate_sigma_face, face_offsets, outlier_factors, sigma_face_in_use,
                     snooped_faces)
@@ -152,7 +152,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
             # The tie point set does not change inside the loop: same ids in the same order.
             # The threshold never grows again: no flip-flop between two assignments.
             threshold = min(threshold, next_threshold(assignment, points, surfaces, o_a,
-                                                      o_adj.sigma_dtp))
+                                                      window_sigma(o_adj, sigma_face)))
         observers = roof_observers(rec, point_ids)
         # Roofs keep only the points seen from above once the block is on the model: while
         # the first assignment and the similarity rounds bring it there from metres away,
@@ -547,6 +547,18 @@ def _signature(assignment: Assignment) -> bytes:
     factors = sorted((f, round(v, 2)) for f, v in assignment.face_factors.items())
     return (assignment.face_index.tobytes() + np.float64(assignment.threshold).tobytes()
             + repr(factors).encode())
+
+
+def window_sigma(options: AdjustmentOptions, sigma_face: float) -> float:
+    """The sigma (m) of a tie point's distance from its face's given plane, in which the
+    threshold's lower bound is counted (AssignmentOptions.min_threshold_sigmas): sigma_dtp
+    where it stands for all of it (every point alike); with the faces' errors as unknowns or
+    faces as units also their offset's sigma, by which a face's points stand off its plane
+    together (else a face 2 of their sigmas off its plane loses the points beyond the window
+    and looks nearer than it is)."""
+    if options.face_weighting in ("face", "offsets"):
+        return float(np.hypot(options.sigma_dtp, sigma_face))
+    return float(options.sigma_dtp)
 
 
 def offset_name(priors: GNSSPriors) -> str:

@@ -95,11 +95,12 @@ def initial_threshold(options: AssignmentOptions) -> float:
 
 
 def next_threshold(previous: Assignment, points: np.ndarray, store: PlaneStore,
-                   options: AssignmentOptions, sigma_dtp: float) -> float:
+                   options: AssignmentOptions, sigma: float) -> float:
     """Threshold schedule (Unger 4.2, 5.3): 3.5 x the mean over faces of the per-face mean
     |distance| of the previously assigned points (at their current coordinates), bounded to
-    [2 sigma_dTP, initial_threshold(options)]."""
-    lower = options.min_threshold_sigmas * sigma_dtp
+    [2 sigma, initial_threshold(options)]; `sigma`: of a point's distance from its face's
+    plane (sigma_dTP; adjust.loop.window_sigma)."""
+    lower = options.min_threshold_sigmas * sigma
     upper = initial_threshold(options)
     assigned = previous.assigned
     if not np.any(assigned):
