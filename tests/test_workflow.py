@@ -302,11 +302,11 @@ def test_gnss_positions_rejected_as_gross_errors_are_not_priors(scene):
     assert result.quality.verdict != "failed"
 
 
-def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch):
-    """Out of iterations without convergence, the result is the iterate with the best block
-    objective, not the last one, and the report says so. The objective is made to worsen a
-    little with every evaluation (less than the divergence tolerance), so iteration 0 is the
-    best; convergence and cycle detection are switched off to reach the end of the loop."""
+def unsettled_loop(monkeypatch) -> RefineOptions:
+    """Options and patches under which the loop runs out of iterations: the block objective
+    worsens a little with every evaluation (less than the divergence tolerance), so each
+    loop's iteration 0 is its best by it; convergence and cycle detection are off, and every
+    iteration ends on a solve with the original weights (none on its robust solve)."""
     from colmap_citymodel.adjust import loop as loop_module
     from colmap_citymodel.align.objective import BlockObjective
 
@@ -322,12 +322,18 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     monkeypatch.setattr(loop_module, "_signature",
                         lambda assignment: next(counter).to_bytes(8, "little"))
     options = RefineOptions()
-    options.adjustment.face_weighting = "per_point"  # one loop
     options.workflow.max_iterations = 3
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_camera_shift = 0.0
-    # Every iteration ends on a solve with the original weights (none on its robust solve).
     options.workflow.solve_again_after_elimination = True
+    return options
+
+
+def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch):
+    """Out of iterations without convergence, the result is the iterate with the best block
+    objective (iteration 0 here), not the last one, and the report says so."""
+    options = unsettled_loop(monkeypatch)
+    options.adjustment.face_weighting = "per_point"  # one loop
     result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(result.iterations) == 3
     notes = [w for w in result.warnings if "did not converge" in w]
@@ -338,29 +344,11 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
 def test_the_faces_loop_out_of_iterations_returns_its_last_iterate(scene, monkeypatch):
     """The faces' loop (the second, with the faces' offsets and tilts as unknowns) measured by
     the block objective against the given planes looks worse the further its offsets move the
-    points off them: out of iterations it returns its last iterate, not its first. The
-    objective worsens with every evaluation as above, so the first loop returns its
-    iteration 0 and the second would too by the objective."""
-    from colmap_citymodel.adjust import loop as loop_module
-    from colmap_citymodel.align.objective import BlockObjective
-
-    real = BlockObjective.__call__
-    calls = []
-
-    def worsening(self, rec, *args, **kwargs):
-        calls.append(None)
-        return real(self, rec, *args, **kwargs) + 1e-3 * len(calls)
-
-    counter = iter(range(10 ** 6))
-    monkeypatch.setattr(BlockObjective, "__call__", worsening)
-    monkeypatch.setattr(loop_module, "_signature",
-                        lambda assignment: next(counter).to_bytes(8, "little"))
-    options = RefineOptions()
+    points off them: out of iterations it returns its last iterate, not its first. With the
+    objective worsening as above the first loop returns its iteration 0, and the second would
+    too by the objective."""
+    options = unsettled_loop(monkeypatch)
     assert options.adjustment.face_weighting == "offsets"  # two loops
-    options.workflow.max_iterations = 3
-    options.workflow.convergence_rms_change = 0.0
-    options.workflow.convergence_camera_shift = 0.0
-    options.workflow.solve_again_after_elimination = True
     result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert [it.phase for it in result.iterations].count("faces") == 3
     notes = [w for w in result.warnings if "did not converge" in w]
