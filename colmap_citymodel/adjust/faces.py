@@ -91,11 +91,18 @@ def estimate_sigma_face(found: FaceOffsets, options: AdjustmentOptions,
     `model_faces`: (F,) bool, the faces of `found` that are the city model's (terrain cells
     have their own error model, a DTM's noise and tile offsets, and do not count)."""
     keep = np.ones(len(found.faces), bool) if model_faces is None else np.asarray(model_faces)
-    faces = int(np.count_nonzero(keep))
-    if faces < MIN_FACES_FOR_SIGMA:
+    return offsets_sigma(found.offsets[keep],
+                         options.sigma_dtp ** 2 / np.maximum(found.counts[keep], 1))
+
+
+def offsets_sigma(offsets: np.ndarray, noise: np.ndarray) -> float | None:
+    """The sigma (m) of faces' mean `offsets` by moments: their sum of squares less their
+    points' noise (`noise`, each offset's variance from its points alone) over the faces'
+    number less the block's seven datum parameters, at least SIGMA_FACE_FLOOR; None with fewer
+    than MIN_FACES_FOR_SIGMA faces."""
+    if len(offsets) < MIN_FACES_FOR_SIGMA:
         return None
-    noise = options.sigma_dtp ** 2 / np.maximum(found.counts[keep], 1)
-    variance = (np.sum(found.offsets[keep] ** 2) - np.sum(noise)) / (faces - 7)
+    variance = (np.sum(offsets ** 2) - np.sum(noise)) / (len(offsets) - 7)
     return float(max(np.sqrt(max(variance, 0.0)), SIGMA_FACE_FLOOR))
 
 

@@ -22,7 +22,7 @@ from ..block.priors import GNSSPriors
 from ..citymodel.ground_faces import terrain_faces, terrain_groups, terrain_units
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
-from .faces import vertex_tilt_covariance
+from .faces import offsets_sigma, vertex_tilt_covariance
 from .problem import tie_sigmas
 
 logger = logging.getLogger(__name__)
@@ -481,19 +481,11 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
 
 # -- the faces' fit: generalisation sigma from the data ----------------------------------------
 
-#: Fewest faces from whose offsets the generalisation sigma is estimated (fewer: the a priori
-#: one): the block's seven datum parameters absorb part of their spread.
-MIN_FACES_FOR_SIGMA = 12
-
 #: A face whose mean offset exceeds this many of its expected spread is an outlier face (an
 #: arcade, an inner wall, a set-back storey the model lacks): left out of the estimate and of
 #: the datum's information, and reported. 3: a face of the model's own error gets there about
 #: once in 370.
 OUTLIER_FACE_SIGMAS = 3.0
-
-#: The estimated generalisation sigma is kept at least this (m): no model fits its city better
-#: than a tie point's own position is known (a few centimetres).
-SIGMA_GENERALISATION_FLOOR = 0.02
 
 
 @dataclass
@@ -501,7 +493,7 @@ class FaceFit:
     """How the assigned tie points sit on their faces: per face its number of points and their
     mean signed distance (m, the face's offset), the points' scatter about that mean
     (`sigma_point`, m, median-based) and the faces' offset sigma by moments
-    (`sigma_generalisation`, m; the a priori one with fewer than MIN_FACES_FOR_SIGMA faces,
+    (`sigma_generalisation`, m, adjust.faces.offsets_sigma; the a priori one with too few faces,
     `estimated` False). `outlier_faces`: faces beyond OUTLIER_FACE_SIGMAS. Terrain faces
     (`terrain`) carry their unit's sigma, not the model's generalisation: they are left out of
     both."""
@@ -543,11 +535,10 @@ def face_fit(points: np.ndarray, faces: np.ndarray, store: PlaneStore,
     keep = ~terrain
     sigma, estimated = prior_sigma, False
     for _ in range(5):  # outlier faces out, the sigma again, until none leaves
-        if keep.sum() < MIN_FACES_FOR_SIGMA:
+        found = offsets_sigma(offsets[keep], noise[keep])
+        if found is None:
             break
-        variance = (np.sum(offsets[keep] ** 2 - noise[keep])) / (keep.sum() - 7)
-        sigma = max(float(np.sqrt(max(variance, 0.0))), SIGMA_GENERALISATION_FLOOR)
-        estimated = True
+        sigma, estimated = found, True
         beyond = np.abs(offsets) > OUTLIER_FACE_SIGMAS * np.sqrt(sigma ** 2 + noise)
         if np.array_equal(~beyond & ~terrain, keep):
             break
