@@ -42,7 +42,8 @@ import pycolmap
 
 from .adjust.correction_loop import every_point_alike
 from .adjust.staged import staged_adjustment_loop
-from .adjust.observability import assigned_observability, datum_line, gnss_only_observability
+from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
+                                   unsettled_observability)
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -141,7 +142,7 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
             rec, store, current, last, assignment, priors, options, loop, objective,
             exclude_point_ids, timer, warnings)
     observability, quality = block_quality(
-        rec, assignment, current, last, loop.diverged, loop.unsettled_shift, options,
+        rec, assignment, current, last, loop, options,
         surface=surface, priors=priors, gnss_only=gnss_only, scale_sigma=scale_sigma,
         exclude_point_ids=exclude_point_ids)
     if terrain_record.get("num_faces"):
@@ -278,16 +279,18 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
     return windows, loop
 
 
-def block_quality(rec, assignment, current, last, diverged, unsettled_shift, options, *,
+def block_quality(rec, assignment, current, last, loop, options, *,
                   surface, priors, gnss_only, scale_sigma, exclude_point_ids):
     """The observability (from the data) of an adjusted block and the quality gate's verdict
-    on it (precision.quality.measure_quality)."""
+    on it (precision.quality.measure_quality); `loop` (adjust.loop.LoopResult) tells whether
+    the assignment loop diverged or ended unsettled."""
     _, points = tie_points(rec, exclude_point_ids)
-    observability = assigned_observability(points, assignment, current, priors, rec, options,
-                                           from_data=True)
+    observability = unsettled_observability(
+        assigned_observability(points, assignment, current, priors, rec, options,
+                               from_data=True), loop.unsettled_move)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
-                              points, options, diverged, scale_sigma, unsettled_shift,
-                              store=current)
+                              points, options, loop.diverged, scale_sigma,
+                              loop.unsettled_shift, store=current)
     return observability, quality
 
 
@@ -296,8 +299,7 @@ def first_loop_gate(first, options, **context) -> str | None:
     faces' errors are estimated from it, adjust.staged): its reasons when it fails, else None.
     `context`: block_quality's keywords."""
     _, quality = block_quality(first.reconstruction, first.assignment, first.current,
-                               first.last, first.diverged, first.unsettled_shift, options,
-                               **context)
+                               first.last, first, options, **context)
     return "; ".join(quality.reasons) if quality.verdict == "failed" else None
 
 

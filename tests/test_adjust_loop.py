@@ -4,6 +4,7 @@ test_workflow.py)."""
 from __future__ import annotations
 
 import numpy as np
+import pytest
 
 from colmap_citymodel.adjust.loop import alternating, assignment_change
 
@@ -70,3 +71,26 @@ def test_the_faces_loop_window_keeps_a_face_standing_off_by_its_generalisation()
 
     assert wall_points_kept(AdjustmentOptions(face_weighting="per_point")) < 30
     assert wall_points_kept(AdjustmentOptions(face_weighting="offsets")) >= 57
+
+
+def moves(*steps):
+    """Iteration records whose block moved by `steps` ((E, N, U) each)."""
+    from colmap_citymodel.adjust.record import IterationRecord
+
+    return [IterationRecord(i, 0.5, 0, 0, {}, 0, None, None, 0.0, block_move=tuple(s))
+            for i, s in enumerate(steps)]
+
+
+def test_a_creep_slowing_at_a_steady_rate_leaves_its_geometric_rest():
+    """Steps 0.2 * 0.8^k along E leave 0.8 / 0.2 = 4 times the last; a creep that does not
+    slow (N) leaves no bound; a swing (U, the sign changing) leaves its last step."""
+    from colmap_citymodel.adjust.record import remaining_move
+
+    steps = [(0.2 * 0.8 ** k, 0.1, 0.05 * (-1) ** k) for k in range(6)]
+    rest = remaining_move(moves(*steps))
+    assert rest[0] == pytest.approx(4.0 * 0.2 * 0.8 ** 5)
+    assert np.isinf(rest[1])
+    assert rest[2] == pytest.approx(0.05)
+    # Two steps of one sign tell no rate: the last step is what is left.
+    assert remaining_move(moves((0.3, 0, 0), (0.2, 0, 0)))[0] == pytest.approx(0.2)
+    assert remaining_move(moves()) is None

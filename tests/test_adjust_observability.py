@@ -273,3 +273,22 @@ def test_without_gnss_the_images_sigmas_carry_the_blocks_rotation():
     for axis in ("E", "N", "U"):
         assert at_images[axis]["sigma"] >= at_centroid[axis]["sigma"]
     assert at_images["U"]["sigma"] > 1.2 * at_centroid["U"]["sigma"]
+
+
+def test_a_loop_still_moving_the_block_states_that_move_in_its_sigma():
+    """A loop out of iterations that would still move the block 0.6 m along E states E's sigma
+    with that move (0.2 m settled); a move GNSS bounds better states GNSS's, source "gnss";
+    a creep without bound and without GNSS leaves the shift without a sigma."""
+    from colmap_citymodel.adjust.observability import unsettled_observability
+
+    rows = {axis: {"source": "both", "one_plane": False, "sigma": 0.2,
+                   "sigma_gnss_with_bias": 2.5} for axis in "ENU"}
+    rows["scale"] = {"source": "planes", "sigma": 1e-3}
+    out = unsettled_observability(rows, np.array([0.6, np.inf, 0.0]))
+    assert out["E"]["sigma"] == pytest.approx(np.hypot(0.2, 0.6))
+    assert out["E"]["source"] == "both" and out["E"]["remaining_move_m"] == 0.6
+    assert out["N"]["sigma"] == 2.5 and out["N"]["source"] == "gnss"
+    assert out["U"] == rows["U"] and out["scale"] == rows["scale"]
+    assert unsettled_observability(rows, None) is rows
+    no_gnss = {"E": {"source": "planes", "sigma": 0.2, "sigma_gnss_with_bias": None}}
+    assert unsettled_observability(no_gnss, np.array([np.inf, 0, 0]))["E"]["sigma"] is None

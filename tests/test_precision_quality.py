@@ -170,6 +170,10 @@ def test_a_loop_stopped_before_it_settled_is_weak(scene):
     assert metrics["unsettled_shift_m"] > metrics["position_sigma_m"]
     assert result.quality.verdict == "weak"
     assert any("had not settled after 1 iterations" in r for r in result.quality.reasons)
+    # One step tells no rate: the stated sigmas count it whole as the move still to come.
+    for axis in "ENU":
+        row = result.observability[axis]
+        assert row["sigma"] >= row["remaining_move_m"] > 0
     settled = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
     assert settled.quality.metrics["unsettled_shift_m"] is None
 

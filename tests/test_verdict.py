@@ -187,6 +187,12 @@ def test_verdict_rules_one_sentence_each():
                            ).verdict == "weak"
     assert quality_verdict({**good, "loop_iterations": 10, "unsettled_shift_m": 0.01}
                            ).verdict == "ok"
+    # A loop that would still move the block further than the planes' sigma: weak, by how much.
+    creep = quality_verdict({**good, "loop_iterations": 10, "unsettled_shift_m": 0.01,
+                             "unsettled_axes": {"E": {"move_m": 1.58,
+                                                      "sigma_settled_m": 0.19}}})
+    assert creep.verdict == "weak"
+    assert "would still have moved the block by about 1.58 m along E" in creep.reasons[0]
 
 
 def test_no_number_of_faces_states_the_position_better_than_the_models_common_error():

@@ -45,7 +45,7 @@ from .faces import (estimate_sigma_face, face_offsets, outlier_factors, sigma_fa
                     snooped_faces)
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import LEVEL_FREE, BaselinePriors, HybridProblem, PosePriors
-from .record import IterationRecord, cameras_settled
+from .record import IterationRecord, cameras_settled, remaining_move
 from .scale import (SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, level_prior,
                     scale_change, shift_runaway)
 from .steps import RoofObservers, align_block_to_planes, model_after_solve
@@ -79,8 +79,10 @@ class LoopResult:
     threshold: float = 0.0
     baselines: BaselinePriors | None = None
     weights: np.ndarray | None = None
-    # Out of iterations: the largest camera move of the last iteration (m); None if it stopped.
+    # Out of iterations: the largest camera move of the last iteration (m) and how far the
+    # loop would still move the block (m, E N U; record.remaining_move); None if it stopped.
     unsettled_shift: float | None = None
+    unsettled_move: np.ndarray | None = None
     # The rule that ended the loop: "rms", "camera_shift", "assignment_change",
     # "same_assignment", "cycle", "alternating_planes" or "diverged"; None when the iterations
     # ran out.
@@ -128,6 +130,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
     keep_best = False  # out of iterations: the best iterate, not the last, is the result
     unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
+    unsettled_move = None  # and how far it would still move the block (record.remaining_move)
     stopped_by = None
     face_factors: dict[int, float] = {}  # faces the adjustment weighs less (adjust.faces)
     dropped_faces: dict[int, float] = {}  # faces no tie point goes to (adjust.faces), their z
@@ -369,14 +372,16 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         rms = final_report.rms_total
         change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
         centres_after = camera_centres(rec).reshape(-1, 3)
+        same = centres_after.shape == centres_before.shape
         moved = float(np.max(np.linalg.norm(centres_after - centres_before, axis=1),
-                             initial=0.0)) if centres_after.shape == centres_before.shape \
-            else float("inf")
+                             initial=0.0)) if same else float("inf")
+        block_move = (tuple(float(v) for v in np.mean(centres_after - centres_before, axis=0))
+                      if same and len(centres_after) else None)
         iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
                                           assignment.num_faces,
                                           dict(assignment.rejected_faces), len(outliers),
                                           robust_report, final_report, change,
-                                          camera_shift=moved))
+                                          camera_shift=moved, block_move=block_move))
         face_sets.append(assignment.faces.tobytes())
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
@@ -441,6 +446,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
         # leave free): the best iterate by the block objective is the result, not the last
         # (unless `best_when_unsettled` is off).
         unsettled_shift = iterations[-1].camera_shift if iterations else None
+        unsettled_move = remaining_move(iterations)
         if not best_when_unsettled and iterations:
             warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
                             f"iterations (the last moved the cameras by up to "
@@ -476,6 +482,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                       observability_before=observability_before, diverged=diverged,
                       warnings=warnings, seconds=seconds, threshold=threshold,
                       baselines=baselines, weights=weights, unsettled_shift=unsettled_shift,
+                      unsettled_move=unsettled_move,
                       stopped_by=stopped_by)
 
 

@@ -378,6 +378,35 @@ def gnss_only_observability(observability_dict: dict) -> dict:
     return out
 
 
+def unsettled_observability(observability_dict: dict, remaining) -> dict:
+    """The rows of `observability` for a block whose assignment loop ran out of iterations
+    while still moving it: `remaining` (m, E N U; adjust.record.remaining_move) is how far it
+    would still have moved the block. That move is an error of the block the planes' sigma
+    does not hold, so each shift's sigma becomes sqrt(sigma^2 + remaining^2), at most GNSS's
+    sigma with its bias (the block's position without the planes; source "gnss" then). The
+    rows keep the remaining move and the planes' sigma (`remaining_move_m`, `sigma_settled`);
+    without GNSS a creep that does not slow leaves the shift without a sigma."""
+    if remaining is None:
+        return observability_dict
+    out = dict(observability_dict)
+    for k, name in enumerate(("E", "N", "U")):
+        row = observability_dict.get(name)
+        sigma = row.get("sigma") if row else None
+        if sigma is None or not remaining[k] > 0.0:
+            continue
+        inflated = float(np.hypot(sigma, remaining[k]))
+        with_bias = row.get("sigma_gnss_with_bias")
+        if with_bias is not None and inflated > max(sigma, with_bias):
+            out[name] = {**row, "source": "gnss", "one_plane": False,
+                         "sigma": max(sigma, with_bias)}
+        else:
+            out[name] = {**row, "sigma": inflated if np.isfinite(inflated) else None}
+            if out[name]["sigma"] is None:
+                out[name]["source"] = "none"
+        out[name].update(remaining_move_m=float(remaining[k]), sigma_settled=sigma)
+    return out
+
+
 def terrain_shares(per_plane: list[np.ndarray], keys: np.ndarray, terrain_keys: set
                    ) -> list[dict]:
     """Per datum parameter: {} without terrain, else `terrain` (True where the buildings'

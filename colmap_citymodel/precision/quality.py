@@ -15,7 +15,10 @@ failed (refine hands back the GNSS-only block):
   better than the refined one (paired test, level `alpha`).
 weak: a direction rests on GNSS alone, the radius that holds the stated position error with
 `tolerance_confidence` exceeds the user's tolerance, or the
-assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled).
+assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled),
+or would still have moved it along E, N or U by more than that direction's sigma
+(adjust.record.remaining_move; the stated sigma includes that move,
+adjust.observability.unsettled_observability).
 ok: otherwise.
 """
 
@@ -199,7 +202,15 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
                       f"significantly better (share "
                       f"{height['other_share']:.2f} against {height['here_share']:.2f}, "
                       f"p {height['p']:.1e})")
-    free = metrics.get("gnss_alone") or []
+    unsettled_axes = metrics.get("unsettled_axes") or {}
+    free = [axis for axis in metrics.get("gnss_alone") or [] if axis not in unsettled_axes]
+    if unsettled_axes:
+        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma without that "
+                          f"{row['sigma_settled_m']:.2f} m)"
+                          for axis, row in unsettled_axes.items())
+        weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
+                    f"iterations: it would still have moved the block by about {moves}; the "
+                    "stated sigma there includes that move")
     if free:
         weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
                     "GNSS's")
@@ -294,6 +305,11 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "planes_fix": planes_fix(observability_dict),
         "one_plane": rests_on_one_plane(observability_dict),
         "gnss_alone": gnss_alone(observability_dict),
+        # Where the loop would still move the block by more than the planes' sigma.
+        "unsettled_axes": {axis: {"move_m": row["remaining_move_m"],
+                                  "sigma_settled_m": row["sigma_settled"]}
+                           for axis, row in observability_dict.items()
+                           if row.get("remaining_move_m", 0.0) > row.get("sigma_settled", 0.0)},
     }
     sigmas = [observability_dict.get(k, {}).get("sigma") for k in ("E", "N", "U")]
     if all(v is not None for v in sigmas):
