@@ -106,90 +106,150 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     or swings between two sets of planes, returns its best iterate by the block objective;
     False: its last (the faces' loop, whose estimated offsets move the points off the given
     planes the objective measures them against)."""
-    o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
-    current = store
-    threshold = initial_threshold(o_a)
-    weights = None
-    if o_a.weighted_sampling:
-        from ..assign.indirect import point_quality_weights
-
-        weights = point_quality_weights(rec, all_ids)
-    assignment: Assignment | None = None
-    iterations: list[IterationRecord] = []
-    observability_before: dict = {}
-    warnings: list[str] = []
-    seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
-    total_move = pycolmap.Sim3d()
-    baselines = None
-    level = None  # scale.level_prior: the height held where the first assignment put it
-    runaway = np.zeros(3, bool)  # axes held since a solve ran away along them (shift_runaway)
-    previous_rms = None
-    last = None
-    best = None  # (objective, iteration, reconstruction copy, assignment, current)
-    diverged = None
-    seen: dict[bytes, int] = {}  # assignment (faces of all points, threshold) -> iteration
-    keep_best = False  # out of iterations: the best iterate, not the last, is the result
-    unsettled_shift = None  # out of iterations: how far the last one still moved the cameras
-    unsettled_move = None  # and how far it would still move the block (record.remaining_move)
-    stopped_by = None
-    face_factors: dict[int, float] = {}  # faces the adjustment weighs less (adjust.faces)
-    dropped_faces: dict[int, float] = {}  # faces no tie point goes to (adjust.faces), their z
-    # The sigma of the faces' offsets (m): given, or estimated from them after each solve.
-    sigma_face = sigma_face_in_use(o_adj)
-    # The last non-robust problem, kept for the next iteration (options.workflow.reuse_problem).
-    reusable: HybridProblem | None = None
-    solved: Assignment | None = None  # the assignment of the last solve (original weights)
-    face_sets: list[bytes] = []  # the planes of each kept iteration
-    eliminated_from = None  # the face each tie point was last eliminated from (-1: none)
-    roof_observers = RoofObservers(store, o_a)  # the tie points keep their order in the loop
-    read_tie_points = TiePointReader(exclude_point_ids)
-    value = None  # the block objective after the last kept iteration
-    bar = tqdm(range(o_w.max_iterations), desc="refine", unit="it", disable=not progress)
+    loop = _Loop(rec, store, priors, options, objective, all_ids, exclude_point_ids,
+                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled)
+    bar = tqdm(range(options.workflow.max_iterations), desc="refine", unit="it",
+               disable=not progress)
     for iteration in bar:
+        if loop.assign(iteration):
+            break
+        loop.hold_datum(iteration)
+        loop.solve(iteration)
+        if loop.undone(iteration):
+            continue
+        loop.record(iteration, bar)
+        if loop.stops(iteration):
+            break
+    else:
+        loop.out_of_iterations()
+    bar.close()
+    return loop.result()
+
+
+class _Loop:
+    """One adjustment_loop's state and its steps, in the order each iteration runs them:
+    assign (stopping where the assignment shows the loop has converged), hold the datum
+    (the first iteration's checks and priors), solve, undo a solve that ran away, record,
+    the stopping rules; after the last iteration, the result."""
+
+    def __init__(self, rec, store, priors, options, objective, all_ids, exclude_point_ids,
+                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled):
+        self.rec, self.store, self.priors, self.options = rec, store, priors, options
+        self.objective, self.gnss_only, self.scale_sigma = objective, gnss_only, scale_sigma
+        self.pose_priors, self.hold_runaway_scale = pose_priors, hold_runaway_scale
+        self.best_when_unsettled = best_when_unsettled
+        self.o_a, self.o_adj, self.o_w = options.assignment, options.adjustment, options.workflow
+        self.current = store
+        self.threshold = initial_threshold(self.o_a)
+        self.weights = None
+        if self.o_a.weighted_sampling:
+            from ..assign.indirect import point_quality_weights
+
+            self.weights = point_quality_weights(rec, all_ids)
+        self.assignment: Assignment | None = None
+        self.iterations: list[IterationRecord] = []
+        self.observability_before: dict = {}
+        self.warnings: list[str] = []
+        self.seconds = {"assignment": 0.0, "hybrid_solves": 0.0}
+        self.total_move = pycolmap.Sim3d()
+        self.baselines = None
+        self.level = None  # scale.level_prior: the height held where the first assignment put it
+        self.runaway = np.zeros(3, bool)  # axes held since a solve ran away (shift_runaway)
+        self.previous_rms = None
+        self.last = None
+        self.best = None  # (objective, iteration, reconstruction copy, assignment, current,
+        #                    GNSS offset)
+        self.diverged = None
+        self.seen: dict[bytes, int] = {}  # assignment (faces of all points) -> iteration
+        self.repeats = None  # the earlier iteration this one's assignment repeats
+        self.keep_best = False  # the best iterate, not the last, is the result
+        self.unsettled_shift = None  # out of iterations: the last one's largest camera move
+        self.unsettled_move = None  # and how far it would still move the block (remaining_move)
+        self.stopped_by = None
+        self.face_factors: dict[int, float] = {}  # faces the adjustment weighs less (faces)
+        self.dropped_faces: dict[int, float] = {}  # faces no tie point goes to, their z
+        # The sigma of the faces' offsets (m): given, or estimated from them after each solve.
+        self.sigma_face = sigma_face_in_use(self.o_adj)
+        # The last non-robust problem, kept for the next iteration (workflow.reuse_problem).
+        self.reusable: HybridProblem | None = None
+        self.solved: Assignment | None = None  # the assignment of the last solve
+        self.face_sets: list[bytes] = []  # the planes of each kept iteration
+        self.eliminated_from = None  # the face each tie point was last eliminated from (-1)
+        self.roof_observers = RoofObservers(store, self.o_a)  # tie points keep their order
+        self.read_tie_points = TiePointReader(exclude_point_ids)
+        self.value = None  # the block objective after the last kept iteration
+
+    # -- assign ----------------------------------------------------------------------------
+
+    def assign(self, iteration: int) -> bool:
+        """This iteration's assignment (in the first, with the similarity rounds that move the
+        block onto its planes); True where it shows that the loop has converged."""
         t0 = time.perf_counter()
-        point_ids, points = read_tie_points(rec)
-        surfaces = current  # where the tie points are looked for
-        if assignment is not None:
-            if o_a.window == "centred" and resolve_method(o_a, threshold) == "direct":
-                surfaces = centred_surfaces(points, point_ids, current, threshold, o_a)
+        self._assign_points(iteration)
+        if self._converged_before_solve(iteration):
+            self.seconds["assignment"] += time.perf_counter() - t0
+            return True
+        self.repeats = self.seen.get(self.signature)
+        self.seen.setdefault(self.signature, iteration)
+        if iteration == 0 and self.assignment.num_assigned:
+            t0 += self._align_block()
+        self.seconds["assignment"] += time.perf_counter() - t0
+        return False
+
+    def _assign_points(self, iteration: int) -> None:
+        """The tie points to faces, at the threshold the last assignment's distances give."""
+        o_a, o_adj = self.o_a, self.o_adj
+        self.point_ids, self.points = self.read_tie_points(self.rec)
+        surfaces = self.current  # where the tie points are looked for
+        if self.assignment is not None:
+            if o_a.window == "centred" and resolve_method(o_a, self.threshold) == "direct":
+                surfaces = centred_surfaces(self.points, self.point_ids, self.current,
+                                            self.threshold, o_a)
             # The tie point set does not change inside the loop: same ids in the same order.
             # The threshold never grows again: no flip-flop between two assignments.
-            threshold = min(threshold, next_threshold(assignment, points, surfaces, o_a,
-                                                      window_sigma(o_adj, sigma_face)))
-        observers = roof_observers(rec, point_ids)
+            self.threshold = min(self.threshold, next_threshold(
+                self.assignment, self.points, surfaces, o_a,
+                window_sigma(o_adj, self.sigma_face)))
+        self.observers = self.roof_observers(self.rec, self.point_ids)
         # Roofs keep only the points seen from above once the block is on the model: while
         # the first assignment and the similarity rounds bring it there from metres away,
         # parapets and eaves near a roof's plane hold its height (from a street they are
         # often the only points near a roof).
-        kept_faces = assignment.faces if assignment is not None else None
-        assignment = assign(points, point_ids, surfaces, threshold, o_a, weights,
-                            observers if iterations else None, kept_faces)
-        if eliminated_from is None:  # the tie points keep their order inside the loop
-            eliminated_from = np.full(len(point_ids), -1, np.int64)
-        if o_w.keep_eliminated:
-            assignment = _without_eliminated(assignment, eliminated_from, points, o_a,
-                                             kept_faces)
-        if iterations and o_adj.face_test_alpha is not None:
-            assignment = without_contradicted_faces(assignment, points, current, options,
-                                                    sigma_face, dropped_faces, kept_faces,
+        self.kept_faces = self.assignment.faces if self.assignment is not None else None
+        assignment = assign(self.points, self.point_ids, surfaces, self.threshold, o_a,
+                            self.weights, self.observers if self.iterations else None,
+                            self.kept_faces)
+        if self.eliminated_from is None:  # the tie points keep their order inside the loop
+            self.eliminated_from = np.full(len(self.point_ids), -1, np.int64)
+        if self.o_w.keep_eliminated:
+            assignment = _without_eliminated(assignment, self.eliminated_from, self.points,
+                                             o_a, self.kept_faces)
+        if self.iterations and o_adj.face_test_alpha is not None:
+            assignment = without_contradicted_faces(assignment, self.points, self.current,
+                                                    self.options, self.sigma_face,
+                                                    self.dropped_faces, self.kept_faces,
                                                     iteration)
-        assignment.face_factors = dict(face_factors)
-        assignment.face_sigma = sigma_face
-        assignment.dropped_faces = dict(dropped_faces)
-        signature = _signature(assignment)
-        if (o_w.reuse_problem and solved is not None and signature == _signature(solved)
-                and last is not None):
-            # The assignment the last solve used: solving it again would start at its
-            # solution. The loop has converged.
+        assignment.face_factors = dict(self.face_factors)
+        assignment.face_sigma = self.sigma_face
+        assignment.dropped_faces = dict(self.dropped_faces)
+        self.assignment = assignment
+        self.signature = _signature(assignment)
+
+    def _converged_before_solve(self, iteration: int) -> bool:
+        """The assignment the last solve used, or one that keeps its planes and nearly all of
+        its points after a solve that barely moved the cameras: a solve would start at (or
+        close to) its own solution."""
+        o_w, solved, iterations = self.o_w, self.solved, self.iterations
+        if (o_w.reuse_problem and solved is not None and self.signature == _signature(solved)
+                and self.last is not None):
             logger.info("iteration %d assigned as iteration %d, whose solution a solve would "
                         "repeat: the loop has converged", iteration, iterations[-1].iteration)
-            seconds["assignment"] += time.perf_counter() - t0
-            stopped_by = "same_assignment"
-            break
+            self.stopped_by = "same_assignment"
+            return True
         if (o_w.convergence_assignment_change is not None and solved is not None
-                and last is not None and len(iterations) >= 2
+                and self.last is not None and len(iterations) >= 2
                 and iterations[-1].camera_shift < o_w.convergence_camera_shift):
-            changed = assignment_change(solved.face_index, assignment.face_index)
+            changed = assignment_change(solved.face_index, self.assignment.face_index)
             if changed is not None and changed <= o_w.convergence_assignment_change:
                 # The last solve barely moved the cameras and this assignment keeps its
                 # planes and nearly all of its points: a solve would start close to its own
@@ -198,292 +258,381 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                             "solve of iteration %d, which moved no camera by more than %.4f m: "
                             "the loop has converged", iteration, 100 * changed,
                             iterations[-1].iteration, iterations[-1].camera_shift)
-                seconds["assignment"] += time.perf_counter() - t0
-                stopped_by = "assignment_change"
-                break
-        repeats = seen.get(signature)
-        seen.setdefault(signature, iteration)
-        if iteration == 0 and assignment.num_assigned:
-            # Initial values: move the block as a whole onto its planes first, so that the
-            # adjustment is left with the block's deformation. As in ICP: fit, assign again,
-            # fit again; a round that does not lower the block objective is undone.
-            t_align = time.perf_counter()
-            total_move, points, assignment = align_block_to_planes(
-                rec, point_ids, points, assignment, current, priors, threshold, options,
-                objective=objective, scale_sigma=scale_sigma, weights=weights)
-            if observers is not None:  # the cameras moved with the block
-                observers = Observers(observers.rows, total_move * observers.centres)
-                assignment = without_roof_points_seen_from_below(assignment, points, current,
-                                                                 observers, o_a)
-            seconds["initial_alignment"] = time.perf_counter() - t_align
-            t0 += seconds["initial_alignment"]
-        seconds["assignment"] += time.perf_counter() - t0
+                self.stopped_by = "assignment_change"
+                return True
+        return False
+
+    def _align_block(self) -> float:
+        """Initial values: move the block as a whole onto its planes first, so that the
+        adjustment is left with the block's deformation. As in ICP: fit, assign again, fit
+        again; a round that does not lower the block objective is undone. Its seconds."""
+        t_align = time.perf_counter()
+        self.total_move, self.points, self.assignment = align_block_to_planes(
+            self.rec, self.point_ids, self.points, self.assignment, self.current, self.priors,
+            self.threshold, self.options, objective=self.objective,
+            scale_sigma=self.scale_sigma, weights=self.weights)
+        if self.observers is not None:  # the cameras moved with the block
+            self.observers = Observers(self.observers.rows,
+                                       self.total_move * self.observers.centres)
+            self.assignment = without_roof_points_seen_from_below(
+                self.assignment, self.points, self.current, self.observers, self.o_a)
+        self.seconds["initial_alignment"] = time.perf_counter() - t_align
+        return self.seconds["initial_alignment"]
+
+    # -- datum -----------------------------------------------------------------------------
+
+    def hold_datum(self, iteration: int) -> None:
+        """The first iteration: the datum's checks, the GNSS offset's, and the priors that hold
+        the height and scale the planes leave to GNSS; later ones: a height the planes have
+        come to fix is released."""
         if iteration == 0:
-            observability_before = assigned_observability(points, assignment, current, priors,
-                                                          rec, options)
-            # A sliding window's frames held from the window before keep the orientation count.
-            warnings += check_datum(store, assignment, priors is not None,
-                                    observability_before if pose_priors is None else None)
-            if priors is not None and priors.estimates_offset and not priors.bias_is_random:
-                refusal = offset_refusal(observability_before, priors.offset_axes)
-                if refusal:
-                    raise DatumError(
-                        f"{offset_name(priors)} cannot be estimated from this model: {refusal}. "
-                        "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
-                        "model's height system", store.source)
-            if gnss_only is not None and priors is not None and pose_priors is None:
-                # Where the coarse search and the similarity rounds put the block: GNSS at
-                # full weight with every plane near it, roofs' edges seen from below too.
-                level = level_prior(rec, priors, left_to_gnss(observability_before) & HEIGHT
-                                    & o_w.hold_gnss_height, gnss_only)
-                hold_scale = bool(scale_sigma) and observability_before.get(
-                    "scale", {}).get("source") not in ("planes", "both")
-                baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            hold_scale=hold_scale, level=level)
-        elif assignment.num_assigned == 0 and priors is None and not pose_priors:
+            self._first_datum()
+        elif (self.assignment.num_assigned == 0 and self.priors is None
+              and not self.pose_priors):
             raise DatumError("no tie point could be assigned to a model plane and there is no "
-                             "GNSS: the datum is undefined", store.source)
-        if iteration > 0 and level is not None and not runaway.any():
+                             "GNSS: the datum is undefined", self.store.source)
+        if iteration > 0 and self.level is not None and not self.runaway.any():
             # A height that the planes have come to fix (the first assignment, metres from the
             # model, saw other planes) is theirs from now on: released, never held again.
             if not np.any(left_to_gnss(assigned_observability(
-                    points, assignment, current, priors, rec, options)) & HEIGHT):
+                    self.points, self.assignment, self.current, self.priors, self.rec,
+                    self.options)) & HEIGHT):
                 logger.info("iteration %d: the planes now fix U: no longer held", iteration)
-                level = None
-                baselines = baseline_priors(gnss_only, priors, scale_sigma,
-                                            hold_scale=baselines.holds_scale, level=level)
-                reusable = None  # the next problem has other priors
+                self.level = None
+                self.baselines = baseline_priors(self.gnss_only, self.priors, self.scale_sigma,
+                                                 hold_scale=self.baselines.holds_scale,
+                                                 level=self.level)
+                self.reusable = None  # the next problem has other priors
 
+    def _first_datum(self) -> None:
+        priors, options = self.priors, self.options
+        self.observability_before = assigned_observability(
+            self.points, self.assignment, self.current, priors, self.rec, options)
+        # A sliding window's frames held from the window before keep the orientation count.
+        self.warnings += check_datum(self.store, self.assignment, priors is not None,
+                                     self.observability_before if self.pose_priors is None
+                                     else None)
+        if priors is not None and priors.estimates_offset and not priors.bias_is_random:
+            refusal = offset_refusal(self.observability_before, priors.offset_axes)
+            if refusal:
+                raise DatumError(
+                    f"{offset_name(priors)} cannot be estimated from this model: {refusal}. "
+                    "Give the offset in metres (--gnss_height_offset METRES) or GNSS in the "
+                    "model's height system", self.store.source)
+        if self.gnss_only is not None and priors is not None and self.pose_priors is None:
+            # Where the coarse search and the similarity rounds put the block: GNSS at full
+            # weight with every plane near it, roofs' edges seen from below too.
+            self.level = level_prior(self.rec, priors,
+                                     left_to_gnss(self.observability_before) & HEIGHT
+                                     & self.o_w.hold_gnss_height, self.gnss_only)
+            hold_scale = bool(self.scale_sigma) and self.observability_before.get(
+                "scale", {}).get("source") not in ("planes", "both")
+            self.baselines = baseline_priors(self.gnss_only, priors, self.scale_sigma,
+                                             hold_scale=hold_scale, level=self.level)
+
+    # -- solve -----------------------------------------------------------------------------
+
+    def solve(self, iteration: int) -> None:
+        """The hybrid solves of this iteration (Förstner-Wrobel where needed), the state kept
+        to undo them, the faces' offset sigma and weights from their solution."""
         t1 = time.perf_counter()
-        centres_before = camera_centres(rec).reshape(-1, 3)
+        rec, o_w = self.rec, self.o_w
+        self.centres_before = camera_centres(rec).reshape(-1, 3)
         # The block objective where this iteration's solves start (the last one's end).
-        value_before = objective(rec) if value is None else value
+        self.value_before = self.objective(rec) if self.value is None else self.value
         # Until the scale is held, keep the state before the solves: a solve that changes the
         # scale further than GNSS allows is undone and repeated with the scale held.
-        before_solve = (pycolmap.Reconstruction(rec), current, assignment, _offset(priors)) \
-            if gnss_only is not None and not (baselines is not None and baselines.holds_scale) \
-            and scale_sigma and hold_runaway_scale else None
+        self.before_solve = (
+            (pycolmap.Reconstruction(rec), self.current, self.assignment, _offset(self.priors))
+            if self.gnss_only is not None
+            and not (self.baselines is not None and self.baselines.holds_scale)
+            and self.scale_sigma and self.hold_runaway_scale else None)
         # Until every axis is held, a solve that moves the block away from GNSS further than
         # GNSS allows (scale.shift_runaway) is undone and repeated with that axis held.
-        guard_shift = (gnss_only is not None and priors is not None and pose_priors is None
-                       and not runaway.all())
-        before_shift = before_solve if before_solve is not None or not guard_shift else (
-            pycolmap.Reconstruction(rec), current, assignment, _offset(priors))
-        observed_before = observer_centres(rec, priors.image_ids) if guard_shift else None
+        self.guard_shift = (self.gnss_only is not None and self.priors is not None
+                            and self.pose_priors is None and not self.runaway.all())
+        self.before_shift = (
+            self.before_solve if self.before_solve is not None or not self.guard_shift
+            else (pycolmap.Reconstruction(rec), self.current, self.assignment,
+                  _offset(self.priors)))
+        self.observed_before = (observer_centres(rec, self.priors.image_ids)
+                                if self.guard_shift else None)
+        final, self.final_report, self.robust_report, self.outliers = self._solves(iteration)
+        self.seconds["hybrid_solves"] += time.perf_counter() - t1
+        self.current = model_after_solve(self.current, final)
+        self.last = final
+        self._faces_after_solve(final, iteration)
+        self.robust_only = final.robust_planes  # the iteration ended on its robust solve
+        if not self.robust_only:
+            self.reusable = final if o_w.reuse_problem else None
+        self.solved = None if self.robust_only else self.assignment
+
+    def _solves(self, iteration: int):
+        """(final problem, its report, the robust solve's report or None, eliminated ids)."""
+        rec, store, priors, o_adj, o_w = self.rec, self.store, self.priors, self.o_adj, self.o_w
         robust_report = None
         outliers = np.zeros(0, np.int64)
         # Only iterations that were kept count: one undone (its scale) is solved again as it was.
-        if iterations and not (len(iterations) == 1 and o_w.robust_second_iteration):
+        if self.iterations and not (len(self.iterations) == 1 and o_w.robust_second_iteration):
             # Förstner-Wrobel only where needed: with the original weights first; robust
             # weighting and elimination follow only if some |v| / sigma exceeds the threshold.
-            final = _final_problem(reusable, rec, store, assignment, priors, o_adj, current,
-                                   baselines, pose_priors)
+            final = _final_problem(self.reusable, rec, store, self.assignment, priors, o_adj,
+                                   self.current, self.baselines, self.pose_priors)
             final_report = final.solve()
             normalised = final.residuals["dTP"]
             needs_robust = bool(np.any(np.abs(normalised) > o_adj.elimination_threshold))
         else:
             needs_robust = True
-        if needs_robust:
-            robust = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                                   robust_planes=True, current=current, baselines=baselines,
-                                   pose_priors=pose_priors)
-            robust_report = robust.solve()
-            normalised = robust.residuals["dTP"]
-            outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
-            eliminated = np.isin(assignment.point_ids, outliers)
-            if iterations:  # in the first, the block still moves by decimetres
-                eliminated_from[eliminated] = assignment.face_index[eliminated]
-            assignment = assignment.eliminate(eliminated, points, o_a, kept_faces)
-            if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
-                    and iteration + 1 < o_w.max_iterations
-                    and objective(rec) <= value_before + o_w.divergence_tolerance):
-                # The next iteration's solve, which leaves these f_dTP out, is the one with
-                # the original weights; it starts where the robust one ended. Not when the
-                # robust solve moved the block off the model (its objective rose by more than
-                # divergence_tolerance, as a diverging iteration's does): a wrong start had
-                # assigned points to planes they are not on, and the solve with the original
-                # weights must come at once, before the next assignment starts from there.
-                final, final_report = robust, robust_report
-            else:
-                final = _final_problem(reusable if iteration > 0 else None, rec, store,
-                                       assignment, priors, o_adj,
-                                       model_after_solve(current, robust), baselines,
-                                       pose_priors)
-                final_report = final.solve()
-        seconds["hybrid_solves"] += time.perf_counter() - t1
-        current = model_after_solve(current, final)
-        last = final
-        if o_adj.face_weighting in ("face", "offsets") and o_adj.sigma_face is None:
-            found = face_offsets(final, o_adj, sigma_face)
-            model_faces = ~terrain_mask(store)[found.faces]
-            estimated = estimate_sigma_face(found, o_adj, model_faces)
-            sigma_face = estimated if estimated is not None else sigma_face
-            logger.info("iteration %d: the faces' offsets spread by %.3f m (%s, %d faces)",
-                        iteration, sigma_face, "estimated" if estimated is not None else "kept",
-                        np.count_nonzero(model_faces))
-        face_factors = outlier_factors(final, o_adj, sigma_face)
-        if face_factors:
-            logger.info("iteration %d: %d faces weighed less, their mean offsets beyond the "
-                        "generalisation error (sigma x %s)", iteration, len(face_factors),
-                        ", ".join(f"{v:.2f}" for v in face_factors.values()))
-        robust_only = final.robust_planes  # the iteration ended on its robust solve
-        if not robust_only:
-            reusable = final if o_w.reuse_problem else None
-        solved = None if robust_only else assignment
-        if before_solve is not None:
-            change = scale_change(gnss_only, rec, priors.image_ids)
-            sigmas = abs(np.log1p(change)) / scale_sigma
-            if SCALE_RUNAWAY_SIGMAS < sigmas <= SCALE_UNDO_SIGMAS:
-                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
-                               "sigma): the scale is held from now on", iteration,
-                               100 * change, sigmas)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
-                reusable = None  # the next problem has the baseline priors
-            elif sigmas > SCALE_UNDO_SIGMAS:
-                logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
-                               "sigma): undone, the scale is held from now on", iteration,
-                               100 * change, sigmas)
-                rec, current, assignment, offset = before_solve
-                _restore_offset(priors, offset)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level)
-                last = reusable = solved = None  # `rec` is the copy from before the solve
-                continue
-        if guard_shift:
-            observed = observer_centres(rec, priors.image_ids)
-            axes = shift_runaway(observed_before, observed, priors,
-                                 o_adj.gnss_bias_share) & ~runaway
-            if axes.any():
-                names = "/".join(a for a, on in zip("ENU", axes) if on)
-                logger.warning("iteration %d moved the block by %s m along %s, away from GNSS "
-                               "further than it allows: undone, %s held from now on", iteration,
-                               np.round(np.nanmean(observed - observed_before,
-                                                   axis=0)[axes], 1).tolist(), names, names)
-                rec, current, assignment, offset = before_shift
-                _restore_offset(priors, offset)
-                runaway |= axes
-                held = np.zeros(3, bool) if level is None else level[2] < LEVEL_FREE
-                level = level_prior(rec, priors, held | runaway, gnss_only)
-                baselines = baseline_priors(gnss_only, priors, scale_sigma, level=level,
-                                            hold_scale=baselines is not None
-                                            and baselines.holds_scale)
-                last = reusable = solved = None  # `rec` is the copy from before the solve
-                continue
+        if not needs_robust:
+            return final, final_report, robust_report, outliers
+        robust = HybridProblem(rec, store, self.assignment, priors, o_adj, robust_images=False,
+                               robust_planes=True, current=self.current,
+                               baselines=self.baselines, pose_priors=self.pose_priors)
+        robust_report = robust.solve()
+        normalised = robust.residuals["dTP"]
+        outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
+        eliminated = np.isin(self.assignment.point_ids, outliers)
+        if self.iterations:  # in the first, the block still moves by decimetres
+            self.eliminated_from[eliminated] = self.assignment.face_index[eliminated]
+        self.assignment = self.assignment.eliminate(eliminated, self.points, self.o_a,
+                                                    self.kept_faces)
+        if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
+                and iteration + 1 < o_w.max_iterations
+                and self.objective(rec) <= self.value_before + o_w.divergence_tolerance):
+            # The next iteration's solve, which leaves these f_dTP out, is the one with the
+            # original weights; it starts where the robust one ended. Not when the robust
+            # solve moved the block off the model (its objective rose by more than
+            # divergence_tolerance, as a diverging iteration's does): a wrong start had
+            # assigned points to planes they are not on, and the solve with the original
+            # weights must come at once, before the next assignment starts from there.
+            return robust, robust_report, robust_report, outliers
+        final = _final_problem(self.reusable if iteration > 0 else None, rec, store,
+                               self.assignment, priors, o_adj,
+                               model_after_solve(self.current, robust), self.baselines,
+                               self.pose_priors)
+        return final, final.solve(), robust_report, outliers
 
+    def _faces_after_solve(self, final: HybridProblem, iteration: int) -> None:
+        """The faces' offset sigma estimated from their offsets at the solution (where it is
+        not given), and the faces to weigh less."""
+        o_adj = self.o_adj
+        if o_adj.face_weighting in ("face", "offsets") and o_adj.sigma_face is None:
+            found = face_offsets(final, o_adj, self.sigma_face)
+            model_faces = ~terrain_mask(self.store)[found.faces]
+            estimated = estimate_sigma_face(found, o_adj, model_faces)
+            self.sigma_face = estimated if estimated is not None else self.sigma_face
+            logger.info("iteration %d: the faces' offsets spread by %.3f m (%s, %d faces)",
+                        iteration, self.sigma_face,
+                        "estimated" if estimated is not None else "kept",
+                        np.count_nonzero(model_faces))
+        self.face_factors = outlier_factors(final, o_adj, self.sigma_face)
+        if self.face_factors:
+            logger.info("iteration %d: %d faces weighed less, their mean offsets beyond the "
+                        "generalisation error (sigma x %s)", iteration, len(self.face_factors),
+                        ", ".join(f"{v:.2f}" for v in self.face_factors.values()))
+
+    # -- undo ------------------------------------------------------------------------------
+
+    def undone(self, iteration: int) -> bool:
+        """Whether this iteration's solve was undone: it changed the block's scale, or moved
+        it away from GNSS, further than GNSS allows; that scale or axis is held from now on."""
+        return self._scale_ran_away(iteration) or self._shift_ran_away(iteration)
+
+    def _scale_ran_away(self, iteration: int) -> bool:
+        if self.before_solve is None:
+            return False
+        gnss_only, priors, scale_sigma = self.gnss_only, self.priors, self.scale_sigma
+        change = scale_change(gnss_only, self.rec, priors.image_ids)
+        sigmas = abs(np.log1p(change)) / scale_sigma
+        if SCALE_RUNAWAY_SIGMAS < sigmas <= SCALE_UNDO_SIGMAS:
+            logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
+                           "sigma): the scale is held from now on", iteration, 100 * change,
+                           sigmas)
+            self.baselines = baseline_priors(gnss_only, priors, scale_sigma, level=self.level)
+            self.reusable = None  # the next problem has the baseline priors
+        elif sigmas > SCALE_UNDO_SIGMAS:
+            logger.warning("iteration %d changed the block's scale by %.2f %% (%.1f GNSS "
+                           "sigma): undone, the scale is held from now on", iteration,
+                           100 * change, sigmas)
+            self.rec, self.current, self.assignment, offset = self.before_solve
+            _restore_offset(priors, offset)
+            self.baselines = baseline_priors(gnss_only, priors, scale_sigma, level=self.level)
+            self.last = self.reusable = self.solved = None  # `rec`: the copy from before
+            return True
+        return False
+
+    def _shift_ran_away(self, iteration: int) -> bool:
+        if not self.guard_shift:
+            return False
+        priors = self.priors
+        observed = observer_centres(self.rec, priors.image_ids)
+        axes = shift_runaway(self.observed_before, observed, priors,
+                             self.o_adj.gnss_bias_share) & ~self.runaway
+        if not axes.any():
+            return False
+        names = "/".join(a for a, on in zip("ENU", axes) if on)
+        logger.warning("iteration %d moved the block by %s m along %s, away from GNSS "
+                       "further than it allows: undone, %s held from now on", iteration,
+                       np.round(np.nanmean(observed - self.observed_before,
+                                           axis=0)[axes], 1).tolist(), names, names)
+        self.rec, self.current, self.assignment, offset = self.before_shift
+        _restore_offset(priors, offset)
+        self.runaway |= axes
+        held = np.zeros(3, bool) if self.level is None else self.level[2] < LEVEL_FREE
+        self.level = level_prior(self.rec, priors, held | self.runaway, self.gnss_only)
+        self.baselines = baseline_priors(self.gnss_only, priors, self.scale_sigma,
+                                         level=self.level,
+                                         hold_scale=self.baselines is not None
+                                         and self.baselines.holds_scale)
+        self.last = self.reusable = self.solved = None  # `rec`: the copy from before the solve
+        return True
+
+    # -- record and stop -------------------------------------------------------------------
+
+    def record(self, iteration: int, bar) -> None:
+        """The iteration's record (report.json `iterations`), its log line and objective."""
+        final_report, assignment = self.final_report, self.assignment
         rms = final_report.rms_total
-        change = abs(previous_rms - rms) / rms if previous_rms else float("inf")
-        centres_after = camera_centres(rec).reshape(-1, 3)
-        same = centres_after.shape == centres_before.shape
-        moved = float(np.max(np.linalg.norm(centres_after - centres_before, axis=1),
+        change = abs(self.previous_rms - rms) / rms if self.previous_rms else float("inf")
+        centres_after = camera_centres(self.rec).reshape(-1, 3)
+        same = centres_after.shape == self.centres_before.shape
+        moved = float(np.max(np.linalg.norm(centres_after - self.centres_before, axis=1),
                              initial=0.0)) if same else float("inf")
-        block_move = (tuple(float(v) for v in np.mean(centres_after - centres_before, axis=0))
+        block_move = (tuple(float(v) for v in np.mean(centres_after - self.centres_before,
+                                                      axis=0))
                       if same and len(centres_after) else None)
-        iterations.append(IterationRecord(iteration, threshold, assignment.num_assigned,
-                                          assignment.num_faces,
-                                          dict(assignment.rejected_faces), len(outliers),
-                                          robust_report, final_report, change,
-                                          camera_shift=moved, block_move=block_move))
-        face_sets.append(assignment.faces.tobytes())
+        self.iterations.append(IterationRecord(
+            iteration, self.threshold, assignment.num_assigned, assignment.num_faces,
+            dict(assignment.rejected_faces), len(self.outliers), self.robust_report,
+            final_report, change, camera_shift=moved, block_move=block_move))
+        self.face_sets.append(assignment.faces.tobytes())
         bar.set_postfix(points=assignment.num_assigned, planes=assignment.num_faces,
                         rms=f"{rms:.4f}")
-        value = objective(rec)
+        self.value = self.objective(self.rec)
         logger.info("iteration %d: threshold %.2f m, %d points on %d planes, %d f_dTP "
                     "eliminated, RMS %.4f (relative change %.1e), cameras moved <= %.4f m, "
-                    "dTP RMS %.3f m, s0 %.3f, objective %.4f", iteration, threshold,
-                    assignment.num_assigned, assignment.num_faces, len(outliers), rms, change,
-                    moved,
-                    final_report.rms["dTP"] * o_adj.sigma_dtp,
-                    np.sqrt(final_report.sigma0_squared), value)
-        previous_rms = rms
+                    "dTP RMS %.3f m, s0 %.3f, objective %.4f", iteration, self.threshold,
+                    assignment.num_assigned, assignment.num_faces, len(self.outliers), rms,
+                    change, moved, final_report.rms["dTP"] * self.o_adj.sigma_dtp,
+                    np.sqrt(final_report.sigma0_squared), self.value)
+        self.previous_rms = rms
+        self.change = change
+
+    def stops(self, iteration: int) -> bool:
+        """The stopping rules after a kept iteration: diverged (the block objective worse than
+        the best by more than the tolerance), the RMS settled, the cameras settled, a cycle,
+        or alternating sets of planes."""
+        o_w, value, best = self.o_w, self.value, self.best
         if best is None or value <= best[0]:
-            best = (value, iteration, None, assignment, current, _offset(priors))
+            self.best = best = (value, iteration, None, self.assignment, self.current,
+                                _offset(self.priors))
         elif value > best[0] + o_w.divergence_tolerance:
             # The hybrid solve moved the block away from the model: go back to the best
             # iterate and stop.
-            diverged = (f"objective {value:.3f} in iteration {iteration} against "
-                        f"{best[0]:.3f} in iteration {best[1]}")
-            logger.warning("refine diverged (%s); the best iterate is kept", diverged)
-            stopped_by = "diverged"
-            break
+            self.diverged = (f"objective {value:.3f} in iteration {iteration} against "
+                             f"{best[0]:.3f} in iteration {best[1]}")
+            logger.warning("refine diverged (%s); the best iterate is kept", self.diverged)
+            self.stopped_by = "diverged"
+            return True
         if best[1] == iteration:
-            best = (value, iteration, pycolmap.Reconstruction(rec), assignment, current,
-                    _offset(priors))
-        if robust_only:  # no stopping rule before a solve with the original weights
-            continue
-        if change < o_w.convergence_rms_change:
-            stopped_by = "rms"
-            break
-        if cameras_settled(iterations, o_w.convergence_camera_shift):
+            self.best = (value, iteration, pycolmap.Reconstruction(self.rec), self.assignment,
+                         self.current, _offset(self.priors))
+        if self.robust_only:  # no stopping rule before a solve with the original weights
+            return False
+        if self.change < o_w.convergence_rms_change:
+            self.stopped_by = "rms"
+            return True
+        if cameras_settled(self.iterations, o_w.convergence_camera_shift):
             logger.info("iterations %d and %d moved no camera by more than %.4f m: the loop "
                         "has converged", iteration - 1, iteration, o_w.convergence_camera_shift)
-            stopped_by = "camera_shift"
-            break
-        if repeats is not None:
+            self.stopped_by = "camera_shift"
+            return True
+        if self.repeats is not None:
             # The same assignment as an earlier iteration: solving it again reaches the same
             # state, so the loop would only cycle between assignments until max_iterations.
             logger.info("iteration %d assigned as iteration %d did: the loop has converged",
-                        iteration, repeats)
-            stopped_by = "cycle"
-            break
-        if (alternating(face_sets) and max(it.camera_shift for it in iterations[-3:])
-                < o_w.alternating_planes_shift):
-            # A face at the limits of the assignment (its points just at the minimum count)
-            # comes and goes, the block moving a little back and forth with it: the loop
-            # would swing like that until the iterations run out.
-            warnings.append(
-                f"the assignment alternated between {iterations[-1].num_faces} and "
-                f"{iterations[-2].num_faces} planes in iterations {iterations[-4].iteration}-"
-                f"{iteration}, moving no camera by more than "
-                f"{max(it.camera_shift for it in iterations[-3:]):.3f} m; "
-                + (f"iteration {best[1]}, the best by the block objective ({best[0]:.4f}), "
-                   "is the result" if best_when_unsettled else "the last is the result"))
-            logger.info(warnings[-1])
-            # The best iterate, unless it is this one (the block is where it should stay).
-            keep_best = best_when_unsettled and best[1] != iteration
-            stopped_by = "alternating_planes"
-            break
-    else:
-        # Out of iterations without settling (a slow creep of the block along what the planes
-        # leave free): the best iterate by the block objective is the result, not the last
-        # (unless `best_when_unsettled` is off).
-        unsettled_shift = iterations[-1].camera_shift if iterations else None
-        unsettled_move = remaining_move(iterations)
-        if not best_when_unsettled and iterations:
-            warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
-                            f"iterations (the last moved the cameras by up to "
-                            f"{unsettled_shift:.3f} m); the last iterate is the result")
-            logger.info(warnings[-1])
-        elif best is not None and best[2] is not None and last is not None \
+                        iteration, self.repeats)
+            self.stopped_by = "cycle"
+            return True
+        return self._alternates(iteration)
+
+    def _alternates(self, iteration: int) -> bool:
+        iterations, best = self.iterations, self.best
+        if not (alternating(self.face_sets) and max(it.camera_shift for it in iterations[-3:])
+                < self.o_w.alternating_planes_shift):
+            return False
+        # A face at the limits of the assignment (its points just at the minimum count) comes
+        # and goes, the block moving a little back and forth with it: the loop would swing
+        # like that until the iterations run out.
+        self.warnings.append(
+            f"the assignment alternated between {iterations[-1].num_faces} and "
+            f"{iterations[-2].num_faces} planes in iterations {iterations[-4].iteration}-"
+            f"{iteration}, moving no camera by more than "
+            f"{max(it.camera_shift for it in iterations[-3:]):.3f} m; "
+            + (f"iteration {best[1]}, the best by the block objective ({best[0]:.4f}), "
+               "is the result" if self.best_when_unsettled else "the last is the result"))
+        logger.info(self.warnings[-1])
+        # The best iterate, unless it is this one (the block is where it should stay).
+        self.keep_best = self.best_when_unsettled and best[1] != iteration
+        self.stopped_by = "alternating_planes"
+        return True
+
+    def out_of_iterations(self) -> None:
+        """Out of iterations without settling (a slow creep of the block along what the planes
+        leave free): the best iterate by the block objective is the result, not the last
+        (unless `best_when_unsettled` is off); how far the loop would still have moved the
+        block is kept for the stated sigmas."""
+        iterations, best, o_w = self.iterations, self.best, self.o_w
+        self.unsettled_shift = iterations[-1].camera_shift if iterations else None
+        self.unsettled_move = remaining_move(iterations)
+        if not self.best_when_unsettled and iterations:
+            self.warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
+                                 f"iterations (the last moved the cameras by up to "
+                                 f"{self.unsettled_shift:.3f} m); the last iterate is the result")
+            logger.info(self.warnings[-1])
+        elif best is not None and best[2] is not None and self.last is not None \
                 and best[1] != iterations[-1].iteration:
-            warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
-                            f"iterations; iteration {best[1]}, the best by the block objective "
-                            f"({best[0]:.4f}), is the result")
-            logger.info(warnings[-1])
-            keep_best = True
-    bar.close()
-    if (diverged is not None or keep_best) and best is not None and best[2] is not None:
-        _, _, rec, assignment, current, offset = best
-        _restore_offset(priors, offset)
-        last = None
-    if last is not None and last.robust_planes:
-        last = None
-    if last is None:  # back to the best iterate, the last iteration undone or robust only
-        last = HybridProblem(rec, store, assignment, priors, o_adj, robust_images=False,
-                             robust_planes=False, current=current, baselines=baselines,
-                             pose_priors=pose_priors)
-        report = last.solve()
-        current = model_after_solve(current, last)
-        if not iterations:
-            iterations.append(IterationRecord(len(iterations), threshold,
-                                              assignment.num_assigned, assignment.num_faces,
-                                              dict(assignment.rejected_faces), 0, None, report,
-                                              float("inf")))
-    return LoopResult(reconstruction=rec, current=current, assignment=assignment, last=last,
-                      iterations=iterations, move=total_move,
-                      observability_before=observability_before, diverged=diverged,
-                      warnings=warnings, seconds=seconds, threshold=threshold,
-                      baselines=baselines, weights=weights, unsettled_shift=unsettled_shift,
-                      unsettled_move=unsettled_move,
-                      stopped_by=stopped_by)
+            self.warnings.append(f"the assignment loop did not converge in {o_w.max_iterations} "
+                                 f"iterations; iteration {best[1]}, the best by the block "
+                                 f"objective ({best[0]:.4f}), is the result")
+            logger.info(self.warnings[-1])
+            self.keep_best = True
+
+    # -- result ----------------------------------------------------------------------------
+
+    def result(self) -> LoopResult:
+        """The kept iterate (the best one where the loop diverged or keeps its best) with a
+        non-robust solved problem."""
+        best, priors = self.best, self.priors
+        if (self.diverged is not None or self.keep_best) and best is not None \
+                and best[2] is not None:
+            _, _, self.rec, self.assignment, self.current, offset = best
+            _restore_offset(priors, offset)
+            self.last = None
+        if self.last is not None and self.last.robust_planes:
+            self.last = None
+        if self.last is None:  # back to the best iterate, the last iteration undone or robust
+            self.last = HybridProblem(self.rec, self.store, self.assignment, priors, self.o_adj,
+                                      robust_images=False, robust_planes=False,
+                                      current=self.current, baselines=self.baselines,
+                                      pose_priors=self.pose_priors)
+            report = self.last.solve()
+            self.current = model_after_solve(self.current, self.last)
+            if not self.iterations:
+                a = self.assignment
+                self.iterations.append(IterationRecord(len(self.iterations), self.threshold,
+                                                       a.num_assigned, a.num_faces,
+                                                       dict(a.rejected_faces), 0, None, report,
+                                                       float("inf")))
+        return LoopResult(reconstruction=self.rec, current=self.current,
+                          assignment=self.assignment, last=self.last,
+                          iterations=self.iterations, move=self.total_move,
+                          observability_before=self.observability_before,
+                          diverged=self.diverged, warnings=self.warnings,
+                          seconds=self.seconds, threshold=self.threshold,
+                          baselines=self.baselines, weights=self.weights,
+                          unsettled_shift=self.unsettled_shift,
+                          unsettled_move=self.unsettled_move, stopped_by=self.stopped_by)
 
 
 def without_contradicted_faces(assignment: Assignment, points: np.ndarray, current: PlaneStore,
