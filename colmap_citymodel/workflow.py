@@ -43,7 +43,7 @@ import pycolmap
 from .adjust.correction_loop import every_point_alike
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
-                                   unsettled_observability)
+                                   unsettled_observability, weighting_observability)
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -283,11 +283,12 @@ def block_quality(rec, assignment, current, last, loop, options, *,
                   surface, priors, gnss_only, scale_sigma, exclude_point_ids):
     """The observability (from the data) of an adjusted block and the quality gate's verdict
     on it (precision.quality.measure_quality); `loop` (adjust.loop.LoopResult) tells whether
-    the assignment loop diverged or ended unsettled."""
+    the assignment loop diverged or ended unsettled, and how far the faces' weighting moved
+    the block."""
     _, points = tie_points(rec, exclude_point_ids)
-    observability = unsettled_observability(
+    observability = weighting_observability(unsettled_observability(
         assigned_observability(points, assignment, current, priors, rec, options,
-                               from_data=True), loop.unsettled_move)
+                               from_data=True), loop.unsettled_move), loop.weighting_move)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma,
                               loop.unsettled_shift, store=current)

@@ -292,3 +292,20 @@ def test_a_loop_still_moving_the_block_states_that_move_in_its_sigma():
     assert unsettled_observability(rows, None) is rows
     no_gnss = {"E": {"source": "planes", "sigma": 0.2, "sigma_gnss_with_bias": None}}
     assert unsettled_observability(no_gnss, np.array([np.inf, 0, 0]))["E"]["sigma"] is None
+
+
+def test_weighting_the_faces_that_moves_the_block_beyond_its_sigma_is_in_the_sigma():
+    """The faces' errors as unknowns moved the block 0.28 m in U from where every tie point
+    alike had placed it, against a stated 0.085 m: U's sigma is at least that move; E, moved
+    less than its sigma, keeps it; a move beyond GNSS's sigma with its bias states GNSS's."""
+    from colmap_citymodel.adjust.observability import weighting_observability
+
+    rows = {"E": {"source": "planes", "sigma": 0.067, "sigma_gnss_with_bias": 1.6},
+            "N": {"source": "planes", "sigma": 0.058, "sigma_gnss_with_bias": 1.6},
+            "U": {"source": "planes", "sigma": 0.085, "sigma_gnss_with_bias": 2.8}}
+    out = weighting_observability(rows, np.array([0.05, -2.0, -0.278]))
+    assert out["E"] == rows["E"]
+    assert out["U"]["sigma"] == pytest.approx(0.278) and out["U"]["source"] == "planes"
+    assert out["U"]["sigma_one_weighting"] == 0.085
+    assert out["N"]["sigma"] == 1.6 and out["N"]["source"] == "gnss"
+    assert weighting_observability(rows, None) is rows

@@ -193,6 +193,10 @@ def test_verdict_rules_one_sentence_each():
                                                       "sigma_settled_m": 0.19}}})
     assert creep.verdict == "weak"
     assert "would still have moved the block by about 1.58 m along E" in creep.reasons[0]
+    # Weighting the faces as units moved the block beyond its sigma: weak, by how much.
+    moved = quality_verdict({**good, "weighting_axes": {"U": {"move_m": 0.28,
+                                                              "sigma_m": 0.085}}})
+    assert moved.verdict == "weak" and "moved the block by 0.28 m along U" in moved.reasons[0]
 
 
 def test_no_number_of_faces_states_the_position_better_than_the_models_common_error():

@@ -844,3 +844,29 @@ def test_a_camera_stated_with_a_wrong_distortion_is_refined_and_the_block_lands(
     held_rms = rms(centre_errors(held.reconstruction, scene.truth))
     assert found_rms < 1.5 * right + 0.002, (found_rms, right)
     assert held_rms > 5 * found_rms, (held_rms, found_rms)
+
+
+def test_a_block_the_faces_weighting_moves_beyond_its_sigma_states_that_move(scene,
+                                                                              monkeypatch):
+    """Where the loop with the faces' errors as unknowns ends 0.3 m above the block every tie
+    point alike placed (here: its result lifted by that much), U's stated sigma is at least
+    that move and the verdict says why it is weak."""
+    from colmap_citymodel.adjust import staged
+
+    real = staged.adjustment_loop
+
+    def lifted(rec, *args, **kwargs):
+        out = real(rec, *args, **kwargs)
+        if kwargs.get("best_when_unsettled") is False:  # the faces' loop
+            out.reconstruction.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(),
+                                                        [0.0, 0.0, 0.3]))
+        return out
+
+    monkeypatch.setattr(staged, "adjustment_loop", lifted)
+    result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    height = result.observability["U"]
+    # The faces' loop itself moves this block by millimetres.
+    assert height["weighting_move_m"] == pytest.approx(0.3, abs=0.01)
+    assert height["sigma"] >= 0.3 > height["sigma_one_weighting"]
+    assert result.quality.verdict == "weak"
+    assert any("moved the block by 0.30 m along U" in r for r in result.quality.reasons)

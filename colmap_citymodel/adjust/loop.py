@@ -83,6 +83,9 @@ class LoopResult:
     # loop would still move the block (m, E N U; record.remaining_move); None if it stopped.
     unsettled_shift: float | None = None
     unsettled_move: np.ndarray | None = None
+    # With the faces' errors as unknowns (adjust.staged): the block's mean move (m, E N U) from
+    # where the loop with every tie point alike placed it; None without that second loop.
+    weighting_move: np.ndarray | None = None
     # The rule that ended the loop: "rms", "camera_shift", "assignment_change",
     # "same_assignment", "cycle", "alternating_planes" or "diverged"; None when the iterations
     # ran out.

@@ -407,6 +407,34 @@ def unsettled_observability(observability_dict: dict, remaining) -> dict:
     return out
 
 
+def weighting_observability(observability_dict: dict, move) -> dict:
+    """The rows of `observability` for a block the faces' errors as unknowns moved by `move`
+    (m, E N U; adjust.loop.LoopResult.weighting_move) from where every tie point alike had
+    placed it. Both weightings estimate the same block under one error model, which expects
+    them within about the stated sigma of each other; a move beyond it along an axis shows
+    errors the model does not describe there (details standing out of the faces to one side),
+    and how the faces are weighted then moves the block by that much: the stated sigma is at
+    least the move, at most GNSS's sigma with its bias (source "gnss" then). The rows keep the
+    move and the sigma before it (`weighting_move_m`, `sigma_one_weighting`)."""
+    if move is None:
+        return observability_dict
+    out = dict(observability_dict)
+    for k, name in enumerate(("E", "N", "U")):
+        row = observability_dict.get(name)
+        sigma = row.get("sigma") if row else None
+        step = abs(float(move[k]))
+        if sigma is None or not step > sigma:
+            continue
+        with_bias = row.get("sigma_gnss_with_bias")
+        if with_bias is not None and step > max(sigma, with_bias):
+            out[name] = {**row, "source": "gnss", "one_plane": False,
+                         "sigma": max(sigma, with_bias)}
+        else:
+            out[name] = {**row, "sigma": step}
+        out[name].update(weighting_move_m=step, sigma_one_weighting=sigma)
+    return out
+
+
 def terrain_shares(per_plane: list[np.ndarray], keys: np.ndarray, terrain_keys: set
                    ) -> list[dict]:
     """Per datum parameter: {} without terrain, else `terrain` (True where the buildings'

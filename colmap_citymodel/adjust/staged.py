@@ -14,6 +14,9 @@ where the model has them, is the robust way there. So the loop runs twice:
 Where the first loop diverged, or its block fails the quality gate (`placed`, given by the
 workflow: a model that does not fit, an ambiguous placement), the block is not on the model,
 and the faces' effects refine a placement, they do not establish one: the second is not run.
+How far the second loop moved the block from the first one's (`LoopResult.weighting_move`) is
+how much the block depends on weighting the faces as units or every point alike; the stated
+sigmas hold at least that (adjust.observability.weighting_observability).
 The second loop starts on the model, at the assignment's final threshold: a scale change
 there is what the faces' positions say, not wrong points pulling, so it does not hold the
 block's scale at the GNSS-only one for a large change (it still holds it where the planes do
@@ -26,6 +29,8 @@ import copy
 import logging
 from collections.abc import Callable
 from dataclasses import replace
+
+import numpy as np
 
 from .correction_loop import every_point_alike
 from .loop import LoopResult, adjustment_loop
@@ -58,9 +63,26 @@ def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
     # Its last iterate is its result: the block objective measures the tie points against the
     # given planes, which the faces' estimated offsets move them off on purpose, so the loop's
     # first iterate, nearest the first loop's block, tends to look best.
+    placed_alike = _centres(first.reconstruction)
     second = adjustment_loop(first.reconstruction, store, priors, effects, objective, all_ids,
                              **kwargs, hold_runaway_scale=False, best_when_unsettled=False)
-    return _joined(first, second)
+    return replace(_joined(first, second),
+                   weighting_move=_mean_move(placed_alike, _centres(second.reconstruction)))
+
+
+def _centres(rec) -> dict[int, np.ndarray]:
+    """The projection centres of `rec`'s posed images, by image id (copies)."""
+    return {int(i): np.array(image.projection_center()) for i, image in rec.images.items()
+            if image.has_pose}
+
+
+def _mean_move(before: dict[int, np.ndarray], after: dict[int, np.ndarray]
+               ) -> np.ndarray | None:
+    """(3,) the mean move (m) of the images posed in both, None without any."""
+    common = [i for i in after if i in before]
+    if not common:
+        return None
+    return np.mean([after[i] - before[i] for i in common], axis=0)
 
 
 def _joined(first: LoopResult, second: LoopResult) -> LoopResult:

@@ -18,7 +18,9 @@ weak: a direction rests on GNSS alone, the radius that holds the stated position
 assign/adjust loop stopped moving the block by more than that sigma (diverged or unsettled),
 or would still have moved it along E, N or U by more than that direction's sigma
 (adjust.record.remaining_move; the stated sigma includes that move,
-adjust.observability.unsettled_observability).
+adjust.observability.unsettled_observability), or weighting the faces as units moved it
+further from where every tie point alike placed it than that sigma
+(adjust.observability.weighting_observability).
 ok: otherwise.
 """
 
@@ -211,6 +213,14 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
         weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
                     f"iterations: it would still have moved the block by about {moves}; the "
                     "stated sigma there includes that move")
+    weighting_axes = metrics.get("weighting_axes") or {}
+    if weighting_axes:
+        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma {row['sigma_m']:.2f} m)"
+                          for axis, row in weighting_axes.items())
+        weak.append("the faces' errors as unknowns moved the block by "
+                    f"{moves} from where every tie point alike placed it: the model's faces "
+                    "err there in a way their error model does not describe, and the stated "
+                    "sigma is at least that move")
     if free:
         weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
                     "GNSS's")
@@ -305,6 +315,11 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         "planes_fix": planes_fix(observability_dict),
         "one_plane": rests_on_one_plane(observability_dict),
         "gnss_alone": gnss_alone(observability_dict),
+        # Where weighting the faces as units moved the block by more than its sigma.
+        "weighting_axes": {axis: {"move_m": row["weighting_move_m"],
+                                  "sigma_m": row["sigma_one_weighting"]}
+                           for axis, row in observability_dict.items()
+                           if row.get("weighting_move_m") is not None},
         # Where the loop would still move the block by more than the planes' sigma.
         "unsettled_axes": {axis: {"move_m": row["remaining_move_m"],
                                   "sigma_settled_m": row["sigma_settled"]}
