@@ -378,6 +378,19 @@ def gnss_only_observability(observability_dict: dict) -> dict:
     return out
 
 
+def _widened(row: dict, sigma: float) -> dict:
+    """A shift's `row` stating `sigma` (m, at least its own), at most GNSS's sigma with its
+    bias (the block's position without the planes; source "gnss" then); inf without GNSS:
+    no sigma, source "none"."""
+    with_bias = row.get("sigma_gnss_with_bias")
+    if with_bias is not None and sigma > max(row["sigma"], with_bias):
+        return {**row, "source": "gnss", "one_plane": False,
+                "sigma": max(row["sigma"], with_bias)}
+    if not np.isfinite(sigma):
+        return {**row, "source": "none", "sigma": None}
+    return {**row, "sigma": float(sigma)}
+
+
 def unsettled_observability(observability_dict: dict, remaining) -> dict:
     """The rows of `observability` for a block whose assignment loop ran out of iterations
     while still moving it: `remaining` (m, E N U; adjust.record.remaining_move) is how far it
@@ -386,25 +399,13 @@ def unsettled_observability(observability_dict: dict, remaining) -> dict:
     sigma with its bias (the block's position without the planes; source "gnss" then). The
     rows keep the remaining move and the planes' sigma (`remaining_move_m`, `sigma_settled`);
     without GNSS a creep that does not slow leaves the shift without a sigma."""
-    if remaining is None:
-        return observability_dict
-    out = dict(observability_dict)
-    for k, name in enumerate(("E", "N", "U")):
-        row = observability_dict.get(name)
-        sigma = row.get("sigma") if row else None
-        if sigma is None or not remaining[k] > 0.0:
-            continue
-        inflated = float(np.hypot(sigma, remaining[k]))
-        with_bias = row.get("sigma_gnss_with_bias")
-        if with_bias is not None and inflated > max(sigma, with_bias):
-            out[name] = {**row, "source": "gnss", "one_plane": False,
-                         "sigma": max(sigma, with_bias)}
-        else:
-            out[name] = {**row, "sigma": inflated if np.isfinite(inflated) else None}
-            if out[name]["sigma"] is None:
-                out[name]["source"] = "none"
-        out[name].update(remaining_move_m=float(remaining[k]), sigma_settled=sigma)
-    return out
+    def widen(row: dict, sigma: float, rest: float) -> dict | None:
+        if not rest > 0.0:
+            return None
+        return {**_widened(row, float(np.hypot(sigma, rest))), "remaining_move_m": rest,
+                "sigma_settled": sigma}
+
+    return _shift_rows(observability_dict, remaining, widen)
 
 
 def weighting_observability(observability_dict: dict, move) -> dict:
@@ -416,22 +417,25 @@ def weighting_observability(observability_dict: dict, move) -> dict:
     and how the faces are weighted then moves the block by that much: the stated sigma is at
     least the move, at most GNSS's sigma with its bias (source "gnss" then). The rows keep the
     move and the sigma before it (`weighting_move_m`, `sigma_one_weighting`)."""
-    if move is None:
+    def widen(row: dict, sigma: float, step: float) -> dict | None:
+        if not step > sigma:
+            return None
+        return {**_widened(row, step), "weighting_move_m": step, "sigma_one_weighting": sigma}
+
+    return _shift_rows(observability_dict, None if move is None else np.abs(move), widen)
+
+
+def _shift_rows(observability_dict: dict, values, widen) -> dict:
+    """`observability` with each shift's row (E, N, U) that states a sigma replaced by
+    `widen(row, sigma, value)` where that gives one; unchanged without `values`."""
+    if values is None:
         return observability_dict
     out = dict(observability_dict)
     for k, name in enumerate(("E", "N", "U")):
         row = observability_dict.get(name)
-        sigma = row.get("sigma") if row else None
-        step = abs(float(move[k]))
-        if sigma is None or not step > sigma:
-            continue
-        with_bias = row.get("sigma_gnss_with_bias")
-        if with_bias is not None and step > max(sigma, with_bias):
-            out[name] = {**row, "source": "gnss", "one_plane": False,
-                         "sigma": max(sigma, with_bias)}
-        else:
-            out[name] = {**row, "sigma": step}
-        out[name].update(weighting_move_m=step, sigma_one_weighting=sigma)
+        if row and row.get("sigma") is not None:
+            widened = widen(row, row["sigma"], float(values[k]))
+            out[name] = widened if widened is not None else row
     return out
 
 
