@@ -204,23 +204,9 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
                       f"significantly better (share "
                       f"{height['other_share']:.2f} against {height['here_share']:.2f}, "
                       f"p {height['p']:.1e})")
-    unsettled_axes = metrics.get("unsettled_axes") or {}
-    free = [axis for axis in metrics.get("gnss_alone") or [] if axis not in unsettled_axes]
-    if unsettled_axes:
-        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma without that "
-                          f"{row['sigma_settled_m']:.2f} m)"
-                          for axis, row in unsettled_axes.items())
-        weak.append(f"the assignment loop had not settled after {metrics['loop_iterations']} "
-                    f"iterations: it would still have moved the block by about {moves}; the "
-                    "stated sigma there includes that move")
-    weighting_axes = metrics.get("weighting_axes") or {}
-    if weighting_axes:
-        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma {row['sigma_m']:.2f} m)"
-                          for axis, row in weighting_axes.items())
-        weak.append("the faces' errors as unknowns moved the block by "
-                    f"{moves} from where every tie point alike placed it: the model's faces "
-                    "err there in a way their error model does not describe, and the stated "
-                    "sigma is at least that move")
+    weak += moved_reasons(metrics)
+    free = [axis for axis in metrics.get("gnss_alone") or []
+            if axis not in (metrics.get("unsettled_axes") or {})]
     if free:
         weak.append(f"only GNSS fixes {', '.join(free)}: there the position is as good as "
                     "GNSS's")
@@ -244,6 +230,29 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
                     "than the stated sigma")
     verdict = "failed" if failed else "weak" if weak else "ok"
     return QualityReport(verdict, failed + weak, metrics)
+
+
+def moved_reasons(metrics: dict) -> list[str]:
+    """The directions whose stated sigma holds a move of the block the error model does not
+    (measure_quality's `unsettled_axes`, `weighting_axes`), each a reason for "weak"."""
+    reasons = []
+    unsettled_axes = metrics.get("unsettled_axes") or {}
+    if unsettled_axes:
+        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma without that "
+                          f"{row['sigma_settled_m']:.2f} m)"
+                          for axis, row in unsettled_axes.items())
+        reasons.append(f"the assignment loop had not settled after "
+                       f"{metrics['loop_iterations']} iterations: it would still have moved "
+                       f"the block by about {moves}; the stated sigma there includes that move")
+    weighting_axes = metrics.get("weighting_axes") or {}
+    if weighting_axes:
+        moves = ", ".join(f"{row['move_m']:.2f} m along {axis} (its sigma {row['sigma_m']:.2f} m)"
+                          for axis, row in weighting_axes.items())
+        reasons.append("the faces' errors as unknowns moved the block by "
+                       f"{moves} from where every tie point alike placed it: the model's faces "
+                       "err there in a way their error model does not describe, and the stated "
+                       "sigma is at least that move")
+    return reasons
 
 
 # -- the figures -----------------------------------------------------------------------------
