@@ -308,6 +308,8 @@ class _Loop:
                 self.reusable = None  # the next problem has other priors
 
     def _first_datum(self) -> None:
+        """The first assignment's observability, the datum's and the GNSS offset's checks,
+        and the priors that hold what the planes leave to GNSS (height, scale)."""
         priors, options = self.priors, self.options
         self.observability_before = assigned_observability(
             self.points, self.assignment, self.current, priors, self.rec, options)
@@ -442,6 +444,8 @@ class _Loop:
         return self._scale_ran_away(iteration) or self._shift_ran_away(iteration)
 
     def _scale_ran_away(self, iteration: int) -> bool:
+        """The solve changed the scale beyond what GNSS allows: held from now on, and the
+        solve undone (True) where the change was far beyond it."""
         if self.before_solve is None:
             return False
         gnss_only, priors, scale_sigma = self.gnss_only, self.priors, self.scale_sigma
@@ -465,6 +469,8 @@ class _Loop:
         return False
 
     def _shift_ran_away(self, iteration: int) -> bool:
+        """The solve moved the block away from GNSS along an axis further than GNSS allows:
+        undone (True), that axis held from now on."""
         if not self.guard_shift:
             return False
         priors = self.priors
@@ -560,6 +566,7 @@ class _Loop:
         return self._alternates(iteration)
 
     def _alternates(self, iteration: int) -> bool:
+        """The planes alternated between two sets with small moves: the loop stops (True)."""
         iterations, best = self.iterations, self.best
         if not (alternating(self.face_sets) and max(it.camera_shift for it in iterations[-3:])
                 < self.o_w.alternating_planes_shift):
