@@ -45,7 +45,7 @@ from .faces import (estimate_sigma_face, face_offsets, outlier_factors, sigma_fa
                     snooped_faces)
 from .observability import assigned_observability, left_to_gnss, offset_refusal
 from .problem import LEVEL_FREE, BaselinePriors, HybridProblem, PosePriors
-from .record import IterationRecord, cameras_settled, remaining_move
+from .record import IterationRecord, cameras_settled, mean_move, remaining_move
 from .scale import (SCALE_RUNAWAY_SIGMAS, SCALE_UNDO_SIGMAS, baseline_priors, level_prior,
                     scale_change, shift_runaway)
 from .steps import RoofObservers, align_block_to_planes, model_after_solve
@@ -507,9 +507,8 @@ class _Loop:
         same = centres_after.shape == self.centres_before.shape
         moved = float(np.max(np.linalg.norm(centres_after - self.centres_before, axis=1),
                              initial=0.0)) if same else float("inf")
-        block_move = (tuple(float(v) for v in np.mean(centres_after - self.centres_before,
-                                                      axis=0))
-                      if same and len(centres_after) else None)
+        move = mean_move(self.centres_before, centres_after)
+        block_move = tuple(float(v) for v in move) if move is not None else None
         self.iterations.append(IterationRecord(
             iteration, self.threshold, assignment.num_assigned, assignment.num_faces,
             dict(assignment.rejected_faces), len(self.outliers), self.robust_report,

@@ -49,6 +49,14 @@ def cameras_settled(iterations: list[IterationRecord], tolerance: float) -> bool
     return len(iterations) > 2 and max(it.camera_shift for it in iterations[-2:]) < tolerance
 
 
+def mean_move(before: np.ndarray, after: np.ndarray) -> np.ndarray | None:
+    """(3,) the cameras' mean move (m) between two `camera_centres` of one block; None where
+    the registered images differ or there are none."""
+    if before.shape != after.shape or not len(after):
+        return None
+    return np.mean(after - before, axis=0)
+
+
 #: Steps of a creep (moves along an axis with one sign) that its rate is estimated from: two
 #: ratios of successive steps, the fewest that tell a slowing creep from a noisy one.
 MIN_CREEP_STEPS = 3

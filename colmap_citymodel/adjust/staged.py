@@ -30,10 +30,10 @@ import logging
 from collections.abc import Callable
 from dataclasses import replace
 
-import numpy as np
-
+from ..block.reconstruction import camera_centres
 from .correction_loop import every_point_alike
 from .loop import LoopResult, adjustment_loop
+from .record import mean_move
 
 logger = logging.getLogger(__name__)
 
@@ -63,26 +63,11 @@ def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
     # Its last iterate is its result: the block objective measures the tie points against the
     # given planes, which the faces' estimated offsets move them off on purpose, so the loop's
     # first iterate, nearest the first loop's block, tends to look best.
-    placed_alike = _centres(first.reconstruction)
+    placed_alike = camera_centres(first.reconstruction)  # the second loop moves this block
     second = adjustment_loop(first.reconstruction, store, priors, effects, objective, all_ids,
                              **kwargs, hold_runaway_scale=False, best_when_unsettled=False)
-    return replace(_joined(first, second),
-                   weighting_move=_mean_move(placed_alike, _centres(second.reconstruction)))
-
-
-def _centres(rec) -> dict[int, np.ndarray]:
-    """The projection centres of `rec`'s posed images, by image id (copies)."""
-    return {int(i): np.array(image.projection_center()) for i, image in rec.images.items()
-            if image.has_pose}
-
-
-def _mean_move(before: dict[int, np.ndarray], after: dict[int, np.ndarray]
-               ) -> np.ndarray | None:
-    """(3,) the mean move (m) of the images posed in both, None without any."""
-    common = [i for i in after if i in before]
-    if not common:
-        return None
-    return np.mean([after[i] - before[i] for i in common], axis=0)
+    return replace(_joined(first, second), weighting_move=mean_move(
+        placed_alike, camera_centres(second.reconstruction)))
 
 
 def _joined(first: LoopResult, second: LoopResult) -> LoopResult:
