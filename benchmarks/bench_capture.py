@@ -28,8 +28,15 @@ Writes benchmarks/results/capture.md and the `capture` section of
 benchmarks/results/scenarios.json (runs keyed block/bias/seed, the runs started at the truth
 keyed block/model under `at_truth`; a run with --cases or --quick replaces only its own runs).
 
+The drive's runs share one realisation of the given model's errors, and where refine can land
+is that realisation's (the run started at the truth). `--realisations 1 3` adds the same runs on
+the drive simulated at other seeds (`drive-seed1`, ...: other plane errors of the given model,
+other SfM and DTM noise; the workspaces `benchmarks/model_floor.py --seeds` uses): how often
+capture lands within the tolerance where the model lets a block land there, and where not.
+
     .venv/bin/python benchmarks/bench_capture.py [--quick] [--cases demo drive]
-        [--levels 1 2 4 8 12] [--seeds 5] [--at_truth_only] [--tables_only]
+        [--levels 1 2 4 8 12] [--seeds 5] [--realisations N ...] [--at_truth_only]
+        [--tables_only]
 """
 
 from __future__ import annotations
@@ -72,7 +79,11 @@ STATED_SIGMA = (3.0, 3.0, 5.0)
 
 def build_block(case: str) -> tuple[Path, dict]:
     """The block's workspace: the robustness workspace of the same toml when there is one
-    (workspaces/generated/robust/), else workspaces/generated/capture/<case>."""
+    (workspaces/generated/robust/, "drive-seed3": the drive simulated at seed 3), else
+    workspaces/generated/capture/<case>."""
+    if "-seed" in case:
+        name, seed = case.split("-seed")
+        return build_robust_workspace(name, seed=int(seed))
     toml = Path(CASES[case])
     if toml.name.startswith("robust_"):
         return build_robust_workspace(toml.name.removeprefix("robust_").removesuffix(".toml"))
@@ -223,7 +234,8 @@ def at_truth_table(at_truth: dict) -> list[str]:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
-    parser.add_argument("--cases", nargs="+", default=list(CASES), choices=list(CASES))
+    parser.add_argument("--cases", nargs="*", default=list(CASES), choices=list(CASES),
+                        help="blocks (none with --realisations: only those)")
     parser.add_argument("--levels", nargs="+", type=float, default=None,
                         help=f"bias magnitudes in metres (default {LEVELS})")
     parser.add_argument("--seeds", type=int, default=None,
@@ -232,6 +244,9 @@ def main() -> None:
                         help=f"biases {QUICK_LEVELS} m and {QUICK_SEEDS} seeds")
     parser.add_argument("--at_truth_only", action="store_true",
                         help="only the runs started at the truth (no GNSS bias runs)")
+    parser.add_argument("--realisations", nargs="+", type=int, default=[],
+                        help="also the drive simulated at these seeds (other realisations of "
+                             "the given model's errors)")
     parser.add_argument("--tables_only", action="store_true",
                         help="only rewrite capture.md from results/scenarios.json")
     args = parser.parse_args()
@@ -243,7 +258,8 @@ def main() -> None:
     RESULTS.mkdir(parents=True, exist_ok=True)
     json_path = RESULTS / "scenarios.json"
     command = " ".join(["    .venv/bin/python benchmarks/bench_capture.py", *sys.argv[1:]])
-    for case in [] if args.tables_only else args.cases:
+    cases = args.cases + [f"drive-seed{n}" for n in args.realisations]
+    for case in [] if args.tables_only else cases:
         start = time.perf_counter()
         workspace, sim = build_block(case)
         print(f"{case}: workspace ready in {time.perf_counter() - start:.0f} s "
@@ -288,7 +304,9 @@ def main() -> None:
         + section.get("settings", {}).get("command", "    .venv/bin/python "
                                           "benchmarks/bench_capture.py") + "\n\nBlocks: "
         "`demo` (colmap_citymodel/simulate/demo.toml, UAV along a procedural street, 60 images) and `drive` "
-        "(workspaces/robust_drive.toml, forward-looking vehicle camera, 40 images); each mapped "
+        "(workspaces/robust_drive.toml, forward-looking vehicle camera, 40 images); "
+        "`drive-seedN`: the same drive simulated at seed N (another realisation of the given "
+        "model's plane errors, of the SfM and the DTM noise). Each mapped "
         "by COLMAP once. Per run: GNSS = truth + white noise 3/3/5 m + a constant bias of the "
         "given length in a direction drawn from the seed (stated sigma 3/3/5 m). RMS: camera "
         "centres, estimated - simulated truth (m). refine: refine's result with its default "

@@ -1089,10 +1089,16 @@ def main() -> None:
     parser.add_argument("--gnss_sigma", nargs=3, type=float, default=[3.0, 3.0, 5.0])
     parser.add_argument("--no_refine", action="store_true",
                         help="leave out the fit of refine's block against the true one")
+    parser.add_argument("--summary_only", action="store_true",
+                        help="only rewrite the summary over the realisations at the end of "
+                             "the results' markdown from their json (after a run with --seeds)")
     parser.add_argument("--results", default="model_floor",
                         help="name of the results (benchmarks/results/NAME.md and .json, and "
                              "the section of scenarios.json)")
     args = parser.parse_args()
+    if args.summary_only:
+        write_summary(args.results)
+        return
     runs, table = Runs(), list(FLOOR_TABLE)
     print("\n".join(table))
     for case in with_seeds(args.cases, args.seeds):
@@ -1120,6 +1126,8 @@ def main() -> None:
         if case in floors:
             floors[case]["reassigned_from_truth_3d"] = {k: v["rms_3d"] for k, v in found.items()}
     (RESULTS / f"{args.results}.json").write_text(json.dumps(floors, indent=1) + "\n")
+    if args.seeds:
+        write_summary(args.results)
 
 
 def with_seeds(cases: list[str], seeds: list[int]) -> list[str]:
@@ -1181,6 +1189,92 @@ def realisation_lines(args: argparse.Namespace, runs: Runs) -> list[str]:
         lines.append(f"| {case} | {refined['3d']:.3f} | {refined['plan']:.3f} | "
                      + " | ".join(cells + ratios) + " |")
     return lines + [""]
+
+
+SUMMARY_HEADER = "## Refine against its floors over the realisations"
+
+
+def realisation_summary(floors: dict, preferences: dict) -> list[str]:
+    """model_floor.md's summary over the realisations of each case (`floors`: the results'
+    json, `preferences`: scenarios.json's `<results>_preference`, which holds each run's
+    verdict): the medians of refine and of the planes-alone floors (3D and plan), and how many
+    realisations lie within AT_FLOOR_FACTOR of the lower floor of each pair. One realisation's
+    floor is one draw of the model's errors, and so is refine's result: the medians compare
+    the method with the floor over the draws, where a single realisation's ratio scatters
+    with both. A realisation refine refused ("failed", the GNSS-only block handed back) is
+    counted apart, not in the medians."""
+    cases: dict[str, list[str]] = {}
+    for name in floors:
+        cases.setdefault(name.split("/")[-1].split("-seed")[0], []).append(name)
+    lines = [
+        SUMMARY_HEADER, "",
+        "Medians over each case's realisations (its own seed and the others above) of "
+        "refine's camera-centre RMS and of its planes-alone floors (the lower of per point "
+        "and per face, at the window, on the points' own surfaces, and there with each point "
+        "weighted by its own precision as the adjustment weighs it: `precision`), 3D and in "
+        "plan (E, N), m; `within`: realisations whose refine lies within "
+        f"{AT_FLOOR_FACTOR}x that floor; `refused`: realisations whose verdict was \"failed\" "
+        "(the GNSS-only block handed back; left out of the medians):", "",
+        "| case | realisations | refused | refine: 3D | plan | window floor: 3D | plan "
+        "| own-surfaces floor: 3D | plan | precision: 3D | plan "
+        "| refine / window floor: 3D | plan | refine / own-surfaces floor: 3D | plan "
+        "| refine / precision: 3D | plan "
+        "| within: window (3D / plan) | own surfaces | precision |",
+        "|---" * 20 + "|"]
+    for case, names in cases.items():
+        kept = [n for n in names
+                if (preferences.get(n) or {}).get("verdict") != "failed"]
+        if len(names) < 2 or not kept:
+            continue
+        floor_keys = ("w3", "wp", "o3", "op", "p3", "pp")
+        values = {key: [] for key in ("r3", "rp", *floor_keys)}
+        within = {key: 0 for key in floor_keys}
+        for name in kept:
+            row = floors[name]
+            axes = row["per_axis"]
+            columns = axes["columns"]
+
+            def axis(column: str, ax: str) -> float:
+                return axes[ax][columns.index(column)]
+
+            refine = [axis("refine", ax) for ax in "ENU"]
+            window = [[axis(c, ax) for ax in "ENU"]
+                      for c in ("floor_planes_per_point", "floor_planes_per_face")]
+            own, precise = ([[row[f"floor_own_surfaces_{w}_axes"][ax] for ax in "ENU"]
+                             for w in pair] for pair in (("per_point", "per_face"),
+                                                         ("precision_per_point",
+                                                          "precision_per_face")))
+            got = {"r3": np.linalg.norm(refine), "rp": np.hypot(*refine[:2]),
+                   "w3": min(np.linalg.norm(f) for f in window),
+                   "wp": min(np.hypot(*f[:2]) for f in window),
+                   "o3": min(np.linalg.norm(f) for f in own),
+                   "op": min(np.hypot(*f[:2]) for f in own),
+                   "p3": min(np.linalg.norm(f) for f in precise),
+                   "pp": min(np.hypot(*f[:2]) for f in precise)}
+            for key, value in got.items():
+                values[key].append(float(value))
+            for key in within:
+                within[key] += got["r" + key[1]] <= AT_FLOOR_FACTOR * got[key]
+        m = {key: float(np.median(v)) for key, v in values.items()}
+        n = len(kept)
+        lines.append(
+            f"| {case} | {len(names)} | {len(names) - n} | {m['r3']:.3f} | {m['rp']:.3f} | "
+            + " | ".join(f"{m[k]:.3f}" for k in floor_keys) + " | "
+            + " | ".join(f"{m['r' + k[1]] / m[k]:.2f}" for k in floor_keys) + " | "
+            + " | ".join(f"{within[a]} / {within[b]} of {n}"
+                         for a, b in (("w3", "wp"), ("o3", "op"), ("p3", "pp"))) + " |")
+    return lines + [""]
+
+
+def write_summary(results: str) -> None:
+    """Rewrite the summary over the realisations at the end of benchmarks/results/RESULTS.md
+    from RESULTS.json and scenarios.json, without measuring anything again."""
+    floors = json.loads((RESULTS / f"{results}.json").read_text())
+    everything = json.loads((RESULTS / "scenarios.json").read_text())
+    preferences = everything.get(f"{results}_preference", {})
+    path = RESULTS / f"{results}.md"
+    text = path.read_text().split(SUMMARY_HEADER)[0].rstrip("\n")
+    path.write_text(text + "\n\n" + "\n".join(realisation_summary(floors, preferences)))
 
 
 def own_surface_summary(own: dict | None) -> dict:
