@@ -327,9 +327,10 @@ def checkpoint_errors(rec: pycolmap.Reconstruction, workspace: Path, origin: np.
 
 
 def refine_with_quality(workspace: Path, gnss=None, assignment: str | None = None,
-                        model: str | None = None) -> dict:
+                        model: str | None = None, gnss_bias: str | None = None) -> dict:
     """refine() on the workspace (GNSS from its database unless given; `assignment`: the
-    method, None for refine's default): the refined and the
+    method, None for refine's default; `gnss_bias` "auto": as refine --gnss_bias auto, the
+    GNSS's constant bias estimated): the refined and the
     GNSS-only reconstruction (local frame), their origin, the verdict and its reasons. A refine
     that raises gives verdict "error" and no refined reconstruction. Without a GNSS-only result
     from refine, the GNSS-only block is the 7-parameter fit to GNSS plus the bundle adjustment
@@ -344,6 +345,8 @@ def refine_with_quality(workspace: Path, gnss=None, assignment: str | None = Non
     options.precision.covariances = "off"
     if assignment is not None:
         options.assignment.method = assignment
+    if gnss_bias == "auto":
+        options.adjustment.gnss_offset = "all"
     dtm = sorted((workspace / "dtm").glob("*.tif"))  # a scenario with `dtm = true`
     if dtm:
         options.terrain.files = tuple(str(p) for p in dtm)
