@@ -372,20 +372,22 @@ def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneS
                  priors, objective: BlockObjective, options: RefineOptions, *, straight: bool):
     """The coarse alignment (align.coarse) of a GNSS-registered block: the GNSS-only block is
     off the model by the GNSS error (metres, mostly a bias) that a 2 m assignment threshold
-    cannot bridge, so the shift (and, along a straight line, the roll) that puts the tie points
-    on the model is searched before any of them is assigned. `rec` is moved when that lowers
+    cannot bridge, so the shift (and the heading within GNSS's heading sigmas; along a straight
+    line, the roll) that puts the tie points on the model is searched before any of them is
+    assigned. `rec` is moved when that lowers
     the block objective. `points`: the tie points that may lie on the model (not the check
     points). Returns (the search's result, whether `rec` moved)."""
-    from .align.coarse import coarse_alignment
+    from .align.coarse import coarse_alignment, heading_sigma_deg
 
     # The images with GNSS fixed the georegistration; if they lie on a line (`straight`), its
     # rotation about that line came from the cameras' upright orientation and is searched again.
     centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
     up, view = camera_up_and_view(rec, priors.image_ids)
-    coarse = coarse_alignment(points, centres, up, view, store, surface,
-                              np.median(priors.sigmas, axis=0), straight,
+    sigmas = np.median(priors.sigmas, axis=0)
+    coarse = coarse_alignment(points, centres, up, view, store, surface, sigmas, straight,
                               options.workflow.coarse_search_sigmas,
-                              free_height=bool(priors.free_offset_axes[2]))
+                              free_height=bool(priors.free_offset_axes[2]),
+                              heading_sigma=heading_sigma_deg(centres, sigmas))
     if objective(rec, coarse.sim3) < objective(rec):
         rec.transform(coarse.sim3)
         return coarse, True

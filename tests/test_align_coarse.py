@@ -40,3 +40,45 @@ def test_translation_search_leaves_axes_where_gnss_is_better_than_its_grid(stree
     # an axis with street GNSS is searched beside a held one
     mixed = search_translation(points - offset, surface, np.array([0.05, 3.0, 0.1]))
     assert mixed.shift[0] == 0.0 and mixed.shift[2] == 0.0 and abs(mixed.shift[1] - 0.6) < 0.25
+
+
+def test_heading_search_turns_a_block_whose_gnss_heading_is_degrees_off(street_scene):
+    """The true block turned by 2.5 deg about the vertical through its cameras (GNSS's heading
+    over a short block: its heading sigma here is about 1 deg) and shifted by 2 m: the
+    translation search alone cannot undo a turn, which puts the block's far ends a metre off
+    across the street; with GNSS's heading sigma the walls' azimuths turn it back and the
+    block lands within the search's grid of the truth. A heading GNSS fixes to a fraction of
+    the grid (RTK) is left alone."""
+    from colmap_citymodel.align.coarse import coarse_alignment, heading_sigma_deg, rotation_about
+    from colmap_citymodel.block.reconstruction import camera_up_and_view, camera_centres
+
+    rec = street_scene.truth
+    points = np.array([p.xyz for p in rec.points3D.values()])
+    centres = camera_centres(rec).reshape(-1, 3)
+    up, view = camera_up_and_view(rec)
+    centre = centres.mean(0)
+    turn = rotation_about(np.array([0.0, 0.0, 1.0]), np.radians(2.5))
+    shift = np.array([1.5, -1.0, 0.5])
+
+    def moved(x):
+        return (x - centre) @ turn.T + centre + shift
+
+    surface = SurfaceDistance(street_scene.store)
+    sigmas = np.array([3.0, 3.0, 5.0])
+    heading_sigma = heading_sigma_deg(moved(centres), sigmas)
+    assert 0.2 < heading_sigma < 2.5
+    args = (moved(points), moved(centres), up @ turn.T, view @ turn.T, street_scene.store,
+            surface, sigmas, False)
+
+    def error(alignment):
+        sim3 = alignment.sim3
+        back = moved(points) @ np.asarray(sim3.rotation.matrix()).T + np.asarray(sim3.translation)
+        return float(np.sqrt(np.mean(np.sum((back - points) ** 2, axis=1))))
+
+    turned = coarse_alignment(*args, heading_sigma=heading_sigma)
+    assert turned.heading_deg == pytest.approx(-2.5, abs=0.3)
+    assert error(turned) < 0.3
+    kept = coarse_alignment(*args)
+    assert kept.heading_deg is None and error(kept) > 2 * error(turned)
+    rtk = coarse_alignment(*args, heading_sigma=0.05)
+    assert rtk.heading_deg is None

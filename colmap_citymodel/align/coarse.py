@@ -8,6 +8,11 @@ searches close that gap before any tie point is assigned:
   The planes found in the tie points (RANSAC) must have the orientations of model faces, which
   does not depend on where the block is: the roll that best matches the two sets of normals,
   with the cameras kept upright (their image "up" above the horizon), is searched on a 1 deg grid.
+- `search_heading`: GNSS fixes the block's heading only to its sigma over the block's extent:
+  degrees over a short block or a street drive (3 m over 40 images spread along 90 m: about
+  1 deg), which puts its ends metres off across the street. The tie points' walls must have
+  the azimuths of model walls wherever the block is: the rotation about the vertical that
+  matches them, within a window of GNSS's heading sigmas, is a candidate like the roll.
 - `search_translation`: the translation that puts the most tie points near a model surface,
   within a box that covers the GNSS uncertainty (+- 8 sigma by default), coarse to fine
   (kernel radius 2 m -> 1 m -> 0.4 m), with a mild, heavy-tailed penalty in units of the GNSS
@@ -28,7 +33,7 @@ cell, exact in double precision below that radius).
 from __future__ import annotations
 
 import logging
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -422,17 +427,50 @@ def height_search_range(points: np.ndarray, store: PlaneStore,
 
 @dataclass
 class CoarseAlignment:
-    """The similarity (rotation about the flight line, then a shift) that coarse alignment
-    applies, and what decided it."""
+    """The similarity (rotation about the vertical and about the flight line, then a shift)
+    that coarse alignment applies, and what decided it."""
 
     sim3: "pycolmap.Sim3d"  # noqa: F821
     translation: TranslationSearch
     roll_deg: float | None  # None: no roll search (the flight line is not straight)
     roll_candidates: list[dict]
+    heading_deg: float | None = None  # None: the heading GNSS gave was kept
+    heading_candidates: list[dict] = field(default_factory=list)
 
     def todict(self) -> dict:
         return {"translation": self.translation.todict(), "roll_deg": self.roll_deg,
-                "roll_candidates": self.roll_candidates, "seconds": self.translation.seconds}
+                "roll_candidates": self.roll_candidates, "heading_deg": self.heading_deg,
+                "heading_candidates": self.heading_candidates,
+                "seconds": self.translation.seconds}
+
+
+#: The heading search's window is this many of GNSS's heading sigmas on either side, at
+#: most HEADING_WINDOW_MAX_DEG: walls of a city stand mostly at right angles to each other, so
+#: a window of 45 deg or more would let a block turn onto the perpendicular walls.
+HEADING_WINDOW_SIGMAS = 8.0
+HEADING_WINDOW_MAX_DEG = 30.0
+#: Below this window (deg) GNSS fixes the heading better than the normals' 1 deg grid can.
+HEADING_WINDOW_MIN_DEG = 1.0
+
+
+def heading_sigma_deg(centres: np.ndarray, sigmas: np.ndarray) -> float:
+    """GNSS's sigma (deg) of a block's heading: its horizontal position sigma (the mean of
+    the E and N of `sigmas`, (3,)) over the root of the cameras' summed squared horizontal
+    distances from their centre (`centres`, (N, 3)), as for the scale
+    (block.priors.scale_sigma_from_gnss). A bias common to all positions turns nothing."""
+    spread = centres[:, :2] - centres[:, :2].mean(0)
+    sigma = float(np.mean(np.asarray(sigmas, float)[:2]))
+    return float(np.degrees(sigma / np.sqrt(max(float(np.sum(spread ** 2)), 1e-12))))
+
+
+def search_heading(points: np.ndarray, centre: np.ndarray, store: PlaneStore,
+                   camera_up: np.ndarray, camera_view: np.ndarray, window_deg: float,
+                   threads: int = 0) -> RollSearch | None:
+    """The rotation about the vertical through `centre`, within +- `window_deg`, that makes
+    the tie point planes' normals model normals (search_roll about the vertical axis; cameras
+    stay upright under it). None when the tie points hold no plane."""
+    return search_roll(points, np.array([0.0, 0.0, 1.0]), centre, store, camera_up,
+                       camera_view, window_deg=window_deg, threads=threads)
 
 
 #: Cameras that look along a straight flight line fix the roll about it to about their
@@ -445,14 +483,17 @@ MIN_ROLL_GAIN = 0.05
 
 def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndarray,
                      camera_view: np.ndarray, store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
-                     straight: bool, search_sigmas: float = 8.0, free_height: bool = False
-                     ) -> CoarseAlignment:
-    """Roll about a straight flight line (when `straight`) and shift of the whole block.
+                     straight: bool, search_sigmas: float = 8.0, free_height: bool = False,
+                     heading_sigma: float | None = None) -> CoarseAlignment:
+    """Heading, roll about a straight flight line (when `straight`) and shift of the whole
+    block.
 
-    Each roll candidate (none, and the one `search_roll` prefers) gets its own translation
-    search; the pair with the best search objective wins, so a roll is kept only when it puts
-    more tie points on the model. `free_height`: the GNSS heights' level is unknown, the
-    height is searched over `height_search_range`.
+    Each rotation candidate (none; the heading `search_heading` prefers within
+    HEADING_WINDOW_SIGMAS of `heading_sigma`, GNSS's heading sigma in deg, when given; and on
+    each of these the roll `search_roll` prefers) gets its own translation search; the one
+    with the best search objective wins, so a rotation is kept only when it puts more tie
+    points on the model. `free_height`: the GNSS heights' level is unknown, the height is
+    searched over `height_search_range`.
     """
     import pycolmap
 
@@ -463,44 +504,92 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
             "no tie points are left after the bundle adjustment with the GNSS positions (step "
             "2) eliminated their observations: are some GNSS positions far off the flight (see "
             "the outlier warning of the georegistration)?")
-    candidates = [(None, np.eye(3), np.zeros(3))]
-    found: list[dict] = []
+    centre = centres.mean(0)
+    headings, heading_found = _heading_candidates(points, centre, store, camera_up, camera_view,
+                                                  heading_sigma, surface.threads)
+    candidates, found = list(headings), []
     if straight:
-        centre = centres.mean(0)
-        axis = np.linalg.svd(centres - centre)[2][0]
-        # Cameras looking along the line (a vehicle) hold the roll with their horizontal image
-        # x axis (georegistration used it): the planes may only fine-tune it. Cameras looking
-        # sideways give no such cue: the whole circle is searched.
-        right = np.cross(camera_up, camera_view)
-        cue = float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1)))
-        window = ROLL_WINDOW_DEG / cue if cue > 0.5 else 180.0
-        roll = search_roll(points, axis, centre, store, camera_up, camera_view,
-                           window_deg=window, threads=surface.threads)
-        if roll is not None:
-            found.append({"roll_deg": float(np.degrees(roll.angle)), "normal_score": roll.score,
-                          "normal_score_unrotated": roll.score_at_zero,
-                          "tie_point_planes": roll.num_planes})
-            if roll.score > roll.score_at_zero + MIN_ROLL_GAIN:
-                rotation = roll.rotation
-                candidates.append((float(np.degrees(roll.angle)), rotation,
-                                   centre - rotation @ centre))
+        for heading_deg, turn in headings:
+            roll = _roll_candidate(points, centres, camera_up, camera_view, store, surface,
+                                   turn, found, heading_deg)
+            if roll is not None:
+                candidates.append(roll)
     best = None
-    for roll_deg, rotation, offset in candidates:
+    for rotation_candidate in candidates:
+        heading_deg, rotation = rotation_candidate[-2:]
+        roll_deg = rotation_candidate[0] if len(rotation_candidate) == 3 else None
+        offset = centre - rotation @ centre
         moved = points @ rotation.T + offset
         height_range = height_search_range(moved, store) if free_height else None
         search = search_translation(moved, surface, sigmas, search_sigmas,
                                     candidates=5 if free_height else 3,
                                     height_range=height_range)
-        for entry in found:
-            if roll_deg is not None and entry["roll_deg"] == roll_deg:
+        for entry in found + heading_found:
+            if (entry.get("roll_deg") == roll_deg if roll_deg is not None
+                    else "roll_deg" not in entry) \
+                    and entry.get("heading_deg", 0.0) == (heading_deg or 0.0):
                 entry["search_value"] = search.value
-        if roll_deg is None and found:
-            found.append({"roll_deg": 0.0, "search_value": search.value})
-        if best is None or search.value > best[3].value:
-            best = (roll_deg, rotation, offset, search)
-    roll_deg, rotation, offset, search = best
+        if roll_deg is None and heading_deg is None and (found or heading_found):
+            found.append({"roll_deg": 0.0, "heading_deg": 0.0, "search_value": search.value})
+        if best is None or search.value > best[4].value:
+            best = (roll_deg, heading_deg, rotation, offset, search)
+    roll_deg, heading_deg, rotation, offset, search = best
+    if heading_deg is not None:
+        logger.info("turned the block by %.1f deg about the vertical (its walls parallel to "
+                    "model walls; GNSS's heading sigma %.1f deg)", heading_deg, heading_sigma)
     if roll_deg is not None:
         logger.info("flight line nearly straight: rotated the block by %.1f deg about it (tie "
                     "point planes parallel to model faces)", roll_deg)
     sim3 = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rotation), offset + search.shift)
-    return CoarseAlignment(sim3, search, roll_deg, found)
+    return CoarseAlignment(sim3, search, roll_deg, found, heading_deg, heading_found)
+
+
+def _heading_candidates(points, centre, store, camera_up, camera_view, heading_sigma,
+                        threads) -> tuple[list[tuple], list[dict]]:
+    """The heading candidates of coarse_alignment: [(None, identity)] and, where the walls
+    match the model's better turned (by MIN_ROLL_GAIN), (heading deg, its rotation); and the
+    record of the search."""
+    out = [(None, np.eye(3))]
+    if heading_sigma is None:
+        return out, []
+    window = min(HEADING_WINDOW_SIGMAS * heading_sigma, HEADING_WINDOW_MAX_DEG)
+    if window < HEADING_WINDOW_MIN_DEG:
+        return out, []
+    heading = search_heading(points, centre, store, camera_up, camera_view, window, threads)
+    if heading is None:
+        return out, []
+    degrees = float(np.degrees(heading.angle))
+    found = [{"heading_deg": degrees, "window_deg": window, "normal_score": heading.score,
+              "normal_score_unrotated": heading.score_at_zero,
+              "tie_point_planes": heading.num_planes}]
+    if heading.score > heading.score_at_zero + MIN_ROLL_GAIN:
+        out.append((degrees, heading.rotation))
+    return out, found
+
+
+def _roll_candidate(points, centres, camera_up, camera_view, store, surface, turn, found,
+                    heading_deg) -> tuple | None:
+    """The roll about the straight flight line of the block turned by `turn` (3x3, about the
+    cameras' centre), appended to `found`: (roll deg, heading deg, rotation) where it matches
+    the model's normals better (by MIN_ROLL_GAIN), else None."""
+    centre = centres.mean(0)
+    axis = turn @ np.linalg.svd(centres - centre)[2][0]
+    moved = (points - centre) @ turn.T + centre
+    up, view = camera_up @ turn.T, camera_view @ turn.T
+    # Cameras looking along the line (a vehicle) hold the roll with their horizontal image
+    # x axis (georegistration used it): the planes may only fine-tune it. Cameras looking
+    # sideways give no such cue: the whole circle is searched.
+    right = np.cross(up, view)
+    cue = float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1)))
+    window = ROLL_WINDOW_DEG / cue if cue > 0.5 else 180.0
+    roll = search_roll(moved, axis, centre, store, up, view, window_deg=window,
+                       threads=surface.threads)
+    if roll is None:
+        return None
+    degrees = float(np.degrees(roll.angle))
+    found.append({"roll_deg": degrees, "heading_deg": heading_deg or 0.0,
+                  "normal_score": roll.score, "normal_score_unrotated": roll.score_at_zero,
+                  "tie_point_planes": roll.num_planes})
+    if roll.score <= roll.score_at_zero + MIN_ROLL_GAIN:
+        return None
+    return degrees, heading_deg, roll.rotation @ turn

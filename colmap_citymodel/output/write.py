@@ -216,6 +216,8 @@ def report_markdown(report: dict) -> str:
         lines += [f"Coarse alignment: shift {', '.join(f'{v:+.2f}' for v in t['shift_m'])} m, "
                   f"tie points near the model {100 * t['near_share_before']:.0f} % -> "
                   f"{100 * t['near_share_after']:.0f} %"
+                  + (f", turned about the vertical {coarse['heading_deg']:+.1f} deg"
+                     if coarse.get("heading_deg") is not None else "")
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
     lines += terrain_lines(report.get("terrain"))
