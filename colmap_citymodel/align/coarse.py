@@ -451,6 +451,11 @@ HEADING_WINDOW_SIGMAS = 8.0
 HEADING_WINDOW_MAX_DEG = 30.0
 #: Below this window (deg) GNSS fixes the heading better than the normals' 1 deg grid can.
 HEADING_WINDOW_MIN_DEG = 1.0
+#: A turn is tried only where it makes most of the tie point planes (this share of their
+#: points) parallel to model faces: where fewer match, the planes are not the model's walls
+#: (trees, cars, buildings the model lacks), and some turn within the window matches a few of
+#: them to some model face by chance.
+HEADING_MIN_SCORE = 0.5
 
 
 def heading_sigma_deg(centres: np.ndarray, sigmas: np.ndarray) -> float:
@@ -547,8 +552,8 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
 def _heading_candidates(points, centre, store, camera_up, camera_view, heading_sigma,
                         threads) -> tuple[list[tuple], list[dict]]:
     """The heading candidates of coarse_alignment: [(None, identity)] and, where the walls
-    match the model's better turned (by MIN_ROLL_GAIN), (heading deg, its rotation); and the
-    record of the search."""
+    match the model's better turned (by MIN_ROLL_GAIN, and mostly: HEADING_MIN_SCORE),
+    (heading deg, its rotation); and the record of the search."""
     out = [(None, np.eye(3))]
     if heading_sigma is None:
         return out, []
@@ -559,10 +564,13 @@ def _heading_candidates(points, centre, store, camera_up, camera_view, heading_s
     if heading is None:
         return out, []
     degrees = float(np.degrees(heading.angle))
+    logger.info("heading search (+- %.1f deg): the tie points' planes match the model's "
+                "normals %.2f turned by %.1f deg, %.2f as they are (%d planes)", window,
+                heading.score, degrees, heading.score_at_zero, heading.num_planes)
     found = [{"heading_deg": degrees, "window_deg": window, "normal_score": heading.score,
               "normal_score_unrotated": heading.score_at_zero,
               "tie_point_planes": heading.num_planes}]
-    if heading.score > heading.score_at_zero + MIN_ROLL_GAIN:
+    if heading.score > max(heading.score_at_zero + MIN_ROLL_GAIN, HEADING_MIN_SCORE):
         out.append((degrees, heading.rotation))
     return out, found
 
