@@ -374,9 +374,9 @@ def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneS
     off the model by the GNSS error (metres, mostly a bias) that a 2 m assignment threshold
     cannot bridge, so the shift (and the heading within GNSS's heading sigmas; along a straight
     line, the roll) that puts the tie points on the model is searched before any of them is
-    assigned. `rec` is moved when that lowers
-    the block objective. `points`: the tie points that may lie on the model (not the check
-    points). Returns (the search's result, whether `rec` moved)."""
+    assigned. `rec` is moved when that lowers the block objective. `points`: the tie points
+    that may lie on the model (not the check points). Returns (the search's result, whether
+    `rec` moved)."""
     from .align.coarse import coarse_alignment, heading_sigma_deg
 
     # The images with GNSS fixed the georegistration; if they lie on a line (`straight`), its
