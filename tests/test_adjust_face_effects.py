@@ -179,3 +179,18 @@ def test_the_faces_errors_do_not_establish_a_placement_the_first_loop_fails():
     result = refine(scene.sfm, store, scene.gnss(), face_effects("none"), progress=False)
     assert "faces" not in {record.phase for record in result.iterations}
     assert result.quality.verdict == "failed"
+
+
+def test_a_face_no_tie_point_lies_on_keeps_its_offset_at_zero(street_scene):
+    """Each face's offset and tilts are unknowns only where tie points lie on it: the faces
+    of the model near the block that hold none get no effect (their offset stays 0), and
+    every estimated effect belongs to a face with points."""
+    from colmap_citymodel.output.write import face_table
+
+    result = refine(street_scene.sfm, street_scene.store, street_scene.gnss(), face_effects(),
+                    progress=False)
+    rows = [row for row in face_table(result) if row["status"] != "dropped"]
+    with_points = {row["face"] for row in rows if row["points"] > 0}
+    assert with_points and all(row["points"] > 0 for row in rows)
+    assert len(result.store.faces) > len(with_points)  # faces near the block hold none
+    assert len(result.precision.plane_generalisation) == len(with_points)
