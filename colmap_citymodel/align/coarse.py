@@ -334,7 +334,7 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
                 step_deg: float = 1.0, max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
                 window_deg: float = 180.0,
                 excluded_classes=("GroundSurface", "ClosureSurface"),
-                threads: int = 0) -> RollSearch | None:
+                threads: int = 0, planes=None) -> RollSearch | None:
     """The rotation about `axis` (through `centre`) that makes the tie point planes' normals
     model normals, keeping the cameras upright: `camera_up` (N,3) are the cameras' image "up"
     directions (-y axis), `camera_view` their viewing directions (z axis), in the current
@@ -342,7 +342,8 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
     above `max_view_elevation_deg`: walls and flat roofs are both planes of model
     orientations, so a block turned by 90 deg (walls on roofs, cameras looking at the sky)
     would match as well. Only rolls within +- `window_deg` are searched; the tie point planes
-    on `threads` (0: all cores). None when the tie points hold no plane."""
+    on `threads` (0: all cores), or `planes` (normals, counts) of `point_cloud_planes` found
+    before. None when the tie points hold no plane."""
     faces = [i for i, f in enumerate(store.faces) if f.semantic not in excluded_classes]
     model = store.normals[faces] if faces else store.normals
 
@@ -350,7 +351,8 @@ def search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, store:
         return np.abs(normals @ model.T).max(axis=1)
 
     return _search_roll(points, axis, centre, closeness, camera_up, camera_view,
-                        tolerance_deg, step_deg, max_view_elevation_deg, window_deg, threads)
+                        tolerance_deg, step_deg, max_view_elevation_deg, window_deg, threads,
+                        planes)
 
 
 def level_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray,
@@ -376,11 +378,12 @@ def _search_roll(points: np.ndarray, axis: np.ndarray, centre: np.ndarray, close
                  camera_up: np.ndarray, camera_view: np.ndarray, tolerance_deg: float = 4.0,
                  step_deg: float = 1.0,
                  max_view_elevation_deg: float = MAX_VIEW_ELEVATION_DEG,
-                 window_deg: float = 180.0, threads: int = 0) -> RollSearch | None:
+                 window_deg: float = 180.0, threads: int = 0, planes=None) -> RollSearch | None:
     """The roll search of `search_roll` and `level_roll`: `closeness(normals)` (K,) is the
     cosine of the angle between each rotated tie point plane normal and the nearest
     orientation it should have."""
-    normals, counts = point_cloud_planes(points, threads=threads)
+    normals, counts = (point_cloud_planes(points, threads=threads) if planes is None
+                       else planes)
     if not len(normals):
         return None
     cos_tol = np.cos(np.radians(tolerance_deg))
@@ -470,12 +473,12 @@ def heading_sigma_deg(centres: np.ndarray, sigmas: np.ndarray) -> float:
 
 def search_heading(points: np.ndarray, centre: np.ndarray, store: PlaneStore,
                    camera_up: np.ndarray, camera_view: np.ndarray, window_deg: float,
-                   threads: int = 0) -> RollSearch | None:
+                   threads: int = 0, planes=None) -> RollSearch | None:
     """The rotation about the vertical through `centre`, within +- `window_deg`, that makes
     the tie point planes' normals model normals (search_roll about the vertical axis; cameras
-    stay upright under it). None when the tie points hold no plane."""
+    stay upright under it; `planes` as there). None when the tie points hold no plane."""
     return search_roll(points, np.array([0.0, 0.0, 1.0]), centre, store, camera_up,
-                       camera_view, window_deg=window_deg, threads=threads)
+                       camera_view, window_deg=window_deg, threads=threads, planes=planes)
 
 
 #: Cameras that look along a straight flight line fix the roll about it to about their
@@ -510,30 +513,29 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
             "2) eliminated their observations: are some GNSS positions far off the flight (see "
             "the outlier warning of the georegistration)?")
     centre = centres.mean(0)
+    # The tie points' planes, found once: a turn about the cameras' centre turns them along.
+    window = heading_window(heading_sigma)
+    planes = (point_cloud_planes(points, threads=surface.threads)
+              if straight or window is not None else None)
     headings, heading_found = _heading_candidates(points, centre, store, camera_up, camera_view,
-                                                  heading_sigma, surface.threads)
+                                                  window, surface.threads, planes)
     candidates, found = list(headings), []
     if straight:
-        for heading_deg, turn in headings:
+        for _, heading_deg, turn, _ in headings:
             roll = _roll_candidate(points, centres, camera_up, camera_view, store, surface,
-                                   turn, found, heading_deg)
+                                   turn, found, heading_deg, planes)
             if roll is not None:
                 candidates.append(roll)
     best = None
-    for rotation_candidate in candidates:
-        heading_deg, rotation = rotation_candidate[-2:]
-        roll_deg = rotation_candidate[0] if len(rotation_candidate) == 3 else None
+    for roll_deg, heading_deg, rotation, record in candidates:
         offset = centre - rotation @ centre
         moved = points @ rotation.T + offset
         height_range = height_search_range(moved, store) if free_height else None
         search = search_translation(moved, surface, sigmas, search_sigmas,
                                     candidates=5 if free_height else 3,
                                     height_range=height_range)
-        for entry in found + heading_found:
-            if (entry.get("roll_deg") == roll_deg if roll_deg is not None
-                    else "roll_deg" not in entry) \
-                    and entry.get("heading_deg", 0.0) == (heading_deg or 0.0):
-                entry["search_value"] = search.value
+        if record is not None:
+            record["search_value"] = search.value
         if roll_deg is None and heading_deg is None and (found or heading_found):
             found.append({"roll_deg": 0.0, "heading_deg": 0.0, "search_value": search.value})
         if best is None or search.value > best[4].value:
@@ -549,18 +551,28 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     return CoarseAlignment(sim3, search, roll_deg, found, heading_deg, heading_found)
 
 
-def _heading_candidates(points, centre, store, camera_up, camera_view, heading_sigma,
-                        threads) -> tuple[list[tuple], list[dict]]:
-    """The heading candidates of coarse_alignment: [(None, identity)] and, where the walls
-    match the model's better turned (by MIN_ROLL_GAIN, and mostly: HEADING_MIN_SCORE),
-    (heading deg, its rotation); and the record of the search."""
-    out = [(None, np.eye(3))]
+def heading_window(heading_sigma: float | None) -> float | None:
+    """The heading search's window (deg, on either side) for GNSS's heading sigma (deg):
+    HEADING_WINDOW_SIGMAS of it, at most HEADING_WINDOW_MAX_DEG; None (no search) without a
+    sigma or below HEADING_WINDOW_MIN_DEG."""
     if heading_sigma is None:
-        return out, []
+        return None
     window = min(HEADING_WINDOW_SIGMAS * heading_sigma, HEADING_WINDOW_MAX_DEG)
-    if window < HEADING_WINDOW_MIN_DEG:
+    return window if window >= HEADING_WINDOW_MIN_DEG else None
+
+
+def _heading_candidates(points, centre, store, camera_up, camera_view, window,
+                        threads, planes) -> tuple[list[tuple], list[dict]]:
+    """The heading candidates of coarse_alignment as (roll deg, heading deg, rotation, its
+    record): (None, None, identity, None) and, where the walls match the model's better
+    turned (by MIN_ROLL_GAIN, and mostly: HEADING_MIN_SCORE), (None, heading deg, its
+    rotation, its record), searched within +- `window` deg (None: not searched); and the
+    records of the search."""
+    out = [(None, None, np.eye(3), None)]
+    if window is None:
         return out, []
-    heading = search_heading(points, centre, store, camera_up, camera_view, window, threads)
+    heading = search_heading(points, centre, store, camera_up, camera_view, window, threads,
+                             planes)
     if heading is None:
         return out, []
     degrees = float(np.degrees(heading.angle))
@@ -571,15 +583,16 @@ def _heading_candidates(points, centre, store, camera_up, camera_view, heading_s
               "normal_score_unrotated": heading.score_at_zero,
               "tie_point_planes": heading.num_planes}]
     if heading.score > max(heading.score_at_zero + MIN_ROLL_GAIN, HEADING_MIN_SCORE):
-        out.append((degrees, heading.rotation))
+        out.append((None, degrees, heading.rotation, found[0]))
     return out, found
 
 
 def _roll_candidate(points, centres, camera_up, camera_view, store, surface, turn, found,
-                    heading_deg) -> tuple | None:
+                    heading_deg, planes) -> tuple | None:
     """The roll about the straight flight line of the block turned by `turn` (3x3, about the
-    cameras' centre), appended to `found`: (roll deg, heading deg, rotation) where it matches
-    the model's normals better (by MIN_ROLL_GAIN), else None."""
+    cameras' centre; `planes` the unturned block's), its record appended to `found`: (roll
+    deg, heading deg, rotation, record) where it matches the model's normals better (by
+    MIN_ROLL_GAIN), else None."""
     centre = centres.mean(0)
     axis = turn @ np.linalg.svd(centres - centre)[2][0]
     moved = (points - centre) @ turn.T + centre
@@ -591,7 +604,7 @@ def _roll_candidate(points, centres, camera_up, camera_view, store, surface, tur
     cue = float(np.mean(np.linalg.norm(np.cross(right, axis), axis=1)))
     window = ROLL_WINDOW_DEG / cue if cue > 0.5 else 180.0
     roll = search_roll(moved, axis, centre, store, up, view, window_deg=window,
-                       threads=surface.threads)
+                       threads=surface.threads, planes=(planes[0] @ turn.T, planes[1]))
     if roll is None:
         return None
     degrees = float(np.degrees(roll.angle))
@@ -600,4 +613,4 @@ def _roll_candidate(points, centres, camera_up, camera_view, store, surface, tur
                   "tie_point_planes": roll.num_planes})
     if roll.score <= roll.score_at_zero + MIN_ROLL_GAIN:
         return None
-    return degrees, heading_deg, roll.rotation @ turn
+    return degrees, heading_deg, roll.rotation @ turn, found[-1]
