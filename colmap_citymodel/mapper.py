@@ -243,8 +243,8 @@ class ModelGlobalAdjustment:
                                      self.options.adjustment.gnss_offset)
         ids, points = tie_points(rec)
         if self.options.workflow.coarse_search_sigmas > 0:
-            objective = BlockObjective(self.surface, priors, ids,
-                                       2 * self.options.adjustment.sigma_dtp)
+            objective = BlockObjective(self.surface, priors, ids, self.options.adjustment,
+                                       self.options.workflow.divergence_alpha)
             coarse_start(rec, points, self.store, self.surface, priors, objective,
                          self.options, straight="roll_about_line" in details.get("cues", {}))
         if priors.estimates_offset:
@@ -308,7 +308,8 @@ class ModelGlobalAdjustment:
             options.workflow.alignment_rounds = 0  # the adjustment before placed the block
         work = pycolmap.Reconstruction(rec)
         ids, _ = tie_points(work)
-        objective = BlockObjective(self.surface, priors, ids, 2 * options.adjustment.sigma_dtp)
+        objective = BlockObjective(self.surface, priors, ids, options.adjustment,
+                                   options.workflow.divergence_alpha)
         loop = adjustment_loop(work, self.store, priors, options, objective, ids,
                                gnss_only=pycolmap.Reconstruction(rec),
                                scale_sigma=scale_sigma_from_gnss(priors)

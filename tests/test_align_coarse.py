@@ -5,6 +5,14 @@ import numpy as np
 import pytest
 
 from colmap_citymodel.align.coarse import SurfaceDistance, search_translation
+from colmap_citymodel.errormodel.model import placement_score
+from colmap_citymodel.options import AdjustmentOptions
+
+
+def score_of(points, surface):
+    """The placement score of tie points `points` without GNSS (the search's box stands for
+    GNSS's sigma)."""
+    return placement_score(surface, points, None, None, AdjustmentOptions())
 
 
 @pytest.mark.parametrize("offset", [[18.0, 0.0, 0.0], [0.0, 18.0, 0.0], [-20.0, 4.0, 0.0],
@@ -15,7 +23,7 @@ def test_translation_search_reaches_gnss_six_sigma_off(street_scene, offset):
     points near the model); the default search finds the shift to the grid's 0.2 m."""
     points = np.array([p.xyz for p in street_scene.truth.points3D.values()])
     offset = np.asarray(offset)
-    result = search_translation(points - offset, SurfaceDistance(street_scene.store),
+    result = search_translation(score_of(points - offset, SurfaceDistance(street_scene.store)),
                                 np.array([3.0, 3.0, 5.0]))
     np.testing.assert_allclose(result.shift, offset, atol=0.25)
     assert result.share_after > 0.9 > 0.5 > result.share_before
@@ -33,12 +41,12 @@ def test_translation_search_leaves_axes_where_gnss_is_better_than_its_grid(stree
     surface = SurfaceDistance(street_scene.store)
     precise = np.array([0.05, 0.05, 0.1])
     assert np.all(precise < PLACEMENT_RESOLUTION)
-    held = search_translation(points - offset, surface, precise)
+    held = search_translation(score_of(points - offset, surface), precise)
     assert np.all(held.shift == 0.0) and held.share_after == held.share_before
-    moved = search_translation(points - offset, surface, np.array([3.0, 3.0, 5.0]))
+    moved = search_translation(score_of(points - offset, surface), np.array([3.0, 3.0, 5.0]))
     assert np.linalg.norm(moved.shift - offset) < 0.25 < np.linalg.norm(offset)
     # an axis with street GNSS is searched beside a held one
-    mixed = search_translation(points - offset, surface, np.array([0.05, 3.0, 0.1]))
+    mixed = search_translation(score_of(points - offset, surface), np.array([0.05, 3.0, 0.1]))
     assert mixed.shift[0] == 0.0 and mixed.shift[2] == 0.0 and abs(mixed.shift[1] - 0.6) < 0.25
 
 
@@ -68,7 +76,7 @@ def test_heading_search_turns_a_block_whose_gnss_heading_is_degrees_off(street_s
     heading_sigma = heading_sigma_deg(moved(centres), sigmas)
     assert 0.2 < heading_sigma < 2.5
     args = (moved(points), moved(centres), up @ turn.T, view @ turn.T, street_scene.store,
-            surface, sigmas, False)
+            score_of(moved(points), surface), sigmas, False)
 
     def error(alignment):
         sim3 = alignment.sim3

@@ -149,7 +149,11 @@ def test_facade_points_pushed_onto_an_inner_wall_are_found_on_the_facade():
     assert 7.0 < np.linalg.norm(shift) < 8.0
     moved = points + shift
     assert np.median(np.abs(moved @ store.normals[inner] + store.offsets[inner])) < 0.3
-    result = search_translation(moved, SurfaceDistance(store), np.array([3.0, 3.0, 5.0]))
+    from colmap_citymodel.errormodel.model import placement_score
+    from colmap_citymodel.options import AdjustmentOptions
+
+    score = placement_score(SurfaceDistance(store), moved, None, None, AdjustmentOptions())
+    result = search_translation(score, np.array([3.0, 3.0, 5.0]))
     # Back along the facade's normal (along the facade, a wall fixes nothing).
     normal = store.normals[facade]
     assert result.shift @ normal == pytest.approx(-shift @ normal, abs=0.5)

@@ -119,7 +119,7 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
     it); `current`: the model state after the adjustment; `threshold`: its last assignment
     threshold. With `correction_moves_block`, `rec` is adjusted in place (a correction whose
     block objective, against the corrected model, is worse than `objective`'s against the
-    given one by more than `divergence_tolerance` is undone: the result then holds a copy of
+    given one by more than its tolerance (a significant likelihood ratio) is undone: the result then holds a copy of
     the block as it was)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     moves_block = o_adj.correction_moves_block
@@ -180,8 +180,9 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
             # they were adjusted to, and GNSS.
             after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes,
                                                    options.adjustment.num_threads),
-                                   objective.priors, objective.ids, objective.radius)(rec)
-            if after > before + o_w.divergence_tolerance:
+                                   objective.priors, objective.ids, objective.options,
+                                   options.workflow.divergence_alpha)(rec)
+            if after > before + objective.tolerance:
                 reason = (f"the corrected model moved the block away from it (objective "
                           f"{before:.3f} -> {after:.3f})")
                 logger.warning("model correction undone: %s", reason)

@@ -403,11 +403,11 @@ class _Loop:
                                                     self.kept_faces)
         if (o_w.keep_eliminated and not o_w.solve_again_after_elimination
                 and iteration + 1 < o_w.max_iterations
-                and self.objective(rec) <= self.value_before + o_w.divergence_tolerance):
+                and self.objective(rec) <= self.value_before + self.objective.tolerance):
             # The next iteration's solve, which leaves these f_dTP out, is the one with the
             # original weights; it starts where the robust one ended. Not when the robust
             # solve moved the block off the model (its objective rose by more than
-            # divergence_tolerance, as a diverging iteration's does): a wrong start had
+            # the objective's tolerance, as a diverging iteration's does): a wrong start had
             # assigned points to planes they are not on, and the solve with the original
             # weights must come at once, before the next assignment starts from there.
             return robust, robust_report, robust_report, outliers
@@ -534,7 +534,7 @@ class _Loop:
         if best is None or value <= best[0]:
             self.best = best = (value, iteration, None, self.assignment, self.current,
                                 _offset(self.priors))
-        elif value > best[0] + o_w.divergence_tolerance:
+        elif value > best[0] + self.objective.tolerance:
             # The hybrid solve moved the block away from the model: go back to the best
             # iterate and stop.
             self.diverged = (f"objective {value:.3f} in iteration {iteration} against "

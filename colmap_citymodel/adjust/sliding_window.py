@@ -310,7 +310,8 @@ def sliding_window(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSS
         record_rms, iterations, assigned, planes = None, 0, 0, 0
         try:
             ids, _ = tie_points(sub, exclude_point_ids)
-            objective = BlockObjective(surface, window_priors, ids, 2 * o_adj.sigma_dtp)
+            objective = BlockObjective(surface, window_priors, ids, o_adj,
+                                       options.workflow.divergence_alpha)
             loop = adjustment_loop(sub, store, window_priors, window_options, objective, ids,
                                    exclude_point_ids=exclude_point_ids, progress=False,
                                    pose_priors=held)

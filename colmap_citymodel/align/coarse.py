@@ -39,26 +39,19 @@ import numpy as np
 
 from .._ext import load_core
 from ..citymodel.store import PlaneStore
+from ..errormodel.score import REACH_SIGMAS
 
 logger = logging.getLogger(__name__)
 
-#: Coarse-to-fine levels of the translation search: (kernel radius, grid step), metres.
-TRANSLATION_LEVELS = ((2.0, 1.5), (1.0, 0.5), (0.4, 0.2))
-#: How closely the coarse placement puts a block (m): the translation search's finest kernel
-#: radius. Along an axis whose GNSS sigma is below it (RTK or PPK positions of an aerial
-#: block) GNSS places the block better: the search leaves that axis where GNSS put it, and so
-#: does the height the adjustment holds (adjust.scale.level_prior); one step of the search's
-#: grid would move the block off there by several GNSS sigmas.
-PLACEMENT_RESOLUTION = TRANSLATION_LEVELS[-1][0]
-#: Weight of the GNSS residuals in the block objective (align.objective) per squared GNSS
-#: sigma, relative to the share of tie points near the model.
-SHIFT_PENALTY = 0.01
-#: Penalty of the translation search: this times log(1 + (shift / sigma)^2) per axis, relative
-#: to the share of tie points near the model: the square penalty SHIFT_PENALTY * (shift /
-#: sigma)^2 within a sigma, growing only logarithmically beyond (1 sigma costs 0.7 % of the
-#: points, 3 sigma 2.3 %, 6 sigma 3.6 %). Heavy-tailed, because GNSS in a street is often off
-#: by more than its stated sigma (multipath, a bias); measurements in docs/defaults.md.
-SEARCH_SHIFT_PENALTY = 0.01
+#: Grid steps (m) of the translation search's coarse-to-fine levels; each level anneals the
+#: tie points' distances with its step (errormodel.score.SurfaceErrorModel.level_sigma).
+TRANSLATION_STEPS = (1.5, 0.5, 0.2)
+#: How closely the coarse placement puts a block (m): twice the finest grid step. Along an
+#: axis whose GNSS sigma is below it (RTK or PPK positions of an aerial block) GNSS places the
+#: block better: the search leaves that axis where GNSS put it, and so does the height the
+#: adjustment holds (adjust.scale.level_prior); one step of the search's grid would move the
+#: block off there by several GNSS sigmas.
+PLACEMENT_RESOLUTION = 2 * TRANSLATION_STEPS[-1]
 #: Tie points used by the searches (a random subset of a larger block).
 MAX_SEARCH_POINTS = 2000
 #: Cameras of a street or UAV block do not look up at the sky: a roll that would make their
@@ -131,10 +124,11 @@ class TranslationSearch:
                 "near_share_before": self.share_before, "near_share_after": self.share_after}
 
 
-def _grid_shares_builder(points: np.ndarray, surface: SurfaceDistance, low: np.ndarray,
-                         high: np.ndarray, spacing: float, within: float):
-    """The smooth near share (`near_share`, radius `within`) of `points` moved by each of a
-    set of shifts within `low`..`high`, for the coarse level: distances on a regular grid
+def _grid_scores_builder(points: np.ndarray, weights: np.ndarray, surface: SurfaceDistance,
+                         low: np.ndarray, high: np.ndarray, spacing: float, within: float,
+                         terms_of):
+    """The weighted sum of `terms_of(distance)` over `points` moved by each of a set of shifts
+    within `low`..`high`, for the coarse level: distances (up to `within`) on a regular grid
     around the points (nearest-cell lookups), one distance query per cell instead of one per
     (point, shift)."""
     lower = points.min(0) + low - 2 * spacing
@@ -146,13 +140,11 @@ def _grid_shares_builder(points: np.ndarray, surface: SurfaceDistance, low: np.n
     axes = [lower[k] + spacing * np.arange(shape[k]) for k in range(3)]
     grid = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
     values = surface(grid, within).reshape(shape).astype(np.float32)
-    # Each cell's term of the share, as near_share computes it from a looked-up distance.
-    u = np.clip(values / within, 0.0, 1.0)
-    terms = ((1.0 - u * u) ** 2).ravel()
+    terms = terms_of(values).ravel()  # each cell's term, as a point there would add it
     strides = np.array([shape[1] * shape[2], shape[2], 1], np.int64)
     cells_of_points = (points - lower) / spacing  # fractional cell coordinates
 
-    def shares(shifts: np.ndarray) -> np.ndarray:
+    def scores(shifts: np.ndarray) -> np.ndarray:
         out = np.empty(len(shifts))
         # A shift of whole cells w plus a fraction f puts a point at cell rint(c + f) + w:
         # the shifts of a regular grid have few fractions, so one flat cell index per point
@@ -173,59 +165,59 @@ def _grid_shares_builder(points: np.ndarray, surface: SurfaceDistance, low: np.n
                     flat = base @ strides
                     for start in range(0, len(rows), 256):
                         chunk = rows[start:start + 256]
-                        out[chunk] = np.mean(terms[offsets[chunk, None] + flat[None, :]],
-                                             axis=1)
+                        out[chunk] = terms[offsets[chunk, None] + flat[None, :]] @ weights
                 return out
         for start in range(0, len(shifts), 256):  # any shifts: round each (shift, point)
             xyz = points[None, :, :] + shifts[start:start + 256, None, :]
             index = np.rint((xyz - lower) / spacing).astype(np.int64)
             np.clip(index, 0, shape - 1, out=index)
-            out[start:start + 256] = np.mean(terms[index @ strides], axis=1)
+            out[start:start + 256] = terms[index @ strides] @ weights
         return out
 
-    return shares
+    return scores
 
 
-def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.ndarray,
-                       search_sigmas: float = 8.0, candidates: int = 3,
-                       levels=TRANSLATION_LEVELS, height_range=None) -> TranslationSearch:
-    """The shift of `points` that maximises near_share - SEARCH_SHIFT_PENALTY *
-    sum(log(1 + (shift / sigmas)^2)).
+def search_translation(score, sigmas: np.ndarray, search_sigmas: float = 8.0,
+                       candidates: int = 3, steps=TRANSLATION_STEPS, height_range=None,
+                       points: np.ndarray | None = None, antennas: np.ndarray | None = None
+                       ) -> TranslationSearch:
+    """The shift of the block that maximises its placement score (errormodel.score.
+    PlacementScore `score`: its tie points on faces and terrain, GNSS with its bias), or of
+    `points` and `antennas` (the score's, the block turned).
 
     `sigmas` (3,) is the uncertainty of the block's position (GNSS sigma per axis); the search
     covers +- `search_sigmas` of it, except along axes whose sigma is below
     PLACEMENT_RESOLUTION (not searched: GNSS places the block better than the search can).
-    `height_range` (lowest, highest): the vertical shifts searched instead, without penalty
-    (the GNSS heights' level is unknown). The coarse level scores every grid shift with a
-    distance grid; the best `candidates` separate maxima are refined on the finer levels.
+    `height_range` (lowest, highest): the vertical shifts searched instead (the GNSS heights'
+    level is unknown, which the score's GNSS model knows). The coarse level scores every grid
+    shift with a distance grid; the best `candidates` separate maxima are refined on the finer
+    levels, each with its grid step and the sigma it anneals the distances with.
     """
     import time
 
     t0 = time.perf_counter()
     sigmas = np.maximum(np.asarray(sigmas, float), 1e-3)
-    pts = subsample(points, MAX_SEARCH_POINTS)
+    pts = score.points if points is None else points
     held = sigmas < PLACEMENT_RESOLUTION
     if height_range is not None:
         held[2] = False
     high = np.where(held, 0.0, search_sigmas * sigmas)
     low = -high
-    penalty_sigmas = sigmas.copy()
     if height_range is not None:
         low[2], high[2] = float(min(height_range)), float(max(height_range))
-        penalty_sigmas[2] = np.inf
-
-    def objective(shares: np.ndarray, shifts: np.ndarray) -> np.ndarray:
-        return shares - SEARCH_SHIFT_PENALTY * np.sum(np.log1p((shifts / penalty_sigmas) ** 2),
-                                                      axis=-1)
+    model = score.model
 
     # Coarse level on a distance grid.
-    radius, step = levels[0]
-    grid_shares = _grid_shares_builder(pts, surface, low, high, step / 1.5, radius)
+    step = steps[0]
+    sigma = model.level_sigma(step)
+    grid_scores = _grid_scores_builder(pts, score.weights, score.surface, low, high, step / 1.5,
+                                       REACH_SIGMAS * sigma,
+                                       lambda d: model.terms(d, sigma))
     axes = [np.arange(np.ceil(lo / step), np.floor(hi / step) + 1) * step
             for lo, hi in zip(low, high)]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)
-    score = objective(grid_shares(shifts), shifts)
-    order = np.argsort(-score)
+    values = grid_scores(shifts) + score.gnss_shift_terms(shifts, antennas)
+    order = np.argsort(-values)
     seeds: list[np.ndarray] = []
     for k in order:  # the best maxima at least two steps apart
         if all(np.max(np.abs(shifts[k] - s)) > 1.5 * step for s in seeds):
@@ -233,32 +225,29 @@ def search_translation(points: np.ndarray, surface: SurfaceDistance, sigmas: np.
         if len(seeds) == candidates:
             break
 
-    def refine(centre: np.ndarray, radius: float, step: float, reach: float):
+    def refine(centre: np.ndarray, step: float, reach: float):
         offsets = np.arange(-np.floor(reach / step), np.floor(reach / step) + 1) * step
         local = np.stack(np.meshgrid(offsets, offsets, offsets, indexing="ij"), -1).reshape(-1, 3)
         local = centre + local
         local = local[np.all((local >= low - step) & (local <= high + step), axis=1)
                       & np.all(local[:, held] == 0.0, axis=1)]
-        moved = (pts[None, :, :] + local[:, None, :]).reshape(-1, 3)
-        d = surface(moved, radius).reshape(len(local), len(pts))
-        u = np.clip(d / radius, 0.0, 1.0)
-        s = objective(np.mean((1.0 - u * u) ** 2, axis=1), local)
+        s = score.shift_scores(local, model.level_sigma(step), pts, antennas)
         best = int(np.argmax(s))
         return local[best], float(s[best])
 
     best_shift, best_score = np.zeros(3), -np.inf
     for seed in seeds:
         shift, value = seed, -np.inf
-        for (_, reach), (radius_k, step_k) in zip(levels[:-1], levels[1:]):
+        for reach, step_k in zip(steps[:-1], steps[1:]):
             # Each level searches +- the previous level's step around its best shift.
-            shift, value = refine(shift, radius_k, step_k, reach)
+            shift, value = refine(shift, step_k, reach)
         if value > best_score:
             best_shift, best_score = shift, value
-    finest = levels[-1][0]
-    sample = subsample(points, 20000)
+    finest = PLACEMENT_RESOLUTION
+    sample = subsample(pts, 20000)
     result = TranslationSearch(best_shift, best_score,
-                               near_share(surface(sample, finest), finest),
-                               near_share(surface(sample + best_shift, finest), finest),
+                               near_share(score.surface(sample, finest), finest),
+                               near_share(score.surface(sample + best_shift, finest), finest),
                                np.abs(best_shift) / sigmas, time.perf_counter() - t0)
     logger.info("translation search (%s m): shift %s m (%s GNSS sigma), tie points near the "
                 "model %.0f %% -> %.0f %%, %.1f s",
@@ -439,6 +428,7 @@ class CoarseAlignment:
     roll_candidates: list[dict]
     heading_deg: float | None = None  # None: the heading GNSS gave was kept
     heading_candidates: list[dict] = field(default_factory=list)
+    moved: bool = False  # whether the block was moved by it (workflow.coarse_start)
 
     def todict(self) -> dict:
         return {"translation": self.translation.todict(), "roll_deg": self.roll_deg,
@@ -490,18 +480,20 @@ MIN_ROLL_GAIN = 0.05
 
 
 def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndarray,
-                     camera_view: np.ndarray, store: PlaneStore, surface: SurfaceDistance, sigmas: np.ndarray,
+                     camera_view: np.ndarray, store: PlaneStore, score, sigmas: np.ndarray,
                      straight: bool, search_sigmas: float = 8.0, free_height: bool = False,
                      heading_sigma: float | None = None) -> CoarseAlignment:
     """Heading, roll about a straight flight line (when `straight`) and shift of the whole
-    block.
+    block, all scored by its placement score `score` (errormodel.score.PlacementScore: its tie
+    points on the model's faces and terrain, GNSS with its bias).
 
     Each rotation candidate (none; the heading `search_heading` prefers within
     HEADING_WINDOW_SIGMAS of `heading_sigma`, GNSS's heading sigma in deg, when given; and on
     each of these the roll `search_roll` prefers) gets its own translation search; the one
-    with the best search objective wins, so a rotation is kept only when it puts more tie
-    points on the model. `free_height`: the GNSS heights' level is unknown, the height is
-    searched over `height_search_range`.
+    with the best score wins, so a rotation is kept only where the tie points and GNSS together
+    are likelier turned. `points`: the block's tie points (their planes give the rotation
+    candidates). `free_height`: the GNSS heights' level is unknown, the height is searched over
+    `height_search_range`.
     """
     import pycolmap
 
@@ -513,6 +505,7 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
             "2) eliminated their observations: are some GNSS positions far off the flight (see "
             "the outlier warning of the georegistration)?")
     centre = centres.mean(0)
+    surface = score.surface
     # The tie points' planes, found once: a turn about the cameras' centre turns them along.
     window = heading_window(heading_sigma)
     planes = (point_cloud_planes(points, threads=surface.threads)
@@ -529,11 +522,12 @@ def coarse_alignment(points: np.ndarray, centres: np.ndarray, camera_up: np.ndar
     best = None
     for roll_deg, heading_deg, rotation, record in candidates:
         offset = centre - rotation @ centre
-        moved = points @ rotation.T + offset
+        moved = score.points @ rotation.T + offset
+        antennas = None if score.antennas is None else score.antennas @ rotation.T + offset
         height_range = height_search_range(moved, store) if free_height else None
-        search = search_translation(moved, surface, sigmas, search_sigmas,
+        search = search_translation(score, sigmas, search_sigmas,
                                     candidates=5 if free_height else 3,
-                                    height_range=height_range)
+                                    height_range=height_range, points=moved, antennas=antennas)
         if record is not None:
             record["search_value"] = search.value
         if roll_deg is None and heading_deg is None and (found or heading_found):
