@@ -10,7 +10,7 @@ from colmap_citymodel.adjust.observability import face_fit, observability
 from colmap_citymodel.align.coarse import SurfaceDistance
 from colmap_citymodel.citymodel.build import store_from_polygons
 from colmap_citymodel.options import RefineOptions
-from colmap_citymodel.precision.quality import (QualityThresholds, contradiction,
+from colmap_citymodel.precision.quality import (QualityThresholds, shift_test,
                                                 placement_metrics, quality_verdict)
 from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
 from colmap_citymodel.workflow import refine
@@ -61,15 +61,29 @@ def test_a_gnss_bias_of_3_sigma_is_covered_by_the_stated_datum_sigma():
 
 
 def test_a_3_sigma_bias_on_its_own_is_no_contradiction_but_a_wrong_building_is():
-    """The GNSS test allows a bias as large as GNSS's stated sigma in every direction: 3 sigma
-    along one axis (chi-square 9) passes at 0.001, 15 m across (a neighbouring street) fails."""
-    covariance = np.diag([9.0, 9.0, 25.0])  # the stated 3 / 3 / 5 m as a possible bias
+    """The GNSS test allows the two blocks to differ by both error models: 3 sigma along one
+    axis (chi-square 9) passes at 0.001, 15 m across (a neighbouring street) fails."""
+    gnss = np.diag([9.0, 9.0, 25.0])  # GNSS's 3 / 3 / 5 m datum sigma, its bias included
+    planes = np.diag([0.01, 0.01, 0.04])
     alpha = QualityThresholds().alpha
-    assert not contradiction(np.array([9.0, 0.0, 0.0]), covariance, alpha)["significant"]
-    assert contradiction(np.array([15.0, 0.0, 0.0]), covariance, alpha)["significant"]
-    # A direction neither fixes (infinite variance) takes no part.
+    assert not shift_test(np.array([9.0, 0.0, 0.0]), gnss, planes, alpha)["significant"]
+    assert shift_test(np.array([15.0, 0.0, 0.0]), gnss, planes, alpha)["significant"]
+
+
+def test_a_move_along_an_axis_no_plane_fixes_is_tested_against_gnss_alone():
+    """No move without evidence: where the planes leave an axis free, the refined block's shift
+    from the GNSS-only one there is tested against GNSS alone, with every axis's degree of
+    freedom (never none): an orbit's 17.5 m move onto a model 30 m off whose two faces fix
+    nothing fails; a metre, within GNSS's sigma, passes."""
+    gnss = np.diag([9.0, 9.0, 25.0])
+    nothing = np.diag([np.inf, np.inf, np.inf])
+    alpha = QualityThresholds().alpha
+    moved = shift_test(np.array([17.5, 0.0, 0.0]), gnss, nothing, alpha)
+    assert moved["dof"] == 3 and moved["significant"] and moved["unfixed"] == ["E", "N", "U"]
+    assert not shift_test(np.array([1.0, -1.0, 0.5]), gnss, nothing, alpha)["significant"]
+    # GNSS that does not hold the height (its offset estimated) leaves U out.
     free_u = np.diag([9.0, 9.0, np.inf])
-    test = contradiction(np.array([1.0, 1.0, 40.0]), free_u, alpha)
+    test = shift_test(np.array([1.0, 1.0, 40.0]), free_u, np.diag([0.01, 0.01, 0.04]), alpha)
     assert test["dof"] == 2 and not test["significant"]
 
 

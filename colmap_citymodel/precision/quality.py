@@ -34,7 +34,7 @@ import pycolmap
 from scipy import stats
 
 from ..adjust.observability import (REGULARISATION, FaceFit, common_shift_eliminated,
-                                    face_fit, face_tilts, gnss_information,
+                                    face_fit, face_tilts,
                                     plane_information, planes_fix, rests_on_one_plane)
 from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
@@ -155,6 +155,20 @@ def contradiction(shift: np.ndarray, covariance: np.ndarray, alpha: float) -> di
             "significant": chi2_exceeds(value, dof, alpha)}
 
 
+def shift_test(shift: np.ndarray, gnss: np.ndarray, planes: np.ndarray, alpha: float) -> dict:
+    """No move without evidence: the shift (3,) between the GNSS-only and the refined block,
+    tested along every axis GNSS holds. Along an axis the planes and terrain fix (`planes`
+    finite there) the two blocks may differ by both errors (covariance gnss + planes); along
+    one they leave free, the refined block has no evidence to move by, and the shift there
+    is tested against GNSS's own covariance: a move the GNSS does not explain is a
+    contradiction, never a test with fewer degrees of freedom. `unfixed`: those axes."""
+    free = ~(np.isfinite(np.diag(planes)))
+    held = np.where(np.outer(free, free) | free[:, None] | free[None, :], 0.0, planes)
+    out = contradiction(shift, gnss + held, alpha)
+    out["unfixed"] = [axis for axis, f in zip(("E", "N", "U"), free) if f]
+    return out
+
+
 def confidence_radius(sigmas, probability: float) -> float:
     """The radius (m) that holds a 3D position error with independent normal components of
     `sigmas` (E, N, U) with `probability`: the quantile of their squared sum, a weighted sum
@@ -183,12 +197,15 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
         failed += fit_reasons(metrics["fit"], t.alpha)
     test = metrics.get("gnss_test")
     if test and test["significant"]:
+        unfixed = test.get("unfixed") or []
+        along = (f"; along {', '.join(unfixed)} no model plane fixes the block, so there "
+                 "nothing explains a move" if unfixed else "")
         failed.append(f"the model moved the block {np.linalg.norm(metrics['shift_enu_m']):.1f} m "
                       f"from where GNSS puts it, more than both error models allow "
-                      f"(chi-square {test['chi2']:.1f}, {test['dof']} dof, p {test['p']:.1e}): "
-                      "the model is not the one of these images, or the GNSS is further off "
-                      "than its stated sigma (then give its sigmas in the GNSS file, or "
-                      "--gnss_bias auto where the planes fix the position)")
+                      f"(chi-square {test['chi2']:.1f}, {test['dof']} dof, p {test['p']:.1e}"
+                      f"{along}): the model is not the one of these images, or the GNSS is "
+                      "further off than its stated sigma (then give its sigmas in the GNSS "
+                      "file, or --gnss_bias auto where the planes fix the position)")
     placement = metrics.get("placement")
     if placement and placement.get("ratio") is not None \
             and placement["ratio"] < t.ambiguity_ratio:
@@ -267,15 +284,16 @@ def gnss_alone(observability_dict: dict) -> list[str]:
 def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit,
                       priors: GNSSPriors, rec: pycolmap.Reconstruction,
                       options: RefineOptions) -> tuple[np.ndarray, np.ndarray]:
-    """3x3 covariances of the block's position from GNSS alone, with a bias as large as its
-    stated sigma (its whole error may be common to the block), and from the planes alone (each
-    face with the estimated generalisation, outlier faces out, the model's common error); inf
-    on the diagonal where one leaves a direction free. Their sum is the covariance of the shift
-    between the GNSS-only and the refined block."""
+    """3x3 covariances of the block's position from GNSS alone, under its error model (white
+    noise, the bias common to the block, the slowly varying part: errormodel.gnss), and from
+    the planes alone (each face with the estimated generalisation, outlier faces out, the
+    model's common error); inf on the diagonal where one leaves a direction free."""
+    from ..errormodel.model import gnss_model
+
+    gnss = np.diag(gnss_model(priors, priors.observed_points(rec),
+                              options.adjustment).shift_sigma() ** 2)
     positions = priors.observed_points(rec)
     centre = positions.mean(0)
-    bias = np.median(np.asarray(priors.sigmas, float), axis=0)
-    gnss = gnss_information(positions, priors.sigmas, centre, priors.free_offset_axes, bias)
     keep = ~np.isin(faces, fit.outlier_faces)
     planes = np.zeros((7, 7))
     if keep.any():
@@ -284,7 +302,7 @@ def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit
             options.adjustment.sigma_dtp, fit.sigma_generalisation,
             face_tilts(store, faces[keep], fit.sigma_generalisation)), np.zeros((7, 7)))
     planes = common_shift_eliminated(planes, options.adjustment.sigma_model_datum)
-    return _shift_block(gnss), _shift_block(planes)
+    return gnss, _shift_block(planes)
 
 
 def _shift_block(info: np.ndarray) -> np.ndarray:
@@ -363,8 +381,8 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         if fit is not None:
             gnss_covariance, planes_covariance = shift_covariances(
                 points[assigned], faces, store, fit, priors, rec, options)
-            metrics["gnss_test"] = contradiction(shift, gnss_covariance + planes_covariance,
-                                                 t.alpha)
+            metrics["gnss_test"] = shift_test(shift, gnss_covariance, planes_covariance,
+                                              t.alpha)
     if len(points):
         # Where the faces' effects are estimated, the points as the model's faces see them.
         shifts = getattr(last, "face_effect_shifts", None)
