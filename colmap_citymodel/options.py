@@ -284,11 +284,19 @@ class AdjustmentOptions:
     national geoid, EGM96 from a flight controller, above take-off); "all" (`--gnss_bias auto`:
     a constant 3D bias). Refused where the planes do not fix those directions
     (adjust.observability). With an offset the coarse search spans the model's height range."""
-    gnss_bias_share: float = 0.5
+    gnss_bias_share: float = 1.0
     """The share of the GNSS positions' stated sigma that is a bias common to the block
-    (receiver, multipath along a street, datum) and does not average out over its images: every
-    stated datum sigma includes it, sqrt(sigma^2 / n + (share sigma)^2). Half: a consumer
-    receiver's stated accuracy is mostly such errors. 0: independent positions."""
+    (receiver, multipath, datum), which no number of images averages out: every stage's error
+    model holds it (errormodel.gnss), datum sigma sqrt(sigma^2 / n + (share sigma)^2). 1: a
+    consumer receiver's stated accuracy may all be common to a block. 0: independent."""
+    gnss_drift_share: float = 0.0
+    """The share of the GNSS positions' stated sigma that varies slowly along the track (a
+    first-order Gauss-Markov process with correlation length `gnss_drift_length`: multipath
+    changing along a street canyon), in the error model every score and test uses
+    (errormodel.gnss). 0: a bias and white noise only."""
+    gnss_drift_length: float = 200.0
+    """Correlation length (m along the camera path) of the slowly varying GNSS error: a block
+    much shorter sees it as part of the bias, a much longer one as white noise."""
     sigma_model_datum: float = 0.03
     """Sigma (m, per axis) of an error all faces of the model share, which no number of faces
     averages out: its georeference, details that stand out of every facade the same way. Every
@@ -305,7 +313,7 @@ class AdjustmentOptions:
 MAX_OPTION_VALUE = 1e15
 #: Options whose value is a probability, strictly between 0 and 1.
 PROBABILITIES = ("assignment.msac_confidence", "precision.alpha",
-                 "adjustment.intrinsics_test_alpha")
+                 "adjustment.intrinsics_test_alpha", "workflow.divergence_alpha")
 
 
 def _as_float(value, name: str, source) -> float:
@@ -467,10 +475,12 @@ class WorkflowOptions:
     minimum number of points coming and going) and none of the last three moved a camera by more
     than this (m); the best iterate by the block objective is the result. Such a loop would
     otherwise swing back and forth until `max_iterations`. 0: never."""
-    divergence_tolerance: float = 0.05
-    """An iteration whose block objective (share of tie points off the model plus GNSS
-    residuals; workflow.BlockObjective) is worse than the best iterate's by more than this
-    ends the loop, and the best iterate is kept."""
+    divergence_alpha: float = 0.001
+    """Significance level of the test that calls an iteration a divergence: its placement's
+    log-likelihood (align.objective.BlockObjective: the tie points on faces and terrain, GNSS
+    with its bias) lies below the best iterate's by more than chi-square(7) at this level
+    allows (a likelihood ratio over the seven datum parameters). The loop then ends and the best
+    iterate is kept."""
 
 
 @dataclass
@@ -560,17 +570,19 @@ class TerrainOptions:
     AHN state 0.05-0.15 m on open ground."""
     feet_sigma: float = 0.30
     """Sigma (m) of one building's ground height, which the terrain interpolated from its feet
-    shares (one offset per building): a LOD2 model's ground heights are its generalised
-    outline's, decimetres off."""
+    shares (one offset per building), where the ground's tie points beside it and at least two
+    other buildings' feet agree with it (citymodel.terrain_check): a LOD2 model's ground
+    heights are its generalised outline's, decimetres off."""
+    feet_spread: float = 1.5
+    """Sigma (m) of a building's ground height that nothing checks (too few buildings beside
+    the ground's tie points): official LoD2 takes a building's walls down to the lowest ground
+    of its footprint, metres below a street on a slope, a ramp or a courtyard."""
     feet_sigma_growth: float = 0.02
     """Metres the feet terrain's local sigma (beyond its building's offset) grows per metre
     from the nearest foot: a street's cross slope and camber (2 %) are not in the feet."""
     cell: float = 6.0
     """Side (m) of the square terrain cells that become planar faces: a few metres, so that a
     cell takes enough tie points, and its plane follows the slope of the street."""
-    feet_tolerance: float = 1.0
-    """A DTM tile whose median height stands further than this (m) from the buildings' feet
-    is left out (another height system or georeference): followed, it would move the block."""
 
 
 @dataclass

@@ -91,11 +91,17 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     start = place_on_model(rec, city_model, gnss, options, initial_transform, exclude_point_ids,
                            location, location_radius)
     sim3, priors, geo_rms, store = start.sim3, start.priors, start.rms, start.store
-    details, located, terrain_record = start.details, start.located, start.terrain
+    details, located = start.details, start.located
     timer["georegistration"] = time.perf_counter() - timer["start"]
 
     warnings: list[str] = []
     rec, options, report2, eliminated2, intrinsics = adjust_without_model(rec, priors, options)
+    # The ground beside the buildings as faces of their own (citymodel.ground_faces): as
+    # they come for the coarse search, each unit checked against the ground's tie points
+    # once the block is on the model.
+    model = store
+    store, terrain_record = block_terrain(model, tie_points(rec, exclude_point_ids)[1],
+                                          options.terrain, checked=located is not None)
     gnss_only = gnss_only_sim3 = None
     if priors is not None:
         gnss_only, gnss_only_sim3 = pycolmap.Reconstruction(rec), sim3
@@ -105,18 +111,30 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     estimate_offset = gnss_offset_unknowns(priors, o_adj, rec)
     surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
     all_ids, points = tie_points(rec, exclude_point_ids)
-    objective = BlockObjective(surface, priors, all_ids, 2 * o_adj.sigma_dtp)
+    objective = BlockObjective(surface, priors, all_ids, o_adj, o_w.divergence_alpha)
     scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
     coarse = None
+    t_coarse = time.perf_counter()
+    straight = "roll_about_line" in details.get("cues", {})
     # Also after a given initial transform: the bundle adjustment with GNSS has just moved
     # the block onto the GNSS, and with it by the GNSS's bias.
     if priors is not None and o_w.coarse_search_sigmas > 0:
-        t_coarse = time.perf_counter()
-        coarse, moved = coarse_start(rec, points, store, surface, priors, objective, options,
-                                     straight="roll_about_line" in details.get("cues", {}))
-        if moved:
-            sim3 = coarse.sim3 * sim3
+        coarse = coarse_start(rec, points, store, surface, priors, objective, options,
+                              straight=straight)
+    if located is None:
+        store, terrain_record = block_terrain(model, tie_points(rec, exclude_point_ids)[1],
+                                              options.terrain)
+        surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
+        objective = BlockObjective(surface, priors, all_ids, o_adj, o_w.divergence_alpha)
+        if coarse is not None and coarse.moved and terrain_record.get("units_dropped"):
+            # A terrain unit the check dropped may have drawn the search: again without it.
+            rec.transform(coarse.sim3.inverse())
+            coarse = coarse_start(rec, points, store, surface, priors, objective, options,
+                                  straight=straight)
+    if coarse is not None:
         timer["coarse_alignment"] = time.perf_counter() - t_coarse
+        if coarse.moved:
+            sim3 = coarse.sim3 * sim3
     offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
     windows, loop = adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
                                       exclude_point_ids, gnss_only, scale_sigma, located,
@@ -315,14 +333,13 @@ class ModelStart:
     store: PlaneStore
     details: dict  # the georegistration's cues
     located: dict | None  # the model-only search's record (align.locate), None with GNSS
-    terrain: dict  # report.json `terrain`
 
 
 def place_on_model(rec: pycolmap.Reconstruction, city_model: PlaneStore, gnss, options,
                    initial_transform, exclude_point_ids, location, location_radius
                    ) -> ModelStart:
     """Step 1: `rec` (modified) into the model's local frame, by GNSS, a given transform or the
-    model-only search around `location`; the model cropped to the block, its ground added."""
+    model-only search around `location`; the model cropped to the block."""
     details: dict = {}
     located = None
     if initial_transform is None:
@@ -337,12 +354,9 @@ def place_on_model(rec: pycolmap.Reconstruction, city_model: PlaneStore, gnss, o
     store = crop_to_reconstruction(city_model, rec, options.workflow.overlap_margin)
     logger.info("model: %d faces, %d vertices near the reconstruction", len(store.faces),
                 len(store.vertices))
-    # The ground beside the buildings as faces of their own (citymodel.ground_faces).
-    store, terrain_record = block_terrain(store, tie_points(rec, exclude_point_ids)[1],
-                                          options.terrain)
     if located is not None:
         details["cues"] = {k: "model only" for k in ("translation", "scale", "rotation")}
-    return ModelStart(sim3, priors, geo_rms, store, details, located, terrain_record)
+    return ModelStart(sim3, priors, geo_rms, store, details, located)
 
 
 def correct_model(rec, store, current, last, assignment, priors, options, loop, objective,
@@ -375,24 +389,28 @@ def coarse_start(rec: pycolmap.Reconstruction, points: np.ndarray, store: PlaneS
     cannot bridge, so the shift (and the heading within GNSS's heading sigmas; along a straight
     line, the roll) that puts the tie points on the model is searched before any of them is
     assigned. `rec` is moved when that lowers the block objective. `points`: the tie points
-    that may lie on the model (not the check points). Returns (the search's result, whether
-    `rec` moved)."""
+    that may lie on the model (not the check points). Returns the search's result
+    (align.coarse.CoarseAlignment, `moved`: whether `rec` moved)."""
     from .align.coarse import coarse_alignment, heading_sigma_deg
+    from .errormodel.model import placement_score
 
     # The images with GNSS fixed the georegistration; if they lie on a line (`straight`), its
     # rotation about that line came from the cameras' upright orientation and is searched again.
     centres = np.array([rec.image(int(i)).projection_center() for i in priors.image_ids])
     up, view = camera_up_and_view(rec, priors.image_ids)
     sigmas = np.median(priors.sigmas, axis=0)
-    coarse = coarse_alignment(points, centres, up, view, store, surface, sigmas, straight,
+    score = placement_score(surface, points, priors, priors.observed_points(rec),
+                            options.adjustment)
+    coarse = coarse_alignment(points, centres, up, view, store, score, sigmas, straight,
                               options.workflow.coarse_search_sigmas,
                               free_height=bool(priors.free_offset_axes[2]),
                               heading_sigma=heading_sigma_deg(centres, sigmas))
     if objective(rec, coarse.sim3) < objective(rec):
         rec.transform(coarse.sim3)
-        return coarse, True
+        coarse.moved = True
+        return coarse
     logger.info("coarse alignment kept the GNSS-only position (no better objective)")
-    return coarse, False
+    return coarse
 
 
 def _sigma_record(sigma) -> float | list[float] | None:

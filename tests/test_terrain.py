@@ -15,6 +15,7 @@ from colmap_citymodel.citymodel.ground_faces import (
     TERRAIN_CLASS,
     TERRAIN_PREFIX,
     block_terrain,
+    checked_tiles,
     terrain_face_sigmas,
     terrain_mask,
     terrain_units,
@@ -22,7 +23,6 @@ from colmap_citymodel.citymodel.ground_faces import (
 )
 from colmap_citymodel.citymodel.terrain import (
     building_feet,
-    check_against_feet,
     feet_terrain,
     read_dtm,
     read_relief,
@@ -302,7 +302,8 @@ def test_a_dtm_five_metres_off_is_left_out_not_followed(street, tmp_path):
     store = scene.store
     files = street_dtm(tmp_path, options, [5.0, 0.0], noise=0.05)
     terrain = read_dtm(files, UTM32, np.array([[X0 - 20, Y0 - 20], [X0 + 60, Y0 + 20]]), 0.15)
-    warnings = check_against_feet(terrain, building_feet(store), 1.0)
+    points = np.array([p.xyz for p in scene.truth.points3D.values()]) + store.origin
+    warnings = checked_tiles(terrain, points, building_feet(store), TerrainOptions())
     assert len(warnings) == 1 and "dtm_0.tif" in warnings[0] and "+5" in warnings[0]
     assert terrain.tile_names[0] == "dtm_0.tif" and not (terrain.tiles == 0).any()
     assert (terrain.tiles == 1).any()  # the tile that agrees with the feet stays
@@ -438,3 +439,32 @@ def test_a_nadir_mapping_flight_looks_straight_down_along_its_strips(street):
     east, west = flight.centres[:, 1] < -9.5, flight.centres[:, 1] > 9.5
     assert east.sum() >= 4 and west.sum() >= 3
     assert np.all(R[east, 0, 1] < -0.99) and np.all(R[west, 0, 1] > 0.99)
+
+
+def test_a_building_whose_feet_stand_5_m_below_its_street_does_not_move_the_block(street):
+    """Official LoD2 takes a building's walls down to the lowest ground of its footprint: here
+    one building's walls reach 5 m below the street in front of it. Its feet are checked
+    against the road's tie points beside it and the other buildings' feet, named and left out
+    of the terrain, and the drive lands where it lands with honest feet (within 0.25 m in U),
+    not 5 m down."""
+    from colmap_citymodel.citymodel.terrain import LOWEST_EDGE
+    from colmap_citymodel.workflow import refine
+
+    options, scene = street
+    store = scene.store
+    building = "bL2"
+    faces = np.flatnonzero(np.asarray(store.faces.building_id.codes)
+                           == store.faces.building_id.categories.index(building))
+    ids = np.unique(np.concatenate([store.face_vertex_ids(int(f)) for f in faces]))
+    vertices = store.vertices.copy()
+    low = ids[vertices[ids, 2] <= vertices[ids, 2].min() + LOWEST_EDGE]
+    vertices[low, 2] -= 5.0
+    sunk = store.with_vertices(vertices)
+    result = refine(scene.sfm, sunk, scene.gnss(), RefineOptions(), progress=False)
+    true = {im.name: im.projection_center() for im in scene.truth.images.values()}
+    errors = np.array([im.projection_center() - true[im.name]
+                       for im in result.reconstruction.images.values()])
+    assert abs(errors[:, 2].mean()) < 0.25, errors.mean(0)
+    named = [w for w in result.terrain["warnings"] if building in w]
+    assert len(named) == 1 and "left out" in named[0] and "5.0" in named[0]
+    assert "below" in named[0]

@@ -310,53 +310,156 @@ def cell_size(points_xy: np.ndarray, cell: float) -> float:
     return float(min(MAX_CELL, max(cell, np.ceil(cell * grow))))
 
 
-def block_terrain(store, points_local: np.ndarray, options) -> tuple:
+def block_terrain(store, points_local: np.ndarray, options, checked: bool = True) -> tuple:
     """`store` with the terrain under the block's tie points (`points_local`, local frame) as
     faces, and report.json's `terrain` record. `options`: options.TerrainOptions. The source:
-    the DTM files of `options.files` (tiles checked against the buildings' feet), else the TIN
-    relief of the model files (`store.source`), else the buildings' feet."""
+    the DTM files of `options.files`, else the TIN relief of the model files (`store.source`),
+    else the buildings' feet. With `checked`, each source's units (tiles, buildings) are
+    checked against the ground's tie points and the buildings' feet first
+    (citymodel.terrain_check): the tie points must lie on the block as the model placed it
+    (after the coarse search), not as GNSS did (metres off, and along a straight line turned
+    about it)."""
     from pathlib import Path
 
-    from .terrain import (building_feet, check_against_feet, feet_terrain, read_dtm,
-                          read_model_ground, read_relief)
+    from .terrain import building_feet, feet_terrain, read_dtm, read_model_ground, read_relief
 
     if options.source == "none" or not len(points_local):
         return store, {"source": "none"}
     files = [Path(p) for p in str(store.source).split(";") if p and Path(p).is_file()]
-    # With DTM files the model files are not read again: their walls' feet check the DTM.
     ground = read_model_ground(files, store.crs) if files and not options.files else None
     feet = building_feet(store, ground.intersections if ground is not None else None)
-    xy = np.asarray(points_local, float)[:, :2] + store.origin[:2]
-    bbox = np.array([xy.min(0) - 2 * options.cell, xy.max(0) + 2 * options.cell])
+    points = np.asarray(points_local, float) + store.origin
+    bbox = np.array([points[:, :2].min(0) - 2 * options.cell,
+                     points[:, :2].max(0) + 2 * options.cell])
     warnings: list[str] = []
     terrain = None
     if options.files:
         terrain = read_dtm(options.files, store.crs, bbox, options.sigma)
-        warnings += check_against_feet(terrain, feet, options.feet_tolerance)
-        if not np.isfinite(terrain.heights).any():
-            warnings.append("no DTM tile agrees with the buildings' feet: the terrain comes "
-                            "from the model instead")
-            terrain = None
-    if terrain is None and files:
-        ground = ground or read_model_ground(files, store.crs)
+    elif files:
         terrain = read_relief(files, store.crs, bbox, options.sigma, ground=ground)
-        if terrain is not None:
-            warnings += check_against_feet(terrain, feet, options.feet_tolerance)
-            if not np.isfinite(terrain.heights).any():
-                terrain = None
+    if terrain is not None:
+        if checked:
+            warnings += checked_tiles(terrain, points, feet, options)
+        if not np.isfinite(terrain.heights).any():
+            warnings.append(f"no {'DTM' if options.files else 'relief'} tile agrees with the "
+                            "ground's tie points and the buildings' feet: the terrain comes "
+                            "from the buildings' feet instead")
+            terrain = None
     if terrain is None:
-        terrain = feet_terrain(store, bbox, options.feet_sigma, options.feet_sigma_growth,
-                               feet=feet)
+        terrain = (checked_feet_terrain(store, bbox, feet, points, options, warnings)
+                   if checked else feet_terrain(store, bbox, options.feet_sigma,
+                                                options.feet_sigma_growth, feet=feet))
     if terrain is None:
         return store, {"source": "none", "warnings": warnings or ["no building feet to "
                                                                   "build a terrain from"]}
     # The feet terrain covers the whole street, not a band along the facades: a band's
     # pattern of cells would let the coarse search match ground points along the street.
-    cell = cell_size(xy, options.cell)
+    cell = cell_size(points[:, :2], options.cell)
     out = with_terrain_faces(store, terrain, points_local, cell, feet.footprints)
     record = {**terrain.summary(), "num_faces": out.num_faces - store.num_faces,
-              "cell_m": cell, "warnings": warnings}
+              "cell_m": cell, "warnings": warnings, "units_dropped": len(warnings)}
     return out, record
+
+
+def _open_ground(points: np.ndarray, footprints) -> np.ndarray:
+    """(n,) bool: the tie points (CRS) whose xy lies outside the buildings' footprints grown
+    by terrain_check.FACADE_BAND (the facades' own points stand there at every height)."""
+    import shapely
+
+    from .terrain_check import FACADE_BAND
+
+    if footprints is None or footprints.is_empty or not len(points):
+        return np.ones(len(points), bool)
+    return ~shapely.contains_xy(footprints.buffer(FACADE_BAND), points[:, 0], points[:, 1])
+
+
+def checked_tiles(terrain: Terrain, points: np.ndarray, feet, options) -> list[str]:
+    """Drops (sets to nan) the tiles of a DTM or relief `terrain` that the ground's tie points
+    (`points`, CRS) or the buildings' feet contradict (citymodel.terrain_check): a tile off
+    the other tiles by more than its sigma allows, or off the feet of the buildings it covers
+    (a building whose own feet are metres off does not count against it). `options`:
+    TerrainOptions. Returns one warning per dropped tile."""
+    from .terrain_check import consensus, feet_offset, ground_offsets, off_feet
+
+    open_ground = points[_open_ground(points, feet.footprints)]
+    above = open_ground[:, 2] - terrain.height(open_ground[:, :2])
+    tiles = len(terrain.tile_names)
+    offsets, counts = ground_offsets(above, terrain.tile(open_ground[:, :2]), tiles)
+    found = consensus(offsets, counts, np.full(tiles, options.sigma))
+    warnings, drop = [], found.contradicts.copy()
+    for k in np.flatnonzero(found.contradicts):
+        warnings.append(f"terrain tile {terrain.tile_names[k]} stands {-offsets[k]:+.2f} m off "
+                        f"the ground's tie points, {found.consensus - offsets[k]:+.2f} m off "
+                        "the other tiles: left out (a wrong tile or another height system?)")
+    on_feet = terrain.tile(feet.points[:, :2]) if len(feet.points) else np.zeros(0, int)
+    differences = (terrain.height(feet.points[:, :2]) - feet.points[:, 2] if len(feet.points)
+                   else np.zeros(0))
+    for k in range(tiles):
+        mine = (on_feet == k) & np.isfinite(differences)
+        offset, sigma = feet_offset(differences[mine], feet.building[mine],
+                                    len(feet.building_ids), options.feet_sigma,
+                                    options.feet_spread)
+        if not drop[k] and off_feet(offset, sigma, options.sigma):
+            drop[k] = True
+            warnings.append(f"terrain tile {terrain.tile_names[k]} stands {offset:+.2f} m off "
+                            f"the buildings' feet it covers (their sigma {sigma:.2f} m): left "
+                            "out (another height system or a wrong tile?)")
+    _drop_tiles(terrain, drop, offsets, counts)
+    for message in warnings:
+        logger.warning(message)
+    return warnings
+
+
+def _drop_tiles(terrain: Terrain, drop: np.ndarray, offsets: np.ndarray, counts: np.ndarray
+                ) -> None:
+    """`terrain` without the tiles `drop` marks; a note on each kept tile's ground points."""
+    for k in np.flatnonzero(drop):
+        gone = terrain.tiles == k
+        terrain.heights[gone] = np.nan
+        terrain.sigmas[gone] = np.nan
+        terrain.tiles[gone] = -1
+    for k in np.flatnonzero(~drop & (counts > 0)):
+        terrain.notes.append(f"tile {terrain.tile_names[k]}: the ground's tie points "
+                             f"{offsets[k]:+.2f} m above it ({counts[k]} points)")
+
+
+def checked_feet_terrain(store, bbox: np.ndarray, feet, points: np.ndarray, options,
+                         warnings: list[str]) -> Terrain | None:
+    """The terrain from the buildings' feet (citymodel.terrain.feet_terrain) without the
+    buildings whose feet the ground's tie points beside them and the other buildings' feet
+    contradict (named in `warnings`); a building's ground height trusted to
+    `options.feet_sigma` where enough neighbours checked it, else to `options.feet_spread`
+    (LoD2 takes walls down to the lowest ground of a footprint: metres below a street on a
+    slope, a ramp, a courtyard)."""
+    from .terrain import feet_terrain, without_buildings
+    from .terrain_check import consensus, ground_offsets
+
+    if not len(feet.points):
+        return None
+    from scipy.spatial import cKDTree
+
+    open_ground = points[_open_ground(points, feet.footprints)]
+    distance, nearest = cKDTree(feet.points[:, :2]).query(open_ground[:, :2])
+    near = distance < options.cell + FEET_CHECK_REACH
+    above = np.where(near, open_ground[:, 2] - feet.points[nearest, 2], np.nan)
+    count = len(feet.building_ids)
+    offsets, counts = ground_offsets(above, np.where(near, feet.building[nearest], -1), count)
+    found = consensus(offsets, counts, np.full(count, options.feet_sigma))
+    for k in np.flatnonzero(found.contradicts):
+        off = found.consensus - offsets[k]  # its feet's height off the ground beside it
+        warnings.append(f"the feet of building {feet.building_ids[k]} stand {abs(off):.2f} m "
+                        f"{'below' if off < 0 else 'above'} the ground's tie points beside it, "
+                        "where the other buildings' feet have them (walls taken down to the "
+                        "lowest ground of its footprint?): left out of the terrain")
+        logger.warning(warnings[-1])
+    sigmas = np.where(found.checked, options.feet_sigma, options.feet_spread)
+    return feet_terrain(store, bbox, sigmas, options.feet_sigma_growth,
+                        feet=without_buildings(feet, np.flatnonzero(found.contradicts)))
+
+
+#: Metres beyond a terrain cell from a building's feet within which the ground's tie points
+#: are compared with its feet: the pavement and the road in front of it.
+FEET_CHECK_REACH = 3.0
 
 
 #: A terrain unit whose ground points lie further from it on average than this many of its

@@ -15,10 +15,11 @@ per node) from, in order of preference:
    building (its ground height) plus a local error that grows away from the feet: beyond a
    pavement's width the road lies a kerb lower and falls to its gutter.
 
-A DTM is checked against the buildings' feet before it is used (`check_against_feet`): a tile
-whose heights stand more than a tolerance off the feet (another tile's georeference, another
-height system) is dropped with a warning, not followed. citymodel.ground_faces turns the
-terrain near the tie points into planar faces of the plane store.
+Each source's units (a DTM's tiles, the buildings' feet) are checked against the ground's tie
+points before they are used (citymodel.terrain_check): a unit the ground and the other units
+contradict (a wrong tile, a building whose walls reach metres below its street) is dropped
+with a warning, not followed. citymodel.ground_faces turns the terrain near the tie points
+into planar faces of the plane store.
 """
 
 from __future__ import annotations
@@ -546,15 +547,15 @@ FEET_REACH = 3.0
 KERB = 0.15
 
 
-def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
+def feet_terrain(store, bbox_xy: np.ndarray, sigma, growth: float,
                  spacing: float = GRID_SPACING, feet: Feet | None = None,
                  reach: float = FEET_REACH, kerb: float = KERB) -> Terrain | None:
     """The buildings' feet interpolated (linear between them, nearest beyond) over the grid on
     `bbox_xy`; one tile per building (the nearest foot's), whose offset has the sigma `sigma`
-    (the building's ground height); a local sigma of `growth` per metre from the nearest
-    foot. Beyond `reach` metres of the footprints (the pavement) the ground lies `kerb`
-    lower, its error one for all of it (citymodel.ground_faces: the road unit). None without
-    feet."""
+    (the building's ground height: one for all, or one per building of `feet`); a local sigma
+    of `growth` per metre from the nearest foot. Beyond `reach` metres of the footprints (the
+    pavement) the ground lies `kerb` lower, its error one for all of it
+    (citymodel.ground_faces: the road unit). None without feet."""
     from scipy.interpolate import LinearNDInterpolator, NearestNDInterpolator
     from scipy.spatial import cKDTree
 
@@ -576,38 +577,15 @@ def feet_terrain(store, bbox_xy: np.ndarray, sigma: float, growth: float,
     band = None if feet.footprints.is_empty else feet.footprints.buffer(reach)
     note = f"interpolated from {len(unique)} points on the feet of {len(set(feet.building))} buildings"
     logger.info("terrain: from the buildings' feet (%s)", note)
+    sigmas = np.broadcast_to(np.asarray(sigma, float), (len(feet.building_ids),))[tiles]
     return Terrain("building_feet", x0, y0, spacing, heights.reshape(ny, nx),
-                   np.full((ny, nx), float(sigma)), tiles.reshape(ny, nx),
+                   sigmas.reshape(ny, nx), tiles.reshape(ny, nx),
                    list(feet.building_ids), [note], (growth * distance).reshape(ny, nx), band,
                    kerb if band is not None else 0.0)
 
 
-def check_against_feet(terrain: Terrain, feet: Feet, tolerance: float,
-                       min_points: int = 5) -> list[str]:
-    """Drops (sets to nan) the tiles of `terrain` whose median height difference from the
-    buildings' feet they cover exceeds `tolerance` (m): a tile with another georeference or in
-    another height system is caught, not followed. Returns one warning per dropped tile."""
-    warnings = []
-    if not len(feet.points):
-        return warnings
-    diff = terrain.height(feet.points[:, :2]) - feet.points[:, 2]
-    tile = terrain.tile(feet.points[:, :2])
-    for k, name in enumerate(terrain.tile_names):
-        mine = (tile == k) & np.isfinite(diff)
-        if np.count_nonzero(mine) < min_points:
-            continue
-        median = float(np.median(diff[mine]))
-        if abs(median) > tolerance:
-            message = (f"terrain tile {name} stands {median:+.2f} m off the buildings' feet "
-                       f"({np.count_nonzero(mine)} foot points; tolerance {tolerance:g} m): "
-                       "left out (another height system or a wrong tile?)")
-            logger.warning(message)
-            warnings.append(message)
-            drop = terrain.tiles == k
-            terrain.heights[drop] = np.nan
-            terrain.sigmas[drop] = np.nan
-            terrain.tiles[drop] = -1
-        else:
-            terrain.notes.append(f"tile {name}: {median:+.2f} m from the buildings' feet "
-                                 f"(median of {np.count_nonzero(mine)})")
-    return warnings
+def without_buildings(feet: Feet, buildings) -> Feet:
+    """`feet` without the foot points of `buildings` (indices into its building ids; the
+    footprints stay: the buildings still stand)."""
+    keep = ~np.isin(feet.building, np.asarray(list(buildings), np.int64))
+    return Feet(feet.points[keep], feet.building[keep], feet.building_ids, feet.footprints)
