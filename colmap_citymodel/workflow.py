@@ -33,7 +33,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 from pathlib import Path
 
@@ -41,9 +41,11 @@ import numpy as np
 import pycolmap
 
 from .adjust.correction_loop import every_point_alike
+from .adjust.datum import hold_where_gnss_alone
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
-                                   unsettled_observability, weighting_observability)
+                                   left_to_gnss, unsettled_observability,
+                                   weighting_observability)
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -56,6 +58,7 @@ from .citymodel.store import PlaneStore
 from .errors import DatumError, NoOverlapError
 from .options import RefineOptions
 from .output.result import RefineResult
+from .precision.estimate import precision_after_refine
 from .precision.quality import measure_quality
 
 logger = logging.getLogger(__name__)
@@ -79,138 +82,227 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     sigma is useless) the block is found on the model within `location_radius` m of it
     (align.locate) and refined with the model as the only datum.
     """
-    from .align.coarse import SurfaceDistance
-
     options = with_correction_alike(options or RefineOptions())
     if options.workflow.mode == "sliding_window":  # bad window sizes before any work
         from .adjust.sliding_window import check_window_options
 
         check_window_options(options)
-    timer = {"start": time.perf_counter()}
+    run = Run(time.perf_counter(), exclude_point_ids, progress)
     rec = pycolmap.Reconstruction(reconstruction)
     start = place_on_model(rec, city_model, gnss, options, initial_transform, exclude_point_ids,
                            location, location_radius)
-    sim3, priors, geo_rms, store = start.sim3, start.priors, start.rms, start.store
-    details, located = start.details, start.located
-    timer["georegistration"] = time.perf_counter() - timer["start"]
+    run.lap("georegistration")
+    rec, options, report2, eliminated2, intrinsics = adjust_without_model(rec, start.priors,
+                                                                          options)
+    gnss_only = pycolmap.Reconstruction(rec) if start.priors is not None else None
+    run.lap("step2")
+    placed = coarse_placement(rec, start, options, run)
+    windows, loop = adjust_with_model(rec, placed.store, start.priors, options, placed.surface,
+                                      placed.objective, placed.all_ids, exclude_point_ids,
+                                      gnss_only, placed.scale_sigma, start.located, progress,
+                                      run.timer, run.warnings)
+    run.warnings += loop.warnings
+    run.timer.update(loop.seconds)
+    final = after_loop(loop, placed, start.priors, options, run)
+    judged = judge(final, loop, placed, start, gnss_only, options, run, gnss)
+    judged.sim3 = judged.sim3 * loop.move * placed.sim3  # input frame to local
+    if judged.verdict_failed and gnss_only is not None:
+        # Never hand back a block worse than GNSS alone: the result is the GNSS-only one.
+        judged.reconstruction, judged.sim3 = gnss_only, start.sim3
+        judged.observability = gnss_only_observability(judged.observability)
+    precision = None if judged.reconstruction is gnss_only else precision_after_refine(
+        final.last, options.precision, checkpoint_observations, judged.observability)
+    correction = (_model_correction(placed.store, final.current, final.corrected, final.last,
+                                    precision, options, run.warnings,
+                                    handed_back=judged.reconstruction is gnss_only)
+                  if final.corrected is not None and final.corrected.selection is not None
+                  else None)
+    evaluation = None
+    if checkpoints is not None and checkpoint_observations is not None:
+        from .precision.checkpoints import evaluate_with_precision
 
-    warnings: list[str] = []
-    rec, options, report2, eliminated2, intrinsics = adjust_without_model(rec, priors, options)
-    # The ground beside the buildings as faces of their own (citymodel.ground_faces): as
-    # they come for the coarse search, each unit checked against the ground's tie points
-    # once the block is on the model.
-    model = store
-    store, terrain_record = block_terrain(model, tie_points(rec, exclude_point_ids)[1],
-                                          options.terrain, checked=located is not None)
-    gnss_only = gnss_only_sim3 = None
-    if priors is not None:
-        gnss_only, gnss_only_sim3 = pycolmap.Reconstruction(rec), sim3
-    timer["step2"] = time.perf_counter() - timer["start"] - timer["georegistration"]
+        evaluation = evaluate_with_precision(judged.reconstruction, checkpoints,
+                                             checkpoint_observations, placed.store.origin,
+                                             precision)
+    return refine_result(start, placed, loop, final, judged, options, run, windows,
+                         precision=precision, correction=correction, evaluation=evaluation,
+                         step2=(report2, eliminated2, intrinsics), gnss_only=gnss_only)
+
+
+@dataclass
+class Run:
+    """What one refine collects along the way: its seconds per stage, its warnings."""
+
+    started: float
+    exclude_point_ids: set[int] | None
+    progress: bool
+    timer: dict = field(default_factory=dict)
+    warnings: list[str] = field(default_factory=list)
+
+    def lap(self, name: str) -> None:
+        """The seconds since the last lap (or the start) as stage `name`."""
+        self.timer[name] = time.perf_counter() - self.started - sum(self.timer.values())
+
+
+@dataclass
+class Placed:
+    """The block on the model before the assign/adjust loop: the model with its checked
+    terrain, the surfaces and the objective every stage scores against, the tie points, the
+    coarse search's record and the similarity it applied (`sim3`, input frame to local)."""
+
+    store: PlaneStore
+    terrain: dict  # report.json `terrain`
+    surface: object  # align.coarse.SurfaceDistance
+    objective: BlockObjective
+    all_ids: np.ndarray
+    scale_sigma: float | None
+    sim3: pycolmap.Sim3d
+    coarse: object | None  # align.coarse.CoarseAlignment
+    estimate_offset: bool
+    offset_start: dict | None
+
+
+def coarse_placement(rec: pycolmap.Reconstruction, start: "ModelStart", options: RefineOptions,
+                     run: Run) -> Placed:
+    """The block GNSS placed (`rec`, moved in place) onto the model: the terrain as it comes
+    for the coarse search (align.coarse), then each terrain unit checked against the ground's
+    tie points of the block on the model (citymodel.ground_faces), and the search again where
+    the check dropped a unit that may have drawn it."""
+    from .align.coarse import SurfaceDistance
 
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
+    priors, ids = start.priors, run.exclude_point_ids
+    t0 = time.perf_counter()
+    store, terrain = block_terrain(start.store, tie_points(rec, ids)[1], options.terrain,
+                                   checked=start.located is not None)
     estimate_offset = gnss_offset_unknowns(priors, o_adj, rec)
     surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
-    all_ids, points = tie_points(rec, exclude_point_ids)
+    all_ids, points = tie_points(rec, ids)
     objective = BlockObjective(surface, priors, all_ids, o_adj, o_w.divergence_alpha)
-    scale_sigma = scale_sigma_from_gnss(priors) if priors is not None else None
+    straight = "roll_about_line" in start.details.get("cues", {})
     coarse = None
-    t_coarse = time.perf_counter()
-    straight = "roll_about_line" in details.get("cues", {})
     # Also after a given initial transform: the bundle adjustment with GNSS has just moved
     # the block onto the GNSS, and with it by the GNSS's bias.
     if priors is not None and o_w.coarse_search_sigmas > 0:
         coarse = coarse_start(rec, points, store, surface, priors, objective, options,
                               straight=straight)
-    if located is None:
-        store, terrain_record = block_terrain(model, tie_points(rec, exclude_point_ids)[1],
-                                              options.terrain)
+    if start.located is None:
+        store, terrain = block_terrain(start.store, tie_points(rec, ids)[1], options.terrain)
         surface = SurfaceDistance(store, o_a.excluded_classes, o_adj.num_threads)
         objective = BlockObjective(surface, priors, all_ids, o_adj, o_w.divergence_alpha)
-        if coarse is not None and coarse.moved and terrain_record.get("units_dropped"):
+        if coarse is not None and coarse.moved and terrain.get("units_dropped"):
             # A terrain unit the check dropped may have drawn the search: again without it.
             rec.transform(coarse.sim3.inverse())
             coarse = coarse_start(rec, points, store, surface, priors, objective, options,
                                   straight=straight)
     if coarse is not None:
-        timer["coarse_alignment"] = time.perf_counter() - t_coarse
-        if coarse.moved:
-            sim3 = coarse.sim3 * sim3
-    offset_start = start_gnss_offset(priors, rec) if estimate_offset else None
-    windows, loop = adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
-                                      exclude_point_ids, gnss_only, scale_sigma, located,
-                                      progress, timer, warnings)
-    rec, current, assignment, last = loop.reconstruction, loop.current, loop.assignment, loop.last
-    sim3 = loop.move * sim3
-    warnings += loop.warnings
-    timer.update(loop.seconds)
+        run.timer["coarse_alignment"] = time.perf_counter() - t0
+    sim3 = coarse.sim3 * start.sim3 if coarse is not None and coarse.moved else start.sim3
+    return Placed(store, terrain, surface, objective, all_ids,
+                  scale_sigma_from_gnss(priors) if priors is not None else None, sim3, coarse,
+                  estimate_offset, start_gnss_offset(priors, rec) if estimate_offset else None)
 
-    from .precision.estimate import precision_after_refine
+
+@dataclass
+class Final:
+    """The block after the loop and what follows it (variance components, model correction):
+    the reconstruction, the adjusted model, the last problem, the assignment."""
+
+    reconstruction: pycolmap.Reconstruction
+    current: PlaneStore
+    last: object  # adjust.problem.HybridProblem
+    assignment: object  # assign.assignment.Assignment
+    vce: object | None
+    corrected: object | None  # adjust.correction_loop.CorrectionResult
+
+
+def after_loop(loop, placed: Placed, priors, options: RefineOptions, run: Run) -> Final:
+    """The variance components or estimated generalisation offsets where asked, the GNSS
+    offset the last solve estimated, and the model correction where asked."""
     from .precision.variance_components import final_solve_in_refine
 
+    rec, current, assignment, last = loop.reconstruction, loop.current, loop.assignment, loop.last
     vce = None
-    if last.blocks.faces.size:  # VCE and/or estimated generalisation offsets, if asked
-        last, vce = final_solve_in_refine(rec, store, assignment, priors, options, current,
-                                          last)
+    if last.blocks.faces.size:
+        last, vce = final_solve_in_refine(rec, placed.store, assignment, priors, options,
+                                          current, last)
         current = model_after_solve(current, last)
-    if estimate_offset:  # the last solve's priors (a re-weighted copy after VCE) hold it
+    if placed.estimate_offset:  # the last solve's priors (a re-weighted copy after VCE) hold it
         priors.offset = np.array(last.gnss.offset if last.gnss is not None else priors.offset)
     corrected = None
     if options.adjustment.correct_model and last.blocks.faces.size:
         corrected, rec, current, last, assignment = correct_model(
-            rec, store, current, last, assignment, priors, options, loop, objective,
-            exclude_point_ids, timer, warnings)
+            rec, placed.store, current, last, assignment, priors, options, loop,
+            placed.objective, run.exclude_point_ids, run.timer, run.warnings)
+    return Final(rec, current, last, assignment, vce, corrected)
+
+
+@dataclass
+class Judged:
+    """The verdict on the refined block and what it states: its observability, the GNSS
+    offset, the shift that held it to GNSS where the planes leave it (`sim3`), the block."""
+
+    reconstruction: pycolmap.Reconstruction
+    observability: dict
+    quality: object  # precision.quality.QualityReport
+    gnss_offset: dict | None
+    sim3: pycolmap.Sim3d | None
+
+    @property
+    def verdict_failed(self) -> bool:
+        return self.quality.verdict == "failed"
+
+
+def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, options,
+          run: Run, gnss) -> Judged:
+    """The observability and the verdict (block_quality, the block held to GNSS where the
+    planes leave it), the terrain's residuals, the GNSS offset's record; logged."""
+    priors, rec = start.priors, final.reconstruction
     observability, quality = block_quality(
-        rec, assignment, current, last, loop, options,
-        surface=surface, priors=priors, gnss_only=gnss_only, scale_sigma=scale_sigma,
-        exclude_point_ids=exclude_point_ids)
-    if terrain_record.get("num_faces"):
-        terrain_record["residuals"] = terrain_residuals(current, assignment, np.array(
-            [rec.point3D(int(i)).xyz for i in assignment.point_ids]).reshape(-1, 3))
-    gnss_offset = (offset_report(priors, observability, offset_start, gnss)
-                   if estimate_offset else None)
+        rec, final.assignment, final.current, final.last, loop, options,
+        surface=placed.surface, priors=priors, gnss_only=gnss_only,
+        scale_sigma=placed.scale_sigma, exclude_point_ids=run.exclude_point_ids, hold=True)
+    held = quality.metrics.get("moved_back_to_gnss_m") if isinstance(quality.metrics, dict) \
+        else None
+    sim3 = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.asarray(held if held else np.zeros(3)))
+    if placed.terrain.get("num_faces"):
+        placed.terrain["residuals"] = terrain_residuals(final.current, final.assignment, np.array(
+            [rec.point3D(int(i)).xyz for i in final.assignment.point_ids]).reshape(-1, 3))
+    gnss_offset = (offset_report(priors, observability, placed.offset_start, gnss)
+                   if placed.estimate_offset else None)
     if gnss_offset is not None:
         logger.info(offset_line(gnss_offset))
-    if located is not None and isinstance(quality.metrics, dict):
-        quality.metrics["location_score_ratio"] = located["score_ratio"]
+    if start.located is not None and isinstance(quality.metrics, dict):
+        quality.metrics["location_score_ratio"] = start.located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
     logger.info(quality.line())
-    precision = evaluation = None
-    refined = rec
-    if quality.verdict == "failed" and gnss_only is not None:
-        # Never hand back a block worse than GNSS alone: the result is the GNSS-only one.
-        rec, sim3 = gnss_only, gnss_only_sim3
-        observability = gnss_only_observability(observability)
-    else:
-        precision = precision_after_refine(last, options.precision, checkpoint_observations,
-                                           observability)
-    correction = None
-    if corrected is not None and corrected.selection is not None:
-        correction = _model_correction(store, current, corrected, last, precision, options,
-                                       warnings, handed_back=quality.verdict == "failed"
-                                       and gnss_only is not None)
-    if checkpoints is not None and checkpoint_observations is not None:
-        from .precision.checkpoints import evaluate_with_precision
+    return Judged(rec, observability, quality, gnss_offset, sim3)
 
-        evaluation = evaluate_with_precision(rec, checkpoints, checkpoint_observations,
-                                             store.origin, precision)
-    blocks = last.blocks
-    timer["total"] = time.perf_counter() - timer["start"]
-    del timer["start"]
+
+def refine_result(start, placed: Placed, loop, final: Final, judged: Judged, options,
+                  run: Run, windows, *, precision, correction, evaluation, step2, gnss_only
+                  ) -> RefineResult:
+    """The RefineResult of one refine."""
+    report2, eliminated2, intrinsics = step2
+    blocks = final.last.blocks
+    run.timer["total"] = time.perf_counter() - run.started
     result = RefineResult(
-        reconstruction=rec, store=store, adjusted_store=current, assignment=assignment,
+        reconstruction=judged.reconstruction, store=placed.store,
+        adjusted_store=final.current, assignment=final.assignment,
         plane_faces=blocks.faces, plane_normals=blocks.normal_array,
-        plane_offsets=blocks.offset_array, input_to_local=sim3, georegistration_rms=geo_rms,
-        step2=report2, step2_eliminated=eliminated2, iterations=loop.iterations,
-        options=options, warnings=warnings, seconds=timer, gnss_priors=priors, precision=precision,
-        variance_components=vce, checkpoints=evaluation, gnss_only=gnss_only,
-        quality=quality, observability=observability,
-        observability_before=loop.observability_before, refined=refined,
-        datum_cues=details.get("cues", {}),
-        coarse_alignment=coarse.todict() if coarse is not None else None,
-        gnss_offset=gnss_offset, model_correction=correction,
+        plane_offsets=blocks.offset_array, input_to_local=judged.sim3,
+        georegistration_rms=start.rms, step2=report2, step2_eliminated=eliminated2,
+        iterations=loop.iterations, options=options, warnings=run.warnings,
+        seconds=run.timer, gnss_priors=start.priors, precision=precision,
+        variance_components=final.vce, checkpoints=evaluation, gnss_only=gnss_only,
+        quality=judged.quality, observability=judged.observability,
+        observability_before=loop.observability_before, refined=final.reconstruction,
+        datum_cues=start.details.get("cues", {}),
+        coarse_alignment=placed.coarse.todict() if placed.coarse is not None else None,
+        gnss_offset=judged.gnss_offset, model_correction=correction,
         sliding_window=windows.todict(options) if windows is not None else None,
-        loop_stopped_by=loop.stopped_by, georegistration=located)
-    result.terrain = terrain_record
+        loop_stopped_by=loop.stopped_by, georegistration=start.located)
+    result.terrain = placed.terrain
     result.intrinsics = intrinsics.todict() if intrinsics is not None else None
     return result
 
@@ -298,18 +390,28 @@ def adjust_with_model(rec, store, priors, options, surface, objective, all_ids,
 
 
 def block_quality(rec, assignment, current, last, loop, options, *,
-                  surface, priors, gnss_only, scale_sigma, exclude_point_ids):
+                  surface, priors, gnss_only, scale_sigma, exclude_point_ids,
+                  hold: bool = False):
     """The observability (from the data) of an adjusted block and the quality gate's verdict
     on it (precision.quality.measure_quality); `loop` (adjust.loop.LoopResult) tells whether
     the assignment loop diverged or ended unsettled, and how far the faces' weighting moved
-    the block."""
+    the block. `hold`: `rec` is first moved back to the GNSS-only block along the axes the
+    planes leave to GNSS (adjust.datum.hold_where_gnss_alone)."""
     _, points = tie_points(rec, exclude_point_ids)
     observability = weighting_observability(unsettled_observability(
         assigned_observability(points, assignment, current, priors, rec, options,
                                from_data=True), loop.unsettled_move), loop.weighting_move)
+    held = np.zeros(3)
+    if hold and priors is not None:
+        held = hold_where_gnss_alone(rec, gnss_only, priors.image_ids,
+                                     left_to_gnss(observability))
+        if np.any(held):
+            _, points = tie_points(rec, exclude_point_ids)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma,
                               loop.unsettled_shift, store=current)
+    if np.any(held) and isinstance(quality.metrics, dict):
+        quality.metrics["moved_back_to_gnss_m"] = held.tolist()
     return observability, quality
 
 

@@ -288,3 +288,18 @@ def test_a_radius_just_beyond_the_tolerance_is_not_shown_as_the_tolerance():
     reason = next(r for r in quality_verdict({"position_sigma_m": 0.31}).reasons
                   if "lies within" in r)
     assert "within 0.31 m" in reason
+
+
+def test_a_model_30_m_off_that_still_overlaps_the_block_fails():
+    """The city model shifted 30 m along the street: its rows of facades still overlap the
+    block, and the coarse search may find a placement on them; but the move from where GNSS
+    puts the block is beyond anything GNSS's error model allows, so refine fails and hands
+    back the GNSS-only block, whatever the planes fix."""
+    scene = make_street_scene(StreetSceneOptions(seed=2))
+    shifted = scene.store.with_vertices(scene.store.vertices + np.array([30.0, 0.0, 0.0]))
+    result = refine(scene.sfm, shifted, scene.gnss(), RefineOptions(), progress=False)
+    assert result.quality.verdict == "failed", result.quality.reasons
+    assert result.handed_back == "gnss_only"
+    errors = axis_errors(result.reconstruction, scene.truth)
+    assert np.linalg.norm(errors) == pytest.approx(
+        np.linalg.norm(axis_errors(result.gnss_only, scene.truth)))

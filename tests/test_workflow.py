@@ -385,6 +385,7 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     # Direct assignment: from its first assignment at 2 m the loop needs several iterations
     # (the default's first iteration already leaves the cameras within millimetres here).
     options.assignment.method = "direct"
+    options.workflow.alignment_rounds = 0  # the solves, not the similarity, bring it there
     options.workflow.max_iterations = 6
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_assignment_change = None
@@ -587,11 +588,11 @@ def test_a_solve_moving_the_block_away_from_gnss_further_than_it_allows_has_run_
     assert shift_runaway(before, lost, priors, share).tolist() == [False, False, True]
 
 
-def test_the_level_prior_keeps_the_gnss_level_where_gnss_is_better_than_the_placement(scene):
-    """The coarse search and the similarity rounds moved the block 0.3 m down. With the
-    street's GNSS (sigma 3 / 3 / 5 m) the height is held where they put it; with GNSS of RTK
-    quality (5 / 5 / 10 cm: better than the placement's 0.4 m) where GNSS put it, the
-    GNSS-only block's level."""
+def test_the_level_prior_holds_the_gnss_only_level_whatever_moved_the_block(scene):
+    """The coarse search and the similarity rounds moved the block 0.3 m down along an axis
+    the planes leave to GNSS: nothing in the model says it should be there, so the level prior
+    holds the GNSS-only block's level, with the street's GNSS as with RTK; without a GNSS-only
+    block, where the block is."""
     from dataclasses import replace
 
     from colmap_citymodel.adjust.scale import level_prior
@@ -601,12 +602,13 @@ def test_the_level_prior_keeps_the_gnss_level_where_gnss_is_better_than_the_plac
     placed = pycolmap.Reconstruction(gnss_only)
     placed.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), [0.0, 0.0, -0.3]))
     axes = [False, False, True]
-    image, position, _ = level_prior(placed, priors, axes, gnss_only)
-    assert position[2] == pytest.approx(placed.image(image).projection_center()[2])
     precise = replace(priors, sigmas=np.tile([0.05, 0.05, 0.1], (len(priors.sigmas), 1)))
-    image, position, _ = level_prior(placed, precise, axes, gnss_only)
-    assert position[2] == pytest.approx(gnss_only.image(image).projection_center()[2])
-    assert position[2] - placed.image(image).projection_center()[2] == pytest.approx(0.3)
+    for gnss in (priors, precise):
+        image, position, _ = level_prior(placed, gnss, axes, gnss_only)
+        assert position[2] == pytest.approx(gnss_only.image(image).projection_center()[2])
+        assert position[2] - placed.image(image).projection_center()[2] == pytest.approx(0.3)
+    image, position, _ = level_prior(placed, priors, axes)
+    assert position[2] == pytest.approx(placed.image(image).projection_center()[2])
 
 
 def test_rtk_grade_gnss_keeps_the_block_at_its_height_beside_a_kerbless_street():
@@ -676,22 +678,11 @@ def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scen
 
 
 @pytest.mark.parametrize("hold", [True, False])
-def test_a_height_the_planes_leave_to_gnss_stays_where_the_first_assignment_put_it(
-        scene, monkeypatch, caplog, hold):
+def test_a_height_the_planes_leave_to_gnss_stays_where_gnss_put_it(scene, caplog, hold):
     """Walls only, each tilted by 0.1 deg: the planes fix the plan position, and the height
-    only through the tilts, far more weakly than GNSS. The height is then held where the first
-    assignment and its similarity rounds put the block. Without the hold the solves move it
-    along the tilted walls, towards their pivots."""
-    from colmap_citymodel.adjust import loop as loop_module
-    from colmap_citymodel.adjust.scale import level_prior
-
-    seen = []
-
-    def recording(block, priors, axes, *args):
-        seen.append({int(i): block.image(int(i)).projection_center() for i in priors.image_ids})
-        return level_prior(block, priors, axes, *args)
-
-    monkeypatch.setattr(loop_module, "level_prior", recording)
+    only through the tilts, far more weakly than GNSS. No move without evidence: the block
+    ends at the GNSS-only block's height, held there in the solves (`hold_gnss_height`) and
+    put back there before the verdict; its plan position is the planes'."""
     options = RefineOptions()
     options.workflow.hold_gnss_height = hold
     store = walls_only(scene.store, tilt_deg=0.1)
@@ -699,23 +690,17 @@ def test_a_height_the_planes_leave_to_gnss_stays_where_the_first_assignment_put_
         result = refine(scene.sfm, store, scene.gnss(), options, progress=False)
     assert result.observability_before["U"]["source"] == "gnss"
     assert result.observability_before["E"]["source"] in ("planes", "both")
-    ids = list(seen[0])
-    first = np.array([seen[0][i] for i in ids])
+    ids = [im.image_id for im in result.reconstruction.images.values()]
+    there = np.array([result.gnss_only.image(i).projection_center() for i in ids])
     refined = np.array([result.reconstruction.image(i).projection_center() for i in ids])
-    height_shift = abs(float(np.mean(refined[:, 2] - first[:, 2])))
-    held = [r for r in caplog.records if "held where the first assignment put it" in
-            r.getMessage()]
-    if hold:
-        assert held and "U" in held[0].getMessage()
-        assert height_shift < 0.12  # two sigma of the held level (GNSS mean sigma / 10)
-        # The plan position is the planes': within a decimetre or two of the truth.
-        true = {im.name: im.projection_center() for im in scene.truth.images.values()}
-        plan = [result.reconstruction.image(i).projection_center()[:2]
-                - true[result.reconstruction.image(i).name][:2] for i in ids]
-        assert rms(np.linalg.norm(plan, axis=1)) < 0.2
-    else:
-        assert not held
-        assert height_shift > 0.2
+    assert abs(float(np.mean(refined[:, 2] - there[:, 2]))) < 0.05
+    held = [r for r in caplog.records if "held where GNSS put it" in r.getMessage()]
+    assert bool(held) == hold and (not hold or "U" in held[0].getMessage())
+    # The plan position is the planes': within a decimetre or two of the truth.
+    true = {im.name: im.projection_center() for im in scene.truth.images.values()}
+    plan = [result.reconstruction.image(i).projection_center()[:2]
+            - true[result.reconstruction.image(i).name][:2] for i in ids]
+    assert rms(np.linalg.norm(plan, axis=1)) < 0.2
 
 
 def test_a_held_height_is_released_once_the_planes_fix_it(scene, monkeypatch, caplog):
@@ -738,7 +723,7 @@ def test_a_held_height_is_released_once_the_planes_fix_it(scene, monkeypatch, ca
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust"):
         result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
     messages = [r.getMessage() for r in caplog.records]
-    assert any("held where the first assignment put it" in m for m in messages)
+    assert any("held where GNSS put it" in m for m in messages)
     assert any("iteration 1: the planes now fix U" in m for m in messages)
     assert len(calls) >= 2
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
@@ -795,7 +780,7 @@ def test_a_robust_solve_that_leaves_the_model_is_followed_at_once(scene, monkeyp
         return real_solve(self)
 
     def worse_after_a_robust_solve(self, rec, moved=None):
-        return real_call(self, rec, moved) + (1.0 if last_robust[0] else 0.0)
+        return real_call(self, rec, moved) + (2 * self.tolerance if last_robust[0] else 0.0)
 
     monkeypatch.setattr(problem_module.HybridProblem, "solve", solve)
     monkeypatch.setattr(objective_module.BlockObjective, "__call__", worse_after_a_robust_solve)

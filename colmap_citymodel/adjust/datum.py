@@ -70,3 +70,25 @@ def describe(direction: np.ndarray) -> str:
         return "the vertical"
     azimuth = np.degrees(np.arctan2(direction[0], direction[1])) % 180.0
     return f"the horizontal direction of azimuth {azimuth:.0f} deg"
+
+
+def hold_where_gnss_alone(rec, gnss_only, image_ids: np.ndarray, alone: np.ndarray
+                          ) -> np.ndarray:
+    """No move without evidence: along the axes `alone` ((3,) bool, E N U) that GNSS fixes and
+    the planes and terrain do not (adjust.observability.left_to_gnss), the block `rec` is
+    moved back (in place) to where the GNSS-only block `gnss_only` has the cameras of
+    `image_ids` on average: there the model gave it no reason to move. Returns the shift
+    applied (m, E N U)."""
+    import pycolmap
+
+    if gnss_only is None or not np.any(alone) or not len(image_ids):
+        return np.zeros(3)
+    here = np.array([rec.image(int(i)).projection_center() for i in image_ids])
+    there = np.array([gnss_only.image(int(i)).projection_center() for i in image_ids])
+    shift = np.where(alone, (there - here).mean(axis=0), 0.0)
+    if np.any(shift):
+        rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), shift))
+        logger.info("the planes leave %s to GNSS: the block moved back there by %s m",
+                    ", ".join(a for a, f in zip("ENU", alone) if f),
+                    np.round(shift[alone], 3).tolist())
+    return shift

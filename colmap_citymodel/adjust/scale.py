@@ -9,7 +9,6 @@ import logging
 import numpy as np
 import pycolmap
 
-from ..align.coarse import PLACEMENT_RESOLUTION
 from ..block.priors import GNSSPriors
 from ..block.reconstruction import observer_centres
 from .observability import gnss_bias_sigmas
@@ -125,14 +124,13 @@ LEVEL_TIGHTENING = 10.0
 def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.ndarray,
                 gnss_only: pycolmap.Reconstruction | None = None
                 ) -> tuple[int, np.ndarray, np.ndarray] | None:
-    """The level of `block` along `axes` (bool (3,), E N U) as one image holds it: of its GNSS
-    images, the one whose projection centre is nearest their centroid, that centre, and the
-    sigmas that hold it there, the GNSS sigma of the mean of all positions / LEVEL_TIGHTENING
-    (LEVEL_FREE elsewhere). One image near the middle leaves the block's rotations to the
-    planes and GNSS. Along axes whose GNSS sigma is below align.coarse.PLACEMENT_RESOLUTION
-    the level is that image's in `gnss_only` (the GNSS-only block): GNSS places the block
-    better there than the coarse search and the similarity rounds, whose tie points on planes
-    weigh alike, can. None when no axis is held."""
+    """The level of the block along `axes` (bool (3,), E N U: those the planes leave to GNSS)
+    as one image holds it: of its GNSS images, the one whose projection centre is nearest
+    their centroid, its centre in the GNSS-only block `gnss_only` (no move without evidence:
+    nothing in the model says where else the block should be along those axes; without it, in
+    `block`), and the sigmas that hold it there, the GNSS sigma of the mean of all positions /
+    LEVEL_TIGHTENING (LEVEL_FREE elsewhere). One image near the middle leaves the block's
+    rotations to the planes and GNSS. None when no axis is held."""
     axes = np.asarray(axes, bool)
     if not axes.any():
         return None
@@ -140,14 +138,12 @@ def level_prior(block: pycolmap.Reconstruction, priors: GNSSPriors, axes: np.nda
     points = observer_centres(block, ids)
     anchor = int(np.argmin(np.linalg.norm(points - points.mean(0), axis=1)))
     position = np.array(points[anchor], dtype=np.float64)
-    precise = axes & (np.median(np.asarray(priors.sigmas, float), axis=0) < PLACEMENT_RESOLUTION)
-    if gnss_only is not None and precise.any():
-        start = observer_centres(gnss_only, ids[anchor:anchor + 1])[0]
-        position = np.where(precise, start, position)
+    if gnss_only is not None:
+        position = np.where(axes, observer_centres(gnss_only, ids[anchor:anchor + 1])[0],
+                            position)
     sigmas = np.where(axes, gnss_mean_sigmas(priors) / LEVEL_TIGHTENING, LEVEL_FREE)
-    by_gnss = gnss_only is not None and precise[axes].all()
     logger.info("the planes do not fix the block's %s: held where %s put it (sigma %s m)",
                 "/".join(a for a, h in zip("ENU", axes) if h),
-                "GNSS" if by_gnss else "the first assignment",
+                "GNSS" if gnss_only is not None else "the first assignment",
                 "/".join(f"{v:.2g}" for v, h in zip(sigmas, axes) if h))
     return int(ids[anchor]), position, sigmas

@@ -2,7 +2,8 @@
 stated false-alarm rates (docs/verdict.md gives each rule in one sentence).
 
 failed (refine hands back the GNSS-only block):
-- the model does not fit the block: fewer than `min_support` of the tie points lie near it, or
+- the model does not fit the block: fewer than `min_support` of the tie points lie near its
+  buildings (those only the terrain carries left out), or
   the faces' generalisation sigma estimated from their offsets, or the tie points' scatter on
   their faces, is significantly above its tolerance band (chi-square, level `alpha`);
 - model and GNSS contradict each other: the shift between the GNSS-only and the refined block,
@@ -68,10 +69,10 @@ class QualityThresholds:
     holds the position error with this probability (from the stated E, N, U sigmas) must not
     exceed the tolerance."""
     min_support: float = 0.25
-    """Share of the block's tie points within NEAR_DISTANCE of the model below which the model
-    does not fit the block: the model of the buildings the images see carries most of their tie
-    points, ground and clutter aside; a model of another street only the few that happen to
-    lie near one of its faces."""
+    """Share of the block's tie points (those only the terrain carries left out) within
+    NEAR_DISTANCE of the model's buildings below which the model does not fit the block: the
+    model of the buildings the images see carries most of their tie points, clutter aside; a
+    model of another street only the few that happen to lie near one of its faces."""
 
 
 #: Distance (m) within which a tie point counts as near the model: 2.5 sigma_dTP of a LOD2
@@ -192,7 +193,7 @@ def quality_verdict(metrics: dict, thresholds: QualityThresholds | None = None,
     support = metrics.get("near_share")
     if support is not None and support < t.min_support:
         failed.append(f"the model does not fit the block: only {100 * support:.0f} % of the tie "
-                      f"points lie within {NEAR_DISTANCE:g} m of it")
+                      f"points off the ground lie within {NEAR_DISTANCE:g} m of its buildings")
     if metrics.get("fit"):
         failed += fit_reasons(metrics["fit"], t.alpha)
     test = metrics.get("gnss_test")
@@ -333,8 +334,7 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
     metrics: dict = {
         "assigned_share": assignment.num_assigned / max(len(points), 1),
         "num_assigned_points": assignment.num_assigned, "num_planes": assignment.num_faces,
-        "near_share": float(np.mean(surface(points, NEAR_DISTANCE) < NEAR_DISTANCE))
-        if len(points) else 0.0,
+        "near_share": model_support(points, surface, store, options),
         "near_share_gnss_only": None, "diverged": diverged,
         "loop_iterations": (options.workflow.max_iterations if unsettled_shift is not None
                             else None),
@@ -394,6 +394,26 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
                                                      metrics.get("shift_enu_m"),
                                                      gnss_covariance, t)
     return quality_verdict(metrics, t, options.precision.tolerance)
+
+
+def model_support(points: np.ndarray, surface, store, options: RefineOptions) -> float:
+    """The share of the tie points (not those only the terrain carries) within NEAR_DISTANCE
+    of the model's buildings: the ground fits a level terrain under any model, the right one
+    or one of another street, so the points on it say nothing of whether the buildings are
+    these images'. Without `store`, the share near `surface` (faces and terrain)."""
+    if not len(points):
+        return 0.0
+    near = surface(points, NEAR_DISTANCE) < NEAR_DISTANCE
+    if store is None:
+        return float(np.mean(near))
+    from ..align.coarse import SurfaceDistance
+    from ..citymodel.ground_faces import TERRAIN_CLASS
+
+    buildings = SurfaceDistance(store, (*options.assignment.excluded_classes, TERRAIN_CLASS),
+                                options.adjustment.num_threads)
+    on_buildings = buildings(points, NEAR_DISTANCE) < NEAR_DISTANCE
+    ground_only = near & ~on_buildings
+    return float(on_buildings.sum() / max(len(points) - int(ground_only.sum()), 1))
 
 
 #: Half-width (m) of the placements searched without GNSS, and at most with it.
