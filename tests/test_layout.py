@@ -17,7 +17,8 @@ NAME = "colmap_citymodel"
 RANKS = {
     "errors": 0, "options": 0, "files": 0, "_ext": 0,
     "citymodel": 1, "block": 2, "align": 3, "assign": 4, "adjust": 5, "precision": 6,
-    "output": 7, "workflow": 8, "mapper": 8, "batch": 9, "simulate": 10, "demo": 11, "cli": 12,
+    "output": 7, "workflow": 8, "mapper": 8, "batch": 9, "pipeline": 9, "simulate": 10, "demo": 11,
+    "cli": 12,
     "__main__": 13,
     NAME: 14,  # the package's face: re-exports the public API
 }
