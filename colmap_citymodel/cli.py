@@ -95,16 +95,9 @@ def _offset_value(text: str) -> float | str:
     return value
 
 
-def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool,
-                             exif: bool = True,
-                             output_help: str = "new directory for the results",
-                             gnss_title: str | None = None) -> None:
-    """The city model, GNSS, stochastic model, output and check point options that refine,
-    map and run share (workflow.read_inputs / write_outputs)."""
-    p.add_argument("--citymodel", required=True, nargs="+",
-                   help="CityGML/CityJSON file(s) or a directory of tiles (also *.gz, *.zip)")
-    p.add_argument("--output_path", required=True, help=output_help)
-    gnss = p.add_argument_group(gnss_title or (
+def _add_gnss_arguments(p, *, database: bool, initial_transform: bool, exif: bool,
+                        title: str | None) -> None:
+    gnss = p.add_argument_group(title or (
         "GNSS (one source)" + (" or an initial transform" if initial_transform else
                               "; default: the database's pose priors")))
     if database:
@@ -129,6 +122,19 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool,
     if initial_transform:
         gnss.add_argument("--initial_transform",
                           help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
+
+
+def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool,
+                             exif: bool = True,
+                             output_help: str = "new directory for the results",
+                             gnss_title: str | None = None) -> None:
+    """The city model, GNSS, stochastic model, output and check point options that refine,
+    map and run share (workflow.read_inputs / write_outputs)."""
+    p.add_argument("--citymodel", required=True, nargs="+",
+                   help="CityGML/CityJSON file(s) or a directory of tiles (also *.gz, *.zip)")
+    p.add_argument("--output_path", required=True, help=output_help)
+    _add_gnss_arguments(p, database=database, initial_transform=initial_transform, exif=exif,
+                        title=gnss_title)
     p.add_argument("--preset", default="generalised",
                    choices=["generalised", "detailed", "correct_model"],
                    help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane, "
@@ -689,8 +695,8 @@ def _add_simulate_matching(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_run, _add_refine, _add_map, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch, _add_import_eo, _add_pairs,
+SUBCOMMANDS = [_add_model_info, _add_run, _add_refine, _add_map, _add_demo, _add_evaluate,
+               _add_simulate, _add_precision, _add_batch, _add_import_eo, _add_pairs,
                _add_triangulate, _add_dense_quality, _add_simulate_oblique,
                _add_simulate_matching]
 

@@ -442,20 +442,7 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
                        reset=lambda: adjust.__init__(store, gnss, options, mapper_options))
 
     try:
-        rec = attempt(min_size)
-        # As COLMAP's IncrementalPipeline: without a model, halve the initial pair's inliers,
-        # then its triangulation angle, and try again (twice each).
-        for name in ("init_min_num_inliers", "init_min_tri_angle") * NUM_INIT_RELAXATIONS:
-            if rec is not None:
-                break
-            value = getattr(mapper_opts, name)
-            setattr(mapper_opts, name, value // 2 if isinstance(value, int) else value / 2)
-            logger.info("mapping: no model of %d images yet; COLMAP's relaxed initial pair: "
-                        "init_min_num_inliers %d, init_min_tri_angle %.1f deg", min_size,
-                        mapper_opts.init_min_num_inliers, mapper_opts.init_min_tri_angle)
-            rec = attempt(min_size)
-        if rec is None and min_size > 2:
-            rec = attempt(2)
+        rec = _relaxed(attempt, mapper_opts, min_size)
     finally:
         pycolmap.logging.minloglevel = level
         bar.close()
@@ -479,6 +466,23 @@ MAX_GNSS_SEEDS = 20
 #: As COLMAP's IncrementalPipeline: how often the initial pair's constraints are relaxed (each
 #: time the inliers, then the triangulation angle halved) when no model could be started.
 NUM_INIT_RELAXATIONS = 2
+
+
+def _relaxed(attempt, mapper_opts, min_size: int) -> pycolmap.Reconstruction | None:
+    """`attempt(min_size)`, and as COLMAP's IncrementalPipeline, without a model, again with
+    the initial pair's inliers, then its triangulation angle halved (twice each); at last
+    `attempt(2)`: a model smaller than `min_size` rather than none."""
+    rec = attempt(min_size)
+    for name in ("init_min_num_inliers", "init_min_tri_angle") * NUM_INIT_RELAXATIONS:
+        if rec is not None:
+            return rec
+        value = getattr(mapper_opts, name)
+        setattr(mapper_opts, name, value // 2 if isinstance(value, int) else value / 2)
+        logger.info("mapping: no model of %d images yet; COLMAP's relaxed initial pair: "
+                    "init_min_num_inliers %d, init_min_tri_angle %.1f deg", min_size,
+                    mapper_opts.init_min_num_inliers, mapper_opts.init_min_tri_angle)
+        rec = attempt(min_size)
+    return attempt(2) if rec is None and min_size > 2 else rec
 
 
 def _trials(mapper, mapper_opts, pipeline, controller, adjust, tri, show, seeds, *,

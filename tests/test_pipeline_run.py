@@ -8,13 +8,14 @@ import gzip
 import json
 import logging
 import shutil
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
 import pycolmap
 import pytest
 
-from colmap_citymodel.block.image_metadata import read_folder_metadata
+from colmap_citymodel.block.image_metadata import ImageMetadata, read_folder_metadata
 from colmap_citymodel.cli import build_parser
 from colmap_citymodel.errors import InputError
 from colmap_citymodel.pipeline.features import extract, images_with_features
@@ -191,9 +192,94 @@ def test_run_stops_and_goes_on(tmp_path, capsys):
         priors = {names[p.corr_data_id.id]: p.position for p in db.read_all_pose_priors()}
     for name, position in zip(gnss.image_names, gnss.positions):
         np.testing.assert_allclose(priors[name], position)
+    (out / "refined").mkdir()  # an earlier refine's result: a run without refine keeps it
+    (out / "refined" / "report.json").write_text('{"earlier": true}')
     second = main(images, model, out, stop_after="matches", extraction_options=small,
                   progress=False)
     assert [s.status for s in second.steps] == ["done", "reused", "reused"]
+    assert json.loads((out / "refined" / "report.json").read_text()) == {"earlier": True}
+    assert not (out / "refined.previous").exists()
     record = json.loads((out / "run.json").read_text())
     assert [s["status"] for s in record["steps"]] == ["done", "reused", "reused"]
     assert "matches    reused" in capsys.readouterr().out
+
+
+def test_camera_options_fail_first(tmp_path):
+    from colmap_citymodel.pipeline.features import reader_options
+    from colmap_citymodel.pipeline.run import main
+
+    assert reader_options("OPENCV", "800,790,512,384,0.1,0,0,0").camera_model == "OPENCV"
+    with pytest.raises(InputError, match="takes 4 comma-separated values"):
+        reader_options(None, "1000,512,384")
+    with pytest.raises(InputError, match="not one of COLMAP's"):
+        main(photos(tmp_path / "images", 1), "model.gml", tmp_path / "run",
+             camera_model="PINHOLE_FISH")
+    assert not (tmp_path / "run").exists()  # before any work
+
+
+def test_attitude_check_against_the_gimbal():
+    """Cameras whose pose agrees with the gimbal's yaw and pitch (true north turned to the
+    UTM grid: about -1.5 deg at 11 E 48 N in zone 32, whose meridian is 9 E) are 0 deg off;
+    one turned by 10 deg is 10 deg off."""
+    import pyproj
+
+    from colmap_citymodel.citymodel.crs import user_crs
+    from colmap_citymodel.pipeline.images import ImageFolder
+    from colmap_citymodel.pipeline.run import attitude_check
+
+    origin = np.array(pyproj.Transformer.from_crs("EPSG:4326", "EPSG:25832", always_xy=True)
+                      .transform(11.0, 48.0) + (500.0,))
+    store = SimpleNamespace(origin=origin, crs=user_crs("EPSG:25832"))
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera.create_from_model_name(1, "PINHOLE", 1000.0, 1000, 800))
+    north = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # looking along grid north, level
+    down = np.array([[1.0, 0, 0], [0, -1, 0], [0, 0, -1]])  # looking straight down
+    turn = np.radians(10.0)
+    turned = north @ np.array([[np.cos(turn), -np.sin(turn), 0],
+                               [np.sin(turn), np.cos(turn), 0], [0, 0, 1]])
+    metadata = []
+    for k, (rotation, gimbal) in enumerate([(north, (1.49, 0.0, 0.0)),
+                                            (down, (37.0, -90.0, 0.0)),
+                                            (turned, (1.49, 0.0, 0.0))], start=1):
+        name = f"DJI_{k:04d}.JPG"
+        image = pycolmap.Image(image_id=k, name=name, camera_id=1)
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(rotation), [0.0, 0.0, 10.0 * k]))
+        metadata.append(ImageMetadata(name=name, gimbal=gimbal))
+    check = attitude_check(rec, ImageFolder(Path("."), metadata), store)
+    assert check["grid_north_turn_deg"] == pytest.approx(-1.49, abs=0.02)
+    angles = {a["image"]: a["deg"] for a in check["largest"]}
+    assert angles["DJI_0001.JPG"] < 0.05 and angles["DJI_0002.JPG"] < 0.01
+    assert angles["DJI_0003.JPG"] == pytest.approx(10.0, abs=0.05)
+    assert check["images"] == 3 and check["max_deg"] == pytest.approx(10.0, abs=0.05)
+
+
+@pytest.mark.slow
+def test_run_on_real_photos(tmp_path):
+    """The 29 Lund street photos from their folder (EXIF GPS of a phone, 10 m): COLMAP's SIFT,
+    spatial matching by the GPS, mapping registers most of them (COLMAP alone starts from two
+    images that share too little on this forward-moving sequence: pipeline.options); a second
+    run reuses every step. No city model of Lund: boxes near the photos stand in (the model
+    enters mapping; refine is not run)."""
+    import pyproj
+    from fuzz_inputs import _box_citygml
+
+    from colmap_citymodel.pipeline.run import main
+
+    to_sweref = pyproj.Transformer.from_crs("EPSG:4326", "EPSG:3006", always_xy=True)
+    model = tmp_path / "boxes.gml"
+    model.write_text(_box_citygml(to_sweref.transform(13.1954, 55.6982), "EPSG:3006"))
+    options = RunOptions(matching=MatchingChoiceOptions(exhaustive_max_images=10,
+                                                        spatial_neighbors=8))
+    kwargs = dict(stop_after="mapping", extraction_options=["sift.max_num_features=4096"],
+                  mapper_options=["random_seed=1"], options=options, progress=False)
+    first = main(LUND, model, tmp_path / "run", **kwargs)
+    assert first.matcher.matcher == "spatial" and first.matcher.pairing["max_num_neighbors"] == 8
+    assert first.mapping["num_database_images"] == 29
+    assert first.mapping["num_registered_images"] >= 20
+    assert (tmp_path / "run" / "sparse" / "0" / "images.bin").exists()
+    second = main(LUND, model, tmp_path / "run", **kwargs)
+    assert [s.status for s in second.steps] == ["done", "reused", "reused", "reused"]
+    assert second.mapping["num_registered_images"] == first.mapping["num_registered_images"]
+    assert sum(s.seconds for s in second.steps) < 0.2 * sum(s.seconds for s in first.steps)

@@ -18,8 +18,8 @@ Accuracy (`ImageMetadata.sigma`), the first of:
 5. none (the caller's default).
 
 Attitude: DJI's gimbal and aircraft yaw, pitch and roll (degrees, NED, rotation order ZYX: yaw
-clockwise from north, pitch -90 looking straight down). They are read and reported (refine has no orientation prior); `attitude_view` turns the gimbal
-angles into the viewing direction.
+clockwise from north, pitch -90 looking straight down). They are read and reported (refine has
+no orientation prior); `attitude_view` turns the gimbal angles into the viewing direction.
 
 Only the file's header is read, never the pixels; a damaged or missing tag leaves its field
 empty (NaN or None) with a warning in `ImageMetadata.warnings`.

@@ -57,20 +57,27 @@ def images_without_keypoints(database_path: Path) -> list[str]:
 
 def reader_options(camera_model: str | None, camera_params: str | None
                    ) -> pycolmap.ImageReaderOptions:
-    """COLMAP's image reader options (`colmap feature_extractor --ImageReader.*`)."""
+    """COLMAP's image reader options (`colmap feature_extractor --ImageReader.*`); InputError
+    for a camera model COLMAP does not know or parameters that do not fit it."""
     reader = pycolmap.ImageReaderOptions()
-    try:
-        if camera_model:
-            reader.camera_model = camera_model
-        if camera_params:
-            reader.camera_params = camera_params
-            model = pycolmap.CameraModelId(pycolmap.CameraModelId.__members__[reader.camera_model])
-            count = len(pycolmap.Camera.create_from_model_id(1, model, 1.0, 1, 1).params)
-            if len(camera_params.split(",")) != count:
-                raise InputError(f"--camera_params: {reader.camera_model} takes {count} "
-                                 f"comma-separated values, got {camera_params!r}")
-    except (KeyError, ValueError, TypeError) as error:
-        raise InputError(f"--camera_model/--camera_params: {error}") from None
+    models = pycolmap.CameraModelId.__members__
+    if camera_model:
+        if camera_model not in models or camera_model == "INVALID":
+            known = ", ".join(m for m in models if m != "INVALID")
+            raise InputError(f"--camera_model {camera_model!r} is not one of COLMAP's: {known}")
+        reader.camera_model = camera_model
+    if camera_params:
+        camera = pycolmap.Camera.create_from_model_name(1, reader.camera_model, 1.0, 1, 1)
+        values = camera_params.split(",")
+        try:
+            [float(v) for v in values]
+        except ValueError:
+            raise InputError(f"--camera_params: not numbers: {camera_params!r}") from None
+        if len(values) != len(camera.params):
+            raise InputError(f"--camera_params: {reader.camera_model} takes "
+                             f"{len(camera.params)} comma-separated values "
+                             f"({camera.params_info}), got {camera_params!r}")
+        reader.camera_params = camera_params
     return reader
 
 

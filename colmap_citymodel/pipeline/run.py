@@ -41,8 +41,8 @@ from ..mapper import map_block, parse_option_values, pipeline_options
 from ..options import MapperOptions
 from ..workflow import (RefineInputs, add_sequence_check, read_inputs, refine,
                         write_failed_report, write_outputs)
-from .features import extract, images_with_features
-from .images import ImageFolder, read_image_folder, write_images_csv
+from .features import extract, images_with_features, reader_options
+from .images import CAMERA_MODES, ImageFolder, read_image_folder, write_images_csv
 from .matching import MatcherChoice, choose_matcher, match, sync_pose_priors
 from .options import RunOptions
 from .state import RunState, Step, write_text_atomic
@@ -126,14 +126,13 @@ def main(image_path, citymodel, output_path, *, gnss=None, gnss_crs=None, matche
     options = options or RunOptions()
     if stop_after not in (None, *STOP_AFTER):
         raise InputError(f"--stop_after takes {', '.join(STOP_AFTER)}, got {stop_after!r}")
+    if camera_mode not in CAMERA_MODES:
+        raise InputError(f"--camera_mode takes {', '.join(CAMERA_MODES)}, got {camera_mode!r}")
+    reader_options(camera_model, camera_params)  # bad camera options fail before any work
     if not image_path.is_dir():
         raise InputError("image directory does not exist", image_path)
-    extraction = colmap_options(pycolmap.FeatureExtractionOptions, extraction_options,
-                                "--extraction_options", num_threads)
-    matching = colmap_options(pycolmap.FeatureMatchingOptions, matching_options,
-                              "--matching_options", num_threads)
-    user_values = parse_option_values(mapper_options, "--mapper_options")
-    pipeline = pipeline_options(user_values, num_threads=num_threads)
+    extraction, matching, user_values, pipeline = _colmap_settings(
+        extraction_options, matching_options, mapper_options, num_threads)
     mapper = _mapper_options(min_gnss_images, hybrid_iterations, start_at_gnss)
     state = RunState.open(output_path)
     state.info = {"image_path": str(image_path),
@@ -145,28 +144,23 @@ def main(image_path, citymodel, output_path, *, gnss=None, gnss_crs=None, matche
                                location_radius=location_radius, lod=lod, model_crs=model_crs,
                                num_threads=num_threads, progress=progress, **kwargs)
     run = RunResult(output_path, state.steps, folder.summary())
-    with state.step("features") as step:
-        step.details = extract(folder, database, state, camera_mode=camera_mode,
-                               camera_model=camera_model, camera_params=camera_params,
-                               extraction=extraction, options=options, progress=progress)
-        step.status = "reused" if step.details["extracted"] == 0 else "done"
-    if stop_after != "features":
-        with state.step("matches") as step:
-            run.matcher = _match(folder, read, database, output_path, step, matcher, matching,
-                                 options, progress)
-    if stop_after not in ("features", "matches"):
-        with state.step("mapping") as step:
-            rec, run.mapping = _mapping(database, output_path, folder, read, mapper, pipeline,
-                                        step, progress, options, user_values)
-    if stop_after is not None:
-        _restore_previous(output_path)
-        print(state.table())
-        return run
-    with state.step("refine") as step:
-        run.result = _refine(rec, run.mapping, read, output_path, step, location=location,
-                             location_radius=location_radius, sequence=sequence,
-                             progress=progress, output_type=output_type,
-                             output_frame=output_frame, lod=lod, model_crs=model_crs)
+    try:
+        rec = _colmap_steps(run, state, folder, read, database, stop_after, options, progress,
+                            dict(camera_mode=camera_mode, camera_model=camera_model,
+                                 camera_params=camera_params, extraction=extraction),
+                            matcher, matching, mapper, pipeline, user_values)
+        if stop_after is not None:
+            _restore_previous(output_path)
+            print(state.table())
+            return run
+        with state.step("refine") as step:
+            run.result = _refine(rec, run.mapping, read, output_path, step, location=location,
+                                 location_radius=location_radius, sequence=sequence,
+                                 progress=progress, output_type=output_type,
+                                 output_frame=output_frame, lod=lod, model_crs=model_crs)
+    except BaseException:
+        _restore_previous(output_path)  # no new result: the earlier one, as it was
+        raise
     with state.step("report") as step:
         run.attitude = attitude_check(run.result.reconstruction, folder, read.store)
         step.details = {"attitude": run.attitude, "summary": _attitude_line(run.attitude)}
@@ -175,8 +169,44 @@ def main(image_path, citymodel, output_path, *, gnss=None, gnss_crs=None, matche
     return run
 
 
+def _colmap_settings(extraction_options, matching_options, mapper_options, num_threads):
+    """pycolmap's extraction and matching options, the user's mapper values and COLMAP's
+    incremental pipeline options (InputError for a bad KEY=VALUE)."""
+    extraction = colmap_options(pycolmap.FeatureExtractionOptions, extraction_options,
+                                "--extraction_options", num_threads)
+    matching = colmap_options(pycolmap.FeatureMatchingOptions, matching_options,
+                              "--matching_options", num_threads)
+    user_values = parse_option_values(mapper_options, "--mapper_options")
+    return extraction, matching, user_values, pipeline_options(user_values,
+                                                               num_threads=num_threads)
+
+
+def _colmap_steps(run: RunResult, state: RunState, folder: ImageFolder, read: RefineInputs,
+                  database: Path, stop_after, options: RunOptions, progress: bool,
+                  cameras: dict, matcher: str, matching, mapper: MapperOptions, pipeline,
+                  user_values: dict) -> pycolmap.Reconstruction | None:
+    """Features, matches and mapping (up to `stop_after`); the mapped block, or None."""
+    output_path = state.path.parent
+    with state.step("features") as step:
+        step.details = extract(folder, database, state, **cameras, options=options,
+                               progress=progress)
+        step.status = "reused" if step.details["extracted"] == 0 else "done"
+    if stop_after == "features":
+        return None
+    with state.step("matches") as step:
+        run.matcher = _match(folder, read, database, output_path, step, matcher, matching,
+                             options, progress)
+    if stop_after == "matches":
+        return None
+    with state.step("mapping") as step:
+        rec, run.mapping = _mapping(database, output_path, folder, read, mapper, pipeline,
+                                    step, progress, options, user_values)
+    return rec
+
+
 def _restore_previous(output_path: Path) -> None:
-    """An earlier run's refined/ back in its place (a run that stops before refine)."""
+    """An earlier run's refined/ back in its place (a run that stops or fails before refine
+    has written a new one)."""
     refined, previous = output_path / REFINED_NAME, output_path / PREVIOUS_REFINED_NAME
     if previous.exists() and not refined.exists():
         os.replace(previous, refined)
