@@ -124,9 +124,16 @@ def test_spatial_pairs_follow_the_gnss(tmp_path):
         assert all(p.coordinate_system == pycolmap.PosePriorCoordinateSystem.CARTESIAN
                    for p in priors)
         np.testing.assert_allclose(np.diag(priors[0].position_covariance), [4.0, 4.0, 16.0])
+        np.testing.assert_allclose(priors[0].gravity, [0, 1, 0])  # COLMAP's, kept
     choice = MatcherChoice("spatial", "test", {"max_num_neighbors": 1, "max_distance": 50.0})
     expected = {tuple(sorted(order[k:k + 2])) for k in range(3)}
     assert set(candidate_pairs(database, choice)) == expected
+    # GNSS for three: the fourth keeps no prior (not COLMAP's WGS84 one from its EXIF either)
+    three = SimpleNamespace(image_names=order[:3], positions=gnss.positions[:3],
+                            sigmas=gnss.sigmas[:3])
+    assert sync_pose_priors(database, three) == 3
+    with pycolmap.Database.open(str(database)) as db:
+        assert db.num_pose_priors() == 3
 
 
 def test_run_record_and_cli(tmp_path, caplog):

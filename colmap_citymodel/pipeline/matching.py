@@ -119,28 +119,27 @@ def pairing_options(matcher: str, gnss_xy: dict[str, np.ndarray],
 # -- the database ---------------------------------------------------------------------------------
 
 def sync_pose_priors(database_path: Path, gnss) -> int:
-    """Write `gnss` (block.gnss.GNSSObservations, model CRS) as the pose priors of the
-    database's images (CARTESIAN, covariance diag(sigma^2)); COLMAP's own priors from EXIF
-    (WGS84, no covariance) are replaced, their gravity kept. Returns the priors written."""
-    CS = pycolmap.PosePriorCoordinateSystem
+    """Make `gnss` (block.gnss.GNSSObservations, model CRS) the database's pose priors
+    (CARTESIAN, covariance diag(sigma^2)), keeping the gravity COLMAP wrote. COLMAP's own
+    priors from EXIF (WGS84, no covariance) go, also those of images the GNSS does not hold:
+    the spatial matcher must not mix the two systems. Returns the priors written."""
     index = {name: k for k, name in enumerate(gnss.image_names)}
     written = 0
     with pycolmap.Database.open(str(database_path)) as db:
-        images = {image.name: image for image in db.read_all_images()}
         existing = {_key(p.corr_data_id): p for p in db.read_all_pose_priors()}
-        for name, image in images.items():
-            if name not in index:
+        db.clear_pose_priors()
+        for image in db.read_all_images():
+            if image.name not in index:
                 continue
-            k, key = index[name], _key(image.data_id)
-            prior = existing[key] if key in existing else pycolmap.PosePrior()
+            k, prior = index[image.name], pycolmap.PosePrior()
+            before = existing.get(_key(image.data_id))
+            if before is not None and before.has_gravity():
+                prior.gravity = before.gravity
             prior.corr_data_id = image.data_id
             prior.position = gnss.positions[k].astype(np.float64)
             prior.position_covariance = np.diag(gnss.sigmas[k] ** 2)
-            prior.coordinate_system = CS.CARTESIAN
-            if key in existing:
-                db.update_pose_prior(prior)
-            else:
-                db.write_pose_prior(prior)
+            prior.coordinate_system = pycolmap.PosePriorCoordinateSystem.CARTESIAN
+            db.write_pose_prior(prior)
             written += 1
     return written
 
