@@ -319,33 +319,36 @@ def _mapping(database: Path, output_path: Path, folder: ImageFolder, read: Refin
 
 def _map(database: Path, folder: ImageFolder, read: RefineInputs, mapper: MapperOptions,
          pipeline, progress: bool, options: RunOptions, user_values: dict):
-    """mapper.map_block; when it registers less than `options.remap_below` of the images,
-    once more with a smaller initial triangulation angle (RunOptions), the larger block
-    kept. Returns (MappedBlock, [{init_min_tri_angle, registered} of each attempt])."""
-    def attempt(angle: float):
-        pipeline.mapper.init_min_tri_angle = angle
-        mapped = map_block(database, read.store, read.observations, read.options, mapper,
-                           pipeline, image_path=folder.path, progress=progress)
-        attempts.append({"init_min_tri_angle": angle,
-                         "registered": int(mapped.reconstruction.num_reg_images())})
-        return mapped
-
-    attempts: list[dict] = []
-    first = pipeline.mapper.init_min_tri_angle
-    mapped = attempt(first)
-    share = mapped.reconstruction.num_reg_images() / max(mapped.num_database_images, 1)
-    if (share >= options.remap_below or "init_min_tri_angle" in user_values.get("mapper", {})
-            or options.remap_init_min_tri_angle >= first):
-        return mapped, attempts
-    logger.info("mapping: %d of %d images registered; mapping again with COLMAP's initial "
-                "pair allowed a %.1f deg triangulation angle (RunOptions."
-                "remap_init_min_tri_angle)", mapped.reconstruction.num_reg_images(),
-                mapped.num_database_images, options.remap_init_min_tri_angle)
-    again = attempt(options.remap_init_min_tri_angle)
-    pipeline.mapper.init_min_tri_angle = first
-    if again.reconstruction.num_reg_images() > mapped.reconstruction.num_reg_images():
-        return again, attempts
-    return mapped, attempts
+    """mapper.map_block; while it registers less than `options.remap_below` of the images,
+    again with another random seed, every other time with a smaller initial triangulation
+    angle (RunOptions), the largest block kept. Returns (MappedBlock, [{init_min_tri_angle, random_seed, registered}
+    of each attempt])."""
+    angle, seed = pipeline.mapper.init_min_tri_angle, pipeline.random_seed
+    small = angle if "init_min_tri_angle" in user_values.get("mapper", {}) else min(
+        angle, options.remap_init_min_tri_angle)
+    plan = [(angle, seed)] + [(small if k % 2 else angle, max(seed, 0) + k)
+                              for k in range(1, options.remap_attempts + 1)]
+    attempts, best = [], None
+    try:
+        for k, (pipeline.mapper.init_min_tri_angle, pipeline.random_seed) in enumerate(plan):
+            if k:
+                logger.info("mapping: %d of %d images registered; mapping again with an "
+                            "initial triangulation angle of %.1f deg, random seed %d "
+                            "(RunOptions.remap_attempts)", best.reconstruction.num_reg_images(),
+                            best.num_database_images, pipeline.mapper.init_min_tri_angle,
+                            pipeline.random_seed)
+            mapped = map_block(database, read.store, read.observations, read.options, mapper,
+                               pipeline, image_path=folder.path, progress=progress)
+            registered = int(mapped.reconstruction.num_reg_images())
+            attempts.append({"init_min_tri_angle": pipeline.mapper.init_min_tri_angle,
+                             "random_seed": pipeline.random_seed, "registered": registered})
+            if best is None or registered > best.reconstruction.num_reg_images():
+                best = mapped
+            if registered >= options.remap_below * mapped.num_database_images:
+                break
+    finally:
+        pipeline.mapper.init_min_tri_angle, pipeline.random_seed = angle, seed
+    return best, attempts
 
 
 def _read_record(path: Path) -> dict:
