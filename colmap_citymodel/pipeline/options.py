@@ -54,13 +54,27 @@ class RunOptions:
     `remap_attempts` times, until one registers this share), and the largest block is kept."""
     remap_attempts: int = 3
     """Further mappings after one that registered too few, each with another COLMAP random
-    seed, every other one with the initial pair's triangulation angle at
-    `remap_init_min_tri_angle` (unless `--mapper_options` sets that angle). Photos taken
-    walking or driving along a street move along their viewing direction: their image pairs
-    see little parallax, COLMAP's initial pair may be two images that share too little to
-    grow, and its RANSAC and initial pair differ from seed to seed (the Lund street photos of
-    tests/data, matched exhaustively: seeds 1 and 6 of 1-7 register 2-3 of the 29 images, the
-    others 28-29); three more seeds leave about one block in a hundred unmapped there."""
+    seed, every other one with the small-parallax settings below (those `--mapper_options`
+    does not set). Photos taken walking or driving along a street move along their viewing
+    direction: their image pairs see little parallax, COLMAP's initial pair of two images
+    triangulates too few points at its 1.5 deg to register a third, and its RANSAC and initial
+    pair differ from seed to seed. The Lund street photos of tests/data, matched
+    exhaustively: COLMAP's settings register 28-29 of the 29 images with 5 of 7 seeds, 2-3
+    with the others; the small-parallax settings 29 with 2 of 3 seeds where COLMAP's failed
+    (4 and 13 images with the others)."""
     remap_init_min_tri_angle: float = 2.0
-    """Degrees: the smallest triangulation angle of COLMAP's initial image pair in those
-    mappings (COLMAP's default 16, relaxed to 4 when no pair is found)."""
+    """Small parallax: the smallest triangulation angle of COLMAP's initial image pair, degrees
+    (COLMAP's `mapper.init_min_tri_angle` 16, relaxed to 4 when no pair is found)."""
+    remap_min_tri_angle: float = 0.5
+    """Small parallax: the smallest triangulation angle of a tie point, degrees (COLMAP's
+    `triangulation.min_angle` and `mapper.filter_min_tri_angle` 1.5)."""
+    remap_abs_pose_min_num_inliers: int = 15
+    """Small parallax: the 2D-3D inliers that register an image (COLMAP's
+    `mapper.abs_pose_min_num_inliers` 30)."""
+
+    def small_parallax(self) -> dict:
+        """The small-parallax settings as `--mapper_options` values."""
+        return {"mapper": {"init_min_tri_angle": self.remap_init_min_tri_angle,
+                           "filter_min_tri_angle": self.remap_min_tri_angle,
+                           "abs_pose_min_num_inliers": self.remap_abs_pose_min_num_inliers},
+                "triangulation": {"min_angle": self.remap_min_tri_angle}}

@@ -320,35 +320,45 @@ def _mapping(database: Path, output_path: Path, folder: ImageFolder, read: Refin
 def _map(database: Path, folder: ImageFolder, read: RefineInputs, mapper: MapperOptions,
          pipeline, progress: bool, options: RunOptions, user_values: dict):
     """mapper.map_block; while it registers less than `options.remap_below` of the images,
-    again with another random seed, every other time with a smaller initial triangulation
-    angle (RunOptions), the largest block kept. Returns (MappedBlock, [{init_min_tri_angle, random_seed, registered}
-    of each attempt])."""
-    angle, seed = pipeline.mapper.init_min_tri_angle, pipeline.random_seed
-    small = angle if "init_min_tri_angle" in user_values.get("mapper", {}) else min(
-        angle, options.remap_init_min_tri_angle)
-    plan = [(angle, seed)] + [(small if k % 2 else angle, max(seed, 0) + k)
-                              for k in range(1, options.remap_attempts + 1)]
+    again with another random seed, every other time with the small-parallax settings
+    (RunOptions), the largest block kept. Returns (MappedBlock, [{settings, random_seed,
+    registered} of each attempt])."""
+    seed = pipeline.random_seed
+    colmap = {group: {key: getattr(getattr(pipeline, group), key) for key in values}
+              for group, values in options.small_parallax().items()}
+    small = {group: {key: value for key, value in values.items()
+                     if key not in user_values.get(group, {})}
+             for group, values in options.small_parallax().items()}
     attempts, best = [], None
     try:
-        for k, (pipeline.mapper.init_min_tri_angle, pipeline.random_seed) in enumerate(plan):
+        for k in range(1 + options.remap_attempts):
+            settings = small if k % 2 else colmap
+            _set_pipeline(pipeline, settings)
+            pipeline.random_seed = seed if k == 0 else max(seed, 0) + k
             if k:
-                logger.info("mapping: %d of %d images registered; mapping again with an "
-                            "initial triangulation angle of %.1f deg, random seed %d "
-                            "(RunOptions.remap_attempts)", best.reconstruction.num_reg_images(),
-                            best.num_database_images, pipeline.mapper.init_min_tri_angle,
-                            pipeline.random_seed)
+                logger.info("mapping: %d of %d images registered; mapping again with %s "
+                            "settings, random seed %d (RunOptions.remap_attempts)",
+                            best.reconstruction.num_reg_images(), best.num_database_images,
+                            "small-parallax" if k % 2 else "COLMAP's", pipeline.random_seed)
             mapped = map_block(database, read.store, read.observations, read.options, mapper,
                                pipeline, image_path=folder.path, progress=progress)
             registered = int(mapped.reconstruction.num_reg_images())
-            attempts.append({"init_min_tri_angle": pipeline.mapper.init_min_tri_angle,
+            attempts.append({"settings": "small_parallax" if k % 2 else "colmap",
                              "random_seed": pipeline.random_seed, "registered": registered})
             if best is None or registered > best.reconstruction.num_reg_images():
                 best = mapped
             if registered >= options.remap_below * mapped.num_database_images:
                 break
     finally:
-        pipeline.mapper.init_min_tri_angle, pipeline.random_seed = angle, seed
+        _set_pipeline(pipeline, colmap)
+        pipeline.random_seed = seed
     return best, attempts
+
+
+def _set_pipeline(pipeline, values: dict) -> None:
+    for group, settings in values.items():
+        for key, value in settings.items():
+            setattr(getattr(pipeline, group), key, value)
 
 
 def _read_record(path: Path) -> dict:
