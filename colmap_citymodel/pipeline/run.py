@@ -244,11 +244,13 @@ def _inputs(image_path: Path, citymodel, output_path: Path, step: Step, *, gnss,
         {"exif": image_path} if located else {})
     read = read_inputs(citymodel, refined, location=location, **source, **kwargs)
     read.inputs = {"image_path": str(image_path), "run_path": str(output_path), **read.inputs}
-    step.details = {"images": len(folder.names), "with_position": len(located),
-                    "gnss_source": read.inputs.get("gnss_source"),
+    summary = folder.summary()
+    rtk = ", ".join(f"{n} {status}" for status, n in summary["rtk"].items())
+    step.details = {"metadata": summary, "gnss_source": read.inputs.get("gnss_source"),
                     "model_crs": read.store.crs.label, "model_faces": int(read.store.num_faces),
-                    "summary": f"{len(folder.names)} images, {len(located)} with a position; "
-                               f"{read.store.num_buildings} buildings"}
+                    "summary": f"{len(folder.names)} images, {len(located)} with a position"
+                               + (f" (RTK: {rtk})" if rtk else "")
+                               + f"; {read.store.num_buildings} buildings"}
     return folder, read
 
 
