@@ -268,8 +268,8 @@ def test_run_on_real_photos(tmp_path):
     defaults: COLMAP's SIFT, every pair matched, mapping registers most of them (this
     forward-moving sequence maps from some of COLMAP's random seeds only: RunOptions.
     remap_attempts); a second run reuses every step. No city model of Lund: boxes near the
-    photos stand in (the model enters mapping; refine is not run). About 3 minutes on two
-    idle cores."""
+    photos stand in (the model enters mapping; refine is not run). About 130 s of CPU time,
+    7 minutes on a shared two-core machine."""
     import pyproj
     from fuzz_inputs import _box_citygml
 
