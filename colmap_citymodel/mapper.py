@@ -36,7 +36,11 @@ scale; with COLMAP's own initial pair the model enters late and the result match
 of the mapped block (docs/defaults.md, `start_at_gnss`).
 
 Only one model is built (COLMAP's `multiple_models` does not apply): the largest connected
-block is what the model can hold; images that cannot be registered to it are reported. After
+block is what the model can hold; images that cannot be registered to it are reported. As in
+COLMAP's pipeline, a model smaller than `min_model_size` images (or 0.8 of them) is dropped
+for the next initial pair, and without a model the initial pair's constraints are relaxed
+(inliers, then triangulation angle halved, twice each, each time with a new mapper); only
+when no pair grows a larger model is the first small one kept. After
 mapping, `workflow.refine` runs on the mapped block as on any COLMAP model (started from the
 mapper's georegistration), with the same report and outputs.
 
