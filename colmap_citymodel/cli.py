@@ -95,20 +95,18 @@ def _offset_value(text: str) -> float | str:
     return value
 
 
-def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> None:
-    """The city model, GNSS, stochastic model, output and check point options that refine and
-    map share (workflow.read_inputs / write_outputs)."""
-    p.add_argument("--citymodel", required=True, nargs="+",
-                   help="CityGML/CityJSON file(s) or a directory of tiles")
-    p.add_argument("--output_path", required=True, help="new directory for the results")
-    gnss = p.add_argument_group(
+def _add_gnss_arguments(p, *, database: bool, initial_transform: bool, exif: bool,
+                        title: str | None) -> None:
+    gnss = p.add_argument_group(title or (
         "GNSS (one source)" + (" or an initial transform" if initial_transform else
-                              "; default: the database's pose priors"))
+                              "; default: the database's pose priors")))
     if database:
         gnss.add_argument("--database", help="COLMAP database with pose priors")
     gnss.add_argument("--gnss", help="text file: image_name X Y Z [sX sY sZ]")
     gnss.add_argument("--gnss_crs", help="CRS of --gnss, e.g. EPSG:4979 or EPSG:25832+7837")
-    gnss.add_argument("--exif", help="directory of the images with EXIF GPS")
+    if exif:
+        gnss.add_argument("--exif", help="directory of the images with EXIF GPS (or a "
+                                         "drone's XMP)")
     gnss.add_argument("--gnss_height_offset", type=_offset_value, default=None,
                       metavar="METRES|auto",
                       help="metres added to GNSS heights (model height minus GNSS height), or "
@@ -124,6 +122,19 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
     if initial_transform:
         gnss.add_argument("--initial_transform",
                           help="4x4 matrix or Sim3 JSON from the input frame to model CRS")
+
+
+def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool,
+                             exif: bool = True,
+                             output_help: str = "new directory for the results",
+                             gnss_title: str | None = None) -> None:
+    """The city model, GNSS, stochastic model, output and check point options that refine,
+    map and run share (workflow.read_inputs / write_outputs)."""
+    p.add_argument("--citymodel", required=True, nargs="+",
+                   help="CityGML/CityJSON file(s) or a directory of tiles (also *.gz, *.zip)")
+    p.add_argument("--output_path", required=True, help=output_help)
+    _add_gnss_arguments(p, database=database, initial_transform=initial_transform, exif=exif,
+                        title=gnss_title)
     p.add_argument("--preset", default="generalised",
                    choices=["generalised", "detailed", "correct_model"],
                    help="stochastic model preset (detailed: sigma_dTP 0.05 m, 5 points/plane, "
@@ -182,7 +193,7 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool) -> N
 def _citymodel_kwargs(args) -> dict:
     """workflow.read_inputs / write_outputs keyword arguments of the shared options."""
     out = dict(citymodel=args.citymodel, output_path=args.output_path, gnss=args.gnss,
-               gnss_crs=args.gnss_crs, exif=args.exif, preset=args.preset,
+               gnss_crs=args.gnss_crs, preset=args.preset,
                options_file=args.options_file, lod=args.lod, model_crs=args.model_crs,
                target_crs=args.target_crs, output_type=args.output_type,
                output_frame=args.output_frame, progress=not args.no_progress,
@@ -194,7 +205,7 @@ def _citymodel_kwargs(args) -> dict:
                variance_components=args.variance_components, assignment=args.assignment,
                write_model=args.write_model, workflow=args.workflow, terrain=args.terrain,
                terrain_sigma=args.terrain_sigma)
-    for name in ("database", "initial_transform"):
+    for name in ("database", "initial_transform", "exif"):
         if hasattr(args, name):
             out[name] = getattr(args, name)
     return out
@@ -228,11 +239,7 @@ def _add_refine(subparsers) -> None:
     def run(args):
         from .workflow import main
 
-        if args.location is not None and not (
-                all(math.isfinite(v) for v in args.location)
-                and math.isfinite(args.location_radius) and args.location_radius > 0):
-            raise CityModelError("--location needs finite X Y and --location_radius a "
-                                 "positive number of metres")
+        _location_checked(args)
         result = main(args.input_path, **_citymodel_kwargs(args), location=args.location,
                       location_radius=args.location_radius, sequence=args.sequence)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
@@ -294,6 +301,96 @@ def _add_map(subparsers) -> None:
                          extraction_options=args.extraction_options,
                          matching_options=args.matching_options)
         return 3 if result.quality.verdict == "failed" else 0
+
+    p.set_defaults(func=run)
+
+
+def _location_checked(args) -> None:
+    if args.location is not None and not (
+            all(math.isfinite(v) for v in args.location)
+            and math.isfinite(args.location_radius) and args.location_radius > 0):
+        raise CityModelError("--location needs finite X Y and --location_radius a "
+                             "positive number of metres")
+
+
+def _add_run(subparsers) -> None:
+    p = subparsers.add_parser(
+        "run", help="from a folder of photographs: COLMAP's features, matching and mapping "
+                    "with the city model inside, refine and its report",
+        epilog="the output directory holds database.db, images.csv (EXIF/XMP of every image), "
+               "sparse/0 and mapping.json (the mapped block), refined/ (refine's outputs and "
+               "report) and run.json (the steps and their times); run again with the same "
+               "--output_path to resume: features, matches and the mapped block are reused. "
+               "Exit status as refine: 0 ok or weak, 2 bad input, 3 the quality gate failed")
+    p.add_argument("--image_path", required=True,
+                   help="folder of the photographs (subfolders too; names relative to it)")
+    _add_citymodel_arguments(
+        p, database=False, initial_transform=False, exif=False,
+        output_help="run directory: created, or an earlier run's to resume",
+        gnss_title="GNSS (default: the images' EXIF GPS and a drone's XMP, with RTK sigmas)")
+    hint = p.add_argument_group("no GNSS: register from the model alone (docs/no-gnss.md)")
+    hint.add_argument("--location", type=float, nargs=2, metavar=("X", "Y"), default=None,
+                      help="rough position of the block (model CRS), for images without GNSS")
+    hint.add_argument("--location_radius", type=float, default=100.0, metavar="M",
+                      help="metres around --location within which the block is searched")
+    p.add_argument("--sequence", action="store_true",
+                   help="the images are video frames in name order: frames whose pose jumps "
+                        "from their neighbours' are reported")
+    c = p.add_argument_group("cameras (COLMAP's image reader)")
+    c.add_argument("--camera_model", default=None,
+                   help="COLMAP camera model, e.g. SIMPLE_RADIAL (default), OPENCV")
+    c.add_argument("--camera_params", default=None, metavar="P1,P2,...",
+                   help="the camera model's parameters, e.g. f,cx,cy,k (pixels); default: "
+                        "from EXIF")
+    c.add_argument("--camera_mode", choices=["auto", "single", "per_image"], default="auto",
+                   help="auto (default): one camera per camera body and image size (EXIF "
+                        "make, model, serial number, focal length); single: one for all; "
+                        "per_image: one each")
+    c.add_argument("--single_camera", dest="camera_mode", action="store_const",
+                   const="single", help="one camera for all images (--camera_mode single)")
+    f = p.add_argument_group("features and matching (COLMAP, CPU)")
+    f.add_argument("--matcher", choices=["auto", "exhaustive", "spatial", "sequential"],
+                   default="auto",
+                   help="auto (default): exhaustive up to 30 images, spatial with GNSS for "
+                        "every image, sequential for video frames, else exhaustive; the "
+                        "choice and its reason are logged and in run.json")
+    f.add_argument("--extraction_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap FeatureExtractionOptions, e.g. max_image_size=1600 "
+                        "sift.max_num_features=4096")
+    f.add_argument("--matching_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap FeatureMatchingOptions, e.g. sift.max_ratio=0.8")
+    m = p.add_argument_group("mapping (as map)")
+    m.add_argument("--mapper_options", nargs="+", metavar="KEY=VALUE",
+                   help="pycolmap IncrementalPipelineOptions, e.g. min_num_matches=30")
+    m.add_argument("--min_gnss_images", type=int, default=None, metavar="N",
+                   help="registered images with GNSS before the model enters mapping "
+                        "(default 10)")
+    m.add_argument("--hybrid_iterations", type=int, default=None, metavar="N",
+                   help="assign + hybrid adjustment iterations per global adjustment while "
+                        "mapping (default 3)")
+    m.add_argument("--num_threads", type=int, default=None,
+                   help="threads (COLMAP, Ceres; default: all cores)")
+    p.add_argument("--stop_after", choices=["features", "matches", "mapping"], default=None,
+                   help="end the run after this step (run again without it to go on)")
+
+    def run(args):
+        from .pipeline.run import main
+
+        _location_checked(args)
+        kwargs = _citymodel_kwargs(args)
+        image_path, output_path = args.image_path, kwargs.pop("output_path")
+        citymodel = kwargs.pop("citymodel")
+        result = main(image_path, citymodel, output_path, **kwargs, matcher=args.matcher,
+                      camera_mode=args.camera_mode, camera_model=args.camera_model,
+                      camera_params=args.camera_params,
+                      extraction_options=args.extraction_options,
+                      matching_options=args.matching_options,
+                      mapper_options=args.mapper_options,
+                      min_gnss_images=args.min_gnss_images,
+                      hybrid_iterations=args.hybrid_iterations, num_threads=args.num_threads,
+                      location=args.location, location_radius=args.location_radius,
+                      sequence=args.sequence, stop_after=args.stop_after)
+        return 3 if args.stop_after is None and result.verdict == "failed" else 0
 
     p.set_defaults(func=run)
 
@@ -598,8 +695,8 @@ def _add_simulate_matching(subparsers) -> None:
     p.set_defaults(func=run)
 
 
-SUBCOMMANDS = [_add_model_info, _add_refine, _add_map, _add_demo, _add_evaluate, _add_simulate,
-               _add_precision, _add_batch, _add_import_eo, _add_pairs,
+SUBCOMMANDS = [_add_model_info, _add_run, _add_refine, _add_map, _add_demo, _add_evaluate,
+               _add_simulate, _add_precision, _add_batch, _add_import_eo, _add_pairs,
                _add_triangulate, _add_dense_quality, _add_simulate_oblique,
                _add_simulate_matching]
 

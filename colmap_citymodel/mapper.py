@@ -36,7 +36,11 @@ scale; with COLMAP's own initial pair the model enters late and the result match
 of the mapped block (docs/defaults.md, `start_at_gnss`).
 
 Only one model is built (COLMAP's `multiple_models` does not apply): the largest connected
-block is what the model can hold; images that cannot be registered to it are reported. After
+block is what the model can hold; images that cannot be registered to it are reported. As in
+COLMAP's pipeline, a model smaller than `min_model_size` images (or 0.8 of them) is dropped
+for the next initial pair, and without a model the initial pair's constraints are relaxed
+(inliers, then triangulation angle halved, twice each, each time with a new mapper); only
+when no pair grows a larger model is the first small one kept. After
 mapping, `workflow.refine` runs on the mapped block as on any COLMAP model (started from the
 mapper's georegistration), with the same report and outputs.
 
@@ -407,13 +411,13 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         raise InputError(f"the database {database_path} holds {num_images} image(s) with "
                          "matches: nothing to map")
     adjust = global_adjustment or ModelGlobalAdjustment(store, gnss, options, mapper_options)
-    mapper = pycolmap.IncrementalMapper(cache)
     controller = pycolmap.IncrementalPipeline(pipeline, cache, pycolmap.ReconstructionManager())
     mapper_opts = pipeline.get_mapper()
     tri = pipeline.get_triangulation()
     bar = tqdm(total=num_images, desc="map", unit="img", disable=not progress)
 
-    def show(record: GlobalAdjustmentRecord | None = None) -> None:
+    def show(rec: pycolmap.Reconstruction, record: GlobalAdjustmentRecord | None = None
+             ) -> None:
         bar.n = int(rec.num_reg_images())
         if record is not None:
             bar.set_postfix(rms="-" if record.rms is None else f"{record.rms:.4f}",
@@ -429,27 +433,21 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
         seeds = sorted((i for i, image in cache.images.items() if image.name in names),
                        key=lambda i: -graph.num_correspondences_for_image(i))
     pycolmap.logging.minloglevel = max(level, 1)
-    rec = None
+
+    # COLMAP's smallest model worth keeping among several (IncrementalPipeline): a model that
+    # stops short of it is dropped for the next initial pair; only when every pair and each
+    # relaxation below gives a smaller one is the first such model kept.
+    min_size = max(2, min(pipeline.min_model_size, int(0.8 * num_images)))
+
+    def attempt(size: int) -> pycolmap.Reconstruction | None:
+        # a new mapper each time, as COLMAP's: it tries each initial pair and image only so
+        # often (init_max_reg_trials), and a relaxed search must see them all again
+        return _trials(pycolmap.IncrementalMapper(cache), mapper_opts, pipeline, controller,
+                       adjust, tri, show, seeds, min_size=size,
+                       reset=lambda: adjust.__init__(store, gnss, options, mapper_options))
+
     try:
-        for _ in range(pipeline.init_num_trials):
-            rec = pycolmap.Reconstruction()
-            mapper.begin_reconstruction(rec)
-            status = _initialize(mapper, mapper_opts, pipeline, rec, seeds)
-            if status != "ok":
-                mapper.end_reconstruction(True)
-                rec = None
-                if status == "no_pair":
-                    break
-                continue  # a bad pair: COLMAP's next initial pair
-            show(adjust.records[-1] if adjust.records else None)
-            status = _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show)
-            if status == "bad_model":
-                mapper.end_reconstruction(True)
-                rec = None
-                adjust.__init__(store, gnss, options, mapper_options)
-                continue
-            mapper.end_reconstruction(False)
-            break
+        rec = _relaxed(attempt, mapper_opts, min_size)
     finally:
         pycolmap.logging.minloglevel = level
         bar.close()
@@ -470,6 +468,52 @@ def map_block(database_path, store: PlaneStore, gnss, options: RefineOptions | N
 
 #: At most this many images with GNSS are tried as the first image of the initial pair.
 MAX_GNSS_SEEDS = 20
+#: As COLMAP's IncrementalPipeline: how often the initial pair's constraints are relaxed (each
+#: time the inliers, then the triangulation angle halved) when no model could be started.
+NUM_INIT_RELAXATIONS = 2
+
+
+def _relaxed(attempt, mapper_opts, min_size: int) -> pycolmap.Reconstruction | None:
+    """`attempt(min_size)`, and as COLMAP's IncrementalPipeline, without a model, again with
+    the initial pair's inliers, then its triangulation angle halved (twice each); at last
+    `attempt(2)`: a model smaller than `min_size` rather than none."""
+    rec = attempt(min_size)
+    for name in ("init_min_num_inliers", "init_min_tri_angle") * NUM_INIT_RELAXATIONS:
+        if rec is not None:
+            return rec
+        value = getattr(mapper_opts, name)
+        setattr(mapper_opts, name, value // 2 if isinstance(value, int) else value / 2)
+        logger.info("mapping: no model of %d images yet; COLMAP's relaxed initial pair: "
+                    "init_min_num_inliers %d, init_min_tri_angle %.1f deg", min_size,
+                    mapper_opts.init_min_num_inliers, mapper_opts.init_min_tri_angle)
+        rec = attempt(min_size)
+    return attempt(2) if rec is None and min_size > 2 else rec
+
+
+def _trials(mapper, mapper_opts, pipeline, controller, adjust, tri, show, seeds, *,
+            reset, min_size: int = 2) -> pycolmap.Reconstruction | None:
+    """COLMAP's trials of initial pairs until one grows into a model of at least `min_size`
+    images (`reset`: a fresh global adjustment after a model that stopped short of it; the
+    mapper tries each initial pair once). Returns the model, or None."""
+    for _ in range(pipeline.init_num_trials):
+        rec = pycolmap.Reconstruction()
+        mapper.begin_reconstruction(rec)
+        status = _initialize(mapper, mapper_opts, pipeline, rec, seeds)
+        if status != "ok":
+            mapper.end_reconstruction(True)
+            if status == "no_pair":
+                return None
+            continue  # a bad pair: COLMAP's next initial pair
+        show(rec, adjust.records[-1] if adjust.records else None)
+        status = _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show,
+                       min_size)
+        if status == "bad_model":
+            mapper.end_reconstruction(True)
+            reset()
+            continue
+        mapper.end_reconstruction(False)
+        return rec
+    return None
 
 
 def _initialize(mapper, mapper_opts, pipeline, rec, seeds: list[int]) -> str:
@@ -503,7 +547,8 @@ def _triangulate_frame(mapper, tri, rec, image_id: int) -> None:
             mapper.triangulate_image(tri, data_id.id)
 
 
-def _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show) -> str:
+def _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show,
+          min_size: int = 2) -> str:
     """COLMAP's ReconstructSubModel after the initial pair, with `adjust` as the global
     refinement. Returns "ok", or "bad_model" when a young model stops growing."""
     ba_prev_frames, ba_prev_points = rec.num_reg_frames(), rec.num_points3D()
@@ -530,13 +575,13 @@ def _grow(mapper, mapper_opts, pipeline, controller, rec, adjust, tri, show) -> 
             if controller.check_run_global_refinement(rec, ba_prev_frames, ba_prev_points):
                 record = adjust(mapper, pipeline)
                 ba_prev_frames, ba_prev_points = rec.num_reg_frames(), rec.num_points3D()
-            show(record)
+            show(rec, record)
         elif previous_success:
-            show(adjust(mapper, pipeline))
-    if rec.num_reg_frames() < min(pipeline.min_model_size, 2):
+            show(rec, adjust(mapper, pipeline))
+    if rec.num_reg_frames() < min_size:
         return "bad_model"
     if rec.num_reg_frames() != ba_prev_frames or rec.num_points3D() != ba_prev_points:
-        show(adjust(mapper, pipeline))
+        show(rec, adjust(mapper, pipeline))
     return "ok"
 
 

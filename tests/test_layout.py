@@ -16,8 +16,9 @@ NAME = "colmap_citymodel"
 #: adjust -> precision -> write, then what drives it (workflow, batch, CLI, simulation, demo).
 RANKS = {
     "errors": 0, "options": 0, "files": 0, "_ext": 0,
-    "citymodel": 1, "block": 2, "errormodel": 2, "align": 3, "assign": 4, "adjust": 5, "precision": 6,
-    "output": 7, "workflow": 8, "mapper": 8, "batch": 9, "simulate": 10, "demo": 11, "cli": 12,
+    "citymodel": 1, "block": 2, "errormodel": 2, "align": 3, "assign": 4, "adjust": 5,
+    "precision": 6, "output": 7, "workflow": 8, "mapper": 8, "batch": 9, "pipeline": 9,
+    "simulate": 10, "demo": 11, "cli": 12,
     "__main__": 13,
     NAME: 14,  # the package's face: re-exports the public API
 }

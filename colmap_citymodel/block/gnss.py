@@ -36,11 +36,11 @@ import pycolmap
 
 from ..citymodel.raw_model import MAX_PROJECTED_COORDINATE, CRSInfo, coordinate_problem
 from ..errors import CRSError, GNSSError
+from .image_metadata import ImageMetadata, read_folder_metadata
 
 logger = logging.getLogger(__name__)
 
 DEFAULT_SIGMA = (3.0, 3.0, 5.0)  # metres, X Y Z (method.md section 2, Unger 5.3)
-IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".tif", ".tiff", ".png", ".webp")
 #: Largest GNSS sigma (m): beyond it a position says nothing, and its square overflows nothing.
 MAX_SIGMA = 1e6
 # Typical magnitude of the geoid undulation, quoted when PROJ lacks the grid to apply it.
@@ -491,77 +491,6 @@ def _position_problem(xyz: np.ndarray, crs: CRSInfo) -> tuple[int, str] | None:
 # EXIF
 
 
-def _rational(value) -> float:
-    try:
-        return float(value)
-    except (TypeError, ValueError, ZeroDivisionError):
-        return float("nan")
-
-
-def _dms(value) -> float:
-    if isinstance(value, (tuple, list)):
-        parts = [_rational(v) for v in value] + [0.0, 0.0]
-        return parts[0] + parts[1] / 60.0 + parts[2] / 3600.0
-    return _rational(value)
-
-
-def _ref(value) -> str:
-    if isinstance(value, bytes):
-        value = value.decode("ascii", "ignore")
-    return str(value).strip("\x00 ").upper()
-
-
-def read_exif_gps(path) -> dict | None:
-    """Latitude, longitude (degrees), altitude (m, EXIF: above sea level) and accuracy tags of
-    one image, or None when it has no usable GPS position."""
-    from PIL import ExifTags, Image, UnidentifiedImageError
-
-    limit = Image.MAX_IMAGE_PIXELS
-    try:
-        # Only the EXIF is read, never the pixels: no decompression bomb check (it would refuse
-        # the header of a 280 MP aerial camera, or of a damaged one, with an exception)
-        Image.MAX_IMAGE_PIXELS = None
-        with warnings.catch_warnings(record=True) as caught:  # Pillow warns about damaged tags
-            warnings.simplefilter("always")
-            with Image.open(path) as image:
-                exif = image.getexif()
-                gps = exif.get_ifd(ExifTags.IFD.GPSInfo)
-    except (OSError, UnidentifiedImageError, SyntaxError, ValueError) as error:
-        logger.warning("%s: cannot read EXIF (%s); skipped", path, error)
-        return None
-    finally:
-        Image.MAX_IMAGE_PIXELS = limit
-    if caught:
-        logger.warning("%s: damaged EXIF (%s)", path, caught[0].message)
-    if not gps:
-        return None
-    tags = {ExifTags.GPSTAGS.get(key, key): value for key, value in gps.items()}
-    if "GPSLatitude" not in tags or "GPSLongitude" not in tags:
-        return None
-    lat, lon = _dms(tags["GPSLatitude"]), _dms(tags["GPSLongitude"])
-    if _ref(tags.get("GPSLatitudeRef", "N")) == "S":
-        lat = -lat
-    if _ref(tags.get("GPSLongitudeRef", "E")) == "W":
-        lon = -lon
-    alt = _rational(tags.get("GPSAltitude", float("nan")))
-    alt_ref = tags.get("GPSAltitudeRef", 0)
-    if isinstance(alt_ref, bytes):
-        alt_ref = alt_ref[0] if alt_ref else 0
-    if alt_ref == 1:  # below sea level
-        alt = -alt
-    if not (math.isfinite(lat) and math.isfinite(lon)) or abs(lat) > 90 or abs(lon) > 180:
-        return None
-    if lat == 0.0 and lon == 0.0:  # cameras without a fix often write zeros
-        return None
-    return {
-        "latitude": lat,
-        "longitude": lon,
-        "altitude": alt,
-        "dop": _rational(tags.get("GPSDOP", float("nan"))),
-        "h_error": _rational(tags.get("GPSHPositioningError", float("nan"))),
-    }
-
-
 def read_gnss_exif(
     image_dir,
     target_crs: CRSInfo,
@@ -569,94 +498,41 @@ def read_gnss_exif(
     *,
     altitude: str = "sea_level",
     dop_scale: float = 1.0,
+    metadata: list[ImageMetadata] | None = None,
 ) -> GNSSObservations:
-    """GNSS positions from the EXIF GPS tags of all images below `image_dir`.
+    """GNSS positions from the EXIF GPS tags and a drone's XMP of all images below `image_dir`
+    (block.image_metadata: DJI's XMP position and absolute altitude win over EXIF GPS).
 
-    Names are paths relative to `image_dir` (as COLMAP names images). Sigmas: when the image has
-    GPSHPositioningError (metres) sigma_h = that; else with GPSDOP sigma_h = GPSDOP * dop_scale.
-    dop_scale defaults to 1 m because phones and mapping apps (e.g. the Lund photos, written by
-    Mapillary) store their accuracy estimate in metres in GPSDOP; for a receiver's true DOP pass
-    its range error (UERE, ~3-5 m). sigma_z = sigma_h * 5/3 (the ratio of the default sigmas).
-    Without either tag: `default_sigma`.
+    Names are paths relative to `image_dir` (as COLMAP names images). Sigmas
+    (ImageMetadata.sigma): an RTK solution's standard deviations (DJI RtkStdLon/Lat/Hgt), else
+    GPSHPositioningError (metres) as sigma_h, else the Pix4D camera's GPSXYAccuracy and
+    GPSZAccuracy, else GPSDOP * dop_scale as sigma_h; sigma_z = sigma_h * 5/3 (the ratio of the
+    default sigmas). dop_scale defaults to 1 m because phones and mapping apps (e.g. the Lund
+    photos, written by Mapillary) store their accuracy estimate in metres in GPSDOP; for a
+    receiver's true DOP pass its range error (UERE, ~3-5 m). Without any: `default_sigma`.
 
     `altitude`: "sea_level" (the EXIF definition, written by phones and DJI drones) keeps the
     altitude as a height in the model's system (national height datums differ from mean sea
     level by < ~1 m); "ellipsoidal" treats it as WGS84 ellipsoidal height (EPSG:4979) and
-    converts it with PROJ where the geoid grid is available.
+    converts it with PROJ where the geoid grid is available. `metadata`: the images' metadata
+    when already read (block.image_metadata.read_folder_metadata).
     """
     image_dir = Path(image_dir)
     if not image_dir.is_dir():
         raise GNSSError("image directory does not exist", image_dir)
     if altitude not in ("sea_level", "ellipsoidal"):
         raise ValueError("altitude must be 'sea_level' or 'ellipsoidal'")
-    sigma_default = _parse_sigma(default_sigma)
-    files = sorted(
-        p for p in image_dir.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
-    )
-    if not files:
-        raise GNSSError("no images (jpg, tif, png) found", image_dir)
-    try:
-        from tqdm import tqdm
-    except ImportError:  # pragma: no cover
-        tqdm = None
-    iterator = tqdm(files, desc="EXIF GPS", unit="img", disable=len(files) < 200) if tqdm else files
-    names, lla, sigmas, without = [], [], [], []
-    for file in iterator:
-        gps = read_exif_gps(file)
-        name = file.relative_to(image_dir).as_posix()
-        if gps is None:
-            without.append(name)
-            continue
-        if not math.isfinite(gps["altitude"]):
-            logger.warning("%s: EXIF GPS has no altitude; skipped", file)
-            without.append(name)
-            continue
-        if math.isfinite(gps["h_error"]) and gps["h_error"] > 0:
-            sh = gps["h_error"]
-            sigma = np.array([sh, sh, sh * 5.0 / 3.0])
-        elif math.isfinite(gps["dop"]) and gps["dop"] > 0:
-            sh = gps["dop"] * dop_scale
-            sigma = np.array([sh, sh, sh * 5.0 / 3.0])
-        else:
-            sigma = sigma_default
-        names.append(name)
-        lla.append([gps["latitude"], gps["longitude"], gps["altitude"]])
-        sigmas.append(sigma)
-    if without:
-        logger.warning(
-            "%d of %d images have no usable EXIF GPS position, e.g. %s",
-            len(without), len(files), without[:3],
-        )
-    if not names:
-        raise GNSSError(f"none of the {len(files)} images has an EXIF GPS position", image_dir)
-    lla = np.array(lla, dtype=np.float64)
-    notes: list[str] = []
-    vertical_applied = geoid = None
-    if altitude == "ellipsoidal":
-        positions, report = reproject_with_report(
-            lla, "EPSG:4979", target_crs, what="EXIF GPS", path=image_dir
-        )
-        vertical_applied, notes, geoid = report.vertical_applied, report.notes, report.geoid
-    else:
-        import pyproj
-
-        dst = _pyproj_crs(target_crs)
-        dst2d = dst.sub_crs_list[0] if dst.is_compound else dst
-        horizontal, report = reproject_with_report(
-            np.column_stack([lla[:, :2], np.zeros(len(lla))]),
-            pyproj.CRS.from_epsg(4326),
-            dst2d,
-            what="EXIF GPS",
-            path=image_dir,
-        )
-        positions = np.column_stack([horizontal[:, :2], lla[:, 2]])
-        notes = report.notes + [
-            "EXIF GPS: altitude taken as height above sea level (EXIF definition) and used as a "
-            "model height without a datum change (national height datums differ from mean sea "
-            "level by < ~1 m)"
-        ]
-        logger.info(notes[-1])
-    logger.info("Read %d EXIF GPS positions from %s", len(names), image_dir)
+    if metadata is None:
+        metadata = read_folder_metadata(image_dir)
+    names, lla, sigmas, sources = _metadata_positions(metadata, _parse_sigma(default_sigma),
+                                                      dop_scale, image_dir)
+    positions, vertical_applied, notes, geoid = _exif_to_crs(lla, altitude, target_crs,
+                                                             image_dir)
+    counts = {s: sources.count(s) for s in dict.fromkeys(sources)}
+    notes.append("EXIF/XMP GPS sigmas: " + ", ".join(f"{n} from {SIGMA_SOURCES[s]}"
+                                                     for s, n in counts.items()))
+    logger.info("Read %d EXIF/XMP GPS positions from %s (%s)", len(names), image_dir,
+                notes[-1].split(": ", 1)[1])
     return GNSSObservations(
         image_names=names,
         positions=positions,
@@ -668,6 +544,65 @@ def read_gnss_exif(
         geoid=geoid,
         path=str(image_dir),
     )
+
+
+#: What each ImageMetadata.sigma source is called in the notes.
+SIGMA_SOURCES = {"rtk": "RTK standard deviations", "exif_error": "GPSHPositioningError",
+                 "xmp_accuracy": "the XMP GPS accuracy", "dop": "GPSDOP",
+                 "default": "the default sigma"}
+
+
+def _metadata_positions(metadata, sigma_default: np.ndarray, dop_scale: float, image_dir):
+    """(names, (N, 3) latitude longitude altitude, (N, 3) sigmas, sigma sources) of the images
+    that have a position; GNSSError when none has."""
+    names, lla, sigmas, sources, without = [], [], [], [], []
+    for meta in metadata:
+        if not meta.has_position:
+            without.append(meta.name)
+            continue
+        sigma, source = meta.sigma(dop_scale)
+        names.append(meta.name)
+        lla.append([meta.latitude, meta.longitude, meta.altitude])
+        sigmas.append(sigma_default if sigma is None else sigma)
+        sources.append(source or "default")
+    if without:
+        logger.warning(
+            "%d of %d images have no usable EXIF/XMP GPS position (latitude, longitude and "
+            "altitude), e.g. %s", len(without), len(metadata), without[:3],
+        )
+    if not names:
+        raise GNSSError(f"none of the {len(metadata)} images has an EXIF/XMP GPS position",
+                        image_dir)
+    return names, np.array(lla, dtype=np.float64), sigmas, sources
+
+
+def _exif_to_crs(lla: np.ndarray, altitude: str, target_crs, image_dir):
+    """(positions in `target_crs`, vertical_applied, notes, geoid) of EXIF latitude,
+    longitude, altitude (read_gnss_exif's `altitude`)."""
+    if altitude == "ellipsoidal":
+        positions, report = reproject_with_report(
+            lla, "EPSG:4979", target_crs, what="EXIF GPS", path=image_dir
+        )
+        return positions, report.vertical_applied, list(report.notes), report.geoid
+    import pyproj
+
+    dst = _pyproj_crs(target_crs)
+    dst2d = dst.sub_crs_list[0] if dst.is_compound else dst
+    horizontal, report = reproject_with_report(
+        np.column_stack([lla[:, :2], np.zeros(len(lla))]),
+        pyproj.CRS.from_epsg(4326),
+        dst2d,
+        what="EXIF GPS",
+        path=image_dir,
+    )
+    positions = np.column_stack([horizontal[:, :2], lla[:, 2]])
+    notes = report.notes + [
+        "EXIF GPS: altitude taken as height above sea level (EXIF definition) and used as a "
+        "model height without a datum change (national height datums differ from mean sea "
+        "level by < ~1 m)"
+    ]
+    logger.info(notes[-1])
+    return positions, None, notes, None
 
 
 # --------------------------------------------------------------------------------------------

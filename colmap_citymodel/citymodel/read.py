@@ -1,9 +1,10 @@
 """The one entry point that turns city model files into a PlaneStore.
 
 `read_city_model` accepts one file, several files or a directory of tiles (CityGML `*.gml`,
-`*.xml`; CityJSON `*.json`, `*.city.json`, `*.jsonl`), reads each with its format's reader, checks
-that all share one CRS, merges them into one RawCityModel and builds the store (vertex merging,
-planes, spatial index: citymodel.store.build_store).
+`*.xml`; CityJSON `*.json`, `*.city.json`, `*.jsonl`; each also gzip-compressed, `*.gml.gz`, and
+ZIP archives of them, citymodel.archives), reads each with its format's reader, checks that all
+share one CRS, merges them into one RawCityModel and builds the store (vertex merging, planes,
+spatial index: citymodel.store.build_store).
 """
 
 from __future__ import annotations
@@ -15,51 +16,53 @@ import numpy as np
 
 from ..errors import CRSError, InputError, NoOverlapError
 from . import crs as crs_mod
+from .archives import (CITYGML_SUFFIXES, CITYJSON_SUFFIXES, expand_archive, is_model_file, is_zip,
+                       model_suffix, read_model_head)
 from .raw_model import RawCityModel, RawPolygonTable
 from .store import PlaneStore
 from .build import build_store
 
 logger = logging.getLogger(__name__)
 
-CITYGML_SUFFIXES = (".gml", ".xml")
-CITYJSON_SUFFIXES = (".json", ".jsonl")
-
 
 def _kind(path: Path) -> str:
-    """'citygml' or 'cityjson' from the suffix (or the first character for other names)."""
-    suffix = path.suffix.lower()
+    """'citygml' or 'cityjson' from the suffix (under a gzip suffix: "x.gml.gz"), or the first
+    character of the (decompressed) content for other names."""
+    suffix = model_suffix(path)
     if suffix in CITYGML_SUFFIXES:
         return "citygml"
     if suffix in CITYJSON_SUFFIXES:
         return "cityjson"
     try:
-        with open(path, "rb") as f:
-            head = f.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")
+        head = read_model_head(path, 4096).lstrip(b"\xef\xbb\xbf \t\r\n")
     except OSError as error:
         raise InputError(f"cannot read file: {error}", path) from None
     if head.startswith(b"<"):
         return "citygml"
     if head.startswith(b"{"):
         return "cityjson"
-    raise InputError("neither CityGML (XML) nor CityJSON; expected *.gml, *.xml, *.json or *.jsonl", path)
+    raise InputError("neither CityGML (XML) nor CityJSON; expected *.gml, *.xml, *.json or "
+                     "*.jsonl, each also as *.gz, or a *.zip of them", path)
 
 
 def city_model_files(paths: str | Path | list) -> list[Path]:
-    """The files named by `paths`: files as given, directories expanded to their tiles (sorted)."""
+    """The files named by `paths`: files as given, directories expanded to their tiles (sorted),
+    ZIP archives (given, or in a directory) to the model files they hold (unpacked once per
+    process, citymodel.archives)."""
     if isinstance(paths, (str, Path)):
         paths = [paths]
     files: list[Path] = []
     for p in map(Path, paths):
         if p.is_dir():
-            tiles = sorted(
-                f for f in p.iterdir()
-                if f.is_file() and f.suffix.lower() in CITYGML_SUFFIXES + CITYJSON_SUFFIXES
-            )
+            tiles = sorted(f for f in p.iterdir()
+                           if f.is_file() and (is_model_file(f) or is_zip(f)))
             if not tiles:
-                raise InputError("directory has no CityGML (*.gml, *.xml) or CityJSON (*.json, *.jsonl) files", p)
-            files.extend(tiles)
+                raise InputError("directory has no CityGML (*.gml, *.xml) or CityJSON (*.json, "
+                                 "*.jsonl) files, plain, *.gz or in a *.zip", p)
+            for tile in tiles:
+                files.extend(expand_archive(tile) if is_zip(tile) else [tile])
         elif p.is_file():
-            files.append(p)
+            files.extend(expand_archive(p) if is_zip(p) else [p])
         else:
             raise InputError("no such file or directory", p)
     if not files:
@@ -171,8 +174,10 @@ def peek_crs(citymodel, assumed: str | None = None):
     from .crs import resolve_crs, user_crs
 
     files = city_model_files(citymodel)
-    with open(files[0], "rb") as f:
-        head = f.read(1 << 20).decode("utf-8", errors="ignore")
+    try:
+        head = read_model_head(files[0], 1 << 20).decode("utf-8", errors="ignore")
+    except OSError as error:
+        raise InputError(f"cannot read file: {error}", files[0]) from None
     found = re.search(r'srsName="([^"]+)"', head) or \
         re.search(r'"referenceSystem"\s*:\s*"([^"]+)"', head)
     if found:

@@ -44,6 +44,7 @@ from lxml import etree
 
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
 from . import crs as crs_mod
+from .archives import open_model
 from .raw_model import (
     CRSInfo,
     RawCityModel,
@@ -594,7 +595,7 @@ def detect_version(namespaces) -> str | None:
 def _read_root(path: Path):
     """Tag and namespaces of the root element (parses only the first start tag)."""
     try:
-        with open(path, "rb") as source:
+        with open_model(path) as source:
             for _event, el in etree.iterparse(source, events=("start",), huge_tree=True):
                 return el.tag, dict(el.nsmap)
     except etree.XMLSyntaxError as error:
@@ -754,7 +755,7 @@ def read_citygml(
     tags = [f"{{*}}{t}" for t in MEMBER_TAGS + _CLEAR_TAGS] + ["{*}Envelope"]
     source = None  # closed on every way out (lxml keeps it open until garbage collection)
     try:
-        source = open(path, "rb")
+        source = open_model(path)
         context = etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True)
         for _event, el in context:
             parent = el.getparent()
@@ -1015,7 +1016,7 @@ def _rescan(path: Path, lod: int, surface_ids: set[str], ring_ids: set[str]):
             "{*}LinearRing", "{*}Ring"] + [f"{{*}}{t}" for t in MEMBER_TAGS]
     source = None
     try:
-        source = open(path, "rb")
+        source = open_model(path)
         for _event, el in etree.iterparse(source, events=("end",), tag=tags, huge_tree=True, remove_comments=True):
             parent = el.getparent()
             if _local(el.tag) in MEMBER_TAGS:

@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 
 from ..errors import CityGMLError, CRSError, InputError, NoOverlapError
+from .archives import model_suffix, read_model_text
 from .crs import lat_first, output_crs, reproject_points, resolve_crs, user_crs
 from .raw_model import (
     CRSInfo,
@@ -45,10 +46,10 @@ SURFACE_TYPES = ("MultiSurface", "CompositeSurface")
 def _load(path: Path) -> tuple[dict, list[dict]]:
     """(header document, list of CityJSONFeature documents; empty for a plain CityJSON file)."""
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_model_text(path)
     except (OSError, UnicodeDecodeError) as error:
         raise InputError(f"cannot read the file: {error}", path) from error
-    is_seq = path.suffix.lower() == ".jsonl"
+    is_seq = model_suffix(path) == ".jsonl"
     if not is_seq:
         try:
             doc = json.loads(text)

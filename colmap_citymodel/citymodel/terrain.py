@@ -31,6 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .archives import model_suffix, open_model, read_model_text
 from .raw_model import CRSInfo
 
 logger = logging.getLogger(__name__)
@@ -316,7 +317,7 @@ def read_model_ground(paths, crs: CRSInfo) -> ModelGround:
     triangles, lines = [], {}
     paths = [Path(p) for p in np.atleast_1d(paths)]
     for path in paths:
-        if path.suffix.lower() in (".json", ".cityjson", ".jsonl"):
+        if model_suffix(path) in (".json", ".cityjson", ".jsonl"):
             found, file_crs = _cityjson_relief(path)
             found_lines = {}
         else:
@@ -368,33 +369,34 @@ def _citygml_ground(path: Path) -> tuple[np.ndarray, dict[str, np.ndarray], CRSI
     from .crs import resolve_crs
 
     triangles, lines, buildings, srs = [], {}, [], None
-    for event, element in etree.iterparse(str(path), events=("start", "end"), huge_tree=True):
-        if not isinstance(element.tag, str):
-            continue
-        name = etree.QName(element).localname
-        if name == "Building":
-            if event == "start":
-                buildings.append(next((v for k, v in element.attrib.items()
-                                       if k.endswith("}id")), ""))
-            else:
-                buildings.pop()
-            continue
-        if event != "end":
-            continue
-        if srs is None and element.get("srsName"):
-            srs = element.get("srsName")
-        if name == "TINRelief":
-            for ring in element.iter("{*}LinearRing"):
-                coords = _ring_coordinates(ring)
-                if len(coords) >= 3:
-                    triangles.append(coords[:3])
-            element.clear()
-        elif name.endswith("TerrainIntersection") and buildings:
-            found = [_ring_coordinates(curve) for curve in element.iter("{*}LineString")]
-            found = [c for c in found if len(c)]
-            if found:
-                lines.setdefault(buildings[0], []).extend(found)
-            element.clear()
+    with open_model(path) as source:
+        for event, element in etree.iterparse(source, events=("start", "end"), huge_tree=True):
+            if not isinstance(element.tag, str):
+                continue
+            name = etree.QName(element).localname
+            if name == "Building":
+                if event == "start":
+                    buildings.append(next((v for k, v in element.attrib.items()
+                                           if k.endswith("}id")), ""))
+                else:
+                    buildings.pop()
+                continue
+            if event != "end":
+                continue
+            if srs is None and element.get("srsName"):
+                srs = element.get("srsName")
+            if name == "TINRelief":
+                for ring in element.iter("{*}LinearRing"):
+                    coords = _ring_coordinates(ring)
+                    if len(coords) >= 3:
+                        triangles.append(coords[:3])
+                element.clear()
+            elif name.endswith("TerrainIntersection") and buildings:
+                found = [_ring_coordinates(curve) for curve in element.iter("{*}LineString")]
+                found = [c for c in found if len(c)]
+                if found:
+                    lines.setdefault(buildings[0], []).extend(found)
+                element.clear()
     crs = resolve_crs(srs, path=path) if srs else None
     return (np.array(triangles, float).reshape(-1, 3, 3),
             {b: np.vstack(c) for b, c in lines.items()}, crs)
@@ -415,7 +417,7 @@ def _cityjson_relief(path: Path) -> tuple[np.ndarray, CRSInfo | None]:
     from .crs import resolve_crs
 
     try:
-        doc = json.loads(path.read_text())
+        doc = json.loads(read_model_text(path))
     except (OSError, ValueError) as error:
         raise InputError(f"not a readable CityJSON file: {error}", path) from None
     transform = doc.get("transform", {})

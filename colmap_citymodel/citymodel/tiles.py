@@ -33,6 +33,7 @@ import numpy as np
 from ..errors import CityModelError, CRSError
 from . import crs as crs_mod
 from .raw_model import CRSInfo
+from .archives import open_model
 from .read import _kind, city_model_files
 
 logger = logging.getLogger(__name__)
@@ -136,11 +137,16 @@ def _scan_citygml(path: Path) -> tuple[str | None, list[float] | None]:
     CRS, such as an address's EPSG:4326 point, are not building geometry and are left out)."""
     from lxml import etree
 
+    with open_model(path) as source:
+        return _scan_citygml_stream(source, etree)
+
+
+def _scan_citygml_stream(source, etree) -> tuple[str | None, list[float] | None]:
     box = _Box()
     srs_name = None
     local: dict[str, str] = {}
     same: dict[str, bool] = {}  # srsName -> names the file's CRS
-    for _event, el in etree.iterparse(str(path), events=("end",), huge_tree=True,
+    for _event, el in etree.iterparse(source, events=("end",), huge_tree=True,
                                       remove_comments=True, remove_pis=True):
         tag = el.tag
         name = local.get(tag)

@@ -30,6 +30,7 @@ import numpy as np
 from lxml import etree
 
 from ..citymodel import crs as crs_mod
+from ..citymodel.archives import open_model, read_model_head
 from ..citymodel.raw_model import CRSInfo
 from ..citymodel.read_citygml import (
     MEMBER_TAGS,
@@ -217,8 +218,7 @@ class _CoordinateText:
 def file_crs(path: Path, assumed: CRSInfo | None, store_crs: CRSInfo) -> CRSInfo:
     """The CRS the file's coordinates are in: its first srsName, else the assumed one, else
     the store's."""
-    with open(path, "rb") as f:
-        head = f.read(1 << 22).decode("utf-8", errors="ignore")
+    head = read_model_head(path, 1 << 22).decode("utf-8", errors="ignore")
     found = re.search(r'srsName="([^"]+)"', head)
     if found:
         return crs_mod.resolve_crs(found.group(1), path=path)
@@ -234,7 +234,8 @@ def update_citygml(source: str | Path, target: str | Path, moves: Moves, *, lod:
         raise ValueError("the store has no provenance: read it with read_city_model")
     parser = etree.XMLParser(huge_tree=True, remove_blank_text=False, strip_cdata=False,
                              resolve_entities=False)
-    tree = etree.parse(str(source), parser)
+    with open_model(source) as stream:
+        tree = etree.parse(stream, parser)
     src_crs = file_crs(source, assumed_crs, store.crs)
     reproject = not crs_mod.same_crs(src_crs, store.crs)
     report = UpdateReport(str(source), str(target))

@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from ..citymodel import crs as crs_mod
+from ..citymodel.archives import read_model_text
 from ..citymodel.raw_model import CRSInfo
 from ..citymodel.read_cityjson import BUILDING_TYPES, SOLID_TYPES, SURFACE_TYPES, _lod_value
 from .citygml_update import Moves, UpdateReport
@@ -127,7 +128,7 @@ def update_cityjson(source: str | Path, target: str | Path, moves: Moves, *, lod
     store = moves.store
     if store.provenance is None:
         raise ValueError("the store has no provenance: read it with read_city_model")
-    text = source.read_text(encoding="utf-8")
+    text = read_model_text(source)
     report = UpdateReport(str(source), str(target))
     lines = [line for line in text.splitlines() if line.strip()]
     try:

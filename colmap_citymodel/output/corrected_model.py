@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from ..adjust.model_correction import ModelCorrection
+from ..citymodel.archives import inner_name, model_suffix
 from ..citymodel.crs import user_crs
 from ..citymodel.read import _kind
 from ..citymodel.store import PlaneStore
@@ -34,13 +35,14 @@ def target_names(sources: list[Path]) -> list[str]:
     def suffix(path: Path) -> str:
         if _kind(path) == "citygml":
             return ".gml"
-        return ".city.jsonl" if path.suffix.lower() == ".jsonl" else ".city.json"
+        return ".city.jsonl" if model_suffix(path) == ".jsonl" else ".city.json"
 
     if len(sources) == 1:
         return ["corrected_model" + suffix(sources[0])]
     names, seen = [], set()
     for k, path in enumerate(sources):
-        name = path.name if path.name not in seen else f"{k:03d}_{path.name}"
+        name = inner_name(path)  # written uncompressed
+        name = name if name not in seen else f"{k:03d}_{name}"
         seen.add(name)
         names.append(f"corrected_model/{name}")
     return names
