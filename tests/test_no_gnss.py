@@ -78,6 +78,18 @@ def test_useless_gnss_is_replaced_by_the_model_search(street_scene):
     assert rms(centre_errors(result.reconstruction, street_scene.truth)) < 0.10
 
 
+def test_gnss_too_short_to_turn_a_block_finds_it_on_the_model_and_keeps_its_priors():
+    """A short sequence (eight stations 0.8 m apart: its GNSS positions spread less than twice
+    their 3 m sigma, too little for a similarity): the GNSS mean is the model search's hint,
+    the block is found on the model, and GNSS stays as its priors."""
+    scene = synthetic.make_street_scene(StreetSceneOptions(seed=3, num_stations=8,
+                                                           station_spacing=0.8))
+    result = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    assert result.georegistration["short_baseline"] is True
+    assert result.gnss_priors is not None and result.quality.verdict != "failed"
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
 def identical_houses(options, rng):
     """Both sides of the street: the same gabled house every 16 m, far beyond the block."""
     rings, semantics, buildings = [], [], []

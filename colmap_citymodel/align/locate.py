@@ -822,30 +822,58 @@ USELESS_GNSS_SIGMA = 20.0
 def start_from_model(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, location,
                      radius: float = 100.0):
     """Refine's start without (usable) GNSS: `location` (x, y, model CRS) or, for GNSS whose
-    stated sigma exceeds USELESS_GNSS_SIGMA, the GNSS mean is the hint. Returns (the
-    similarity input -> model CRS, the GNSS refine is to use, report.json's georegistration
-    entries), or (None, gnss, None) when GNSS registers the block."""
+    stated sigma exceeds USELESS_GNSS_SIGMA, the GNSS mean is the hint. GNSS whose positions
+    spread too little for a similarity (a short video, a hovering drone: GNSS then fixes the
+    block's position, not its heading) gives the hint too, and stays as the adjustment's priors
+    (`short_baseline`). Returns (the similarity input -> model CRS, the GNSS refine is to use,
+    report.json's georegistration entries), or (None, gnss, None) when GNSS registers the
+    block."""
     sigma = (float(np.median(np.asarray(gnss.sigmas)[:, :2])) if gnss is not None
              and len(gnss.positions) else None)
     useless = sigma is not None and sigma > USELESS_GNSS_SIGMA
-    if gnss is not None and not useless:
+    short = gnss is not None and not useless and short_baseline(gnss)
+    if gnss is not None and not useless and not short:
         if location is not None:
             logger.warning("GNSS is given: it registers the block, the location hint is not "
                            "used")
         return None, gnss, None
-    if location is None:
+    if location is None or short:
         if gnss is None:
             return None, None, None
         location = np.mean(np.asarray(gnss.positions)[:, :2], axis=0)
-        radius = max(radius, 2.0 * sigma)
+        radius = max(radius, 2.0 * sigma) if useless else min(radius, SHORT_RADIUS_SIGMAS * sigma)
     if useless:
         logger.warning("the GNSS positions' stated sigma (%.0f m) exceeds %.0f m: the block is "
                        "registered from the model alone around %s (radius %.0f m), without GNSS",
                        sigma, USELESS_GNSS_SIGMA, np.round(np.asarray(location)[:2], 1).tolist(),
                        radius)
+    elif short:
+        logger.warning("the GNSS positions spread too little to turn the block: it is found on "
+                       "the model around their mean %s (radius %.0f m), GNSS kept as its priors",
+                       np.round(np.asarray(location)[:2], 1).tolist(), radius)
     hint = np.asarray(location, float).reshape(-1)[:2] - store.origin[:2]
     found = locate(rec, store, hint, LocateOptions(radius=float(radius)))
     to_crs = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.asarray(store.origin, float))
     report = {**found.report, "location_hint": [float(v) for v in np.asarray(location)[:2]],
-              "gnss_ignored": bool(useless)}
-    return to_crs * found.sim3, None, report
+              "gnss_ignored": bool(useless), "short_baseline": bool(short)}
+    return to_crs * found.sim3, (gnss if short else None), report
+
+
+#: With GNSS too short to turn the block, its centre is searched within this many of GNSS's
+#: horizontal sigmas of the positions' mean (a bias of that many sigmas is as far as GNSS's
+#: error model reaches).
+SHORT_RADIUS_SIGMAS = 5.0
+
+
+def short_baseline(gnss) -> bool:
+    """Whether the GNSS positions spread too little along their main axis for a similarity
+    (align.georegister's own rule: GeoregistrationOptions.min_baseline_sigmas of the
+    horizontal sigma)."""
+    from .georegister import GeoregistrationOptions, _principal_std
+
+    positions = np.asarray(gnss.positions, float)
+    if len(positions) < 3:
+        return True
+    horizontal = float(np.median(np.asarray(gnss.sigmas, float), axis=0)[:2].max())
+    return bool(_principal_std(positions)[0]
+                < GeoregistrationOptions().min_baseline_sigmas * horizontal)
