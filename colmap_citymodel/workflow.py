@@ -43,9 +43,9 @@ import pycolmap
 from .adjust.correction_loop import every_point_alike
 from .adjust.datum import hold_where_gnss_alone
 from .adjust.staged import staged_adjustment_loop
-from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
-                                   left_to_gnss, unsettled_observability,
-                                   weighting_observability)
+from .adjust.observability import (DATUM, assigned_observability, datum_line,
+                                   gnss_only_observability, left_to_gnss,
+                                   unsettled_observability, weighting_observability)
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -258,13 +258,10 @@ def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, op
     """The observability and the verdict (block_quality, the block held to GNSS where the
     planes leave it), the terrain's residuals, the GNSS offset's record; logged."""
     priors, rec = start.priors, final.reconstruction
-    observability, quality = block_quality(
+    observability, quality, sim3 = block_quality(
         rec, final.assignment, final.current, final.last, loop, options,
         surface=placed.surface, priors=priors, gnss_only=gnss_only,
         scale_sigma=placed.scale_sigma, exclude_point_ids=run.exclude_point_ids, hold=True)
-    held = quality.metrics.get("moved_back_to_gnss_m") if isinstance(quality.metrics, dict) \
-        else None
-    sim3 = pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), np.asarray(held if held else np.zeros(3)))
     if placed.terrain.get("num_faces"):
         placed.terrain["residuals"] = terrain_residuals(final.current, final.assignment, np.array(
             [rec.point3D(int(i)).xyz for i in final.assignment.point_ids]).reshape(-1, 3))
@@ -395,32 +392,31 @@ def block_quality(rec, assignment, current, last, loop, options, *,
     """The observability (from the data) of an adjusted block and the quality gate's verdict
     on it (precision.quality.measure_quality); `loop` (adjust.loop.LoopResult) tells whether
     the assignment loop diverged or ended unsettled, and how far the faces' weighting moved
-    the block. `hold`: `rec` is first moved back to the GNSS-only block along the axes the
-    planes leave to GNSS (adjust.datum.hold_where_gnss_alone)."""
+    the block. `hold`: then `rec` is moved back to the GNSS-only block along the datum
+    parameters the planes leave to GNSS (adjust.datum.hold_where_gnss_alone); the similarity
+    that moved it is returned third (identity: none)."""
     _, points = tie_points(rec, exclude_point_ids)
     observability = weighting_observability(unsettled_observability(
         assigned_observability(points, assignment, current, priors, rec, options,
                                from_data=True), loop.unsettled_move), loop.weighting_move)
-    held = np.zeros(3)
-    if hold and priors is not None:
-        held = hold_where_gnss_alone(rec, gnss_only, priors.image_ids,
-                                     left_to_gnss(observability))
-        if np.any(held):
-            _, points = tie_points(rec, exclude_point_ids)
     quality = measure_quality(rec, gnss_only, surface, priors, assignment, last, observability,
                               points, options, loop.diverged, scale_sigma,
                               loop.unsettled_shift, store=current)
-    if np.any(held) and isinstance(quality.metrics, dict):
-        quality.metrics["moved_back_to_gnss_m"] = held.tolist()
-    return observability, quality
+    moved = pycolmap.Sim3d()
+    if hold and priors is not None:  # after the verdict measured what the model moved
+        held, moved = hold_where_gnss_alone(rec, gnss_only, priors.image_ids,
+                                            left_to_gnss(observability, DATUM))
+        if np.any(held) and isinstance(quality.metrics, dict):
+            quality.metrics["moved_back_to_gnss"] = dict(zip(DATUM, held.tolist()))
+    return observability, quality, moved
 
 
 def first_loop_gate(first, options, **context) -> str | None:
     """The quality gate on the block the loop with every tie point alike placed (before the
     faces' errors are estimated from it, adjust.staged): its reasons when it fails, else None.
     `context`: block_quality's keywords."""
-    _, quality = block_quality(first.reconstruction, first.assignment, first.current,
-                               first.last, first, options, **context)
+    _, quality, _ = block_quality(first.reconstruction, first.assignment, first.current,
+                                  first.last, first, options, **context)
     return "; ".join(quality.reasons) if quality.verdict == "failed" else None
 
 

@@ -72,23 +72,42 @@ def describe(direction: np.ndarray) -> str:
     return f"the horizontal direction of azimuth {azimuth:.0f} deg"
 
 
-def hold_where_gnss_alone(rec, gnss_only, image_ids: np.ndarray, alone: np.ndarray
-                          ) -> np.ndarray:
-    """No move without evidence: along the axes `alone` ((3,) bool, E N U) that GNSS fixes and
-    the planes and terrain do not (adjust.observability.left_to_gnss), the block `rec` is
-    moved back (in place) to where the GNSS-only block `gnss_only` has the cameras of
-    `image_ids` on average: there the model gave it no reason to move. Returns the shift
-    applied (m, E N U)."""
+def hold_where_gnss_alone(rec, gnss_only, image_ids: np.ndarray, alone: np.ndarray):
+    """No move without evidence: of the similarity that takes the block `rec` onto the
+    GNSS-only block `gnss_only` (their cameras of `image_ids`, about their centroid in `rec`),
+    the parameters `alone` ((7,) bool, adjust.observability.DATUM: E, N, U shifts, scale,
+    rotations about E, N, U) marks, those GNSS fixes and the planes and terrain do not
+    (adjust.observability.left_to_gnss), are applied to `rec` (in place): along them the
+    model gave the block no reason to move. Returns the applied (7,) parameters (m, relative
+    scale change, rad) and the similarity applied (pycolmap.Sim3d)."""
     import pycolmap
+    from scipy.spatial.transform import Rotation
 
-    if gnss_only is None or not np.any(alone) or not len(image_ids):
-        return np.zeros(3)
+    alone = np.asarray(alone, bool)
+    applied = np.zeros(7)
+    if gnss_only is None or not alone.any() or len(image_ids) < 3:
+        return applied, pycolmap.Sim3d()
     here = np.array([rec.image(int(i)).projection_center() for i in image_ids])
     there = np.array([gnss_only.image(int(i)).projection_center() for i in image_ids])
-    shift = np.where(alone, (there - here).mean(axis=0), 0.0)
-    if np.any(shift):
-        rec.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), shift))
-        logger.info("the planes leave %s to GNSS: the block moved back there by %s m",
-                    ", ".join(a for a, f in zip("ENU", alone) if f),
-                    np.round(shift[alone], 3).tolist())
-    return shift
+    centre = here.mean(axis=0)
+    found = pycolmap.estimate_sim3d(here - centre, there - centre)
+    if found is None:
+        return applied, pycolmap.Sim3d()
+    rotation = Rotation.from_matrix(np.asarray(found.rotation.matrix())).as_rotvec()
+    applied[:3] = np.where(alone[:3], np.asarray(found.translation, float), 0.0)
+    applied[3] = float(found.scale) - 1.0 if alone[3] else 0.0
+    applied[4:] = np.where(alone[4:], rotation, 0.0)
+    turn = Rotation.from_rotvec(applied[4:]).as_matrix()
+    scale = 1.0 + applied[3]
+    moved = pycolmap.Sim3d(scale, pycolmap.Rotation3d(turn),
+                           centre + applied[:3] - scale * turn @ centre)
+    rec.transform(moved)
+    logger.info("the planes leave %s to GNSS: the block moved back there (shift %s m, scale "
+                "%+.2g, turn %s deg)", ", ".join(n for n, f in zip(DATUM_NAMES, alone) if f),
+                np.round(applied[:3], 3).tolist(), applied[3],
+                np.round(np.degrees(applied[4:]), 4).tolist())
+    return applied, moved
+
+
+#: The datum parameters in adjust.observability's order.
+DATUM_NAMES = ("E", "N", "U", "scale", "rotation_E", "rotation_N", "rotation_U")

@@ -465,13 +465,14 @@ def rests_on_one_plane(observability_dict: dict) -> list[str]:
     return [k for k, v in observability_dict.items() if v.get("one_plane")]
 
 
-def left_to_gnss(observability_dict: dict) -> np.ndarray:
-    """(3,) bool, E N U: the shifts that GNSS fixes while the planes' information there (each
-    plane with its generalisation error) is DOMINANCE times weaker or none. Per tie point, as
-    the adjustment weighs them, the same planes can seem to fix it: walls tilted by a fraction
-    of a degree, thousands of points each."""
-    out = np.zeros(3, bool)
-    for k, name in enumerate(("E", "N", "U")):
+def left_to_gnss(observability_dict: dict, names=("E", "N", "U")) -> np.ndarray:
+    """(len(names),) bool, default E N U: the datum parameters (DATUM's names) that GNSS fixes
+    while the planes' information there (each plane with its generalisation error) is
+    DOMINANCE times weaker or none. Per tie point, as the adjustment weighs them, the same
+    planes can seem to fix it: walls tilted by a fraction of a degree, thousands of points
+    each."""
+    out = np.zeros(len(names), bool)
+    for k, name in enumerate(names):
         row = observability_dict.get(name, {})
         planes, gnss = row.get("sigma_planes"), row.get("sigma_gnss")
         out[k] = (row.get("source") == "gnss" and gnss is not None
