@@ -65,7 +65,78 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
            options: RefineOptions | None = None, *, initial_transform: pycolmap.Sim3d | None = None,
            exclude_point_ids: set[int] | None = None, progress: bool = True,
            checkpoints: dict | None = None, checkpoint_observations: list | None = None,
-           location=None, location_radius: float = 100.0) -> RefineResult:
+           location=None, location_radius: float = 100.0, marks=None,
+           check_marks=None) -> RefineResult:
+    """Georeference `reconstruction` and adjust it together with `city_model` (`refine_block`
+    gives the other arguments' meaning).
+
+    `marks` (block.marks.GroundMarks, model CRS): ground control marks, in every adjustment
+    (adjust.marks); without GNSS, an initial transform or a location, they place the block.
+    `check_marks` (the same): check points, only compared with the refined block
+    (report.json `checkpoints`, precision.accuracy; they replace `checkpoints`)."""
+    from .adjust.marks import control_marks, marks_in_adjustment, similarity_from_marks
+
+    options = options or RefineOptions()
+    control = None
+    if marks is not None:
+        control = control_marks(marks, reconstruction, city_model.origin,
+                                options.marks.sigma_pixel)
+        if initial_transform is None and gnss is None and location is None:
+            initial_transform = similarity_from_marks(marks, reconstruction,
+                                                      options.marks.sigma_pixel)
+            if initial_transform is None:
+                raise DatumError("without GNSS the control marks must place the block, but "
+                                 "fewer than three of them (not on a line) are measured in two "
+                                 "or more registered images", marks.path)
+    if check_marks is not None:
+        checkpoints, checkpoint_observations = check_marks.checkpoints()
+    with marks_in_adjustment(control):
+        result = refine_block(reconstruction, city_model, gnss, options,
+                              initial_transform=initial_transform,
+                              exclude_point_ids=exclude_point_ids, progress=progress,
+                              checkpoints=checkpoints,
+                              checkpoint_observations=checkpoint_observations,
+                              location=location, location_radius=location_radius)
+        result.control_marks = marks_after_refine(control, result.reconstruction)
+    if check_marks is not None and result.checkpoints is not None:
+        check_points_into_verdict(result, check_marks)
+    return result
+
+
+def marks_after_refine(control, rec: pycolmap.Reconstruction) -> dict | None:
+    """report.json `control_marks`: each mark's test against the returned block."""
+    from .adjust.marks import mark_test, marks_record
+
+    if control is None:
+        return None
+    for k in control.used:
+        test = mark_test(control, rec, k)
+        if test is not None:
+            control.tests[control.names[k]] = {**control.tests.get(control.names[k], {}),
+                                               **test}
+    return marks_record(control)
+
+
+def check_points_into_verdict(result: RefineResult, check_marks) -> None:
+    """The check marks' accuracy (precision.accuracy) onto the check point evaluation, and its
+    independent test of the block into the verdict (precision.quality.checkpoint_verdict)."""
+    from .precision.accuracy import check_accuracy
+    from .precision.quality import QualityThresholds, checkpoint_verdict
+
+    alpha = QualityThresholds().alpha
+    result.checkpoints.accuracy = check_accuracy(result.checkpoints, check_marks,
+                                                 alpha, options=result.options.marks)
+    if result.quality is not None:
+        checkpoint_verdict(result.quality, result.checkpoints.accuracy)
+        logger.info(result.quality.line())
+
+
+def refine_block(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
+                 options: RefineOptions | None = None, *,
+                 initial_transform: pycolmap.Sim3d | None = None,
+                 exclude_point_ids: set[int] | None = None, progress: bool = True,
+                 checkpoints: dict | None = None, checkpoint_observations: list | None = None,
+                 location=None, location_radius: float = 100.0) -> RefineResult:
     """Georeference `reconstruction` and adjust it together with `city_model`.
 
     `gnss` is a `block.gnss.GNSSObservations` (model CRS) or None; `initial_transform` maps the
@@ -214,12 +285,37 @@ def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOp
     where the test finds them off, with options that refine them from then on), the options,
     step 2's report, its eliminated observations and the test (None: not run)."""
     report, eliminated = step2_bundle_adjustment(rec, priors, options)
+    report, eliminated = snoop_control_marks(rec, priors, options, report, eliminated)
     intrinsics = check_intrinsics(rec, priors, options, report)
     if intrinsics is not None and intrinsics.refined:
         rec = intrinsics.freed
         options = copy.deepcopy(options)
         options.adjustment.refine_intrinsics = True
     return rec, options, report, eliminated, intrinsics
+
+
+def snoop_control_marks(rec: pycolmap.Reconstruction, priors, options: RefineOptions, report,
+                        eliminated: int):
+    """The control marks' blunder test on step 2's block (adjust.marks.snoop_marks): a mark
+    left out is followed by step 2 again. Returns step 2's (last) report and eliminations."""
+    from .adjust.marks import active_marks, snoop_marks
+
+    marks = active_marks()
+    if marks is None:
+        return report, eliminated
+    solved = [(report, eliminated)]
+
+    def solve():
+        again, more = step2_bundle_adjustment(rec, priors, options)
+        solved.append((again, solved[-1][1] + more))
+
+    def solve_without():  # the marks as they are now, on a copy of the block
+        trial = pycolmap.Reconstruction(rec)
+        step2_bundle_adjustment(trial, priors, options)
+        return trial
+
+    snoop_marks(marks, rec, solve, solve_without, options.marks.blunder_alpha)
+    return solved[-1]
 
 
 def gnss_offset_unknowns(priors, o_adj, rec: pycolmap.Reconstruction) -> bool:

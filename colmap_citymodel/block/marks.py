@@ -330,11 +330,12 @@ def similarity(source: np.ndarray, target: np.ndarray) -> pycolmap.Sim3d | None:
     return pycolmap.estimate_sim3d(source, target)
 
 
-def similarity_design(points: np.ndarray) -> np.ndarray:
-    """(3N, 7) derivative of a small similarity X + t + s (X - c) + w x (X - c) at `points`,
-    c their centroid, with respect to (t, s, w): what a 7-parameter fit can absorb."""
+def similarity_design(points: np.ndarray, centre: np.ndarray | None = None) -> np.ndarray:
+    """(3N, 7) derivative of a small similarity X + t + s (X - c) + w x (X - c) at `points`
+    with respect to (t, s, w), c = `centre` (default their centroid): what a 7-parameter fit
+    can absorb."""
     q = np.asarray(points, float).reshape(-1, 3)
-    q = q - q.mean(axis=0)
+    q = q - (q.mean(axis=0) if centre is None else np.asarray(centre, float))
     a = np.zeros((3 * len(q), 7))
     for i, (x, y, z) in enumerate(q):
         rows = slice(3 * i, 3 * i + 3)

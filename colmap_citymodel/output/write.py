@@ -167,6 +167,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "sliding_window": result.sliding_window,
         "terrain": result.terrain,
         "intrinsics": result.intrinsics,
+        "control_marks": result.control_marks,
     }
 
 
@@ -183,6 +184,27 @@ def terrain_lines(terrain: dict | None) -> list[str]:
             + (f", RMS {rms:.3f} m from it" if rms is not None else "") + ".")
     return [line, ""] + [f"- {w}" for w in terrain.get("warnings", [])] + (
         [""] if terrain.get("warnings") else [])
+
+
+def control_marks_lines(record: dict | None) -> list[str]:
+    """report.md's table of the ground control marks: each mark's images, where the block's
+    rays put it against its surveyed position, its test, and whether it was used."""
+    if not record:
+        return []
+    lines = ["## Control marks", "",
+             "| mark | images | block minus survey E / N / U (m) | test | used |",
+             "|---|---|---|---|---|"]
+    for name, row in record["marks"].items():
+        test = row.get("test") or {}
+        offset = test.get("offset_m")
+        lines.append(f"| {name} | {row['num_images']} | "
+                     + (" / ".join(f"{v:+.3f}" for v in offset) if offset else "-") + " | "
+                     + (f"{test['statistic']:.1f}" if "statistic" in test else "-") + " | "
+                     + ("yes" if row["used"] else "no") + " |")
+    lines.append("")
+    lines += [f"- {name}: {row['reason']}" for name, row in record["marks"].items()
+              if row.get("reason")]
+    return lines + [""]
 
 
 def _number(value, fmt: str = "{:.4f}") -> str:
@@ -221,6 +243,7 @@ def report_markdown(report: dict) -> str:
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
     lines += terrain_lines(report.get("terrain"))
+    lines += control_marks_lines(report.get("control_marks"))
     intrinsics = report.get("intrinsics")
     if intrinsics:
         lines += [f"Interior orientation: {'refined' if intrinsics['refined'] else 'held'} "

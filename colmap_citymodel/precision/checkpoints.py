@@ -413,6 +413,9 @@ class CheckpointEvaluation:
     posteriori covariance of the estimated check points in `ids` order (NaN for check points
     without one), from the adjustment (refine)."""
     sigma_notes: dict[str, str] = field(default_factory=dict)
+    # The check marks' accuracy figures (precision.accuracy.check_accuracy: per mark, RMSE,
+    # ASPRS, the chi-square test, blunders), merged into `todict`; None for other check points.
+    accuracy: dict | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -516,6 +519,7 @@ class CheckpointEvaluation:
                 "sigma_model": self.primary_model,
                 "delta_sigma": self.delta_sigma(self.primary_model),
                 "delta_sigma_by_model": {m: self.delta_sigma(m) for m in self.covariances}}),
+            **(self.accuracy or {}),
         }
 
     def summary(self) -> str:

@@ -251,6 +251,8 @@ def _layout(problem: HybridProblem) -> _Layout:
         add("vertex", k, b.vertices[k])
     if problem.gnss_offset is not None:
         add("gnss_offset", 0, problem.gnss_offset)
+    for k, point in enumerate(problem.marks.points if problem.marks is not None else []):
+        add("mark", k, point)  # ground control marks (adjust.marks)
     for k in range(len(b.held_normals)):  # constant: the given planes that model correction keeps
         add("held_normal", k, b.held_normals[k])
         add("held_offset", k, b.held_offsets[k])
