@@ -33,7 +33,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from functools import partial
 from pathlib import Path
 
@@ -41,9 +41,11 @@ import numpy as np
 import pycolmap
 
 from .adjust.correction_loop import every_point_alike
+from .adjust.marks import active_marks, snoop_marks
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
                                    unsettled_observability, weighting_observability)
+from .adjust.problem import HybridProblem
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
@@ -127,8 +129,10 @@ def check_points_into_verdict(result: RefineResult, check_marks) -> None:
     result.checkpoints.accuracy = check_accuracy(result.checkpoints, check_marks,
                                                  alpha, options=result.options.marks)
     if result.quality is not None:
+        before = list(result.quality.reasons)
         checkpoint_verdict(result.quality, result.checkpoints.accuracy)
-        logger.info(result.quality.line())
+        if result.quality.reasons != before:
+            logger.info(result.quality.line())
 
 
 def refine_block(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
@@ -284,8 +288,11 @@ def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOp
     the block to go on with (step 2's, or the one solved with focal length and distortion free
     where the test finds them off, with options that refine them from then on), the options,
     step 2's report, its eliminated observations and the test (None: not run)."""
+    before = pycolmap.Reconstruction(rec) if active_marks() is not None else None
     report, eliminated = step2_bundle_adjustment(rec, priors, options)
-    report, eliminated = snoop_control_marks(rec, priors, options, report, eliminated)
+    if before is not None:  # the control marks' blunders (step 2 again without them)
+        rec, report, eliminated = snoop_control_marks(rec, before, priors, options, report,
+                                                      eliminated)
     intrinsics = check_intrinsics(rec, priors, options, report)
     if intrinsics is not None and intrinsics.refined:
         rec = intrinsics.freed
@@ -294,24 +301,32 @@ def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOp
     return rec, options, report, eliminated, intrinsics
 
 
-def snoop_control_marks(rec: pycolmap.Reconstruction, priors, options: RefineOptions, report,
-                        eliminated: int):
-    """The control marks' blunder test on step 2's block (adjust.marks.snoop_marks): a mark
-    left out is followed by step 2 again. Returns step 2's (last) report and eliminations."""
-    from .adjust.marks import active_marks, snoop_marks
+#: Solver iterations of each trial adjustment without a suspect control mark: a clean block
+#: converges in a few, and where another blunder still pulls the block it only has to show
+#: which mark stands out most (the one excluded is then solved without it in full).
+SNOOP_ITERATIONS = 25
 
+
+def snoop_control_marks(rec: pycolmap.Reconstruction, before: pycolmap.Reconstruction, priors,
+                        options: RefineOptions, report, eliminated: int):
+    """The control marks' blunder test on step 2's block `rec` (adjust.marks.snoop_marks), each
+    trial and each repeat of step 2 from the block `before` step 2, so that a blunder's pull
+    leaves nothing behind (no tie point observation eliminated for it). Returns the block,
+    step 2's report and its eliminations."""
     marks = active_marks()
-    if marks is None:
-        return report, eliminated
-    solved = [(report, eliminated)]
+    solved = [(rec, report, eliminated)]
 
-    def solve():
-        again, more = step2_bundle_adjustment(rec, priors, options)
-        solved.append((again, solved[-1][1] + more))
+    def solve() -> pycolmap.Reconstruction:  # step 2 again without the excluded marks
+        again = pycolmap.Reconstruction(before)
+        solved.append((again, *step2_bundle_adjustment(again, priors, options)))
+        return again
 
-    def solve_without():  # the marks as they are now, on a copy of the block
-        trial = pycolmap.Reconstruction(rec)
-        step2_bundle_adjustment(trial, priors, options)
+    def solve_without() -> pycolmap.Reconstruction:  # one plain solve, the mark under test out
+        trial = pycolmap.Reconstruction(before)
+        o = options.adjustment
+        HybridProblem(trial, None, None, priors, replace(o, max_solver_iterations=min(
+            o.max_solver_iterations, SNOOP_ITERATIONS)), robust_images=False,
+            robust_planes=False).solve()
         return trial
 
     snoop_marks(marks, rec, solve, solve_without, options.marks.blunder_alpha)

@@ -268,7 +268,8 @@ def snoop_marks(marks: ControlMarks, rec: pycolmap.Reconstruction, solve, solve_
     MAX_SUSPECTS, the worst first) are tested again in a block adjusted without them
     (`solve_without()`, called while the mark is excluded, returns that block), where a
     blunder no longer pulls the block towards itself; the worst of those beyond the bound is
-    excluded and `solve()` adjusts `rec` again. Repeated until none is, or fewer than
+    excluded and `solve()` adjusts the block again (returning it, `rec` from then on).
+    Repeated until none is, or fewer than
     MIN_TESTED marks with two images remain. Returns the names excluded; `marks.tests` keeps
     each mark's last test."""
     bound = float(stats.chi2.ppf(1.0 - alpha, 3))
@@ -299,7 +300,7 @@ def snoop_marks(marks: ControlMarks, rec: pycolmap.Reconstruction, solve, solve_
             f"{bound:.1f}, chi-square(3) at {alpha:g}); left out of the adjustment")
         logger.warning("control mark %s: %s", name, marks.excluded[name])
         excluded.append(name)
-        solve()
+        rec = solve()
 
 
 def _deleted_test(marks: ControlMarks, k: int, solve_without, tested: list[int]) -> dict | None:
