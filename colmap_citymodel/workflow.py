@@ -644,6 +644,8 @@ class RefineInputs:
     write_model: bool
     inputs: dict  # report.json `inputs`
     reconstruction: pycolmap.Reconstruction | None = None  # of `input_path`, when given
+    marks: object = None  # block.marks.GroundMarks: the control marks (--gcp), or None
+    check_marks: object = None  # the same: check points in gcp_list format, or None
 
 
 def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=None, gnss_crs=None,
@@ -653,9 +655,12 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
                 checkpoint_observations=None, sigma_generalisation=None, tolerance=None,
                 variance_components=None, assignment=None, write_model=None, num_threads=None,
                 terrain=None, terrain_sigma=None,
-                workflow=None, location=None, location_radius=100.0) -> RefineInputs:
+                workflow=None, location=None, location_radius=100.0, gcp=None,
+                gcp_sigma=None) -> RefineInputs:
     """Options, city model, GNSS and check points as `main` takes them, and the reconstruction
-    of `input_path` if given; fails on a taken `output_path` before any expensive work."""
+    of `input_path` if given; fails on a taken `output_path` before any expensive work.
+    `gcp`: a gcp_list.txt of control marks; `checkpoints` without `checkpoint_observations`: one
+    of check marks; `gcp_sigma` (H, V m): their sigmas where the lines give none."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -696,11 +701,15 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
     if num_threads is not None:  # threads of each Ceres solve (a batch worker uses one)
         options.adjustment.num_threads = int(num_threads)
     cp_known = cp_observations = None
-    if (checkpoints is None) != (checkpoint_observations is None):
+    if checkpoints is None and checkpoint_observations is not None:
         from .errors import InputError
 
-        raise InputError("give --checkpoints and --checkpoint_observations together")
-    if checkpoints is not None:
+        raise InputError("--checkpoint_observations needs --checkpoints ('id X Y Z' lines)")
+    if gcp_sigma is not None:
+        options.mergedict({"marks": {"sigma_horizontal": float(gcp_sigma[0]),
+                                     "sigma_vertical": float(gcp_sigma[1])}},
+                          source="--gcp_sigma")
+    if checkpoint_observations is not None:
         from .precision.checkpoints import (
             read_checkpoint_observations,
             read_checkpoints,
@@ -726,6 +735,13 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         reach = float(location_radius) + GNSS_READ_MARGIN
         bbox = np.array([[location[0] - reach, location[1] - reach, -1e5],
                          [location[0] + reach, location[1] + reach, 1e5]])
+    marks = check_marks = None
+    check_path = None if checkpoint_observations else checkpoints
+    if crs is not None:
+        marks, check_marks = read_marks(gcp, check_path, crs, options)
+    if bbox is None and marks is not None:  # no GNSS: the model around the control marks
+        xyz = np.array([m.position for m in marks.marks])
+        bbox = np.array([xyz.min(0) - GNSS_READ_MARGIN, xyz.max(0) + GNSS_READ_MARGIN])
     if bbox is not None:  # of a directory of tiles, only those near the block are read
         from .citymodel.tiles import files_near
 
@@ -755,13 +771,30 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
                                   "(--gnss_height_offset)")
     transform = read_initial_transform(initial_transform) if initial_transform else None
+    if crs is None:
+        marks, check_marks = read_marks(gcp, check_path, store.crs, options)
+    if check_marks is not None:  # also as plain check points (map evaluates those)
+        cp_known, cp_observations = check_marks.checkpoints()
     inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
+              **({"gcp": str(gcp)} if gcp is not None else {}),
+              **({"checkpoints": str(checkpoints)} if checkpoints is not None else {}),
               "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}
     return RefineInputs(options, store, observations, transform, cp_known, cp_observations,
-                        bool(write_model), inputs, reconstruction)
+                        bool(write_model), inputs, reconstruction, marks, check_marks)
+
+
+def read_marks(gcp, checkpoints, crs, options: RefineOptions):
+    """The control marks of `gcp` and the check marks of `checkpoints` (gcp_list.txt files, or
+    None) in the city model's `crs`, with the sigmas of `options.marks` where a line states
+    none."""
+    from .block.marks import read_gcp_list
+
+    sigma = (options.marks.sigma_horizontal, options.marks.sigma_vertical)
+    return tuple(read_gcp_list(path, crs, sigma) if path is not None else None
+                 for path in (gcp, checkpoints))
 
 
 def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, output_type="bin",
@@ -853,7 +886,8 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
                         checkpoints=read.checkpoints,
                         checkpoint_observations=read.checkpoint_observations,
                         location=kwargs.get("location"),
-                        location_radius=kwargs.get("location_radius", 100.0))
+                        location_radius=kwargs.get("location_radius", 100.0),
+                        marks=read.marks, check_marks=read.check_marks)
     except ModelOnlyFailure as error:  # no result: the report says why
         write_failed_report(output_path, read.inputs, error)
         raise

@@ -369,6 +369,7 @@ def marks_record(marks: ControlMarks | None, problem=None) -> dict | None:
                      "num_images": len(marks.measurements[k]),
                      "missing_images": marks.missing_images.get(name, []),
                      "sigma_enu_m": marks.sigmas[k].tolist(),
+                     "surveyed_local_m": marks.positions[k].tolist(),
                      "test": marks.tests.get(name),
                      **residuals.get(name, {})}
     return {"marks": out, "num_used": len(marks.used), "sigma_pixel": marks.sigma_pixel,

@@ -227,3 +227,26 @@ def accuracy_markdown(accuracy: dict | None) -> str:
                   + ("the errors are as large as the sigmas say" if t["passed"]
                      else "the errors are larger than the sigmas say")]
     return "\n".join(lines) + "\n"
+
+
+def read_check_marks(path, crs: str | None, georeference, sigma=None) -> GroundMarks:
+    """The check marks of a gcp_list.txt in the CRS of an evaluated model: `crs` (a user
+    string), else the one its `georeference` (georeference.json) records."""
+    import json
+    from pathlib import Path
+
+    from ..block.marks import read_gcp_list
+    from ..citymodel.crs import user_crs
+    from ..errors import CRSError, InputError
+
+    if crs is None and georeference is not None and str(georeference).endswith(".json"):
+        try:
+            record = json.loads(Path(georeference).read_text(encoding="utf-8")).get("crs") or {}
+        except (OSError, ValueError) as error:
+            raise InputError(f"cannot read the model's CRS: {error}", georeference) from None
+        crs = record.get("wkt") or record.get("label")
+    if crs is None:
+        raise CRSError("check marks in gcp_list format need the model's CRS: give --crs (no "
+                       "georeference.json beside the model records it)", path)
+    model_crs = user_crs(crs)
+    return read_gcp_list(path, model_crs, sigma if sigma is not None else (0.02, 0.03))

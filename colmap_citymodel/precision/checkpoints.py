@@ -728,13 +728,15 @@ def _find_truth(input_path: Path) -> Path | None:
 def main(
     input_path,
     checkpoints,
-    observations,
+    observations=None,
     *,
     origin_file=None,
     frame: str = "auto",
     as_json: bool = False,
     truth_path=None,
     precision_file=None,
+    crs=None,
+    sigma=None,
 ) -> dict:
     """Evaluate the COLMAP model in `input_path` on check points; print a summary (or JSON).
 
@@ -743,23 +745,35 @@ def main(
     is found next to the model (DIR/../truth or DIR/../../truth, or `truth_path`), the truth
     poses are evaluated the same way. With the check points' covariance (`precision_file`, or
     `input_path/checkpoint_precision.json` written by refine --checkpoints) the Delta/sigma
-    table of Unger Tables 12/13 is added. Returns {"evaluated": {...}, "truth": {...} | None}.
+    table of Unger Tables 12/13 is added. Without `observations`, `checkpoints` is a
+    gcp_list.txt of check marks (block.marks) in any CRS, converted into the model's (`crs`,
+    else the one georeference.json records) with `sigma` (H, V m) where its lines give none,
+    and the marks' accuracy figures are added (precision.accuracy).
+    Returns {"evaluated": {...}, "truth": {...} | None}.
     """
     input_path = Path(input_path)
     reconstruction = _read_reconstruction(input_path)
-    known = read_checkpoints(checkpoints)
-    obs = read_checkpoint_observations(observations)
     origin, recorded_frame = None, None
     if origin_file is None and (input_path / "georeference.json").is_file():
         origin_file = input_path / "georeference.json"
     if origin_file is not None:
         origin, recorded_frame = _read_origin(Path(origin_file))
+    marks = None
+    if observations is None:
+        from .accuracy import read_check_marks
+
+        marks = read_check_marks(checkpoints, crs, origin_file, sigma)
+        known, obs = marks.checkpoints()
+    else:
+        known = read_checkpoints(checkpoints)
+        obs = read_checkpoint_observations(observations)
     if frame == "auto" and recorded_frame in ("crs", "local"):
         frame = recorded_frame
     evaluation = evaluate_checkpoints(reconstruction, known, obs, origin, frame=frame)
     if not evaluation.ids:
         raise InputError("no check point could be triangulated in the model (no shared ids, "
-                         "unknown image names or fewer than 2 views each)", Path(observations))
+                         "unknown image names or fewer than 2 views each)",
+                         Path(observations if observations is not None else checkpoints))
     if precision_file is None and (input_path / CHECKPOINT_PRECISION_FILE).is_file():
         precision_file = input_path / CHECKPOINT_PRECISION_FILE
     if precision_file is not None:
@@ -768,7 +782,14 @@ def main(
         ids, covariances, notes = read_checkpoint_precision(precision_file)
         for model, covariance in covariances.items():
             evaluation.attach_covariance(ids, covariance, notes.get(model, ""), model)
+    if marks is not None:
+        from .accuracy import check_accuracy
+        from .quality import QualityThresholds
+
+        evaluation.accuracy = check_accuracy(evaluation, marks, QualityThresholds().alpha)
     out = {"evaluated": evaluation.todict(), "truth": None}
+    if marks is not None:
+        out["known"] = {k: v.tolist() for k, v in known.items()}
     truth_dir = Path(truth_path) if truth_path is not None else _find_truth(input_path)
     truth_eval = None
     if truth_dir is not None:
@@ -784,6 +805,10 @@ def main(
     else:
         print(f"model: {input_path}")
         print(evaluation.summary())
+        if evaluation.accuracy is not None:
+            from .accuracy import accuracy_markdown
+
+            print(accuracy_markdown(evaluation.accuracy).strip())
         if truth_eval is not None:
             print(f"truth poses: {truth_dir}")
             print(truth_eval.summary())
