@@ -120,8 +120,9 @@ def write_mark_lists(out: Path, cps, names: list[str], xyz_crs: np.ndarray, crs_
     for f, i, (u, v) in zip(cps.obs_frame, cps.obs_id, cps.obs_uv):
         k = int(i) - int(cps.ids[0]) if count else 0
         rows[k in chosen].append((xyz_crs[k], names[f], u, v, f"CP{int(i)}"))
-    write_gcp_list(out / "gcp_list.txt", crs_label, rows[True])
-    write_gcp_list(out / "checkpoints_gcp_list.txt", crs_label, rows[False])
+    for name, kind in (("gcp_list.txt", True), ("checkpoints_gcp_list.txt", False)):
+        if rows[kind]:  # a file without marks would be refused
+            write_gcp_list(out / name, crs_label, rows[kind])
 
 
 def _load_store(options: SimulationOptions):
