@@ -127,7 +127,8 @@ def check_points_into_verdict(result: RefineResult, check_marks) -> None:
 
     alpha = QualityThresholds().alpha
     result.checkpoints.accuracy = check_accuracy(result.checkpoints, check_marks,
-                                                 alpha, options=result.options.marks)
+                                                 alpha, options=result.options.marks,
+                                                 reconstruction=result.reconstruction)
     if result.quality is not None:
         before = list(result.quality.reasons)
         checkpoint_verdict(result.quality, result.checkpoints.accuracy)

@@ -223,3 +223,45 @@ def test_check_statistics_test_the_block_and_name_a_blunder():
     # A block off by 0.5 m as a whole: no mark stands out, the test fails.
     shifted = check_accuracy(_evaluation(errors + [0.5, 0.0, 0.0], cameras), marks, 0.001)
     assert not shifted["blunders"] and not shifted["test"]["passed"]
+
+
+def test_evaluate_check_marks_on_a_model_in_another_frame(scene, tmp_path, capsys):
+    """The true block written in the local frame (CRS minus origin, as refine --output_frame
+    local writes it), its check marks (measured without noise) given in longitude/latitude:
+    converted into the model's CRS, compared in its frame."""
+    import json
+
+    from colmap_citymodel.cli import main as cli_main
+
+    model = tmp_path / "model"
+    model.mkdir()
+    scene.truth.write_binary(str(model))
+    (model / "georeference.json").write_text(json.dumps({
+        "crs": {"label": "EPSG:25832", "wkt": UTM.wkt}, "output_frame": "local",
+        "origin": scene.store.origin.tolist()}))
+    to_geo = pyproj.Transformer.from_crs("EPSG:25832", "EPSG:4326", always_xy=True)
+    rows = []
+    for name, xyz, obs in street_marks(scene, 5, 0.0, seed=4, min_views=5):
+        lon, lat = to_geo.transform(xyz[0], xyz[1])
+        rows += [((lon, lat, xyz[2]), image, x, y, name) for image, x, y in obs]
+    lines = ["EPSG:4326"] + [f"{p[0]:.10f} {p[1]:.10f} {p[2]:.4f} {x - PIXEL_CENTRE:.3f} "
+                             f"{y - PIXEL_CENTRE:.3f} {image} {name}"
+                             for p, image, x, y, name in rows]
+    (tmp_path / "check.txt").write_text("\n".join(lines) + "\n")
+    code = cli_main(["evaluate", "--input_path", str(model), "--checkpoints",
+                     str(tmp_path / "check.txt"), "--json", "--output_path",
+                     str(tmp_path / "evaluation")])
+    assert code in (0, None)
+    out = json.loads(capsys.readouterr().out)["evaluated"]
+    assert out["frame"] == "local" and out["num_checkpoints"] == 5
+    # The true block, marks measured without noise: only the conversions could err.
+    assert out["rmse_3d_m"] < 0.005
+    assert out["asprs"]["num_checkpoints"] == 5 and out["test"]["sigmas"].startswith("survey and rays")
+    assert out["test"]["passed"] and not out["blunders"]
+    assert set(out["marks"]) == {f"M{k}" for k in range(1, 6)}
+    assert (tmp_path / "evaluation" / "report.html").is_file()
+    # Without a georeference, the model's CRS must be named.
+    (model / "georeference.json").unlink()
+    assert cli_main(["evaluate", "--input_path", str(model), "--checkpoints",
+                     str(tmp_path / "check.txt")]) == 2
+    assert "--crs" in capsys.readouterr().err

@@ -85,10 +85,15 @@ def test_a_mark_two_metres_off_is_named_and_left_out(scene):
         control = control_marks(marks, rec, scene.store.origin, 1.0)
         with marks_in_adjustment(control):
             rec, *_ = adjust_without_model(rec, None, options)
-        results[case] = (rms(centre_errors(rec, scene.truth)), dict(control.excluded))
-    error, excluded = results["blunder"]
+        results[case] = (rms(centre_errors(rec, scene.truth)), dict(control.excluded),
+                         dict(control.tests))
+    error, excluded, tests = results["blunder"]
     assert list(excluded) == ["M3"]
-    assert excluded["M3"].startswith("blunder") and "2.000 m" in excluded["M3"]
+    assert excluded["M3"].startswith("blunder")
+    # Named with how far the block adjusted without it puts it from its coordinates.
+    offset = np.asarray(tests["M3"]["offset_m"])
+    np.testing.assert_allclose(-offset, (1.2, -1.6, 0.0), atol=0.05)
+    assert tests["M3"]["without_it"]
     assert results["clean"][1] == {}
     assert error < 0.05
     assert error <= results["clean"][0] + 0.005  # no worse than without it

@@ -313,9 +313,10 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     information), and "gcp" as its source where the marks fix what would be free or GNSS's
     alone (`_with_marks`)."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
-    # the tie points': the position users care about, and rotations then do not leak into it.
+    # the tie points': the position users care about, and rotations then do not leak into it
+    # (without either, the control marks').
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
-              else points.mean(0))
+              else points.mean(0) if len(points) or marks is None else marks[0].mean(0))
     # Terrain faces (citymodel.ground_faces): one group per terrain unit, with its sigma.
     shared_sigmas, terrain_keys = None, set()
     if terrain:

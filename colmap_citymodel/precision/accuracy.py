@@ -126,16 +126,16 @@ def block_test(errors: np.ndarray, survey: np.ndarray, cameras: np.ndarray | Non
     dof = len(e)
     bound = float(stats.chi2.ppf(1.0 - alpha, dof))
     return {"statistic": value, "dof": dof, "bound": bound, "alpha": alpha,
-            "p_value": float(stats.chi2.sf(value, dof)), "passed": bool(value <= bound),
-            "sigmas": "survey and cameras" if cameras is not None
-            else "survey only (no covariances of the block)"}
+            "p_value": float(stats.chi2.sf(value, dof)), "passed": bool(value <= bound)}
 
 
 def check_accuracy(evaluation: CheckpointEvaluation, marks: GroundMarks, alpha: float, *,
-                   options: MarkOptions | None = None) -> dict:
+                   options: MarkOptions | None = None, reconstruction=None) -> dict:
     """report.json `checkpoints` figures of the check `marks` evaluated in `evaluation`
     (local-frame errors, the cameras' covariances if attached): per mark, RMSE, ASPRS, the
-    block test at `alpha` and the blunders (module docstring)."""
+    block test at `alpha` and the blunders (module docstring). Without the cameras'
+    covariances, the rays' own (the cameras taken as exact, `options.sigma_pixel`) from the
+    evaluated `reconstruction`, else the survey's alone."""
     options = options or MarkOptions()
     by_name = {m.name: m for m in marks.marks}
     names = [n for n in evaluation.ids if n in by_name]
@@ -143,12 +143,17 @@ def check_accuracy(evaluation: CheckpointEvaluation, marks: GroundMarks, alpha: 
     errors = -np.asarray(evaluation.errors, float)[rows]  # the block minus the survey
     survey = np.array([by_name[n].sigma for n in names]).reshape(-1, 3)
     joint = _camera_covariance(evaluation)
-    cameras = None
+    cameras, source = None, "survey only (no covariances of the block)"
     if joint is not None:
         index = np.concatenate([3 * r + np.arange(3) for r in rows]) if rows else []
         cameras = joint[np.ix_(index, index)]
-        if not np.all(np.isfinite(cameras)):
-            cameras = None
+        cameras, source = ((cameras, "survey and cameras") if np.all(np.isfinite(cameras))
+                           else (None, source))
+    if cameras is None and reconstruction is not None:
+        cameras = _ray_covariance(reconstruction, [by_name[n] for n in names],
+                                  options.sigma_pixel)
+        source = ("survey and rays (the cameras taken as exact: no covariances of the "
+                  "block)")
     blocks = np.array([np.diag(s ** 2) + (cameras[3 * i:3 * i + 3, 3 * i:3 * i + 3]
                                           if cameras is not None else 0.0)
                        for i, s in enumerate(survey)]).reshape(-1, 3, 3)
@@ -168,8 +173,23 @@ def check_accuracy(evaluation: CheckpointEvaluation, marks: GroundMarks, alpha: 
             "rmse_h_m": float(np.hypot(rmse[0], rmse[1])), "rmse_v_m": float(rmse[2]),
             "rmse_3d_m": float(np.linalg.norm(rmse)),
             "asprs": asprs_figures(used, survey[keep]),
-            "test": block_test(used, survey[keep], None if cameras is None
-                               else cameras[np.ix_(kept, kept)], alpha)})
+            "test": {**block_test(used, survey[keep], None if cameras is None
+                                  else cameras[np.ix_(kept, kept)], alpha), "sigmas": source}})
+    return out
+
+
+def _ray_covariance(reconstruction, marks: list, sigma_pixel: float) -> np.ndarray | None:
+    """(3N, 3N) block diagonal: each mark's rays' intersection covariance in `reconstruction`
+    (block.marks.triangulate_mark); None where one cannot be intersected."""
+    from ..block.marks import measurements_in, triangulate_mark
+
+    out = np.zeros((3 * len(marks), 3 * len(marks)))
+    for i, mark in enumerate(marks):
+        found = triangulate_mark(reconstruction, measurements_in(reconstruction, mark)[0],
+                                 sigma_pixel)
+        if found is None:
+            return None
+        out[3 * i:3 * i + 3, 3 * i:3 * i + 3] = found[1]
     return out
 
 
@@ -185,7 +205,7 @@ def _mark_rows(names, errors, survey, blocks, statistic, blunders, by_name, eval
             "num_views": int(evaluation.num_views.get(name, 0)),
             "error_enu_m": errors[i].tolist(),
             "survey_sigma_enu_m": survey[i].tolist(),
-            "sigma_enu_m": (cameras.tolist() if evaluation.covariances else None),
+            "sigma_enu_m": cameras.tolist() if np.any(cameras > 0) else None,
             "blunder_statistic": None if np.isnan(statistic[i]) else float(statistic[i]),
             "used": name not in blunders, "reason": blunders.get(name)}
     return out

@@ -786,7 +786,8 @@ def main(
         from .accuracy import check_accuracy
         from .quality import QualityThresholds
 
-        evaluation.accuracy = check_accuracy(evaluation, marks, QualityThresholds().alpha)
+        evaluation.accuracy = check_accuracy(evaluation, marks, QualityThresholds().alpha,
+                                             reconstruction=reconstruction)
     out = {"evaluated": evaluation.todict(), "truth": None}
     if marks is not None:
         out["known"] = {k: v.tolist() for k, v in known.items()}
