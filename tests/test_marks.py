@@ -47,6 +47,20 @@ def test_epsg_header_marks_by_name_pixels_and_sigmas(tmp_path):
     assert set(known) == {"gcp1", "gcp2"} and len(observations) == 3
 
 
+def test_a_mark_without_a_height_holds_the_block_horizontally_only(tmp_path):
+    from colmap_citymodel.block.marks import NO_HEIGHT_SIGMA
+
+    path = write(tmp_path, "EPSG:25832\n"
+                 f"{A[0]} {A[1]} NaN 100 200 img1.jpg flat\n"
+                 f"{A[0]} {A[1]} nan 120 220 img2.jpg flat\n"
+                 f"{B[0]} {B[1]} {B[2]} 300 400 img1.jpg full\n")
+    marks = read_gcp_list(path, UTM)
+    flat = marks.marks[0]
+    assert not flat.has_height and flat.sigma[2] == NO_HEIGHT_SIGMA
+    np.testing.assert_allclose(flat.position[:2], A[:2], atol=1e-6)
+    assert list(marks.checkpoints()[0]) == ["full"]  # no check in 3D without a height
+
+
 def test_marks_without_names_are_grouped_by_their_coordinates(tmp_path):
     path = write(tmp_path, "EPSG:25832\n"
                  f"{A[0]} {A[1]} {A[2]} 100 200 img1.jpg\n"

@@ -12,6 +12,9 @@ File format: OpenDroneMap's ``gcp_list.txt`` (the format OpenSfM reads):
 - im_x, im_y: the mark in the image, pixels from the image's top-left corner with the centre
   of the top-left pixel at (0, 0), as OpenSfM reads them (COLMAP puts that centre at
   (0.5, 0.5): 0.5 is added);
+- geo_z NaN: no surveyed height (OpenDroneMap's convention): a control mark then holds the
+  block horizontally only (its height sigma NO_HEIGHT_SIGMA), a check mark is left out of the
+  check statistics;
 - gcp_name (optional): lines of one mark share it; without names, lines with the same
   coordinates are one mark (OpenSfM's rule);
 - sigma_h sigma_v (optional, this package's extension; OpenDroneMap ignores extra columns):
@@ -47,6 +50,9 @@ PIXEL_CENTRE = 0.5
 #: Two lines of one named mark whose coordinates differ by more than this (m, in the file's
 #: units) name two different points: the file is refused.
 SAME_POSITION = 1e-3
+#: Sigma (m) of the height of a mark surveyed without one (geo_z NaN): so large that the height
+#: holds nothing, small enough to keep the adjustment's normal equations well scaled.
+NO_HEIGHT_SIGMA = 1e4
 #: Gauss-Newton steps of a mark's triangulation (converges in 2-3 from the linear solution).
 TRIANGULATION_STEPS = 10
 
@@ -64,6 +70,7 @@ class GroundMark:
     sigma: np.ndarray
     observations: list[tuple[str, float, float]] = field(default_factory=list)
     line: int = 0  # the mark's first line in its file
+    has_height: bool = True  # False: surveyed without a height (geo_z NaN)
 
 
 @dataclass
@@ -90,8 +97,8 @@ class GroundMarks:
     def checkpoints(self) -> tuple[dict[str, np.ndarray], list[tuple[str, str, float, float]]]:
         """The marks as precision.checkpoints takes check points: {name: XYZ} (model CRS) and
         [(image_name, name, x, y)] (COLMAP pixels)."""
-        known = {m.name: np.asarray(m.position, float) for m in self.marks}
-        observations = [(image, m.name, x, y) for m in self.marks
+        known = {m.name: np.asarray(m.position, float) for m in self.marks if m.has_height}
+        observations = [(image, m.name, x, y) for m in self.marks if m.has_height
                         for image, x, y in m.observations]
         return known, observations
 
@@ -146,11 +153,16 @@ def _parse_line(number: int, content: str, path: Path):
     except ValueError:
         raise InputError(f"line {number}: not a number in {' '.join(parts[:5])!r}",
                          path) from None
-    if not all(math.isfinite(v) for v in values):
-        raise InputError(f"line {number}: a coordinate is not finite (a mark needs all three)",
-                         path)
+    if not all(math.isfinite(v) for v in values[:2] + values[3:]) or math.isinf(values[2]):
+        raise InputError(f"line {number}: a coordinate or pixel is not finite (only geo_z may "
+                         "be NaN: no surveyed height)", path)
     name = parts[6] if len(parts) > 6 else None
     return (*values, parts[5], name, _sigma_columns(parts))
+
+
+def _same(a: float, b: float) -> bool:
+    """One coordinate of one mark on two lines (both NaN: no height on either)."""
+    return (math.isnan(a) and math.isnan(b)) or abs(a - b) <= SAME_POSITION
 
 
 def _group(rows: list, default_sigma: np.ndarray, path: Path) -> list[dict]:
@@ -163,7 +175,7 @@ def _group(rows: list, default_sigma: np.ndarray, path: Path) -> list[dict]:
             mark = marks[key] = {"name": name or f"unnamed-{len(marks) + 1}",
                                  "xyz": (x, y, z), "line": number, "images": {},
                                  "sigma": sigma if sigma is not None else default_sigma}
-        elif max(abs(a - b) for a, b in zip(mark["xyz"], (x, y, z))) > SAME_POSITION:
+        elif not all(_same(a, b) for a, b in zip(mark["xyz"], (x, y, z))):
             raise InputError(f"line {number}: mark {name!r} has other coordinates than on line "
                              f"{mark['line']} (one name, two points)", path)
         if image in mark["images"]:
@@ -193,10 +205,15 @@ def read_gcp_list(path, target_crs: CRSInfo, default_sigma=(0.02, 0.03)) -> Grou
     if not rows:
         raise InputError("no marks in the file (only its CRS line)", path)
     grouped = _group(rows, np.array([h, h, v]), path)
-    xyz, notes, geoid = _to_model_crs(np.array([g["xyz"] for g in grouped]), source,
-                                      target_crs, path)
-    marks = [GroundMark(g["name"], xyz[k], np.asarray(g["sigma"], float),
-                        [(image, x, y) for image, (_, x, y) in g["images"].items()], g["line"])
+    given = np.array([g["xyz"] for g in grouped])
+    heights = ~np.isnan(given[:, 2])
+    xyz, notes, geoid = _to_model_crs(np.where(np.isnan(given), 0.0, given), source, target_crs,
+                                      path)
+    marks = [GroundMark(g["name"], xyz[k], np.asarray(g["sigma"], float)
+                        if heights[k] else np.append(np.asarray(g["sigma"], float)[:2],
+                                                     NO_HEIGHT_SIGMA),
+                        [(image, x, y) for image, (_, x, y) in g["images"].items()], g["line"],
+                        bool(heights[k]))
              for k, g in enumerate(grouped)]
     logger.info("read %d marks (%d image measurements) from %s (%s -> %s)", len(marks),
                 sum(len(m.observations) for m in marks), path, source.label, target_crs.label)

@@ -161,7 +161,9 @@ def check_accuracy(evaluation: CheckpointEvaluation, marks: GroundMarks, alpha: 
     out = {"marks": _mark_rows(names, errors, survey, blocks, statistic, blunders, by_name,
                                evaluation),
            "blunders": blunders,
-           "not_triangulated": {n: "measured in fewer than two registered images of the block"
+           "not_triangulated": {n: ("measured in fewer than two registered images of the block"
+                                    if by_name[n].has_height else
+                                    "surveyed without a height (NaN): no check in 3D")
                                 for n in by_name if n not in names}}
     if keep.any():
         used = errors[keep]
