@@ -41,7 +41,8 @@ import numpy as np
 import pycolmap
 
 from .adjust.correction_loop import every_point_alike
-from .adjust.marks import active_marks, snoop_marks
+from .adjust.marks import (active_marks, control_marks, mark_test, marks_in_adjustment,
+                           marks_record, similarity_from_marks, snoop_marks)
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import (assigned_observability, datum_line, gnss_only_observability,
                                    unsettled_observability, weighting_observability)
@@ -50,6 +51,7 @@ from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adju
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .block.gnss import read_gnss
+from .block.marks import read_gcp_list
 from .block.priors import scale_sigma_from_gnss
 from .block.reconstruction import camera_up_and_view, read_reconstruction, tie_points
 from .citymodel.ground_faces import block_terrain, terrain_residuals
@@ -58,7 +60,8 @@ from .citymodel.store import PlaneStore
 from .errors import DatumError, NoOverlapError
 from .options import RefineOptions
 from .output.result import RefineResult
-from .precision.quality import measure_quality
+from .precision.accuracy import check_accuracy
+from .precision.quality import QualityThresholds, checkpoint_verdict, measure_quality
 
 logger = logging.getLogger(__name__)
 
@@ -76,8 +79,6 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
     (adjust.marks); without GNSS, an initial transform or a location, they place the block.
     `check_marks` (the same): check points, only compared with the refined block
     (report.json `checkpoints`, precision.accuracy; they replace `checkpoints`)."""
-    from .adjust.marks import control_marks, marks_in_adjustment, similarity_from_marks
-
     options = options or RefineOptions()
     control = None
     if marks is not None:
@@ -107,8 +108,6 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
 
 def marks_after_refine(control, rec: pycolmap.Reconstruction) -> dict | None:
     """report.json `control_marks`: each mark's test against the returned block."""
-    from .adjust.marks import mark_test, marks_record
-
     if control is None:
         return None
     for k in control.used:
@@ -122,9 +121,6 @@ def marks_after_refine(control, rec: pycolmap.Reconstruction) -> dict | None:
 def check_points_into_verdict(result: RefineResult, check_marks) -> None:
     """The check marks' accuracy (precision.accuracy) onto the check point evaluation, and its
     independent test of the block into the verdict (precision.quality.checkpoint_verdict)."""
-    from .precision.accuracy import check_accuracy
-    from .precision.quality import QualityThresholds, checkpoint_verdict
-
     alpha = QualityThresholds().alpha
     result.checkpoints.accuracy = check_accuracy(result.checkpoints, check_marks,
                                                  alpha, options=result.options.marks,
@@ -791,8 +787,6 @@ def read_marks(gcp, checkpoints, crs, options: RefineOptions):
     """The control marks of `gcp` and the check marks of `checkpoints` (gcp_list.txt files, or
     None) in the city model's `crs`, with the sigmas of `options.marks` where a line states
     none."""
-    from .block.marks import read_gcp_list
-
     sigma = (options.marks.sigma_horizontal, options.marks.sigma_vertical)
     return tuple(read_gcp_list(path, crs, sigma) if path is not None else None
                  for path in (gcp, checkpoints))

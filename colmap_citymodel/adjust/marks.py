@@ -77,18 +77,24 @@ class ControlMarks:
         return [k for k, name in enumerate(self.names)
                 if name not in self.excluded and self.measurements[k]]
 
-    @property
-    def holds_datum(self) -> bool:
-        """Three or more marks in the adjustment, not on one line: they fix the datum."""
-        used = self.used
+    def holds_datum(self, rec: pycolmap.Reconstruction) -> bool:
+        """Three or more marks in the adjustment measured in `rec`'s images, not on one line:
+        they fix its datum."""
+        used = [k for k in self.used if self.in_block(rec, k)]
         if len(used) < 3:
             return False
         xyz = self.positions[used]
         return bool(np.linalg.matrix_rank(xyz - xyz.mean(0), tol=1e-3) >= 2)
 
+    def in_block(self, rec: pycolmap.Reconstruction, k: int) -> list[tuple[int, np.ndarray]]:
+        """Mark `k`'s measurements in images `rec` holds with a pose (a sliding window's
+        reconstruction holds some of the block's images)."""
+        return [(i, xy) for i, xy in self.measurements[k]
+                if rec.exists_image(i) and rec.image(i).has_pose]
+
     def triangulated(self, rec: pycolmap.Reconstruction, k: int):
         """Mark `k` intersected from its rays in `rec` (block.marks.triangulate_mark) or None."""
-        return triangulate_mark(rec, self.measurements[k], self.sigma_pixel)
+        return triangulate_mark(rec, self.in_block(rec, k), self.sigma_pixel)
 
 
 def control_marks(marks: GroundMarks, rec: pycolmap.Reconstruction, origin: np.ndarray,
@@ -137,12 +143,11 @@ def active_marks() -> ControlMarks | None:
 @dataclass
 class MarkBlocks:
     """The marks' unknowns in one problem (Ceres holds pointers to `points`: keep this object
-    alive) and the layout of their residuals: per mark its index, then 3 prior rows and 2 per
-    image measurement, in `rows` order."""
+    alive): per mark in the problem its index in the ControlMarks and its point. Its residuals
+    follow in that order: 3 for the surveyed position, 2 per image."""
 
     indices: list[int]
     points: list[np.ndarray]
-    images: list[list[int]]  # per mark, the image ids of its ray residuals
 
     @property
     def num_unknowns(self) -> int:
@@ -158,9 +163,9 @@ def add_control_marks(problem, core) -> MarkBlocks | None:
     if marks is None or not marks.used:
         return None
     rec, sigma_image = problem.reconstruction, problem.options.sigma_image
-    blocks = MarkBlocks([], [], [])
+    blocks = MarkBlocks([], [])
     for k in marks.used:
-        rays = [(i, xy) for i, xy in marks.measurements[k] if problem.problem.has_parameter_block(
+        rays = [(i, xy) for i, xy in marks.in_block(rec, k) if problem.problem.has_parameter_block(
             rec.frame(rec.image(i).frame_id).rig_from_world.params)]
         if not rays:
             continue
@@ -177,7 +182,6 @@ def add_control_marks(problem, core) -> MarkBlocks | None:
                 [point, rec.frame(rec.image(image_id).frame_id).rig_from_world.params])
         blocks.indices.append(k)
         blocks.points.append(point)
-        blocks.images.append([i for i, _ in rays])
         problem.counts["gcp"] += 3 + 2 * len(rays)
     return blocks
 
@@ -197,26 +201,6 @@ def _ray_cost(core, rec: pycolmap.Reconstruction, image_id: int, xy: np.ndarray,
         translation = np.asarray(cam_from_rig.translation, float)
     return core.MarkRayCost(ray[:2] / ray[2], float(camera.mean_focal_length()), float(sigma),
                             rotation, translation)
-
-
-def mark_residuals(problem) -> dict[str, dict]:
-    """Per mark in `problem` after its solve: the adjusted point minus the surveyed position
-    (m, E N U) and the RMS of its image residuals (px), from the group "gcp" residuals."""
-    blocks, marks = getattr(problem, "marks", None), active_marks()
-    if blocks is None or marks is None or not len(getattr(problem, "residuals", {}).get("gcp",
-                                                                                       ())):
-        return {}
-    values = problem.residuals["gcp"]
-    out, start = {}, 0
-    for k, point, images in zip(blocks.indices, blocks.points, blocks.images):
-        n = 2 * len(images)
-        rays = values[start + 3:start + 3 + n] * marks.sigma_pixel
-        out[marks.names[k]] = {
-            "adjusted_minus_surveyed_m": (point - marks.positions[k]).tolist(),
-            "image_rms_px": float(np.sqrt(np.mean(rays ** 2))) if n else None,
-            "num_images": len(images)}
-        start += 3 + n
-    return out
 
 
 # -- blunders ---------------------------------------------------------------------------------
@@ -356,12 +340,12 @@ def datum_observations(marks: ControlMarks | None, rec: pycolmap.Reconstruction
     return np.array(positions), np.array(sigmas)
 
 
-def marks_record(marks: ControlMarks | None, problem=None) -> dict | None:
-    """report.json `control_marks`: per mark its images, sigmas, residuals after the last
-    solve, blunder test, and whether (and why not) it was in the adjustment."""
+def marks_record(marks: ControlMarks | None) -> dict | None:
+    """report.json `control_marks`: per mark its images, sigmas, test (the last: against the
+    returned block, where `workflow.marks_after_refine` ran it) and whether (and why not) it
+    was in the adjustment."""
     if marks is None:
         return None
-    residuals = mark_residuals(problem) if problem is not None else {}
     out = {}
     for k, name in enumerate(marks.names):
         out[name] = {"used": name not in marks.excluded and bool(marks.measurements[k]),
@@ -370,7 +354,6 @@ def marks_record(marks: ControlMarks | None, problem=None) -> dict | None:
                      "missing_images": marks.missing_images.get(name, []),
                      "sigma_enu_m": marks.sigmas[k].tolist(),
                      "surveyed_local_m": marks.positions[k].tolist(),
-                     "test": marks.tests.get(name),
-                     **residuals.get(name, {})}
+                     "test": marks.tests.get(name)}
     return {"marks": out, "num_used": len(marks.used), "sigma_pixel": marks.sigma_pixel,
             "blunders": {n: r for n, r in marks.excluded.items() if r.startswith("blunder")}}

@@ -382,7 +382,7 @@ class HybridProblem:
         with_model = store is not None and assignment is not None and assignment.num_assigned
         held = pose_priors is not None and len(pose_priors) > 0
         marks = active_marks()  # ground control marks of the run (adjust.marks)
-        held = held or (marks is not None and marks.holds_datum)
+        held = held or (marks is not None and marks.holds_datum(reconstruction))
         self.gauge_fixed = gnss is None and not with_model and not held
         if self.gauge_fixed:
             config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)

@@ -91,9 +91,6 @@ class GroundMarks:
     def names(self) -> list[str]:
         return [m.name for m in self.marks]
 
-    def sigmas(self) -> dict[str, np.ndarray]:
-        return {m.name: m.sigma for m in self.marks}
-
     def checkpoints(self) -> tuple[dict[str, np.ndarray], list[tuple[str, str, float, float]]]:
         """The marks as precision.checkpoints takes check points: {name: XYZ} (model CRS) and
         [(image_name, name, x, y)] (COLMAP pixels)."""
