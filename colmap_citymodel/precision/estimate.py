@@ -64,6 +64,7 @@ solve weights and the stated stochastic model agree for any sigma_image.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import time
@@ -833,7 +834,7 @@ def _projection_jacobians(rec: pycolmap.Reconstruction, image: pycolmap.Image, x
         step = 1e-6 * max(1.0, abs(camera.params[i]))
         values = []
         for sign in (1.0, -1.0):
-            moved = pycolmap.Camera(camera)
+            moved = copy.copy(camera)  # pycolmap 4 has no Camera(camera)
             params = np.array(camera.params, float)
             params[i] += sign * step
             moved.params = params
