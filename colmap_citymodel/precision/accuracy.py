@@ -37,7 +37,6 @@ from scipy import stats
 
 from ..block.marks import GroundMarks
 from ..options import MarkOptions
-from .checkpoints import CheckpointEvaluation
 
 logger = logging.getLogger(__name__)
 
@@ -77,7 +76,7 @@ def asprs_figures(errors: np.ndarray, survey_sigmas: np.ndarray) -> dict:
     return out
 
 
-def _camera_covariance(evaluation: CheckpointEvaluation) -> np.ndarray | None:
+def _camera_covariance(evaluation) -> np.ndarray | None:
     """(3N, 3N) the cameras' joint covariance of the evaluated check points (the primary
     stochastic model's), or None without one."""
     model = evaluation.primary_model
@@ -129,11 +128,11 @@ def block_test(errors: np.ndarray, survey: np.ndarray, cameras: np.ndarray | Non
             "p_value": float(stats.chi2.sf(value, dof)), "passed": bool(value <= bound)}
 
 
-def check_accuracy(evaluation: CheckpointEvaluation, marks: GroundMarks, alpha: float, *,
+def check_accuracy(evaluation, marks: GroundMarks, alpha: float, *,
                    options: MarkOptions | None = None, reconstruction=None) -> dict:
-    """report.json `checkpoints` figures of the check `marks` evaluated in `evaluation`
-    (local-frame errors, the cameras' covariances if attached): per mark, RMSE, ASPRS, the
-    block test at `alpha` and the blunders (module docstring). Without the cameras'
+    """report.json `checkpoints` figures of the check `marks` evaluated in `evaluation` (a
+    precision.checkpoints.CheckpointEvaluation: errors, the cameras' covariances if attached):
+    per mark, RMSE, ASPRS, the block test at `alpha` and the blunders (module docstring). Without the cameras'
     covariances, the rays' own (the cameras taken as exact, `options.sigma_pixel`) from the
     evaluated `reconstruction`, else the survey's alone."""
     options = options or MarkOptions()
