@@ -99,7 +99,7 @@ def table(results: dict) -> str:
     for name, r in results.items():
         shares = " / ".join(
             f"{100 * np.mean([r['shares'][a].get(s, 0.0) for a in 'ENU']):.1f} %"
-            for s in ("gcp", "gnss"))
+            for s in ("gcp", "gnss")) if any(r["shares"].values()) else "-"
         lines.append(f"| {name} | {r['cameras_rms_m']:.4f} | {r['check_rms_3d_m']:.4f} | "
                      f"{r['independent_rms_3d_m']:.4f} | "
                      f"{'passed' if r['check_test']['passed'] else 'failed'} "
@@ -112,7 +112,13 @@ def table(results: dict) -> str:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--cases", nargs="+", default=list(CASES), help="case names to run")
+    parser.add_argument("--table_only", action="store_true",
+                        help="write marks.md from the results in marks.json")
     args = parser.parse_args()
+    if args.table_only:
+        results = json.loads((RESULTS / "marks.json").read_text())
+        (RESULTS / "marks.md").write_text(table(results))
+        return
     logging.getLogger("colmap_citymodel").setLevel(logging.WARNING)
     scene = make_street_scene(StreetSceneOptions(seed=7, gnss_bias=(3.0, -2.0, 1.7)),
                               crs=user_crs("EPSG:25832"))
