@@ -219,13 +219,17 @@ def report_markdown(report: dict) -> str:
                   + (" (the files hold the GNSS-only result)" if report["result"] == "gnss_only"
                      else ""), ""] + [f"- {r}" for r in quality["reasons"]] + [""]
     if report.get("observability"):
+        # With ground control marks, their own sigma as one more column.
+        marks = any("sigma_gcp" in row for row in report["observability"].values())
+        keys = ("sigma", "sigma_planes", "sigma_gnss") + (("sigma_gcp",) if marks else ())
         lines += ["## What fixes the datum", "",
-                  "| parameter | fixed by | sigma | sigma planes only | sigma GNSS only |",
-                  "|---|---|---|---|---|"]
+                  "| parameter | fixed by | sigma | sigma planes only | sigma GNSS only |"
+                  + (" sigma marks only |" if marks else ""),
+                  "|---|---|---|---|---|" + ("---|" if marks else "")]
         for name, row in report["observability"].items():
             unit = "deg" if name.startswith("rotation") else "" if name == "scale" else "m"
-            cells = [f"{row[k]:.4g} {unit}".strip() if row[k] is not None else "free"
-                     for k in ("sigma", "sigma_planes", "sigma_gnss")]
+            cells = [f"{row[k]:.4g} {unit}".strip() if row.get(k) is not None else "free"
+                     for k in keys]
             lines.append(f"| {name} | {row['source']} | " + " | ".join(cells) + " |")
         lines += ["", "Scale sigmas are relative; each plane counts with its generalisation "
                   "error, not once per tie point.", ""]

@@ -98,8 +98,8 @@ RANK_TOLERANCE = 1e-12
 #: Step of the numerical derivative of X0 and omega/phi/kappa w.r.t. the pose tangent.
 POSE_STEP = 1e-6
 #: Observation groups reported only when the problem has them (the generalisation priors,
-#: the baseline priors that hold the scale).
-OPTIONAL_GROUPS = ("gen", "scale", "offset", "pose")
+#: the baseline priors that hold the scale, ground control marks).
+OPTIONAL_GROUPS = ("gen", "scale", "offset", "pose", "gcp")
 #: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
 PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
 
