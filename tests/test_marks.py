@@ -33,9 +33,10 @@ def test_epsg_header_marks_by_name_pixels_and_sigmas(tmp_path):
                  f"{A[0]} {A[1]} {A[2]} 100 200 img1.jpg gcp1\n"
                  f"{A[0]} {A[1]} {A[2]} 110.5 210 img2.jpg gcp1\n"
                  f"# a comment\n\n"
-                 f"{B[0]} {B[1]} {B[2]} 300 400 img1.jpg gcp2 0.05 0.08\n")
+                 f"{B[0]} {B[1]} {B[2]} 300 400 img1.jpg gcp2 0.05 0.08\n"
+                 f"{B[0]} {B[1]} {B[2]} 500 400 img1.jpg gcp3 extra1 extra2\n")
     marks = read_gcp_list(path, UTM, (0.02, 0.03))
-    assert marks.names == ["gcp1", "gcp2"]
+    assert marks.names == ["gcp1", "gcp2", "gcp3"]
     np.testing.assert_allclose(marks.marks[0].position, A, atol=1e-6)
     np.testing.assert_allclose(marks.marks[1].position, B, atol=1e-6)
     # OpenSfM's pixel centres are integers; COLMAP's are at +0.5.
@@ -43,8 +44,9 @@ def test_epsg_header_marks_by_name_pixels_and_sigmas(tmp_path):
                                            ("img2.jpg", 111.0, 210.5)]
     np.testing.assert_allclose(marks.marks[0].sigma, [0.02, 0.02, 0.03])
     np.testing.assert_allclose(marks.marks[1].sigma, [0.05, 0.05, 0.08])  # its own columns
+    np.testing.assert_allclose(marks.marks[2].sigma, [0.02, 0.02, 0.03])  # extras ignored
     known, observations = marks.checkpoints()
-    assert set(known) == {"gcp1", "gcp2"} and len(observations) == 3
+    assert set(known) == {"gcp1", "gcp2", "gcp3"} and len(observations) == 4
 
 
 def test_a_mark_without_a_height_holds_the_block_horizontally_only(tmp_path):
@@ -222,9 +224,12 @@ def test_check_statistics_test_the_block_and_name_a_blunder():
     sigma = np.array([0.02, 0.02, 0.03])
     cameras = 0.01 ** 2 * np.eye(18)
     errors = rng.normal(0.0, 1.0, (6, 3)) * np.sqrt(sigma ** 2 + 0.01 ** 2)
-    marks = _Marks([f"c{k}" for k in range(6)], sigma)
+    marks = _Marks([f"c{k}" for k in range(6)] + ["seen_once"], sigma)
     sound = check_accuracy(_evaluation(errors, cameras), marks, 0.001)
     assert sound["test"]["passed"] and not sound["blunders"]
+    # A mark the block could not triangulate (one image) is named, not counted.
+    assert "fewer than two" in sound["not_triangulated"]["seen_once"]
+    assert sound["num_used"] == 6
     assert sound["rmse_m"] == pytest.approx(np.sqrt(np.mean(errors ** 2, axis=0)).tolist())
     assert sound["rmse_3d_m"] == pytest.approx(np.sqrt(np.sum(np.mean(errors ** 2, axis=0))))
     # A mark 2 m off (its coordinates from another point) is named and left out.

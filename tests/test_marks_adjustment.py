@@ -65,6 +65,20 @@ def test_marks_alone_georeference_the_block(scene):
     assert again.counts["gcp"] == 0 and again.gauge_fixed
 
 
+def test_a_mark_in_one_image_is_in_the_adjustment(scene):
+    name, xyz, obs = street_marks(scene, 1, 0.0, seed=3, min_views=6)[0]
+    marks = GroundMarks([GroundMark(name, xyz, np.array([0.02, 0.02, 0.03]), obs[:1])],
+                        scene.store.crs, "EPSG:25832")
+    rec = pycolmap.Reconstruction(scene.truth)
+    with marks_in_adjustment(control_marks(marks, rec, scene.store.origin, 1.0)):
+        problem = HybridProblem(rec, None, None, None, RefineOptions().adjustment,
+                                robust_images=False, robust_planes=False)
+    # Its surveyed position and its one ray; one mark does not hold the datum.
+    assert problem.counts["gcp"] == 3 + 2 and problem.gauge_fixed
+    residuals = problem.group_residuals()["gcp"]
+    assert np.all(np.abs(residuals) < 1e-6)  # the true point on its true ray
+
+
 def test_the_datum_is_fixed_by_the_marks(scene):
     marks = ground_marks(scene)
     rec = placed_by_marks(scene, marks)
