@@ -702,10 +702,9 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         from .errors import InputError
 
         raise InputError("--checkpoint_observations needs --checkpoints ('id X Y Z' lines)")
-    if gcp_sigma is not None:
-        options.mergedict({"marks": {"sigma_horizontal": float(gcp_sigma[0]),
-                                     "sigma_vertical": float(gcp_sigma[1])}},
-                          source="--gcp_sigma")
+    if gcp_sigma is not None:  # --gcp_sigma H V overrides the options file
+        options.mergedict({"marks": dict(zip(("sigma_horizontal", "sigma_vertical"),
+                                             map(float, gcp_sigma)))}, source="--gcp_sigma")
     if checkpoint_observations is not None:
         from .precision.checkpoints import (
             read_checkpoint_observations,
@@ -732,13 +731,10 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         reach = float(location_radius) + GNSS_READ_MARGIN
         bbox = np.array([[location[0] - reach, location[1] - reach, -1e5],
                          [location[0] + reach, location[1] + reach, 1e5]])
-    marks = check_marks = None
     check_path = None if checkpoint_observations else checkpoints
-    if crs is not None:
-        marks, check_marks = read_marks(gcp, check_path, crs, options)
+    marks, check_marks = read_marks(gcp, check_path, crs, options)  # None without a CRS yet
     if bbox is None and marks is not None:  # no GNSS: the model around the control marks
-        xyz = np.array([m.position for m in marks.marks])
-        bbox = np.array([xyz.min(0) - GNSS_READ_MARGIN, xyz.max(0) + GNSS_READ_MARGIN])
+        bbox = marks_box(marks)
     if bbox is not None:  # of a directory of tiles, only those near the block are read
         from .citymodel.tiles import files_near
 
@@ -773,8 +769,7 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
     if check_marks is not None:  # also as plain check points (map evaluates those)
         cp_known, cp_observations = check_marks.checkpoints()
     inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
-              **({"gcp": str(gcp)} if gcp is not None else {}),
-              **({"checkpoints": str(checkpoints)} if checkpoints is not None else {}),
+              **{k: str(v) for k, v in (("gcp", gcp), ("checkpoints", checkpoints)) if v},
               "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,
@@ -786,10 +781,16 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
 def read_marks(gcp, checkpoints, crs, options: RefineOptions):
     """The control marks of `gcp` and the check marks of `checkpoints` (gcp_list.txt files, or
     None) in the city model's `crs`, with the sigmas of `options.marks` where a line states
-    none."""
+    none; (None, None) while the CRS is not known (None)."""
     sigma = (options.marks.sigma_horizontal, options.marks.sigma_vertical)
-    return tuple(read_gcp_list(path, crs, sigma) if path is not None else None
-                 for path in (gcp, checkpoints))
+    return tuple(read_gcp_list(path, crs, sigma) if path is not None and crs is not None
+                 else None for path in (gcp, checkpoints))
+
+
+def marks_box(marks) -> np.ndarray:
+    """(2, 3) the box around the control marks in which city model tiles are read."""
+    xyz = np.array([m.position for m in marks.marks])
+    return np.array([xyz.min(0) - GNSS_READ_MARGIN, xyz.max(0) + GNSS_READ_MARGIN])
 
 
 def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, output_type="bin",

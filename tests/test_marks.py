@@ -285,3 +285,23 @@ def test_evaluate_check_marks_on_a_model_in_another_frame(scene, tmp_path, capsy
     assert cli_main(["evaluate", "--input_path", str(model), "--checkpoints",
                      str(tmp_path / "check.txt")]) == 2
     assert "--crs" in capsys.readouterr().err
+
+
+def test_the_verdict_takes_the_check_marks_test():
+    from colmap_citymodel.precision.quality import QualityReport, checkpoint_verdict
+
+    sigma = np.array([0.02, 0.02, 0.03])
+    marks = _Marks([f"c{k}" for k in range(5)], sigma)
+    errors = np.random.default_rng(1).normal(0.0, 0.02, (5, 3))
+    cameras = 0.01 ** 2 * np.eye(15)
+    passed = checkpoint_verdict(QualityReport("ok"), check_accuracy(
+        _evaluation(errors, cameras), marks, 0.001))
+    assert passed.verdict == "ok" and passed.metrics["checkpoints"]["test"]["passed"]
+    failed = checkpoint_verdict(QualityReport("ok"), check_accuracy(
+        _evaluation(errors + [0.0, 0.0, 0.4], cameras), marks, 0.001))
+    assert failed.verdict == "weak"
+    assert failed.reasons[0].startswith("check points: errors beyond their sigmas")
+    # A failed block stays failed; no check marks, no change.
+    assert checkpoint_verdict(QualityReport("failed"), check_accuracy(
+        _evaluation(errors + [0.0, 0.0, 0.4], cameras), marks, 0.001)).verdict == "failed"
+    assert checkpoint_verdict(QualityReport("ok"), None).metrics == {}

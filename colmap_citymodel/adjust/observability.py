@@ -332,17 +332,17 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
             if has_gnss else np.zeros((7, 7)))
     biased = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
                                gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
+    # The marks' information (a position observation each, like GNSS) in every combined sigma.
     from_marks = (gnss_information(marks[0], marks[1], centre) if marks is not None
                   else np.zeros((7, 7)))
-    biased = biased + from_marks  # the marks' information in every combined sigma
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
-    s_biased, s_both = _sigmas(biased - from_marks), _sigmas(planes + biased)
+    s_biased, s_both = _sigmas(biased), _sigmas(planes + biased + from_marks)
     at = image_positions if image_positions is not None else (
         gnss_positions if has_gnss else None)
-    images_both = image_sigmas(_inverse(planes + biased), np.isfinite(s_both), at, centre)
-    images_biased = image_sigmas(_inverse(biased - from_marks), np.isfinite(s_biased), at,
-                                 centre)
+    images_both = image_sigmas(_inverse(planes + biased + from_marks), np.isfinite(s_both), at,
+                               centre)
+    images_biased = image_sigmas(_inverse(biased), np.isfinite(s_biased), at, centre)
     s_stated, images_stated = s_both, images_both
     if per_point and len(points):
         bias_part = (gnss_bias_part(gnss_positions, gnss_sigmas, centre, gnss_free_axes,

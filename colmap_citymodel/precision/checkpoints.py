@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .accuracy import accuracy_markdown, check_accuracy, read_check_marks
+from .quality import QualityThresholds
 
 logger = logging.getLogger(__name__)
 
@@ -544,6 +546,8 @@ class CheckpointEvaluation:
                     table, f"Delta/sigma of {table['num_checkpoints']} check points, {model} "
                            f"stochastic model (Unger Tables 12/13; "
                            f"{table['sigma_note'] or 'sigma from the adjustment'}):").rstrip())
+        if self.accuracy is not None:
+            lines.append(accuracy_markdown(self.accuracy).strip())
         return "\n".join(lines)
 
 
@@ -758,15 +762,10 @@ def main(
         origin_file = input_path / "georeference.json"
     if origin_file is not None:
         origin, recorded_frame = _read_origin(Path(origin_file))
-    marks = None
-    if observations is None:
-        from .accuracy import read_check_marks
-
-        marks = read_check_marks(checkpoints, crs, origin_file, sigma)
-        known, obs = marks.checkpoints()
-    else:
-        known = read_checkpoints(checkpoints)
-        obs = read_checkpoint_observations(observations)
+    marks = (read_check_marks(checkpoints, crs, origin_file, sigma) if observations is None
+             else None)
+    known, obs = (marks.checkpoints() if marks is not None else
+                  (read_checkpoints(checkpoints), read_checkpoint_observations(observations)))
     if frame == "auto" and recorded_frame in ("crs", "local"):
         frame = recorded_frame
     evaluation = evaluate_checkpoints(reconstruction, known, obs, origin, frame=frame)
@@ -782,15 +781,11 @@ def main(
         ids, covariances, notes = read_checkpoint_precision(precision_file)
         for model, covariance in covariances.items():
             evaluation.attach_covariance(ids, covariance, notes.get(model, ""), model)
-    if marks is not None:
-        from .accuracy import check_accuracy
-        from .quality import QualityThresholds
-
+    if marks is not None:  # the check marks' accuracy figures, and their coordinates to plot
         evaluation.accuracy = check_accuracy(evaluation, marks, QualityThresholds().alpha,
                                              reconstruction=reconstruction)
-    out = {"evaluated": evaluation.todict(), "truth": None}
-    if marks is not None:
-        out["known"] = {k: v.tolist() for k, v in known.items()}
+    out = {"evaluated": evaluation.todict(), "truth": None,
+           **({"known": {k: v.tolist() for k, v in known.items()}} if marks else {})}
     truth_dir = Path(truth_path) if truth_path is not None else _find_truth(input_path)
     truth_eval = None
     if truth_dir is not None:
@@ -806,10 +801,6 @@ def main(
     else:
         print(f"model: {input_path}")
         print(evaluation.summary())
-        if evaluation.accuracy is not None:
-            from .accuracy import accuracy_markdown
-
-            print(accuracy_markdown(evaluation.accuracy).strip())
         if truth_eval is not None:
             print(f"truth poses: {truth_dir}")
             print(truth_eval.summary())
