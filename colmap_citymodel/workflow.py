@@ -100,21 +100,31 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
                               checkpoints=checkpoints,
                               checkpoint_observations=checkpoint_observations,
                               location=location, location_radius=location_radius)
-        result.control_marks = marks_after_refine(control, result.reconstruction)
+        result.control_marks = marks_after_refine(control, result.reconstruction,
+                                                  result.warnings)
     if check_marks is not None and result.checkpoints is not None:
         check_points_into_verdict(result, check_marks)
     return result
 
 
-def marks_after_refine(control, rec: pycolmap.Reconstruction) -> dict | None:
-    """report.json `control_marks`: each mark's test against the returned block."""
+def marks_after_refine(control, rec: pycolmap.Reconstruction, warnings: list[str]
+                       ) -> dict | None:
+    """report.json `control_marks`: each mark's test against the returned block; a warning
+    per mark in the adjustment beyond its bound (one the blunder test could not leave out:
+    too few marks to test, or the model and the marks disagree there)."""
     if control is None:
         return None
     for k in control.used:
-        test = mark_test(control, rec, k)
-        if test is not None:
-            control.tests[control.names[k]] = {**control.tests.get(control.names[k], {}),
-                                               **test}
+        name, test = control.names[k], mark_test(control, rec, k)
+        if test is None:
+            continue
+        control.tests[name] = {**control.tests.get(name, {}), **test}
+        bound = control.tests[name].get("bound")
+        if bound is not None and test["statistic"] > bound:
+            warnings.append(f"control mark {name}: the block puts it "
+                            f"{np.linalg.norm(test['offset_m']):.3f} m from its surveyed "
+                            f"position (test {test['statistic']:.1f} > {bound:.1f}): check its "
+                            "coordinates and its measurements")
     return marks_record(control)
 
 
