@@ -105,3 +105,40 @@ def test_marks_alone_georeference_the_block(scene, marks):
     assert result.checkpoints.accuracy["rmse_3d_m"] < 0.05
     assert all("gnss" not in row["shares"] and row["shares"]["gcp"] > 0
                for row in result.observability.values())
+
+
+def test_refine_and_evaluate_through_the_cli(scene, marks, tmp_path, capsys):
+    """refine --gcp --checkpoints --output_frame local, then evaluate --checkpoints on its
+    output: the same check marks' figures."""
+    from colmap_citymodel.block.marks import write_gcp_list
+    from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
+    from colmap_citymodel.cli import main as cli_main
+
+    (tmp_path / "sparse").mkdir()
+    scene.sfm.write_binary(str(tmp_path / "sparse"))
+    write_citygml(tmp_path / "model.gml", raw_from_store(scene.store))
+    (tmp_path / "gnss.txt").write_text("\n".join(
+        f"{n} {x:.4f} {y:.4f} {z:.4f} 3 3 5"
+        for n, (x, y, z) in zip(scene.gnss_names, scene.gnss_positions_crs)) + "\n")
+    for name, group in (("gcp.txt", marks[0]), ("check.txt", marks[1])):
+        write_gcp_list(tmp_path / name, "EPSG:25832",
+                       [(m.position, image, x, y, m.name) for m in group.marks
+                        for image, x, y in m.observations])
+    out = tmp_path / "refined"
+    assert cli_main(["refine", "--no_progress", "--input_path", str(tmp_path / "sparse"),
+                     "--citymodel", str(tmp_path / "model.gml"), "--output_path", str(out),
+                     "--gnss", str(tmp_path / "gnss.txt"), "--gnss_crs", "EPSG:25832",
+                     "--gcp", str(tmp_path / "gcp.txt"), "--gcp_sigma", "0.02", "0.03",
+                     "--checkpoints", str(tmp_path / "check.txt"),
+                     "--output_frame", "local"]) == 0
+    report = json.loads((out / "report.json").read_text())
+    assert report["control_marks"]["num_used"] == 5
+    assert report["inputs"]["gcp"] == str(tmp_path / "gcp.txt")
+    capsys.readouterr()
+    assert cli_main(["evaluate", "--input_path", str(out), "--checkpoints",
+                     str(tmp_path / "check.txt"), "--json"]) in (0, None)
+    evaluated = json.loads(capsys.readouterr().out)["evaluated"]
+    assert evaluated["frame"] == "local"
+    # The covariances refine wrote (checkpoint_precision.json) give the same test.
+    assert evaluated["test"]["sigmas"] == "survey and cameras"
+    assert evaluated["rmse_3d_m"] == pytest.approx(report["checkpoints"]["rmse_3d_m"], abs=1e-6)
