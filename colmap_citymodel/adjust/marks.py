@@ -112,9 +112,9 @@ def control_marks(marks: GroundMarks, rec: pycolmap.Reconstruction, origin: np.n
     if missing:
         logger.warning("marks measured in images the block does not hold: %s",
                        "; ".join(f"{n}: {', '.join(v[:3])}" for n, v in missing.items()))
-    return ControlMarks(marks.names, np.array([m.position for m in marks.marks]).reshape(-1, 3)
-                        - np.asarray(origin, float), np.array([m.sigma for m in marks.marks]
-                                                              ).reshape(-1, 3),
+    positions = np.array([m.position for m in marks.marks]).reshape(-1, 3)
+    sigmas = np.array([m.sigma for m in marks.marks]).reshape(-1, 3)
+    return ControlMarks(marks.names, positions - np.asarray(origin, float), sigmas,
                         measurements, float(sigma_pixel), excluded, missing)
 
 
