@@ -31,8 +31,19 @@ def _add_model_info(subparsers) -> None:
 def _add_evaluate(subparsers) -> None:
     p = subparsers.add_parser("evaluate", help="check point errors of a COLMAP model")
     p.add_argument("--input_path", required=True, help="COLMAP model directory to evaluate")
-    p.add_argument("--checkpoints", required=True, help="text file 'id X Y Z' (model CRS)")
-    p.add_argument("--observations", required=True, help="text file 'image_name id x y' (px)")
+    p.add_argument("--checkpoints", required=True,
+                   help="OpenDroneMap's gcp_list.txt of check marks (any CRS: converted into "
+                        "the model's), or with --observations a text file 'id X Y Z' (model "
+                        "CRS)")
+    p.add_argument("--observations", default=None,
+                   help="text file 'image_name id x y' (px) of --checkpoints in the 'id X Y Z' "
+                        "format")
+    p.add_argument("--crs", default=None,
+                   help="the model's CRS (EPSG:N) for gcp_list check marks, where no "
+                        "georeference.json beside the model records it")
+    p.add_argument("--gcp_sigma", type=float, nargs=2, metavar=("H", "V"), default=(0.02, 0.03),
+                   help="sigmas (m) of the check marks' surveyed positions where their lines "
+                        "give none (default 0.02 0.03)")
     p.add_argument("--origin_file", default=None,
                    help="georeference.json (or 'X Y Z') when the model is in the local frame")
     p.add_argument("--frame", choices=["auto", "crs", "local"], default="auto",
@@ -54,11 +65,13 @@ def _add_evaluate(subparsers) -> None:
             check_new_directory(args.output_path)
         out = main(args.input_path, args.checkpoints, args.observations,
                    origin_file=args.origin_file, frame=args.frame, as_json=args.json,
-                   truth_path=args.truth_path, precision_file=args.checkpoint_precision)
+                   truth_path=args.truth_path, precision_file=args.checkpoint_precision,
+                   crs=args.crs, sigma=args.gcp_sigma)
         if args.output_path:
             from .precision.plots import write_evaluate_outputs
 
-            write_evaluate_outputs(args.output_path, out, args.checkpoints)
+            write_evaluate_outputs(args.output_path, out, args.checkpoints
+                                   if args.observations else out.get("known"))
 
     p.set_defaults(func=run)
 
@@ -174,10 +187,15 @@ def _add_citymodel_arguments(p, *, database: bool, initial_transform: bool,
                    help="a posteriori covariances of images and tie points (default auto: on "
                         "below 2,500 images; s0 and the global test are always reported)")
     quality = p.add_argument_group("check points and honest precision")
-    quality.add_argument("--checkpoints", help="check points 'id X Y Z' (model CRS), evaluated "
-                         "at the end: never assigned to planes, never control")
+    quality.add_argument("--checkpoints", metavar="FILE",
+                         help="check points, evaluated at the end (never control): "
+                              "OpenDroneMap's gcp_list.txt (a CRS line, then 'geo_x geo_y "
+                              "geo_z im_x im_y image_name [name] [sigma_h sigma_v]'; "
+                              "docs/control-points.md), or with --checkpoint_observations "
+                              "'id X Y Z' lines (model CRS)")
     quality.add_argument("--checkpoint_observations",
-                         help="their image observations 'image_name id x y' (pixels)")
+                         help="image observations 'image_name id x y' (pixels) of "
+                              "--checkpoints in the 'id X Y Z' format")
     quality.add_argument("--sigma_generalisation", type=float, default=None, metavar="M",
                          help="per-plane generalisation error (m; Unger's typical size 0.2): "
                               "report generalisation-aware sigmas beside the classical ones")
@@ -231,6 +249,15 @@ def _add_refine(subparsers) -> None:
     hint.add_argument("--location_radius", type=float, default=100.0, metavar="M",
                       help="metres around --location within which the block's centre is "
                            "searched (default 100)")
+    marks = p.add_argument_group("ground control marks (docs/control-points.md)")
+    marks.add_argument("--gcp", metavar="FILE",
+                       help="OpenDroneMap's gcp_list.txt: marks surveyed on the ground and "
+                            "measured in the images, in the adjustment with their sigmas; "
+                            "alone (no GNSS) they georeference the block")
+    marks.add_argument("--gcp_sigma", type=float, nargs=2, metavar=("H", "V"), default=None,
+                       help="sigmas (m) of the marks' surveyed positions and heights where "
+                            "their lines give none (default 0.02 0.03); also those of "
+                            "--checkpoints in gcp_list format")
     p.add_argument("--sequence", action="store_true",
                    help="the images are video frames named in capture order: after refine, "
                         "frames whose pose jumps from their neighbours' are reported "
@@ -241,7 +268,8 @@ def _add_refine(subparsers) -> None:
 
         _location_checked(args)
         result = main(args.input_path, **_citymodel_kwargs(args), location=args.location,
-                      location_radius=args.location_radius, sequence=args.sequence)
+                      location_radius=args.location_radius, sequence=args.sequence,
+                      gcp=args.gcp, gcp_sigma=args.gcp_sigma)
         # The quality gate failed: the output holds the GNSS-only result (if there was GNSS).
         return 3 if result.quality.verdict == "failed" else 0
 

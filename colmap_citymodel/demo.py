@@ -4,7 +4,9 @@
 2. the baseline a user has without a city model: 7-parameter fit to GNSS + bundle adjustment
    with GNSS priors (what COLMAP's pose-prior BA does);
 3. `refine` with the given LOD2 model (systematic errors like a real generalised model);
-4. check point evaluation of both against the known targets; a summary table.
+4. check point evaluation of both against the known targets, read as check marks from the
+   simulator's `checkpoints_gcp_list.txt` (OpenDroneMap's format, as a user's surveyed check
+   points would come); a summary table with the ASPRS accuracy figures.
 """
 
 from __future__ import annotations
@@ -72,12 +74,12 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     baseline = write_baseline(workspace, out / "gnss_only")
     logger.info("3/4 refine with the city model")
     refined = refine_main(workspace / "sparse" / "0", workspace / "given_model.gml", out / "refined",
-                database=workspace / "database.db", progress=progress)
+                          database=workspace / "database.db", progress=progress,
+                          checkpoints=workspace / "checkpoints_gcp_list.txt")
     logger.info("4/4 check points")
     results = {}
     for name, model in (("gnss_only", baseline), ("refined", out / "refined")):
-        evaluation = evaluate.main(model, workspace / "checkpoints.txt",
-                                   workspace / "checkpoint_observations.txt", as_json=False)
+        evaluation = evaluate.main(model, workspace / "checkpoints_gcp_list.txt", as_json=False)
         results[name] = evaluation["evaluated"]
     results["refined"]["verdict"] = refined.quality.verdict
     lines = ["# colmap-citymodel demo", "",
@@ -87,6 +89,15 @@ def main(output_path: str | Path, *, scenario: str | Path | None = None,
     for name, r in results.items():
         lines.append(f"| {name} | {r['rms_x']:.3f} | {r['rms_y']:.3f} | {r['rms_z']:.3f} | "
                      f"{r['rms_3d']:.3f} | {r['rms_3d_after_helmert']:.3f} |")
+    lines += ["", "ASPRS Positional Accuracy Standards, Edition 2 (with the check marks' stated "
+              "survey sigmas, 0.02 / 0.03 m), m; the test of each block on the check marks:", "",
+              "| method | RMSE_H | RMSE_V | horizontal 95 % | vertical 95 % | check test |",
+              "|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        a, t = r["asprs"], r["test"]
+        lines.append(f"| {name} | {a['rmse_h_m']:.3f} | {a['rmse_v_m']:.3f} | "
+                     f"{a['horizontal_accuracy_95_m']:.3f} | {a['vertical_accuracy_95_m']:.3f} | "
+                     f"{'passed' if t['passed'] else 'failed'} ({t['sigmas']}) |")
     lines += ["", f"Refine's verdict: {refined.quality.verdict}"
               + (f" ({'; '.join(refined.quality.reasons)})" if refined.quality.reasons else "")]
     table = "\n".join(lines) + "\n"

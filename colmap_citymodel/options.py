@@ -312,7 +312,7 @@ class AdjustmentOptions:
 #: Largest magnitude of a float option: beyond any setting that means something.
 MAX_OPTION_VALUE = 1e15
 #: Options whose value is a probability, strictly between 0 and 1.
-PROBABILITIES = ("assignment.msac_confidence", "precision.alpha",
+PROBABILITIES = ("assignment.msac_confidence", "precision.alpha", "marks.blunder_alpha",
                  "adjustment.intrinsics_test_alpha", "workflow.divergence_alpha")
 
 
@@ -586,6 +586,29 @@ class TerrainOptions:
 
 
 @dataclass
+class MarkOptions:
+    """Ground marks measured in the images (block.marks, adjust.marks): control marks
+    (`--gcp`) in the adjustment, check marks (`--checkpoints` in gcp_list format) only
+    compared with the block."""
+
+    sigma_horizontal: float = 0.02
+    """Sigma (m) of a mark's surveyed easting and northing where its line states none
+    (`--gcp_sigma H V`): survey-grade RTK or total station, 1-2 cm."""
+    sigma_vertical: float = 0.03
+    """Sigma (m) of a mark's surveyed height where its line states none: RTK heights are about
+    1.5 times worse than positions."""
+    sigma_pixel: float = 1.0
+    """Sigma (pixels) of a mark measured by hand in an image: the centre of a painted or
+    printed target is found to about a pixel, a natural point (a manhole corner) worse."""
+    blunder_alpha: float = 0.001
+    """Significance level of the test that names a control mark a blunder (its surveyed
+    position against where the other marks put it in the block, chi-square with 3 degrees of
+    freedom, one mark at a time, the worst first) and a check mark a blunder (its error
+    against the others' mean and both sigmas): a sound mark is named with this
+    probability."""
+
+
+@dataclass
 class RefineOptions:
     """All options of refine, one dataclass per section of an options file."""
 
@@ -599,6 +622,8 @@ class RefineOptions:
     """A posteriori precision and the global test (`[precision]`)."""
     terrain: TerrainOptions = field(default_factory=TerrainOptions)
     """The ground as control: terrain source and sigma (`[terrain]`)."""
+    marks: MarkOptions = field(default_factory=MarkOptions)
+    """Control and check marks: their default sigmas and blunder test (`[marks]`)."""
 
     @classmethod
     def preset(cls, name: str) -> "RefineOptions":

@@ -33,7 +33,7 @@ from __future__ import annotations
 import copy
 import logging
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from functools import partial
 from pathlib import Path
 
@@ -42,14 +42,18 @@ import pycolmap
 
 from .adjust.correction_loop import every_point_alike
 from .adjust.datum import hold_where_gnss_alone
+from .adjust.marks import (active_marks, control_marks, mark_test, marks_in_adjustment,
+                           marks_record, similarity_from_marks, snoop_marks)
 from .adjust.staged import staged_adjustment_loop
 from .adjust.observability import (DATUM, assigned_observability, datum_line,
                                    gnss_only_observability, left_to_gnss,
                                    unsettled_observability, weighting_observability)
+from .adjust.problem import HybridProblem
 from .adjust.steps import check_intrinsics, model_after_solve, step2_bundle_adjustment
 from .align.block_to_model import crop_to_reconstruction, georegister
 from .align.objective import BlockObjective
 from .block.gnss import read_gnss
+from .block.marks import read_gcp_list
 from .block.priors import scale_sigma_from_gnss
 from .block.reconstruction import camera_up_and_view, read_reconstruction, tie_points
 from .citymodel.ground_faces import block_terrain, terrain_residuals
@@ -58,8 +62,9 @@ from .citymodel.store import PlaneStore
 from .errors import DatumError, NoOverlapError
 from .options import RefineOptions
 from .output.result import RefineResult
+from .precision.accuracy import check_accuracy
 from .precision.estimate import precision_after_refine
-from .precision.quality import measure_quality
+from .precision.quality import QualityThresholds, checkpoint_verdict, measure_quality
 
 logger = logging.getLogger(__name__)
 
@@ -68,7 +73,84 @@ def refine(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss
            options: RefineOptions | None = None, *, initial_transform: pycolmap.Sim3d | None = None,
            exclude_point_ids: set[int] | None = None, progress: bool = True,
            checkpoints: dict | None = None, checkpoint_observations: list | None = None,
-           location=None, location_radius: float = 100.0) -> RefineResult:
+           location=None, location_radius: float = 100.0, marks=None,
+           check_marks=None) -> RefineResult:
+    """Georeference `reconstruction` and adjust it together with `city_model` (`refine_block`
+    gives the other arguments' meaning).
+
+    `marks` (block.marks.GroundMarks, model CRS): ground control marks, in every adjustment
+    (adjust.marks); without GNSS, an initial transform or a location, they place the block.
+    `check_marks` (the same): check points, only compared with the refined block
+    (report.json `checkpoints`, precision.accuracy; they replace `checkpoints`)."""
+    options = options or RefineOptions()
+    control = None
+    if marks is not None:
+        control = control_marks(marks, reconstruction, city_model.origin,
+                                options.marks.sigma_pixel)
+        if initial_transform is None and gnss is None and location is None:
+            initial_transform = similarity_from_marks(marks, reconstruction,
+                                                      options.marks.sigma_pixel)
+            if initial_transform is None:
+                raise DatumError("without GNSS the control marks must place the block, but "
+                                 "fewer than three of them (not on a line) are measured in two "
+                                 "or more registered images", marks.path)
+    if check_marks is not None:
+        checkpoints, checkpoint_observations = check_marks.checkpoints()
+    with marks_in_adjustment(control):
+        result = refine_block(reconstruction, city_model, gnss, options,
+                              initial_transform=initial_transform,
+                              exclude_point_ids=exclude_point_ids, progress=progress,
+                              checkpoints=checkpoints,
+                              checkpoint_observations=checkpoint_observations,
+                              location=location, location_radius=location_radius)
+        result.control_marks = marks_after_refine(control, result.reconstruction,
+                                                  result.warnings)
+    if check_marks is not None and result.checkpoints is not None:
+        check_points_into_verdict(result, check_marks)
+    return result
+
+
+def marks_after_refine(control, rec: pycolmap.Reconstruction, warnings: list[str]
+                       ) -> dict | None:
+    """report.json `control_marks`: each mark's test against the returned block; a warning
+    per mark in the adjustment beyond its bound (one the blunder test could not leave out:
+    too few marks to test, or the model and the marks disagree there)."""
+    if control is None:
+        return None
+    for k in control.used:
+        name, test = control.names[k], mark_test(control, rec, k)
+        if test is None:
+            continue
+        control.tests[name] = {**control.tests.get(name, {}), **test}
+        bound = control.tests[name].get("bound")
+        if bound is not None and test["statistic"] > bound:
+            warnings.append(f"control mark {name}: the block puts it "
+                            f"{np.linalg.norm(test['offset_m']):.3f} m from its surveyed "
+                            f"position (test {test['statistic']:.1f} > {bound:.1f}): check its "
+                            "coordinates and its measurements")
+    return marks_record(control)
+
+
+def check_points_into_verdict(result: RefineResult, check_marks) -> None:
+    """The check marks' accuracy (precision.accuracy) onto the check point evaluation, and its
+    independent test of the block into the verdict (precision.quality.checkpoint_verdict)."""
+    alpha = QualityThresholds().alpha
+    result.checkpoints.accuracy = check_accuracy(result.checkpoints, check_marks,
+                                                 alpha, options=result.options.marks,
+                                                 reconstruction=result.reconstruction)
+    if result.quality is not None:
+        before = list(result.quality.reasons)
+        checkpoint_verdict(result.quality, result.checkpoints.accuracy)
+        if result.quality.reasons != before:
+            logger.info(result.quality.line())
+
+
+def refine_block(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore, gnss=None,
+                 options: RefineOptions | None = None, *,
+                 initial_transform: pycolmap.Sim3d | None = None,
+                 exclude_point_ids: set[int] | None = None, progress: bool = True,
+                 checkpoints: dict | None = None, checkpoint_observations: list | None = None,
+                 location=None, location_radius: float = 100.0) -> RefineResult:
     """Georeference `reconstruction` and adjust it together with `city_model`.
 
     `gnss` is a `block.gnss.GNSSObservations` (model CRS) or None; `initial_transform` maps the
@@ -320,13 +402,49 @@ def adjust_without_model(rec: pycolmap.Reconstruction, priors, options: RefineOp
     the block to go on with (step 2's, or the one solved with focal length and distortion free
     where the test finds them off, with options that refine them from then on), the options,
     step 2's report, its eliminated observations and the test (None: not run)."""
+    before = pycolmap.Reconstruction(rec) if active_marks() is not None else None
     report, eliminated = step2_bundle_adjustment(rec, priors, options)
+    if before is not None:  # the control marks' blunders (step 2 again without them)
+        rec, report, eliminated = snoop_control_marks(rec, before, priors, options, report,
+                                                      eliminated)
     intrinsics = check_intrinsics(rec, priors, options, report)
     if intrinsics is not None and intrinsics.refined:
         rec = intrinsics.freed
         options = copy.deepcopy(options)
         options.adjustment.refine_intrinsics = True
     return rec, options, report, eliminated, intrinsics
+
+
+#: Solver iterations of each trial adjustment without a suspect control mark: a clean block
+#: converges in a few, and where another blunder still pulls the block it only has to show
+#: which mark stands out most (the one excluded is then solved without it in full).
+SNOOP_ITERATIONS = 25
+
+
+def snoop_control_marks(rec: pycolmap.Reconstruction, before: pycolmap.Reconstruction, priors,
+                        options: RefineOptions, report, eliminated: int):
+    """The control marks' blunder test on step 2's block `rec` (adjust.marks.snoop_marks), each
+    trial and each repeat of step 2 from the block `before` step 2, so that a blunder's pull
+    leaves nothing behind (no tie point observation eliminated for it). Returns the block,
+    step 2's report and its eliminations."""
+    marks = active_marks()
+    solved = [(rec, report, eliminated)]
+
+    def solve() -> pycolmap.Reconstruction:  # step 2 again without the excluded marks
+        again = pycolmap.Reconstruction(before)
+        solved.append((again, *step2_bundle_adjustment(again, priors, options)))
+        return again
+
+    def solve_without() -> pycolmap.Reconstruction:  # one plain solve, the mark under test out
+        trial = pycolmap.Reconstruction(before)
+        o = options.adjustment
+        HybridProblem(trial, None, None, priors, replace(o, max_solver_iterations=min(
+            o.max_solver_iterations, SNOOP_ITERATIONS)), robust_images=False,
+            robust_planes=False).solve()
+        return trial
+
+    snoop_marks(marks, rec, solve, solve_without, options.marks.blunder_alpha)
+    return solved[-1]
 
 
 def gnss_offset_unknowns(priors, o_adj, rec: pycolmap.Reconstruction) -> bool:
@@ -649,6 +767,8 @@ class RefineInputs:
     write_model: bool
     inputs: dict  # report.json `inputs`
     reconstruction: pycolmap.Reconstruction | None = None  # of `input_path`, when given
+    marks: object = None  # block.marks.GroundMarks: the control marks (--gcp), or None
+    check_marks: object = None  # the same: check points in gcp_list format, or None
 
 
 def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=None, gnss_crs=None,
@@ -658,9 +778,12 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
                 checkpoint_observations=None, sigma_generalisation=None, tolerance=None,
                 variance_components=None, assignment=None, write_model=None, num_threads=None,
                 terrain=None, terrain_sigma=None,
-                workflow=None, location=None, location_radius=100.0) -> RefineInputs:
+                workflow=None, location=None, location_radius=100.0, gcp=None,
+                gcp_sigma=None) -> RefineInputs:
     """Options, city model, GNSS and check points as `main` takes them, and the reconstruction
-    of `input_path` if given; fails on a taken `output_path` before any expensive work."""
+    of `input_path` if given; fails on a taken `output_path` before any expensive work.
+    `gcp`: a gcp_list.txt of control marks; `checkpoints` without `checkpoint_observations`: one
+    of check marks; `gcp_sigma` (H, V m): their sigmas where the lines give none."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
     from .citymodel.read import read_city_model
@@ -701,11 +824,14 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
     if num_threads is not None:  # threads of each Ceres solve (a batch worker uses one)
         options.adjustment.num_threads = int(num_threads)
     cp_known = cp_observations = None
-    if (checkpoints is None) != (checkpoint_observations is None):
+    if checkpoints is None and checkpoint_observations is not None:
         from .errors import InputError
 
-        raise InputError("give --checkpoints and --checkpoint_observations together")
-    if checkpoints is not None:
+        raise InputError("--checkpoint_observations needs --checkpoints ('id X Y Z' lines)")
+    if gcp_sigma is not None:  # --gcp_sigma H V overrides the options file
+        options.mergedict({"marks": dict(zip(("sigma_horizontal", "sigma_vertical"),
+                                             map(float, gcp_sigma)))}, source="--gcp_sigma")
+    if checkpoint_observations is not None:
         from .precision.checkpoints import (
             read_checkpoint_observations,
             read_checkpoints,
@@ -731,6 +857,10 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         reach = float(location_radius) + GNSS_READ_MARGIN
         bbox = np.array([[location[0] - reach, location[1] - reach, -1e5],
                          [location[0] + reach, location[1] + reach, 1e5]])
+    check_path = None if checkpoint_observations else checkpoints
+    marks, check_marks = read_marks(gcp, check_path, crs, options)  # None without a CRS yet
+    if bbox is None and marks is not None:  # no GNSS: the model around the control marks
+        bbox = marks_box(marks)
     if bbox is not None:  # of a directory of tiles, only those near the block are read
         from .citymodel.tiles import files_near
 
@@ -760,13 +890,33 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
                                   "(--gnss_height_offset)")
     transform = read_initial_transform(initial_transform) if initial_transform else None
+    if crs is None:
+        marks, check_marks = read_marks(gcp, check_path, store.crs, options)
+    if check_marks is not None:  # also as plain check points (map evaluates those)
+        cp_known, cp_observations = check_marks.checkpoints()
     inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
+              **{k: str(v) for k, v in (("gcp", gcp), ("checkpoints", checkpoints)) if v},
               "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
               "gnss_source": observations.source if observations is not None else None,
               "initial_transform": str(initial_transform) if initial_transform else None,
               "preset": preset, "options_file": str(options_file) if options_file else None}
     return RefineInputs(options, store, observations, transform, cp_known, cp_observations,
-                        bool(write_model), inputs, reconstruction)
+                        bool(write_model), inputs, reconstruction, marks, check_marks)
+
+
+def read_marks(gcp, checkpoints, crs, options: RefineOptions):
+    """The control marks of `gcp` and the check marks of `checkpoints` (gcp_list.txt files, or
+    None) in the city model's `crs`, with the sigmas of `options.marks` where a line states
+    none; (None, None) while the CRS is not known (None)."""
+    sigma = (options.marks.sigma_horizontal, options.marks.sigma_vertical)
+    return tuple(read_gcp_list(path, crs, sigma) if path is not None and crs is not None
+                 else None for path in (gcp, checkpoints))
+
+
+def marks_box(marks) -> np.ndarray:
+    """(2, 3) the box around the control marks in which city model tiles are read."""
+    xyz = np.array([m.position for m in marks.marks])
+    return np.array([xyz.min(0) - GNSS_READ_MARGIN, xyz.max(0) + GNSS_READ_MARGIN])
 
 
 def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, output_type="bin",
@@ -858,7 +1008,8 @@ def main(input_path, citymodel, output_path, *, output_type="bin", output_frame=
                         checkpoints=read.checkpoints,
                         checkpoint_observations=read.checkpoint_observations,
                         location=kwargs.get("location"),
-                        location_radius=kwargs.get("location_radius", 100.0))
+                        location_radius=kwargs.get("location_radius", 100.0),
+                        marks=read.marks, check_marks=read.check_marks)
     except ModelOnlyFailure as error:  # no result: the report says why
         write_failed_report(output_path, read.inputs, error)
         raise

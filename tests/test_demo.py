@@ -30,6 +30,12 @@ def test_demo_end_to_end(tmp_path):
     assert not (out / "workspace" / "sparse" / "0" / "georeference.json").exists()
     summary = json.loads((out / "summary.json").read_text())
     assert summary["refined"]["rms_3d"] == pytest.approx(rms["refined"])
+    # Check marks from the simulator's gcp_list file: the ASPRS figures and the block test,
+    # which the refined block passes with its sigmas and GNSS alone fails.
+    assert summary["refined"]["asprs"]["num_checkpoints"] == summary["refined"]["num_checkpoints"]
+    assert summary["refined"]["test"]["passed"] and not summary["gnss_only"]["test"]["passed"]
+    report = json.loads((refined / "report.json").read_text())
+    assert report["checkpoints"]["rmse_3d_m"] == pytest.approx(rms["refined"], abs=1e-6)
 
 
 def test_demo_refuses_a_foreign_directory(tmp_path):

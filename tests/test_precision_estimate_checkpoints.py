@@ -436,3 +436,17 @@ def test_consider_covariance_follows_a_tilted_plane_as_re_solving_does():
     assert np.linalg.norm(change) == pytest.approx(np.linalg.norm(expected), rel=0.15)
     cosine = change @ expected / np.linalg.norm(change) / np.linalg.norm(expected)
     assert abs(cosine) > 0.9
+
+
+def test_projection_jacobians_with_refined_intrinsics():
+    """The check points' Jacobian by the camera's parameters (intrinsics refined): for a
+    pinhole camera d(x)/d(fx) = X/Z and d(y)/d(fy) = Y/Z."""
+    from colmap_citymodel.precision.estimate import _projection_jacobians
+    from colmap_citymodel.simulate.synthetic import StreetSceneOptions, make_street_scene
+
+    rec = make_street_scene(StreetSceneOptions(seed=3, num_stations=4)).truth
+    point = next(iter(rec.points3D.values()))
+    image = rec.image(point.track.elements[0].image_id)
+    _, _, j_camera = _projection_jacobians(rec, image, point.xyz, np.array([0, 1]))
+    x, y, z = image.cam_from_world() * point.xyz
+    np.testing.assert_allclose(j_camera, [[x / z, 0.0], [0.0, y / z]], rtol=1e-5, atol=1e-9)

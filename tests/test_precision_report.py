@@ -239,11 +239,13 @@ def test_refine_cli_checkpoint_options(tmp_path, capsys):
     defaults = build_parser().parse_args(["refine", "--input_path", "in", "--citymodel", "m.gml",
                                           "--output_path", "out"])
     assert defaults.sigma_generalisation is None and defaults.variance_components is None
-    # One of the two check point files alone is an input error, before any work.
+    # Observations without their check points are an input error, before any work
+    # (--checkpoints alone is a gcp_list.txt of check marks).
     code = cli_main(["refine", "--input_path", str(tmp_path), "--citymodel", "m.gml",
-                     "--output_path", str(tmp_path / "out"), "--checkpoints", "cp.txt"])
+                     "--output_path", str(tmp_path / "out"), "--checkpoint_observations",
+                     "obs.txt"])
     assert code == 2
-    assert "--checkpoints and --checkpoint_observations together" in capsys.readouterr().err
+    assert "--checkpoint_observations needs --checkpoints" in capsys.readouterr().err
 
 
 def test_refine_with_variance_components(scene):

@@ -241,12 +241,34 @@ def test_deterministic_by_seed(tmp_path):
     build_sequence(o, b, progress=False)
     for name in ["truth/points3D.txt", "truth/images.txt", "checkpoints.txt",
                  "checkpoint_observations.txt", "gnss_all.txt", "models/original.gml",
-                 "models/detailed.gml"]:
+                 "models/detailed.gml", "gcp_list.txt", "checkpoints_gcp_list.txt"]:
         assert (a / name).read_bytes() == (b / name).read_bytes(), name
+    _marks_are_the_targets(a)
     assert _db_content(a / "database.db") == _db_content(b / "database.db")
     c = tmp_path / "c"
     build_sequence(replace(o, seed=8), c, progress=False)
     assert (a / "truth/points3D.txt").read_bytes() != (c / "truth/points3D.txt").read_bytes()
+
+
+def _marks_are_the_targets(workspace):
+    """gcp_list.txt (CheckPointOptions.control of the targets) and checkpoints_gcp_list.txt
+    (the others) hold the targets of checkpoints.txt with their image measurements."""
+    from colmap_citymodel.block.marks import read_gcp_list
+    from colmap_citymodel.citymodel.read import read_city_model
+    from colmap_citymodel.precision.checkpoints import (read_checkpoint_observations,
+                                                        read_checkpoints)
+
+    crs = read_city_model(workspace / "models" / "original.gml").crs
+    control = read_gcp_list(workspace / "gcp_list.txt", crs)
+    check = read_gcp_list(workspace / "checkpoints_gcp_list.txt", crs)
+    known = read_checkpoints(workspace / "checkpoints.txt")
+    observations = read_checkpoint_observations(workspace / "checkpoint_observations.txt")
+    assert len(control) == min(5, len(known)) and len(control) + len(check) == len(known)
+    for mark in control.marks + check.marks:
+        np.testing.assert_allclose(mark.position, known[mark.name[2:]], atol=1e-3)
+        mine = sorted((image, x, y) for image, x, y in mark.observations)
+        theirs = sorted((o[0], o[2], o[3]) for o in observations if o[1] == mark.name[2:])
+        np.testing.assert_allclose([m[1:] for m in mine], [t[1:] for t in theirs], atol=1e-3)
 
 
 def test_workspace_scenarios(tmp_path):

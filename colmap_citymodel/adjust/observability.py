@@ -23,6 +23,7 @@ from ..citymodel.ground_faces import terrain_faces, terrain_groups, terrain_unit
 from ..citymodel.store import PlaneStore
 from ..options import RefineOptions
 from .faces import offsets_sigma, vertex_tilt_covariance
+from .marks import active_marks, datum_observations
 from .problem import tie_sigmas
 
 logger = logging.getLogger(__name__)
@@ -290,7 +291,8 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                   terrain: dict[int, tuple[int, float]] | None = None,
                   model_bias_sigma: float = 0.0, per_point: bool = False,
                   weights_sigmas: np.ndarray | None = None,
-                  image_positions: np.ndarray | None = None) -> dict:
+                  image_positions: np.ndarray | None = None,
+                  marks: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Per datum parameter: the source that fixes it (planes, gnss, both, none) and its sigma
     (metres; relative for scale; degrees for rotations) from planes, GNSS and both. The stated
     shifts' `sigma` and `sigma_gnss_with_bias` are those of the images' centres (at
@@ -305,11 +307,16 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     shift all faces share (`common_shift_eliminated`), in `sigma` and `sigma_planes`.
     `per_point`: `sigma` is that of refine's weighting, every tie point alike
     (`per_point_covariance`; `weights_sigmas`: each point's sigma in that weighting), not that of
-    the optimal one, where the planes fix the direction."""
+    the optimal one, where the planes fix the direction. `marks`: ground control marks
+    (positions, (N, 3) sigmas; adjust.marks.datum_observations) in every sigma but the planes'
+    and GNSS's own; each row then has `sigma_gcp` and `shares` (each source's share of the
+    information), and "gcp" as its source where the marks fix what would be free or GNSS's
+    alone (`_with_marks`)."""
     # Shifts and their sigmas refer to the cameras' centroid (where GNSS observes), else to
-    # the tie points': the position users care about, and rotations then do not leak into it.
+    # the tie points': the position users care about, and rotations then do not leak into it
+    # (without either, the control marks').
     centre = (gnss_positions.mean(0) if gnss_positions is not None and len(gnss_positions)
-              else points.mean(0))
+              else points.mean(0) if len(points) or marks is None else marks[0].mean(0))
     # Terrain faces (citymodel.ground_faces): one group per terrain unit, with its sigma.
     shared_sigmas, terrain_keys = None, set()
     if terrain:
@@ -325,12 +332,16 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
             if has_gnss else np.zeros((7, 7)))
     biased = (gnss_information(gnss_positions, gnss_sigmas, centre, gnss_free_axes,
                                gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
+    # The marks' information (a position observation each, like GNSS) in every combined sigma.
+    from_marks = (gnss_information(marks[0], marks[1], centre) if marks is not None
+                  else np.zeros((7, 7)))
     # Our order is (shift, log scale, rotation); DATUM's is the same.
     s_planes, s_gnss = _sigmas(planes), _sigmas(gnss)
-    s_biased, s_both = _sigmas(biased), _sigmas(planes + biased)
+    s_biased, s_both = _sigmas(biased), _sigmas(planes + biased + from_marks)
     at = image_positions if image_positions is not None else (
         gnss_positions if has_gnss else None)
-    images_both = image_sigmas(_inverse(planes + biased), np.isfinite(s_both), at, centre)
+    images_both = image_sigmas(_inverse(planes + biased + from_marks), np.isfinite(s_both), at,
+                               centre)
     images_biased = image_sigmas(_inverse(biased), np.isfinite(s_biased), at, centre)
     s_stated, images_stated = s_both, images_both
     if per_point and len(points):
@@ -338,7 +349,7 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                                     gnss_bias_sigmas) if has_gnss else np.zeros((7, 7)))
         covariance = per_point_covariance(
             points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
-            shared_sigmas, gnss, bias_part, model_bias_sigma, weights_sigmas)
+            shared_sigmas, gnss + from_marks, bias_part, model_bias_sigma, weights_sigmas)
         s_stated, images_stated = _no_sharper(covariance, s_both, images_both, at, centre)
     s_robust = _leave_one_out(total, per_plane)
     out = {}
@@ -364,7 +375,32 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
                      "sigma_gnss_with_bias": _finite(with_bias * factor)}
+    if marks is not None:
+        _with_marks(out, _sigmas(from_marks), s_planes, s_gnss)
     return out
+
+
+def _with_marks(out: dict, s_gcp: np.ndarray, s_planes: np.ndarray, s_gnss: np.ndarray) -> None:
+    """The rows of `out` with the ground control marks: `sigma_gcp`, each source's share of
+    the information (1/sigma^2 over their sum), and the source "gcp" where the marks fix a
+    parameter nothing else does, or one GNSS fixes alone while the marks know it at least a
+    DOMINANCE-th as well (GNSS is then not alone). Planes keep their source: the verdict's
+    tests of the model read it."""
+    for k, name in enumerate(DATUM):
+        row = out[name]
+        kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
+        factor = np.degrees(1.0) if kind == "rotation" else 1.0
+        sigmas = {"planes": s_planes[k], "gnss": s_gnss[k], "gcp": s_gcp[k]}
+        information = {s: 1.0 / v ** 2 for s, v in sigmas.items() if np.isfinite(v)}
+        total = sum(information.values())
+        row["sigma_gcp"] = _finite(s_gcp[k] * factor)
+        row["shares"] = {s: float(v / total) for s, v in information.items()} if total else {}
+        if not s_gcp[k] < UNDETERMINED[kind]:
+            continue
+        if row["source"] == "none" or (row["source"] == "gnss"
+                                       and s_gcp[k] < DOMINANCE * s_gnss[k]):
+            row["source"] = "gcp"
+            row["one_plane"] = False
 
 
 def gnss_only_observability(observability_dict: dict) -> dict:
@@ -538,7 +574,8 @@ def assigned_observability(points: np.ndarray, assignment: Assignment, store: Pl
                          weights_sigmas=weights_sigmas,
                          image_positions=None if priors is not None else np.array(
                              [image.projection_center() for image in rec.images.values()
-                              if image.has_pose]).reshape(-1, 3))
+                              if image.has_pose]).reshape(-1, 3),
+                         marks=datum_observations(active_marks(), rec))
 
 
 # -- the faces' fit: generalisation sigma from the data ----------------------------------------
@@ -641,7 +678,7 @@ def offset_refusal(observability_dict: dict, offset_axes) -> str | None:
     reasons = []
     for name, free in zip(("E", "N", "U"), np.asarray(offset_axes, bool)):
         row = observability_dict.get(name, {})
-        if not free or row.get("source") in ("planes", "both"):
+        if not free or row.get("source") in ("planes", "both", "gcp"):
             continue
         what = "the height" if name == "U" else f"the {name} position"
         if row.get("one_plane"):

@@ -52,6 +52,7 @@ from ..citymodel.ground_faces import terrain_face_sigmas, terrain_mask
 from ..citymodel.store import PlaneStore
 from ..options import AdjustmentOptions
 from .faces import sigma_face_in_use, tilt_axes, tilt_variances
+from .marks import active_marks, add_control_marks
 from .model_correction import CorrectionSelection, datum_condition, select_corrected_faces
 
 logger = logging.getLogger(__name__)
@@ -62,8 +63,10 @@ logger = logging.getLogger(__name__)
 #: hold the block's scale where the planes do not determine it (BaselinePriors; else empty).
 #: "offset": the prior of the GNSS offset (GNSSPriors.offset_prior_sigma; else empty).
 #: "pose": the poses of images held from the previous window of a sliding-window adjustment
-#: (PosePriors; else empty). "dTP" is last so that its blocks can be exchanged (`reassign`).
-GROUPS = ("image", "gnss", "dVT", "VT", "gen", "scale", "offset", "pose", "dTP")
+#: (PosePriors; else empty). "gcp": ground control marks, their surveyed positions and image
+#: measurements (adjust.marks; else empty). "dTP" is last so that its blocks can be exchanged
+#: (`reassign`).
+GROUPS = ("image", "gnss", "dVT", "VT", "gen", "scale", "offset", "pose", "gcp", "dTP")
 
 #: `reassign` rebuilds nothing up to this many changed f_dTP blocks; beyond it the caller
 #: builds a new problem (each removal scans Ceres's residual blocks: O(changes x residuals)).
@@ -378,6 +381,8 @@ class HybridProblem:
         # (step 2 after an initial transform), fix it COLMAP's way to keep the problem regular.
         with_model = store is not None and assignment is not None and assignment.num_assigned
         held = pose_priors is not None and len(pose_priors) > 0
+        marks = active_marks()  # ground control marks of the run (adjust.marks)
+        held = held or (marks is not None and marks.holds_datum(reconstruction))
         self.gauge_fixed = gnss is None and not with_model and not held
         if self.gauge_fixed:
             config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
@@ -411,6 +416,7 @@ class HybridProblem:
         self._add_baselines(core, baselines)
         self._add_offset_prior(core, gnss)
         self._add_pose_priors(core, pose_priors)
+        self.marks = add_control_marks(self, core)  # group "gcp"
         if with_model:
             self._add_tie_distances()
 
@@ -945,6 +951,7 @@ class HybridProblem:
         u += 3 * len(self.blocks.faces) + 3 * len(self.blocks.vertex_ids)
         u += sum(len(block) for block in self.blocks.generalisation)
         u += 0 if self.gnss_offset is None else len(self.gnss_offset)
+        u += 0 if self.marks is None else self.marks.num_unknowns
         return u - (7 if self.gauge_fixed else 0)  # one frame and one coordinate held
 
     def group_residuals(self) -> dict[str, np.ndarray]:

@@ -56,6 +56,9 @@ class RefineResult:
     terrain: dict = field(default_factory=dict)
     # Step 2's test of the interior orientation (adjust.steps.IntrinsicsTest.todict) or None.
     intrinsics: dict | None = None
+    # The ground control marks (adjust.marks.marks_record: each mark's use, test and blunder
+    # reason), None without them.
+    control_marks: dict | None = None
     coarse_alignment: dict | None = None  # what the coarse search found (align.coarse)
     # The estimated constant GNSS offset (--gnss_height_offset auto, --gnss_bias auto) with its
     # sigma, start value, prior and the geoid the heights came through; None when not estimated.

@@ -288,6 +288,56 @@ def block_traces(key: str, rec: pycolmap.Reconstruction, xyz: np.ndarray, presen
     ]
 
 
+#: The longest mark error is drawn this long (m), at most MAX_EXAGGERATION times its length.
+ERROR_DRAWN = 2.0
+MAX_EXAGGERATION = 100.0
+MARK_COLOURS = {"check": "#6a3d9a", "control": "#1a9850", "left out": "#d73027"}
+
+
+def mark_traces(result: RefineResult) -> list[dict]:
+    """The ground marks: check marks at their surveyed positions with their error vectors
+    (where the block puts them), control marks with where the block's rays put them; vectors
+    exaggerated alike so that the longest is ERROR_DRAWN m (the legend gives the factor)."""
+    groups = []  # (kind, surveyed (N, 3) local, errors (N, 3), names)
+    evaluation = result.checkpoints
+    if evaluation is not None and len(evaluation.ids):
+        used = [(evaluation.accuracy or {}).get("marks", {}).get(n, {}).get("used", True)
+                for n in evaluation.ids]
+        known = np.asarray(evaluation.known) - result.origin
+        errors = -np.asarray(evaluation.errors)
+        for kind, keep in (("check", np.array(used)), ("left out", ~np.array(used))):
+            if keep.any():
+                groups.append((kind, known[keep], errors[keep],
+                               [n for n, k in zip(evaluation.ids, keep) if k]))
+    marks = (result.control_marks or {}).get("marks", {})
+    for kind, wanted in (("control", True), ("left out", False)):
+        rows = [(n, r) for n, r in marks.items() if r["used"] is wanted]
+        if rows:
+            groups.append((kind, np.array([r["surveyed_local_m"] for _, r in rows]),
+                           np.array([(r.get("test") or {}).get("offset_m", [0.0] * 3)
+                                     for _, r in rows]), [n for n, _ in rows]))
+    if not groups:
+        return []
+    longest = max(float(np.max(np.linalg.norm(g[2], axis=1), initial=0.0)) for g in groups)
+    factor = min(MAX_EXAGGERATION, ERROR_DRAWN / longest) if longest > 0 else 1.0
+    traces = []
+    for kind, surveyed, errors, names in groups:
+        colour = MARK_COLOURS[kind]
+        label = "check marks" if kind == "check" else ("control marks" if kind == "control"
+                                                       else "marks left out")
+        tips = surveyed + factor * errors
+        lines = np.stack([surveyed, tips, np.full_like(surveyed, np.nan)], axis=1)
+        traces += [
+            {"type": "scatter3d", **xyz_arrays(surveyed), "mode": "markers",
+             "marker": {"size": 5, "color": colour, "symbol": "diamond"}, "text": names,
+             "hovertemplate": "%{text}<extra></extra>",
+             "name": f"{label} ({len(names)})"},
+            {"type": "scatter3d", **xyz_arrays(lines.reshape(-1, 3)), "mode": "lines",
+             "line": {"color": colour, "width": 4}, "hoverinfo": "skip",
+             "name": f"{label}: error x {factor:.0f}"}]
+    return traces
+
+
 def restyle_marker(values: dict, num_traces: int) -> dict:
     """Marker attributes as restyle arguments: a list value (a colourscale) is given once per
     trace, as restyle reads a list as one value per trace."""
@@ -318,7 +368,8 @@ def build_figure(result: RefineResult, palette: np.ndarray, *, max_points: int =
     store = result.adjusted_store
     faces = faces_near(store, lo - FACE_MARGIN, hi + FACE_MARGIN, max_faces)
     used = {int(f) for f in np.unique(face[face >= 0])}
-    traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)]
+    traces = mesh_traces(store, faces, used) + [outline_trace(store, faces)] \
+        + mark_traces(result)  # shown with every block
     num_model = len(traces)
 
     scale = residual_scale(geometry)

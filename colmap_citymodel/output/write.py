@@ -167,6 +167,7 @@ def report_dict(result: RefineResult, inputs: dict | None = None) -> dict:
         "sliding_window": result.sliding_window,
         "terrain": result.terrain,
         "intrinsics": result.intrinsics,
+        "control_marks": result.control_marks,
     }
 
 
@@ -185,6 +186,27 @@ def terrain_lines(terrain: dict | None) -> list[str]:
         [""] if terrain.get("warnings") else [])
 
 
+def control_marks_lines(record: dict | None) -> list[str]:
+    """report.md's table of the ground control marks: each mark's images, where the block's
+    rays put it against its surveyed position, its test, and whether it was used."""
+    if not record:
+        return []
+    lines = ["## Control marks", "",
+             "| mark | images | block minus survey E / N / U (m) | test | used |",
+             "|---|---|---|---|---|"]
+    for name, row in record["marks"].items():
+        test = row.get("test") or {}
+        offset = test.get("offset_m")
+        lines.append(f"| {name} | {row['num_images']} | "
+                     + (" / ".join(f"{v:+.3f}" for v in offset) if offset else "-") + " | "
+                     + (f"{test['statistic']:.1f}" if "statistic" in test else "-") + " | "
+                     + ("yes" if row["used"] else "no") + " |")
+    lines.append("")
+    lines += [f"- {name}: {row['reason']}" for name, row in record["marks"].items()
+              if row.get("reason")]
+    return lines + [""]
+
+
 def _number(value, fmt: str = "{:.4f}") -> str:
     return "-" if value is None else fmt.format(value)
 
@@ -197,13 +219,17 @@ def report_markdown(report: dict) -> str:
                   + (" (the files hold the GNSS-only result)" if report["result"] == "gnss_only"
                      else ""), ""] + [f"- {r}" for r in quality["reasons"]] + [""]
     if report.get("observability"):
+        # With ground control marks, their own sigma as one more column.
+        marks = any("sigma_gcp" in row for row in report["observability"].values())
+        keys = ("sigma", "sigma_planes", "sigma_gnss") + (("sigma_gcp",) if marks else ())
         lines += ["## What fixes the datum", "",
-                  "| parameter | fixed by | sigma | sigma planes only | sigma GNSS only |",
-                  "|---|---|---|---|---|"]
+                  "| parameter | fixed by | sigma | sigma planes only | sigma GNSS only |"
+                  + (" sigma marks only |" if marks else ""),
+                  "|---|---|---|---|---|" + ("---|" if marks else "")]
         for name, row in report["observability"].items():
             unit = "deg" if name.startswith("rotation") else "" if name == "scale" else "m"
-            cells = [f"{row[k]:.4g} {unit}".strip() if row[k] is not None else "free"
-                     for k in ("sigma", "sigma_planes", "sigma_gnss")]
+            cells = [f"{row[k]:.4g} {unit}".strip() if row.get(k) is not None else "free"
+                     for k in keys]
             lines.append(f"| {name} | {row['source']} | " + " | ".join(cells) + " |")
         lines += ["", "Scale sigmas are relative; each plane counts with its generalisation "
                   "error, not once per tie point.", ""]
@@ -221,6 +247,7 @@ def report_markdown(report: dict) -> str:
                   + (f", roll about the flight line {coarse['roll_deg']:+.1f} deg"
                      if coarse["roll_deg"] is not None else "") + ".", ""]
     lines += terrain_lines(report.get("terrain"))
+    lines += control_marks_lines(report.get("control_marks"))
     intrinsics = report.get("intrinsics")
     if intrinsics:
         lines += [f"Interior orientation: {'refined' if intrinsics['refined'] else 'held'} "

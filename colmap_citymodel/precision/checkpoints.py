@@ -35,6 +35,8 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from .accuracy import accuracy_markdown, check_accuracy, read_check_marks
+from .quality import QualityThresholds
 
 logger = logging.getLogger(__name__)
 
@@ -413,6 +415,9 @@ class CheckpointEvaluation:
     posteriori covariance of the estimated check points in `ids` order (NaN for check points
     without one), from the adjustment (refine)."""
     sigma_notes: dict[str, str] = field(default_factory=dict)
+    # The check marks' accuracy figures (precision.accuracy.check_accuracy: per mark, RMSE,
+    # ASPRS, the chi-square test, blunders), merged into `todict`; None for other check points.
+    accuracy: dict | None = None
 
     @property
     def covariance(self) -> np.ndarray | None:
@@ -516,6 +521,7 @@ class CheckpointEvaluation:
                 "sigma_model": self.primary_model,
                 "delta_sigma": self.delta_sigma(self.primary_model),
                 "delta_sigma_by_model": {m: self.delta_sigma(m) for m in self.covariances}}),
+            **(self.accuracy or {}),
         }
 
     def summary(self) -> str:
@@ -540,6 +546,8 @@ class CheckpointEvaluation:
                     table, f"Delta/sigma of {table['num_checkpoints']} check points, {model} "
                            f"stochastic model (Unger Tables 12/13; "
                            f"{table['sigma_note'] or 'sigma from the adjustment'}):").rstrip())
+        if self.accuracy is not None:
+            lines.append(accuracy_markdown(self.accuracy).strip())
         return "\n".join(lines)
 
 
@@ -724,13 +732,15 @@ def _find_truth(input_path: Path) -> Path | None:
 def main(
     input_path,
     checkpoints,
-    observations,
+    observations=None,
     *,
     origin_file=None,
     frame: str = "auto",
     as_json: bool = False,
     truth_path=None,
     precision_file=None,
+    crs=None,
+    sigma=None,
 ) -> dict:
     """Evaluate the COLMAP model in `input_path` on check points; print a summary (or JSON).
 
@@ -739,23 +749,30 @@ def main(
     is found next to the model (DIR/../truth or DIR/../../truth, or `truth_path`), the truth
     poses are evaluated the same way. With the check points' covariance (`precision_file`, or
     `input_path/checkpoint_precision.json` written by refine --checkpoints) the Delta/sigma
-    table of Unger Tables 12/13 is added. Returns {"evaluated": {...}, "truth": {...} | None}.
+    table of Unger Tables 12/13 is added. Without `observations`, `checkpoints` is a
+    gcp_list.txt of check marks (block.marks) in any CRS, converted into the model's (`crs`,
+    else the one georeference.json records) with `sigma` (H, V m) where its lines give none,
+    and the marks' accuracy figures are added (precision.accuracy).
+    Returns {"evaluated": {...}, "truth": {...} | None}.
     """
     input_path = Path(input_path)
     reconstruction = _read_reconstruction(input_path)
-    known = read_checkpoints(checkpoints)
-    obs = read_checkpoint_observations(observations)
     origin, recorded_frame = None, None
     if origin_file is None and (input_path / "georeference.json").is_file():
         origin_file = input_path / "georeference.json"
     if origin_file is not None:
         origin, recorded_frame = _read_origin(Path(origin_file))
+    marks = (read_check_marks(checkpoints, crs, origin_file, sigma) if observations is None
+             else None)
+    known, obs = (marks.checkpoints() if marks is not None else
+                  (read_checkpoints(checkpoints), read_checkpoint_observations(observations)))
     if frame == "auto" and recorded_frame in ("crs", "local"):
         frame = recorded_frame
     evaluation = evaluate_checkpoints(reconstruction, known, obs, origin, frame=frame)
     if not evaluation.ids:
         raise InputError("no check point could be triangulated in the model (no shared ids, "
-                         "unknown image names or fewer than 2 views each)", Path(observations))
+                         "unknown image names or fewer than 2 views each)",
+                         Path(observations if observations is not None else checkpoints))
     if precision_file is None and (input_path / CHECKPOINT_PRECISION_FILE).is_file():
         precision_file = input_path / CHECKPOINT_PRECISION_FILE
     if precision_file is not None:
@@ -764,7 +781,11 @@ def main(
         ids, covariances, notes = read_checkpoint_precision(precision_file)
         for model, covariance in covariances.items():
             evaluation.attach_covariance(ids, covariance, notes.get(model, ""), model)
-    out = {"evaluated": evaluation.todict(), "truth": None}
+    if marks is not None:  # the check marks' accuracy figures, and their coordinates to plot
+        evaluation.accuracy = check_accuracy(evaluation, marks, QualityThresholds().alpha,
+                                             reconstruction=reconstruction)
+    out = {"evaluated": evaluation.todict(), "truth": None,
+           **({"known": {k: v.tolist() for k, v in known.items()}} if marks else {})}
     truth_dir = Path(truth_path) if truth_path is not None else _find_truth(input_path)
     truth_eval = None
     if truth_dir is not None:

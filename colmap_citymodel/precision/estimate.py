@@ -64,6 +64,7 @@ solve weights and the stated stochastic model agree for any sigma_image.
 
 from __future__ import annotations
 
+import copy
 import logging
 import os
 import time
@@ -97,8 +98,8 @@ RANK_TOLERANCE = 1e-12
 #: Step of the numerical derivative of X0 and omega/phi/kappa w.r.t. the pose tangent.
 POSE_STEP = 1e-6
 #: Observation groups reported only when the problem has them (the generalisation priors,
-#: the baseline priors that hold the scale).
-OPTIONAL_GROUPS = ("gen", "scale", "offset", "pose")
+#: the baseline priors that hold the scale, ground control marks).
+OPTIONAL_GROUPS = ("gen", "scale", "offset", "pose", "gcp")
 #: COLMAP camera axes (x right, y down, z forward) -> photogrammetric (x right, y up, z back).
 PHOTOGRAMMETRIC_FLIP = np.diag([1.0, -1.0, -1.0])
 
@@ -251,6 +252,8 @@ def _layout(problem: HybridProblem) -> _Layout:
         add("vertex", k, b.vertices[k])
     if problem.gnss_offset is not None:
         add("gnss_offset", 0, problem.gnss_offset)
+    for k, point in enumerate(problem.marks.points if problem.marks is not None else []):
+        add("mark", k, point)  # ground control marks (adjust.marks)
     for k in range(len(b.held_normals)):  # constant: the given planes that model correction keeps
         add("held_normal", k, b.held_normals[k])
         add("held_offset", k, b.held_offsets[k])
@@ -831,7 +834,7 @@ def _projection_jacobians(rec: pycolmap.Reconstruction, image: pycolmap.Image, x
         step = 1e-6 * max(1.0, abs(camera.params[i]))
         values = []
         for sign in (1.0, -1.0):
-            moved = pycolmap.Camera(camera)
+            moved = copy.copy(camera)  # pycolmap 4 has no Camera(camera)
             params = np.array(camera.params, float)
             params[i] += sign * step
             moved.params = params

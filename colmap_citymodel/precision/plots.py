@@ -254,8 +254,8 @@ def write_evaluate_outputs(output_path, evaluation: dict, checkpoints=None) -> P
     """What `colmap-citymodel evaluate --output_path` writes: the plots of `evaluation` (the
     known coordinates for the arrow plots from the `checkpoints` file, if given) and the
     report (`write_evaluation_report`)."""
-    known = None
-    if checkpoints is not None:
+    known = checkpoints if isinstance(checkpoints, dict) else None
+    if checkpoints is not None and known is None:
         from .checkpoints import read_checkpoints
 
         known = read_checkpoints(checkpoints)

@@ -466,3 +466,25 @@ def height_metrics(points: np.ndarray, surface, shift, covariance, t: QualityThr
     height = height_fit(points, surface, reach, admitted, radius=NEAR_DISTANCE,
                         distinct=DISTINCT)
     return {**height.todict(), "reach_m": reach}
+
+
+def checkpoint_verdict(quality: QualityReport, accuracy: dict | None) -> QualityReport:
+    """The check marks' independent test of the block (precision.accuracy.check_accuracy,
+    at the verdict's level alpha) into `quality`, in place: figures in `metrics` ("checkpoints");
+    an "ok" block whose check points' errors exceed their sigmas (survey and cameras) becomes
+    "weak" with the reason. The test never fails a block: it comes after the choice between
+    the refined and the GNSS-only result, on the block handed back."""
+    test = (accuracy or {}).get("test")
+    if test is None:
+        return quality
+    quality.metrics["checkpoints"] = {
+        "test": test, "rmse_3d_m": accuracy["rmse_3d_m"], "num_used": accuracy["num_used"],
+        "blunders": sorted(accuracy.get("blunders", {}))}
+    if not test["passed"]:
+        quality.reasons.append(
+            f"check points: errors beyond their sigmas (chi-square {test['statistic']:.1f} > "
+            f"{test['bound']:.1f} on {test['dof']} degrees of freedom at {test['alpha']:g}; "
+            f"RMS 3D {accuracy['rmse_3d_m']:.3f} m)")
+        if quality.verdict == "ok":
+            quality.verdict = "weak"
+    return quality

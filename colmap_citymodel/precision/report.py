@@ -284,6 +284,7 @@ def write_checkpoint_csv(path: Path, evaluation) -> None:
 
 def checkpoint_markdown(report: dict) -> str:
     """The report.md section of the check points: RMS, Helmert, Delta/sigma per model."""
+    from .accuracy import accuracy_markdown
     from .checkpoints import format_delta_sigma
 
     c = report.get("checkpoints")
@@ -302,6 +303,7 @@ def checkpoint_markdown(report: dict) -> str:
     if not c.get("delta_sigma_by_model"):
         lines += ["", "No check point sigma (covariances were not computed)."]
     lines += ["", "Per check point: `checkpoint_precision.csv`."]
+    lines += [accuracy_markdown(c).rstrip()] if c.get("marks") else []
     vc = report.get("variance_components")
     if vc:
         lines += ["", "Variance components (iterated, re-weighted final solve): " + ", ".join(

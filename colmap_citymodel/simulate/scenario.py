@@ -109,6 +109,9 @@ class CheckPointOptions:
     min_views: int = 4
     candidates: int = 20000
     pixel_noise: float = 1.0
+    # How many of the targets are written as control marks (gcp_list.txt), spread along the
+    # flight; the others are check marks (checkpoints_gcp_list.txt).
+    control: int = 5
 
 
 @dataclass

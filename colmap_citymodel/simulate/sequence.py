@@ -34,7 +34,10 @@ Frames. `truth/` and everything "local" use the model CRS minus `truth/origin.tx
 origin: the model's lower bbox corner rounded down to metres). `checkpoints.txt`, `gnss.txt` and
 the database pose priors (coordinate system CARTESIAN) are in the model CRS itself, full
 coordinates: COLMAP stores prior positions as float64, so UTM-sized numbers lose nothing there,
-but consumers should subtract the origin before adjusting.
+but consumers should subtract the origin before adjusting. The same targets as ground marks in
+OpenDroneMap's format (block.marks): `gcp_list.txt` holds `CheckPointOptions.control` of them
+spread along the flight as control marks, `checkpoints_gcp_list.txt` the others as check marks
+(from the truth, with the targets' pixel noise).
 
 Sequences and scenarios. Everything that defines the images and their observations (scene,
 flight, noise, seed, mapping) is a *sequence*; a scenario only chooses the given model variant
@@ -102,6 +105,24 @@ def _write_lines(path: Path, header: str, lines) -> None:
         for line in lines:
             fh.write(line)
             fh.write("\n")
+
+
+def write_mark_lists(out: Path, cps, names: list[str], xyz_crs: np.ndarray, crs_label: str,
+                     control: int) -> None:
+    """`gcp_list.txt` (`control` of the targets, spread along the flight) and
+    `checkpoints_gcp_list.txt` (the others) in OpenDroneMap's format."""
+    from ..block.marks import write_gcp_list
+
+    count = len(cps.ids)
+    chosen = set(np.unique(np.round(np.linspace(0, count - 1, min(control, count))).astype(int))
+                 .tolist()) if control > 0 and count else set()
+    rows = {True: [], False: []}
+    for f, i, (u, v) in zip(cps.obs_frame, cps.obs_id, cps.obs_uv):
+        k = int(i) - int(cps.ids[0]) if count else 0
+        rows[k in chosen].append((xyz_crs[k], names[f], u, v, f"CP{int(i)}"))
+    for name, kind in (("gcp_list.txt", True), ("checkpoints_gcp_list.txt", False)):
+        if rows[kind]:  # a file without marks would be refused
+            write_gcp_list(out / name, crs_label, rows[kind])
 
 
 def _load_store(options: SimulationOptions):
@@ -185,6 +206,8 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
                  "# image_name id x y (pixels, COLMAP convention)\n",
                  (f"{flight.names[f]} {i} {_fmt(u)} {_fmt(v)}"
                   for f, i, (u, v) in zip(cps.obs_frame, cps.obs_id, cps.obs_uv)))
+    write_mark_lists(out, cps, flight.names, cp_crs, store.crs.label,
+                     options.checkpoints.control)
     sig = options.gnss.sigma
     _write_lines(out / "gnss_all.txt", f"# image_name X Y Z sX sY sZ ({store.crs.label})\n",
                  (f"{n} {_fmt(p[0])} {_fmt(p[1])} {_fmt(p[2])} {sig[0]} {sig[1]} {sig[2]}"
@@ -247,6 +270,8 @@ sequence {sequence} (key {key}). Scenario: given model `{model}`, GNSS `{gnss}`.
 | `models/` | all variants: `corrected.gml` (the LOD2 model as given: only generalisation effects), `original.gml` (plus systematic plane errors), `detailed.gml` (the true building planes, LOD3-like, stored as LOD2 surfaces) |
 | `checkpoints.txt` | `id X Y Z` true check point coordinates (model CRS) |
 | `checkpoint_observations.txt` | `image_name id x y` image observations of check points (1 px noise); not in the database |
+| `gcp_list.txt` | some of the same targets as control marks, OpenDroneMap's format (`refine --gcp`) |
+| `checkpoints_gcp_list.txt` | the other targets as check marks, the same format (`refine --checkpoints`, `evaluate --checkpoints`) |
 | `gnss.txt` | `image_name X Y Z sX sY sZ` GNSS available in this scenario (model CRS) |
 | `gnss_all.txt` | GNSS of every key frame (same noise realisation) |
 | `scenario.toml` | the scenario file (`sequence.toml`: the sequence file it names) |

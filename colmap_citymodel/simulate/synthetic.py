@@ -331,3 +331,33 @@ def centre_errors(estimate: pycolmap.Reconstruction, truth: pycolmap.Reconstruct
     true = {im.name: im.projection_center() for im in truth.images.values()}
     return np.array([np.linalg.norm(im.projection_center() - true[im.name])
                      for im in estimate.images.values() if im.has_pose])
+
+
+def street_marks(scene: StreetScene, count: int, noise_px: float = 0.7, seed: int = 0,
+                 min_views: int = 3) -> list[tuple[str, np.ndarray, list]]:
+    """`count` ground marks of a street scene with known truth: true surface points seen in at
+    least `min_views` true images, spread along the block (farthest point sampling), each with
+    its true position in the model CRS and its measurements in the true images (COLMAP pixels
+    with Gaussian noise of `noise_px`). Returns [(name, xyz CRS, [(image name, x, y)])]."""
+    rng = np.random.default_rng([seed, 63])
+    truth = scene.truth
+    ids = np.array([i for i in truth.point3D_ids()
+                    if truth.point3D(i).track.length() >= min_views], np.int64)
+    xyz = np.array([truth.point3D(int(i)).xyz for i in ids]).reshape(-1, 3)
+    chosen = [int(np.argmin(xyz[:, 0]))]
+    distance = np.linalg.norm(xyz - xyz[chosen[0]], axis=1)
+    while len(chosen) < min(count, len(ids)):
+        chosen.append(int(np.argmax(distance)))
+        distance = np.minimum(distance, np.linalg.norm(xyz - xyz[chosen[-1]], axis=1))
+    chosen.sort(key=lambda k: xyz[k, 0])
+    out = []
+    for n, k in enumerate(chosen, start=1):
+        point = xyz[k]
+        measured = []
+        for element in truth.point3D(int(ids[k])).track.elements:
+            image = truth.image(element.image_id)
+            xy = image.project_point(point)
+            if xy is not None:
+                measured.append((image.name, *(np.asarray(xy) + rng.normal(0.0, noise_px, 2))))
+        out.append((f"M{n}", point + scene.store.origin, measured))
+    return out

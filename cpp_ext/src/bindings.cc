@@ -10,6 +10,7 @@
 // and keeps the Python object alive as long as the pyceres.Problem object.
 #include "colmap_citymodel/baseline_length_prior.h"
 #include "colmap_citymodel/linear_points_condition.h"
+#include "colmap_citymodel/mark_ray.h"
 #include "colmap_citymodel/plane_ransac.h"
 #include "colmap_citymodel/point_plane_distance.h"
 #include "colmap_citymodel/point_plane_effects_distance.h"
@@ -252,6 +253,37 @@ PYBIND11_MODULE(_core, m) {
       "Prior on the distance of two positions fixed in two rigs, residual = "
       "(|P_a - P_b| - length) / sigma with P = R^T (p_in_rig - t).\nParameter "
       "blocks: rig_from_world.params of a and of b (7 each).");
+
+  m.def(
+      "MarkRayCost",
+      [](const Eigen::Vector2d& normalised, double focal, double sigma,
+         const Eigen::Vector4d& cam_from_rig_xyzw,
+         const Eigen::Vector3d& cam_from_rig_translation) -> ceres::CostFunction* {
+        CheckSigma(sigma, "sigma");
+        CheckSigma(focal, "focal");
+        if (!normalised.allFinite()) {
+          throw std::invalid_argument("normalised must be finite");
+        }
+        CheckFinite(cam_from_rig_translation, "cam_from_rig_translation");
+        Eigen::Quaterniond rotation(cam_from_rig_xyzw(3), cam_from_rig_xyzw(0),
+                                    cam_from_rig_xyzw(1), cam_from_rig_xyzw(2));
+        if (!(rotation.norm() > 0.0) || !cam_from_rig_xyzw.allFinite()) {
+          throw std::invalid_argument("cam_from_rig_xyzw must be a finite quaternion");
+        }
+        rotation.normalize();
+        return MarkRayCostFunctor::Create(normalised, focal / sigma, rotation,
+                                          cam_from_rig_translation);
+      },
+      "normalised"_a,
+      "focal"_a,
+      "sigma"_a,
+      "cam_from_rig_xyzw"_a = Eigen::Vector4d(0.0, 0.0, 0.0, 1.0),
+      "cam_from_rig_translation"_a = Eigen::Vector3d::Zero(),
+      kTake,
+      "A ground mark measured in an image: residual = (focal / sigma) "
+      "(X_cam.xy / X_cam.z - normalised), X_cam = cam_from_rig (rig_from_world "
+      "X), normalised the measured pixel in the normalised image plane.\n"
+      "Parameter blocks: X (3), rig_from_world.params (7).");
 
   m.def(
       "LinearPointsConditionCost",
