@@ -52,6 +52,10 @@ from .steps import RoofObservers, align_block_to_planes, model_after_solve
 
 logger = logging.getLogger(__name__)
 
+#: A loop diverges only where its block left the best iterate by more than this many of its
+#: position's stated 3D sigma (and its placement score fell significantly): 2, the reach of a
+#: 95 % region.
+DIVERGENCE_SIGMAS = 2.0
 #: The shifts held where the first assignment put the block when the planes leave them to GNSS:
 #: the height only. Vertical walls never fix it; E or N can seem free at the first assignment,
 #: metres from the model, and be fixed by the walls once the height is known; held, they
@@ -534,7 +538,7 @@ class _Loop:
         if best is None or value <= best[0]:
             self.best = best = (value, iteration, None, self.assignment, self.current,
                                 _offset(self.priors))
-        elif value > best[0] + self.objective.tolerance:
+        elif value > best[0] + self.objective.tolerance and self._away_from(best):
             # The hybrid solve moved the block away from the model: go back to the best
             # iterate and stop.
             self.diverged = (f"objective {value:.3f} in iteration {iteration} against "
@@ -563,6 +567,21 @@ class _Loop:
             self.stopped_by = "cycle"
             return True
         return self._alternates(iteration)
+
+    def _away_from(self, best) -> bool:
+        """Whether the block has moved from the `best` iterate by more than DIVERGENCE_SIGMAS
+        of its position's stated 3D sigma at the first assignment: a significantly worse
+        placement score within that reach is the score and the solves weighing the same
+        tie points a little differently, not a block leaving the model."""
+        if best[2] is None:
+            return True
+        sigmas = [self.observability_before.get(a, {}).get("sigma") for a in ("E", "N", "U")]
+        if any(v is None for v in sigmas):
+            return True
+        move = mean_move(camera_centres(best[2]).reshape(-1, 3),
+                         camera_centres(self.rec).reshape(-1, 3))
+        return move is None or float(np.linalg.norm(move)) > DIVERGENCE_SIGMAS * float(
+            np.linalg.norm(sigmas))
 
     def _alternates(self, iteration: int) -> bool:
         """The planes alternated between two sets with small moves: the loop stops (True)."""

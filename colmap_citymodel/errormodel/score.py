@@ -49,7 +49,7 @@ CLUSTER_SIZE = 6.0
 #: peak.
 REACH_SIGMAS = 4.0
 #: Tie points a score evaluates at most (a random, seeded subset of a larger block).
-MAX_SCORE_POINTS = 4000
+MAX_SCORE_POINTS = 2000
 
 
 @dataclass(frozen=True)
