@@ -855,3 +855,32 @@ def test_a_block_the_faces_weighting_moves_beyond_its_sigma_states_that_move(sce
     assert height["sigma"] >= 0.3 > height["sigma_one_weighting"]
     assert result.quality.verdict == "weak"
     assert any("moved the block by 0.30 m along U" in r for r in result.quality.reasons)
+
+
+def test_a_loop_that_ends_at_its_optimum_is_not_called_diverged(scene, monkeypatch):
+    """The placement score of every iteration after the first made significantly worse (by
+    twice the objective's tolerance) while the solves barely move the block: a score and a
+    solve weighing the same tie points a little differently, not a block leaving the model.
+    The loop runs on to its own stop, the verdict does not say diverged, and the block ends on
+    the truth; were any move a move off the model, the same drop would end the loop at the
+    best iterate."""
+    from colmap_citymodel.adjust import loop as loop_module
+
+    real_stops = loop_module._Loop.stops
+
+    def worse_after_the_first(self, iteration):
+        if iteration > 0:
+            self.value += 2 * self.objective.tolerance
+        return real_stops(self, iteration)
+
+    monkeypatch.setattr(loop_module._Loop, "stops", worse_after_the_first)
+    options = RefineOptions()
+    options.assignment.method = "direct"  # several iterations from its first at 2 m
+    result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert len(result.iterations) > 1
+    assert result.loop_stopped_by != "diverged"
+    assert not result.quality.metrics.get("diverged")
+    assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+    monkeypatch.setattr(loop_module, "DIVERGENCE_SIGMAS", 0.0)  # any move leaves the model
+    stopped = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    assert stopped.loop_stopped_by == "diverged"
