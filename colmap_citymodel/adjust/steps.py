@@ -197,13 +197,15 @@ def align_to_planes(rec: pycolmap.Reconstruction, points: np.ndarray, assignment
     GNSS, with the adjustment's weights; see initial_alignment), and all `points` moved by it.
     `scale_sigma`: how far (relative) GNSS lets the scale change."""
     from ..align.initial_alignment import similarity_to_planes
+    from ..errormodel.model import gnss_model
 
     assigned = assignment.assigned
     faces = assignment.face_index[assigned]
     gnss = {}
-    if priors is not None:
-        gnss = dict(antennas=priors.observed_points(rec), gnss=priors.observed,
-                    gnss_sigmas=priors.sigmas, gnss_free_axes=priors.free_offset_axes)
+    if priors is not None:  # GNSS's positions as read, its bias an error of its model
+        antennas = priors.observed_points(rec)
+        gnss = dict(antennas=antennas, gnss=priors.positions,
+                    gnss_model=gnss_model(priors, antennas, options))
     result = similarity_to_planes(points[assigned], store.normals[faces], store.offsets[faces],
                                   options.sigma_dtp, options.plane_loss_scale,
                                   scale_sigma=scale_sigma, **gnss)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass, field, replace
+from functools import partial
 from pathlib import Path
 
 import numpy as np
@@ -132,8 +133,6 @@ def estimate_georegistration(
     Raises GeoregistrationError for fewer than 3 positions, coinciding centres, a GNSS spread
     within its noise, RANSAC failure or fewer than `min_inliers` inliers.
     """
-    import pycolmap
-
     options = replace(options or GeoregistrationOptions())  # never alter the caller's options
     if max_error is not None:
         options.max_error = max_error
@@ -150,57 +149,85 @@ def estimate_georegistration(
     sigmas = (np.tile([3.0, 3.0, 5.0], (len(target), 1)) if sigmas is None
               else np.asarray(sigmas, dtype=np.float64).reshape(-1, 3))
     source = camera_centres(reconstruction, image_ids)
-    warnings: list[str] = []
-
-    # Geometry checks: the reconstruction's centres are noise-free in their own frame, so
-    # collinearity is judged there; the baseline is judged against the GNSS noise.
-    spread_src = _principal_std(source)
-    if spread_src[0] <= 0:
-        raise GeoregistrationError(
-            f"the {len(source)} camera centres with GNSS coincide: no baseline for a "
-            "similarity transform")
-    sigma_axis = np.median(sigmas, axis=0)
-    spread_tgt = _principal_std(target)
-    # The main axis of a flight is horizontal: compare it with the horizontal sigma.
-    sigma_horizontal = float(sigma_axis[:2].max())
-    if spread_tgt[0] < options.min_baseline_sigmas * sigma_horizontal:
-        raise GeoregistrationError(
-            f"the GNSS positions spread only {spread_tgt[0]:.2f} m (std along the main axis), "
-            f"not more than {options.min_baseline_sigmas:g} x their horizontal sigma "
-            f"({sigma_horizontal:.2f} m): not enough baseline for a similarity transform"
-        )
-    scale_guess = spread_tgt[0] / spread_src[0]
-    lateral = spread_src[1] * scale_guess  # metres the centres deviate from a line (std)
-
-    def along_the_line(reason: str) -> Georegistration:
-        # GNSS fixes the line but not the rotation about it: take that from the cameras, and
-        # where they look sideways, from the tie points' walls and level planes.
-        right, up = camera_axes(reconstruction, image_ids)
-        sim3 = upright_line_similarity(source, target, right, up)
-        sim3, levelled = level_about_line(sim3, reconstruction, source, right, up)
-        residuals = target - transform_points(sim3, source)
-        rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
-        cues = dict(LINE_CUES)
-        if levelled is not None:
-            cues["roll_about_line"] = LEVEL_ROLL_CUE
-        warnings.append(
-            f"the camera centres with GNSS deviate only ~{lateral:.1f} m from a line ({reason}): "
-            "the rotation about the flight line comes from "
-            + ("the cameras' upright orientation" if levelled is None else
-               f"the tie points' walls and level planes (turned {levelled:+.1f} deg from the "
-               "cameras' upright orientation)")
-            + " until the model planes fix it")
-        for warning in warnings:
-            logger.warning(warning)
-        logger.info("Georegistration along a line: scale %.6g, RMS %.3f m", sim3.scale, rms)
-        return Georegistration(sim3=sim3, inlier_mask=np.ones(len(target), bool),
-                               residuals=residuals, rms=rms, image_ids=image_ids,
-                               max_error=float("nan"), warnings=warnings, cues=cues)
-
-    if spread_src[1] < options.min_noncollinearity * spread_src[0]:
-        return along_the_line("collinear")
+    geometry = _Geometry.of(source, target, sigmas, options)
+    line = partial(_along_the_line, reconstruction, image_ids, source, target, geometry.lateral)
+    if geometry.spread_src[1] < options.min_noncollinearity * geometry.spread_src[0]:
+        return line("collinear")
     threshold = (options.max_error if options.max_error is not None
-                 else options.sigma_factor * float(sigma_axis.max()))
+                 else options.sigma_factor * float(geometry.sigma_axis.max()))
+    sim3, inliers = _robust_similarity(source, target, threshold, min_inliers, options)
+    residuals = target - transform_points(sim3, source)
+    num = int(inliers.sum())
+    rms = float(np.sqrt(np.mean(np.sum(residuals[inliers] ** 2, axis=1))))
+    if num < len(target):
+        worst = np.argsort(-np.linalg.norm(residuals, axis=1))[: min(5, len(target) - num)]
+        names = [reconstruction.image(int(image_ids[i])).name for i in worst]
+        logger.warning(
+            "%d of %d GNSS positions rejected as outliers (> %.2f m), e.g. %s",
+            len(target) - num, len(target), threshold, names,
+        )
+    roll_sigma = geometry.roll_sigma(target, residuals[inliers])
+    if roll_sigma is not None and roll_sigma > options.max_roll_sigma_deg:
+        return line(f"GNSS fixes the rotation about it to {roll_sigma:.0f} deg")
+    logger.info(
+        "Georegistration: scale %.6g, %d/%d inliers, RMS %.3f m", sim3.scale, num, len(target), rms
+    )
+    return Georegistration(sim3=sim3, inlier_mask=inliers, residuals=residuals, rms=rms,
+                           image_ids=image_ids, max_error=float(threshold), warnings=[])
+
+
+@dataclass
+class _Geometry:
+    """The camera centres' and GNSS positions' spread (principal standard deviations), GNSS's
+    median sigma per axis and how far (m) the centres deviate from a line."""
+
+    spread_src: np.ndarray
+    sigma_axis: np.ndarray
+    sigma_horizontal: float
+    lateral: float
+
+    @classmethod
+    def of(cls, source: np.ndarray, target: np.ndarray, sigmas: np.ndarray,
+           options: GeoregistrationOptions) -> "_Geometry":
+        """The geometry checks: the reconstruction's centres are noise-free in their own
+        frame, so collinearity is judged there; the baseline is judged against the GNSS
+        noise (the main axis of a flight is horizontal: against the horizontal sigma)."""
+        spread_src = _principal_std(source)
+        if spread_src[0] <= 0:
+            raise GeoregistrationError(
+                f"the {len(source)} camera centres with GNSS coincide: no baseline for a "
+                "similarity transform")
+        sigma_axis = np.median(sigmas, axis=0)
+        spread_tgt = _principal_std(target)
+        sigma_horizontal = float(sigma_axis[:2].max())
+        if spread_tgt[0] < options.min_baseline_sigmas * sigma_horizontal:
+            raise GeoregistrationError(
+                f"the GNSS positions spread only {spread_tgt[0]:.2f} m (std along the main "
+                f"axis), not more than {options.min_baseline_sigmas:g} x their horizontal "
+                f"sigma ({sigma_horizontal:.2f} m): not enough baseline for a similarity "
+                "transform")
+        lateral = spread_src[1] * spread_tgt[0] / spread_src[0]
+        return cls(spread_src, sigma_axis, sigma_horizontal, float(lateral))
+
+    def roll_sigma(self, target: np.ndarray, residuals: np.ndarray) -> float | None:
+        """How well GNSS fixes the rotation about a nearly straight line (deg): its scatter
+        across the line over the centres' deviation from it (what the data show, not the
+        stated sigma: filtered GNSS scatters far less than it states); None where the
+        centres deviate from a line by more than GNSS's horizontal sigma."""
+        if self.lateral >= self.sigma_horizontal:
+            return None
+        direction = np.linalg.svd(target - target.mean(0))[2][0]
+        across = residuals - np.outer(residuals @ direction, direction)
+        scatter = float(np.sqrt(np.mean(np.sum(across ** 2, axis=1)) / 2))
+        return float(np.degrees(scatter / (self.lateral * np.sqrt(len(residuals)))))
+
+
+def _robust_similarity(source: np.ndarray, target: np.ndarray, threshold: float,
+                       min_inliers: int, options: GeoregistrationOptions):
+    """pycolmap's LO-RANSAC similarity from `source` to `target` within `threshold` (m), then
+    least-squares refits on the inliers until they are stable: (Sim3d, inlier mask)."""
+    import pycolmap
+
     ransac = pycolmap.RANSACOptions()
     ransac.max_error = float(threshold)
     ransac.confidence = options.confidence
@@ -231,45 +258,38 @@ def estimate_georegistration(
         sim3, inliers = refit, new_inliers
         if stable:
             break
-    residuals = target - transform_points(sim3, source)
-    num = int(inliers.sum())
-    if num < min_inliers:
+    if int(inliers.sum()) < min_inliers:
         raise GeoregistrationError(
-            f"only {num} of {len(target)} GNSS positions agree with a similarity transform "
-            f"within {threshold:.2f} m (at least {min_inliers} needed)"
+            f"only {int(inliers.sum())} of {len(target)} GNSS positions agree with a similarity "
+            f"transform within {threshold:.2f} m (at least {min_inliers} needed)"
         )
-    rms = float(np.sqrt(np.mean(np.sum(residuals[inliers] ** 2, axis=1))))
-    if num < len(target):
-        worst = np.argsort(-np.linalg.norm(residuals, axis=1))[: min(5, len(target) - num)]
-        names = [reconstruction.image(int(image_ids[i])).name for i in worst]
-        logger.warning(
-            "%d of %d GNSS positions rejected as outliers (> %.2f m), e.g. %s",
-            len(target) - num, len(target), threshold, names,
-        )
-    if lateral < sigma_horizontal:
-        # How well GNSS fixes the rotation about the line: its scatter across the line over
-        # the centres' deviation from it (what the data show, not the stated sigma: filtered
-        # GNSS scatters far less than it states).
-        direction = np.linalg.svd(target - target.mean(0))[2][0]
-        across = residuals[inliers] - np.outer(residuals[inliers] @ direction, direction)
-        scatter = float(np.sqrt(np.mean(np.sum(across ** 2, axis=1)) / 2))
-        roll_sigma = np.degrees(scatter / (lateral * np.sqrt(num)))
-        if roll_sigma > options.max_roll_sigma_deg:
-            return along_the_line(f"GNSS fixes the rotation about it to {roll_sigma:.0f} deg")
-    for warning in warnings:
-        logger.warning(warning)
-    logger.info(
-        "Georegistration: scale %.6g, %d/%d inliers, RMS %.3f m", sim3.scale, num, len(target), rms
-    )
-    return Georegistration(
-        sim3=sim3,
-        inlier_mask=inliers,
-        residuals=residuals,
-        rms=rms,
-        image_ids=image_ids,
-        max_error=float(threshold),
-        warnings=warnings,
-    )
+    return sim3, inliers
+
+
+def _along_the_line(reconstruction, image_ids, source: np.ndarray, target: np.ndarray,
+                    lateral: float, reason: str) -> Georegistration:
+    """GNSS fixes the line but not the rotation about it: that comes from the cameras, and
+    where they look sideways, from the tie points' walls and level planes."""
+    right, up = camera_axes(reconstruction, image_ids)
+    sim3 = upright_line_similarity(source, target, right, up)
+    sim3, levelled = level_about_line(sim3, reconstruction, source, right, up)
+    residuals = target - transform_points(sim3, source)
+    rms = float(np.sqrt(np.mean(np.sum(residuals ** 2, axis=1))))
+    cues = dict(LINE_CUES)
+    if levelled is not None:
+        cues["roll_about_line"] = LEVEL_ROLL_CUE
+    warning = (
+        f"the camera centres with GNSS deviate only ~{lateral:.1f} m from a line ({reason}): "
+        "the rotation about the flight line comes from "
+        + ("the cameras' upright orientation" if levelled is None else
+           f"the tie points' walls and level planes (turned {levelled:+.1f} deg from the "
+           "cameras' upright orientation)")
+        + " until the model planes fix it")
+    logger.warning(warning)
+    logger.info("Georegistration along a line: scale %.6g, RMS %.3f m", sim3.scale, rms)
+    return Georegistration(sim3=sim3, inlier_mask=np.ones(len(target), bool),
+                           residuals=residuals, rms=rms, image_ids=image_ids,
+                           max_error=float("nan"), warnings=[warning], cues=cues)
 
 
 def camera_axes(reconstruction, image_ids) -> tuple[np.ndarray, np.ndarray]:

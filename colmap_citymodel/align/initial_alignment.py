@@ -47,73 +47,52 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
                          sigma_plane: float, loss_scale: float = 2.0,
                          antennas: np.ndarray | None = None, gnss: np.ndarray | None = None,
                          gnss_sigmas: np.ndarray | None = None, max_iterations: int = 50,
-                         scale_sigma: float | None = None, gnss_free_axes=None
-                         ) -> PlaneAlignment:
+                         scale_sigma: float | None = None, gnss_free_axes=None,
+                         gnss_model=None) -> PlaneAlignment:
     """The similarity X -> c + s R (X - c) + t that puts `points` on their planes.
 
     Minimises sum rho((n.X' + d) / sigma_plane) with Huber's rho (scale `loss_scale`, the f_dTP
-    loss of the hybrid adjustment) plus, when given, sum ((A' - G) / sigma_G)^2 of the GNSS
-    antenna positions A (current block) against their observations G, plus (log s / scale_sigma)^2
-    when `scale_sigma` is given: the scale may change only as far as GNSS determines it (planes
-    alone pull a block whose assignments are partly wrong towards a smaller size, where every
-    distance is shorter); the scale is also bounded to +- SCALE_BOUND_SIGMAS of it. Along
-    `gnss_free_axes` (bool (3,)) a constant offset of all GNSS positions is an unknown as well
-    (GNSSPriors.offset_axes), so GNSS holds only the block's shape there, not its level.
-    Gauss-Newton with iteratively reweighted least squares; analytic Jacobian about the
-    centroid c.
+    loss of the hybrid adjustment) plus, when given, the chi-square of the GNSS antenna
+    positions A (current block) against their observations G under GNSS's error model
+    (`gnss_model`, errormodel.gnss.GNSSErrorModel: white noise, the bias common to the block,
+    the slowly varying part; else independent positions of `gnss_sigmas`, with the level free
+    along `gnss_free_axes`, bool (3,)), plus (log s / scale_sigma)^2 when `scale_sigma` is
+    given: the scale may change only as far as GNSS determines it (planes alone pull a block
+    whose assignments are partly wrong towards a smaller size, where every distance is
+    shorter); the scale is also bounded to +- SCALE_BOUND_SIGMAS of it. Gauss-Newton with
+    iteratively reweighted least squares; analytic Jacobian about the centroid c.
     """
-    points = np.asarray(points, float)
-    normals = np.asarray(normals, float)
+    from ..errormodel.gnss import GNSSErrorModel
+
+    points, normals = np.asarray(points, float), np.asarray(normals, float)
     offsets = np.asarray(offsets, float)
+    planes = _PlaneTerm(points, normals, offsets, sigma_plane, loss_scale)
+    if gnss is not None and len(gnss) and gnss_model is None:
+        gnss_model = GNSSErrorModel.independent(gnss_sigmas, gnss_free_axes)
+    term = None if gnss is None or not len(gnss) else _GNSSTerm(
+        np.asarray(antennas, float), np.asarray(gnss, float), gnss_model)
     centre = points.mean(0)
     # The similarity accumulated so far: X' = centre + scale * rotation (X - centre) + shift.
     rotation, scale, shift = np.eye(3), 1.0, np.zeros(3)
-    free = (np.zeros(3, bool) if gnss_free_axes is None or gnss is None
-            else np.asarray(gnss_free_axes, bool))
-    num_free = int(free.sum())
-    offset = np.zeros(3)  # the GNSS offset along the free axes (unknowns 7.. of the system)
 
     def apply(x: np.ndarray) -> np.ndarray:
         return centre + scale * (x - centre) @ rotation.T + shift
 
-    def plane_residuals(x: np.ndarray) -> np.ndarray:
-        return (np.einsum("ij,ij->i", normals, x) + offsets) / sigma_plane
-
-    def inlier_rms(r: np.ndarray) -> float:
-        inliers = np.abs(r) <= loss_scale
-        return float(np.sqrt(np.mean(r[inliers] ** 2)) * sigma_plane) if inliers.any() else np.nan
-
-    rms_before = inlier_rms(plane_residuals(points))
+    rms_before = planes.inlier_rms(points)
     iteration = 0
     for iteration in range(1, max_iterations + 1):
         moved = apply(points)
-        r = plane_residuals(moved)
-        y = moved - centre
-        # d r / d (omega, t, log s) at the current state, for X' -> X' + omega x y + t + y ds.
-        jacobian = np.hstack([np.cross(y, normals), normals,
-                              np.einsum("ij,ij->i", normals, y)[:, None]]) / sigma_plane
-        weights = np.minimum(1.0, loss_scale / np.maximum(np.abs(r), 1e-12))  # Huber IRLS
-        size = 7 + num_free
-        jacobian = np.hstack([jacobian, np.zeros((len(jacobian), num_free))])
-        normal_matrix = jacobian.T @ (jacobian * weights[:, None])
-        rhs = -jacobian.T @ (weights * r)
-        if gnss is not None and len(gnss):
-            a = apply(antennas) - centre
-            rg = ((a + centre - gnss - offset) / gnss_sigmas).ravel()
-            jo = -np.broadcast_to(np.eye(3)[:, free], (len(a), 3, num_free))
-            jg = np.concatenate([-_skew(a), np.broadcast_to(np.eye(3), (len(a), 3, 3)),
-                                 a[:, :, None], jo], axis=2) / gnss_sigmas[:, :, None]
-            jg = jg.reshape(-1, size)
-            normal_matrix += jg.T @ jg
-            rhs -= jg.T @ rg
+        normal_matrix, rhs = planes.normal_equations(moved, centre)
+        if term is not None:
+            gain, right = term.normal_equations(apply(term.antennas), centre)
+            normal_matrix, rhs = normal_matrix + gain, rhs + right
         if scale_sigma is not None:
             normal_matrix[6, 6] += 1.0 / scale_sigma ** 2
             rhs[6] -= np.log(scale) / scale_sigma ** 2
         # A tiny damping keeps directions no plane constrains (e.g. parallel facades) at zero.
         damping = 1e-9 * max(np.trace(normal_matrix), 1.0)
-        step = np.linalg.solve(normal_matrix + damping * np.eye(size), rhs)
+        step = np.linalg.solve(normal_matrix + damping * np.eye(7), rhs)
         omega, dt, ds = step[:3], step[3:6], step[6]
-        offset[free] += step[7:]
         increment = np.asarray(pycolmap.Rotation3d(omega).matrix())
         # Compose: new X' = centre + e^ds * dR (X'_old - centre) + dt.
         if scale_sigma is not None:
@@ -124,9 +103,61 @@ def similarity_to_planes(points: np.ndarray, normals: np.ndarray, offsets: np.nd
         scale *= float(np.exp(ds))
         shift = np.exp(ds) * increment @ shift + dt
         # Converged when the update moves no point by more than 0.1 mm.
-        radius = float(np.max(np.linalg.norm(y, axis=1)))
+        radius = float(np.max(np.linalg.norm(moved - centre, axis=1)))
         if (np.linalg.norm(omega) + abs(ds)) * radius + np.linalg.norm(dt) < 1e-4:
             break
     sim3 = pycolmap.Sim3d(scale, pycolmap.Rotation3d(rotation),
                           centre + shift - scale * rotation @ centre)
-    return PlaneAlignment(sim3, rms_before, inlier_rms(plane_residuals(apply(points))), iteration)
+    return PlaneAlignment(sim3, rms_before, planes.inlier_rms(apply(points)), iteration)
+
+
+@dataclass
+class _PlaneTerm:
+    """The tie points' part of similarity_to_planes: Huber-weighted distances to their planes."""
+
+    points: np.ndarray
+    normals: np.ndarray
+    offsets: np.ndarray
+    sigma: float
+    loss_scale: float
+
+    def residuals(self, x: np.ndarray) -> np.ndarray:
+        return (np.einsum("ij,ij->i", self.normals, x) + self.offsets) / self.sigma
+
+    def inlier_rms(self, x: np.ndarray) -> float:
+        r = self.residuals(x)
+        inliers = np.abs(r) <= self.loss_scale
+        return float(np.sqrt(np.mean(r[inliers] ** 2)) * self.sigma) if inliers.any() else np.nan
+
+    def normal_equations(self, moved: np.ndarray, centre: np.ndarray):
+        """(7x7, 7) of the Huber IRLS step in (omega, t, log s) at the moved points."""
+        r = self.residuals(moved)
+        y = moved - centre
+        # d r / d (omega, t, log s) at the current state, for X' -> X' + omega x y + t + y ds.
+        jacobian = np.hstack([np.cross(y, self.normals), self.normals,
+                              np.einsum("ij,ij->i", self.normals, y)[:, None]]) / self.sigma
+        weights = np.minimum(1.0, self.loss_scale / np.maximum(np.abs(r), 1e-12))
+        return jacobian.T @ (jacobian * weights[:, None]), -jacobian.T @ (weights * r)
+
+
+@dataclass
+class _GNSSTerm:
+    """GNSS's part of similarity_to_planes: the antennas against the observations, per axis
+    weighted by the inverse of GNSS's covariance over the block (its error model)."""
+
+    antennas: np.ndarray
+    observed: np.ndarray
+    model: object  # errormodel.gnss.GNSSErrorModel
+
+    def normal_equations(self, moved: np.ndarray, centre: np.ndarray):
+        """(7x7, 7) of the Gauss-Newton step in (omega, t, log s) at the moved antennas."""
+        a = moved - centre
+        jacobian = np.concatenate([-_skew(a), np.broadcast_to(np.eye(3), (len(a), 3, 3)),
+                                   a[:, :, None]], axis=2)  # (n, 3, 7)
+        v = moved - self.observed
+        normal_matrix, rhs = np.zeros((7, 7)), np.zeros(7)
+        for axis in range(3):
+            j = jacobian[:, axis, :]
+            normal_matrix += j.T @ self.model.weigh(axis, j)
+            rhs -= j.T @ self.model.weigh(axis, v[:, axis])
+        return normal_matrix, rhs

@@ -51,6 +51,14 @@ class GNSSErrorModel:
                    track_distance(np.asarray(centres, float)),
                    np.asarray(priors.free_offset_axes, bool).copy())
 
+    @classmethod
+    def independent(cls, sigmas, free_axes=None) -> "GNSSErrorModel":
+        """Positions with white noise of `sigmas` (n, 3) only, the level free along
+        `free_axes` (bool (3,))."""
+        sigmas = np.asarray(sigmas, float).reshape(-1, 3)
+        free = np.zeros(3, bool) if free_axes is None else np.asarray(free_axes, bool)
+        return cls(sigmas, np.zeros(3), np.zeros(3), 0.0, np.zeros(len(sigmas)), free)
+
     def covariance(self, axis: int) -> np.ndarray:
         """(n, n) covariance of the positions along `axis` (free axes: their white part and
         drift only; the common level is free)."""
@@ -79,20 +87,37 @@ class GNSSErrorModel:
             inverse = inverse - np.outer(one, one) / one.sum()
         return inverse
 
+    def weigh(self, axis: int, x: np.ndarray) -> np.ndarray:
+        """`weights(axis)` @ x for x (n,) or (n, k): without the slowly varying part in closed
+        form (the white noise's diagonal and the bias's rank one, Woodbury), so a block of
+        thousands of images needs no dense matrix."""
+        x = np.asarray(x, float)
+        if self.drift[axis] > 0 and self.length > 0:
+            return self.weights(axis) @ x
+        inverse_diagonal = 1.0 / self.sigmas[:, axis] ** 2
+        d = inverse_diagonal.reshape((-1,) + (1,) * (x.ndim - 1)) * x
+        if self.free_axes[axis]:  # the level free: its projector removed
+            return d - np.multiply.outer(inverse_diagonal, d.sum(axis=0)) / inverse_diagonal.sum()
+        if self.bias[axis] > 0:
+            denominator = 1.0 / self.bias[axis] ** 2 + inverse_diagonal.sum()
+            return d - np.multiply.outer(inverse_diagonal, d.sum(axis=0)) / denominator
+        return d
+
     def shift_sigma(self) -> np.ndarray:
         """(3,) sigma (m) of the block's position from GNSS alone per axis: 1 / sqrt(1^T W 1);
         inf along a free axis."""
         out = np.full(3, np.inf)
+        ones = np.ones(len(self.sigmas))
         for axis in range(3):
             if not self.free_axes[axis] and len(self.sigmas):
-                out[axis] = 1.0 / np.sqrt(max(float(self.weights(axis).sum()), 1e-300))
+                out[axis] = 1.0 / np.sqrt(max(float(self.weigh(axis, ones).sum()), 1e-300))
         return out
 
     def chi2(self, residuals: np.ndarray) -> float:
         """The squared Mahalanobis norm of (n, 3) residuals (where the block puts what GNSS
         observed minus the observations) under the model."""
         v = np.asarray(residuals, float).reshape(-1, 3)
-        return float(sum(v[:, a] @ self.weights(a) @ v[:, a] for a in range(3)))
+        return float(sum(v[:, a] @ self.weigh(a, v[:, a]) for a in range(3)))
 
     def shift_quadratic(self, residuals: np.ndarray) -> "ShiftQuadratic":
         """chi2 of the residuals after a common shift t of the block, as a quadratic in t:
@@ -100,11 +125,10 @@ class GNSSErrorModel:
         v = np.asarray(residuals, float).reshape(-1, 3)
         p, q, c = np.zeros(3), np.zeros(3), 0.0
         for axis in range(3):
-            w = self.weights(axis)
-            ones = w.sum(axis=1)
+            ones = self.weigh(axis, np.ones(len(v)))
             p[axis] = float(ones.sum())
             q[axis] = float(ones @ v[:, axis])
-            c += float(v[:, axis] @ w @ v[:, axis])
+            c += float(v[:, axis] @ self.weigh(axis, v[:, axis]))
         return ShiftQuadratic(c, q, p)
 
 
