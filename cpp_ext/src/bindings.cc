@@ -114,8 +114,8 @@ PYBIND11_MODULE(_core, m) {
         CheckFinite(reference, "reference");
         if (!tilt_axes.allFinite()) throw std::invalid_argument("tilt_axes must be finite");
         if (scaled) CheckSigma(length0, "length0");
-        return PointPlaneEffectsDistanceCostFunctor::Create(sigma, reference, tilt_axes,
-                                                            length0, scaled);
+        return new PointPlaneEffectsDistanceCost(sigma, reference, tilt_axes, length0,
+                                                 scaled);
       },
       "sigma"_a,
       "reference"_a,
