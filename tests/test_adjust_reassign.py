@@ -169,15 +169,14 @@ def test_a_kept_problem_switched_to_the_robust_loss_solves_as_a_new_robust_one(s
     assert np.max(np.abs(solutions[True] - solutions[False])) > 1e-4
 
 
-def test_refine_with_one_problem_equals_refine_with_new_problems():
-    scene = make_street_scene(StreetSceneOptions(seed=7))
-    results = {}
-    for reuse in (True, False):
-        options = RefineOptions()
-        options.precision.covariances = "off"
-        options.workflow.reuse_problem = reuse
-        result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
-        results[reuse] = result
+def test_refine_with_one_problem_equals_refine_with_new_problems(street_scene, street_refined):
+    scene = street_scene
+    assert RefineOptions().workflow.reuse_problem  # street_refined kept its problems
+    options = RefineOptions()
+    options.precision.covariances = "off"
+    options.workflow.reuse_problem = False
+    results = {True: street_refined,
+               False: refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)}
     truth = pycolmap.Reconstruction(scene.truth)
     truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), scene.store.origin))
     errors = {k: float(np.sqrt(np.mean(centre_errors(r.reconstruction_in_crs(), truth) ** 2)))
