@@ -16,7 +16,8 @@ a solve that moves the block away from the model ends the loop at the best itera
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
 priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
-plane); an assignment equal to the one the last solve used ends the loop without a solve.
+plane, and switches their loss for the next iteration's robust solve); an assignment equal to
+the one the last solve used ends the loop without a solve.
 """
 
 from __future__ import annotations
