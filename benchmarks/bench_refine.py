@@ -35,8 +35,17 @@ them as a markdown table; `--assignment_only` skips the plain/hybrid solve figur
 machine's load moves every figure: compare fractions, and runs against a baseline measured
 alongside.
 
+`--profile N` (default 25; 0: none) runs one more refine with the default options under
+cProfile and prints, after `refine_ratio`, where its time went: every iteration's solves (the
+robust and the final one: seconds, Ceres iterations) and how far it moved the cameras, the
+problems built and kept, and the N functions with the most time of their own and with the
+most time in all; `--profile_out FILE` also writes them as markdown
+(benchmarks/results/refine_profile_quick.md). The profiled refine runs slower than the timed
+ones (cProfile's own cost): read its shares, not its seconds.
+
     .venv/bin/python benchmarks/bench_refine.py [--quick | --scenario long_scn3] [--workspace DIR]
         [--methods direct msac roi_msac] [--refine_runs N] [--assignment_only] [--results FILE]
+        [--profile N] [--profile_out FILE]
 """
 
 from __future__ import annotations
@@ -267,7 +276,83 @@ def solve_figures(sfm, store, gnss, truth, workspace: Path, refine_runs: int = 1
     print(f"hybrid_solve_ratio {hybrid_s / plain_s:.3f}")
     print(f"assignment_fraction {median['fraction']:.4f}")
     print(f"refine_ratio {refine_s / plain_s:.3f}")
+    median["plain_s"] = plain_s
     return median
+
+
+class SolveSpy:
+    """Counts the hybrid problems built and kept (HybridProblem.__init__ and .reassign) and the
+    CPU seconds of each build, while installed."""
+
+    def __init__(self):
+        self.builds, self.kept, self.refused = [], 0, 0
+        self.init, self.reassign = HybridProblem.__init__, HybridProblem.reassign
+        spy = self
+
+        def init(problem, *args, **kwargs):
+            start = time.process_time()
+            spy.init(problem, *args, **kwargs)
+            spy.builds.append(time.process_time() - start)
+
+        def reassign(problem, *args, **kwargs):
+            kept = spy.reassign(problem, *args, **kwargs)
+            spy.kept += bool(kept)
+            spy.refused += not kept
+            return kept
+
+        HybridProblem.__init__, HybridProblem.reassign = init, reassign
+
+    def restore(self) -> None:
+        HybridProblem.__init__, HybridProblem.reassign = self.init, self.reassign
+
+
+def iteration_lines(result) -> list[str]:
+    """One line per loop iteration: its solves, how far it moved the cameras, what it changed."""
+    lines = []
+    for it in result.iterations:
+        robust = (f"robust {it.robust.seconds:.2f} s / {it.robust.ceres_iterations} it"
+                  if it.robust is not None and it.robust is not it.final else
+                  "robust only" if it.robust is not None else "no robust solve")
+        lines.append(f"| {it.iteration} | {it.phase} | {it.threshold:.2f} | {it.num_assigned} | "
+                     f"{it.num_faces} | {it.num_eliminated} | {robust} | "
+                     f"{it.final.seconds:.2f} s / {it.final.ceres_iterations} it | "
+                     f"{it.camera_shift * 1000:.1f} | {it.relative_change:.1e} |")
+    return lines
+
+
+def profile_refine(sfm, store, gnss, top: int) -> str:
+    """One refine with the default options (covariances off) under cProfile: a markdown
+    summary of its iterations, its problems and its top functions."""
+    import cProfile
+    import io
+    import pstats
+
+    options = RefineOptions()
+    options.precision.covariances = "off"
+    spy = SolveSpy()
+    profiler = cProfile.Profile()
+    wall, cpu = time.perf_counter(), time.process_time()
+    try:
+        profiler.enable()
+        result = refine(sfm, store, gnss, options, progress=False)
+        profiler.disable()
+    finally:
+        spy.restore()
+    wall, cpu = time.perf_counter() - wall, time.process_time() - cpu
+    stages = ", ".join(f"{k} {v:.1f}" for k, v in result.seconds.items())
+    out = [f"profiled refine: {wall:.1f} s wall, {cpu:.1f} s CPU ({stages}); "
+           f"{len(spy.builds)} hybrid problems built ({sum(spy.builds):.1f} s CPU), "
+           f"{spy.kept} kept by reassign, {spy.refused} reassigns refused", "",
+           "| iteration | loop | threshold m | points | planes | eliminated | robust solve | "
+           "final solve | largest camera move mm | RMS change |",
+           "|---|---|---|---|---|---|---|---|---|---|", *iteration_lines(result), ""]
+    for order in ("tottime", "cumulative"):
+        text = io.StringIO()
+        pstats.Stats(profiler, stream=text).sort_stats(order).print_stats(top)
+        body = text.getvalue()
+        body = body[body.index("ncalls"):] if "ncalls" in body else body
+        out += [f"top {top} by {order}:", "", "```", body.rstrip(), "```", ""]
+    return "\n".join(out)
 
 
 def main() -> None:
@@ -291,6 +376,11 @@ def main() -> None:
                         help="only the refines per assignment method (no plain/hybrid solves)")
     parser.add_argument("--results", type=Path,
                         help="write the per-method figures to this markdown file")
+    parser.add_argument("--profile", type=int, default=25, metavar="N",
+                        help="after the timed refines, one refine under cProfile: its "
+                             "iterations and its N top functions (0: none)")
+    parser.add_argument("--profile_out", type=Path,
+                        help="write the profile's summary to this markdown file")
     args = parser.parse_args()
     logger.setLevel(logging.WARNING)
     scenario = "short_scn3" if args.quick else args.scenario
@@ -324,6 +414,18 @@ def main() -> None:
         print(method_line(rows[-1]))
     table = results_table(rows)
     print(table)
+    if args.profile > 0:
+        summary = profile_refine(sfm, store, gnss, args.profile)
+        ratio = (f"refine_ratio {rows[0]['refine_s'] / rows[0]['plain_s']:.3f} (refine "
+                 f"{rows[0]['refine_s']:.1f} s, COLMAP's bundle adjustment "
+                 f"{rows[0]['plain_s']:.1f} s)" if "plain_s" in rows[0] else "")
+        print(ratio + "\n" + summary)
+        if args.profile_out is not None:
+            args.profile_out.parent.mkdir(parents=True, exist_ok=True)
+            args.profile_out.write_text(
+                f"# Profile of refine on `{workspace.name}`\n\ncode {version}; {ratio}\n\n"
+                + summary + "\n")
+            print(f"wrote {args.profile_out}")
     if args.results is not None:
         args.results.parent.mkdir(parents=True, exist_ok=True)
         args.results.write_text(

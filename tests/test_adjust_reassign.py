@@ -131,7 +131,7 @@ def test_reassigned_problem_solves_as_a_new_one(scene):
     np.testing.assert_allclose(q[0], q[1], rtol=1e-4, atol=1e-6 * np.abs(q[1]).max())
 
 
-def test_reassign_refuses_other_planes_or_loss(scene):
+def test_reassign_refuses_other_planes(scene):
     scene, rec, priors, first, second = scene
     problem = HybridProblem(pycolmap.Reconstruction(rec), scene.store, first, priors,
                             _options(), robust_images=False, robust_planes=False)
@@ -139,21 +139,44 @@ def test_reassign_refuses_other_planes_or_loss(scene):
     fewer = first.without(first.face_index == face)
     counts = dict(problem.counts)
     assert not problem.reassign(fewer, scene.store)
-    assert not problem.reassign(second, scene.store, robust_planes=True)
     assert problem.counts == counts  # nothing changed
     assert problem.reassign(first, scene.store)  # the same assignment: nothing to exchange
     assert problem.counts == counts
 
 
-def test_refine_with_one_problem_equals_refine_with_new_problems():
-    scene = make_street_scene(StreetSceneOptions(seed=7))
-    results = {}
-    for reuse in (True, False):
-        options = RefineOptions()
-        options.precision.covariances = "off"
-        options.workflow.reuse_problem = reuse
-        result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
-        results[reuse] = result
+def test_a_kept_problem_switched_to_the_robust_loss_solves_as_a_new_robust_one(scene):
+    """The robust solve of an iteration and the solve with the original weights share one
+    problem: switched robust, it reaches the robust problem's solution, with its
+    downweighted f_dTP; switched back, the non-robust one's."""
+    scene, rec, priors, first, second = scene
+    options = _options()
+    options.plane_loss_scale = 0.5  # Huber bends at 0.5 sigma_dtp: many f_dTP downweighted
+    solutions = {}
+    for robust in (True, False):
+        kept_rec, new_rec = pycolmap.Reconstruction(rec), pycolmap.Reconstruction(rec)
+        kept = HybridProblem(kept_rec, scene.store, first, priors, options,
+                             robust_images=False, robust_planes=not robust)
+        assert kept.reassign(second, scene.store, robust_planes=robust)
+        assert kept.robust_planes == robust
+        kept.solve()
+        new = HybridProblem(new_rec, scene.store, second, priors, options,
+                            robust_images=False, robust_planes=robust)
+        new.solve()
+        np.testing.assert_allclose(_poses(kept_rec), _poses(new_rec), atol=1e-6)
+        np.testing.assert_allclose(_points(kept_rec), _points(new_rec), atol=1e-6)
+        solutions[robust] = _points(kept_rec)
+    # The loss did act: the robust and the non-robust solutions differ.
+    assert np.max(np.abs(solutions[True] - solutions[False])) > 1e-4
+
+
+def test_refine_with_one_problem_equals_refine_with_new_problems(street_scene, street_refined):
+    scene = street_scene
+    assert RefineOptions().workflow.reuse_problem  # street_refined kept its problems
+    options = RefineOptions()
+    options.precision.covariances = "off"
+    options.workflow.reuse_problem = False
+    results = {True: street_refined,
+               False: refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)}
     truth = pycolmap.Reconstruction(scene.truth)
     truth.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(), scene.store.origin))
     errors = {k: float(np.sqrt(np.mean(centre_errors(r.reconstruction_in_crs(), truth) ** 2)))

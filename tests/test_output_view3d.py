@@ -421,12 +421,9 @@ def test_headless_chromium_draws_every_trace_without_errors(chromium, report, tm
     assert float(state["readyMs"]) < 30_000
 
 
-def test_write_refined_puts_the_view_into_report_html(chromium, tmp_path, street_scene):
+def test_write_refined_puts_the_view_into_report_html(chromium, tmp_path, street_refined):
     """The whole output stage on a refined street (what `refine`, `batch` and `demo` write)."""
-    import colmap_citymodel
-
-    refined = colmap_citymodel.refine(street_scene.sfm, street_scene.store, street_scene.gnss(),
-                                      colmap_citymodel.RefineOptions(), progress=False)
+    refined = street_refined
     out = write_refined(refined, tmp_path / "refined")
     page = (out / "report.html").read_text()
     assert page.index(f"id='{view3d.ANCHOR}'") < page.index("<h2>Summary</h2>")

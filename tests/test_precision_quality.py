@@ -156,7 +156,7 @@ def test_only_directions_no_plane_holds_rest_on_gnss_alone():
     assert gnss_alone(rows) == ["N"]  # E: the planes'; U: one roof holds it
 
 
-def test_a_loop_stopped_before_it_settled_is_weak(scene):
+def test_a_loop_stopped_before_it_settled_is_weak(scene, street_refined):
     """No similarity rounds and one iteration only: the first solve moves the block by metres
     onto its planes, so the loop has not settled, and the verdict says so. Every tie point
     alike: one loop (with the faces' errors estimated a second one runs from its block)."""
@@ -174,7 +174,7 @@ def test_a_loop_stopped_before_it_settled_is_weak(scene):
     for axis in "ENU":
         row = result.observability[axis]
         assert row["sigma"] >= row["remaining_move_m"] > 0
-    settled = refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+    settled = street_refined  # the default options on the same street
     assert settled.quality.metrics["unsettled_shift_m"] is None
 
 

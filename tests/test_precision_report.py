@@ -22,8 +22,8 @@ def scene(street_scene):
 
 
 @pytest.fixture(scope="module")
-def refined(scene):
-    return refine(scene.sfm, scene.store, scene.gnss(), RefineOptions(), progress=False)
+def refined(street_refined):
+    return street_refined
 
 
 @pytest.fixture(scope="module")

@@ -536,3 +536,28 @@ def test_orbit_options_are_checked(tmp_path):
     p.write_text('[flight]\nmode = "circle"\n')
     with pytest.raises(InputError, match="flight.mode"):
         load_scenario(p)
+
+
+def test_a_sequence_placed_meanwhile_by_another_run_stays(tmp_path):
+    """Two runs that build the same sequence into one cache: the second keeps the first's
+    (equal by their key), so that a run deriving from it never sees it removed; a leftover of
+    an unfinished build is replaced."""
+    from colmap_citymodel.simulate.sequence import _place_sequence
+
+    def built(name: str, finished: bool = True) -> Path:
+        path = tmp_path / name
+        path.mkdir()
+        (path / "marker").write_text(name)
+        if finished:
+            (path / "simulation.json").write_text("{}")
+        return path
+
+    seq_dir = tmp_path / "cache" / "seq-abc"
+    seq_dir.parent.mkdir()
+    _place_sequence(built("first"), seq_dir)
+    _place_sequence(built("second"), seq_dir)
+    assert (seq_dir / "marker").read_text() == "first"
+    leftover = tmp_path / "cache" / "seq-def"
+    built("leftover", finished=False).rename(leftover)
+    _place_sequence(built("third"), leftover)
+    assert (leftover / "marker").read_text() == "third"

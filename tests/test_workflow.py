@@ -32,12 +32,9 @@ def scene(street_scene):
 
 
 @pytest.fixture(scope="module")
-def refined(scene):
-    import colmap_citymodel
-
-    # The package-level API, on pycolmap objects in memory.
-    return colmap_citymodel.refine(scene.sfm, scene.store, scene.gnss(),
-                                   colmap_citymodel.RefineOptions(), progress=False)
+def refined(street_refined):
+    # The package-level API, on pycolmap objects in memory (conftest.street_refined).
+    return street_refined
 
 
 def test_gnss_only_adjustment_is_metres_off(scene):

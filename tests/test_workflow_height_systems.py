@@ -31,12 +31,12 @@ DELTA_GEOID = 0.8
 ABOVE_TAKE_OFF = 120.0
 
 
-def build_workspace(workdir: Path) -> Path:
+def build_workspace(workdir: Path, cache: Path | None = None) -> Path:
     from colmap_citymodel.simulate import sequence
 
     workspace = workdir / "workspace"
     if not (workspace / "database.db").exists():
-        sequence.main(DEMO, workspace, progress=False)
+        sequence.main(DEMO, workspace, cache_path=cache, progress=False)
     # The demo model names EPSG:25832 alone; a German LoD2 tile names its height system too.
     model = workspace / "given_model.gml"
     dhhn = workspace / "model_dhhn2016.gml"
@@ -99,11 +99,11 @@ RUNS = {  # name: (GNSS file, its CRS, --gnss_height_offset)
 
 
 @pytest.fixture(scope="module")
-def runs(tmp_path_factory):
+def runs(tmp_path_factory, sequence_cache):
     if crs_module.fallback_geoid() is None:
         pytest.skip("EGM96 grid (Debian proj-data) not installed")
     workdir = tmp_path_factory.mktemp("height_systems")
-    workspace = build_workspace(workdir)
+    workspace = build_workspace(workdir, sequence_cache)
     results = {name: run(workspace, workdir / name, *spec) for name, spec in RUNS.items()}
     return workspace, results
 

@@ -134,7 +134,7 @@ def test_the_corrected_file_loads_in_model_info(run, capsys):
 
 
 @pytest.mark.slow
-def test_the_simulator_builds_a_block_on_the_corrected_file(run, tmp_path):
+def test_the_simulator_builds_a_block_on_the_corrected_file(run, tmp_path, sequence_cache):
     from colmap_citymodel.simulate.sequence import main as simulate
 
     truth, given, result, out, gid = run
@@ -144,6 +144,7 @@ def test_the_simulator_builds_a_block_on_the_corrected_file(run, tmp_path):
         "num_key_frames = 12\nspacing = 1.5\nflight_height = 18.0\npitch_deg = 30.0\n\n"
         "[observations]\npoints_per_m2 = 1.0\n\n[checkpoints]\ncount = 5\n\n[scenario]\n"
         'name = "check"\nmodel = "original"\ngnss = "all"\n' % (out / "corrected_model.gml"))
-    workspace = simulate(scenario, tmp_path / "workspace", progress=False)
+    workspace = simulate(scenario, tmp_path / "workspace", cache_path=sequence_cache,
+                         progress=False)
     assert (workspace / "sparse" / "0").is_dir()
     assert read_city_model(workspace / "models" / "corrected.gml").num_faces == given.num_faces

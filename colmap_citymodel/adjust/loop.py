@@ -16,7 +16,8 @@ a solve that moves the block away from the model ends the loop at the best itera
 
 The non-robust problem of one iteration is kept for the next where the set of planes and the
 priors stay (HybridProblem.reassign exchanges the f_dTP blocks of the tie points that changed
-plane); an assignment equal to the one the last solve used ends the loop without a solve.
+plane, and switches their loss for the next iteration's robust solve); an assignment equal to
+the one the last solve used ends the loop without a solve.
 """
 
 from __future__ import annotations
@@ -394,9 +395,9 @@ class _Loop:
             needs_robust = True
         if not needs_robust:
             return final, final_report, robust_report, outliers
-        robust = HybridProblem(rec, store, self.assignment, priors, o_adj, robust_images=False,
-                               robust_planes=True, current=self.current,
-                               baselines=self.baselines, pose_priors=self.pose_priors)
+        robust = _final_problem(self.reusable, rec, store, self.assignment, priors, o_adj,
+                                self.current, self.baselines, self.pose_priors,
+                                robust_planes=True)
         robust_report = robust.solve()
         normalised = robust.residuals["dTP"]
         outliers = robust.point_ids[np.abs(normalised) > o_adj.elimination_threshold]
@@ -687,15 +688,18 @@ def without_contradicted_faces(assignment: Assignment, points: np.ndarray, curre
 def _final_problem(reusable: HybridProblem | None, rec: pycolmap.Reconstruction,
                    store: PlaneStore, assignment: Assignment, priors: GNSSPriors | None,
                    options, current: PlaneStore, baselines: BaselinePriors | None,
-                   pose_priors: PosePriors | None) -> HybridProblem:
-    """The non-robust hybrid problem of `assignment`: `reusable` with its f_dTP blocks
-    exchanged where it can be (same planes and priors), else a new one."""
+                   pose_priors: PosePriors | None, robust_planes: bool = False
+                   ) -> HybridProblem:
+    """The hybrid problem of `assignment` (non-robust, or robust on f_dTP): `reusable` with
+    its f_dTP blocks exchanged and their loss switched where it can be (same planes and
+    priors), else a new one."""
     if reusable is not None and reusable.reconstruction is rec and reusable.reassign(
-            assignment, current, baselines=baselines, pose_priors=pose_priors):
+            assignment, current, robust_planes=robust_planes, baselines=baselines,
+            pose_priors=pose_priors):
         logger.debug("hybrid problem kept: %d f_dTP blocks exchanged", reusable.exchanged)
         return reusable
     return HybridProblem(rec, store, assignment, priors, options, robust_images=False,
-                         robust_planes=False, current=current, baselines=baselines,
+                         robust_planes=robust_planes, current=current, baselines=baselines,
                          pose_priors=pose_priors)
 
 

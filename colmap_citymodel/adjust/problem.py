@@ -391,6 +391,9 @@ class HybridProblem:
         self.problem: pyceres.Problem = self.adjuster.problem
         self.counts = {"image": self.problem.num_residuals()}
         self.robust_planes = robust_planes
+        # Every f_dTP's loss follows this switch (Huber while robust_planes, none otherwise):
+        # `reassign` turns the problem into its robust or its non-robust twin without a build.
+        self._robust = core.RobustSwitch(robust_planes)
         self.baselines = baselines
         self.pose_priors = pose_priors
         self.point_ids = np.zeros(0, np.int64)
@@ -756,9 +759,10 @@ class HybridProblem:
         key = (k, round(float(sigma), 9))
         if key not in self._tie_costs:
             o = self.options
-            # The robust loss bends at the same distance (m) on every face.
-            loss = (pyceres.HuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma)
-                    if self.robust_planes else None)
+            # The robust loss bends at the same distance (m) on every face; switched off it
+            # leaves the residuals as they are (self._robust).
+            loss = load_core().SwitchableHuberLoss(o.plane_loss_scale * o.sigma_dtp / sigma,
+                                                   self._robust)
             factory = (self._offset_factory
                        if self._with_offsets and k in self.blocks.generalisation_slots
                        else self._tie_factory)
@@ -766,14 +770,23 @@ class HybridProblem:
                                     loss)
         return self._tie_costs[key]
 
-    def _add_tie_block(self, point_id: int, face: int, sigma: float):
-        k = self._slot_of_face[face]
-        blocks = self.blocks
-        cost, loss = self._tie_cost(k, sigma)
-        return self.problem.add_residual_block(
-            cost, loss,
-            [self.reconstruction.point3D(point_id).xyz, blocks.normals[k], blocks.offsets[k]]
-            + self._effect_blocks(k))
+    def _add_tie_blocks(self, point_ids, faces, sigmas) -> list:
+        """One f_dTP block per tie point (its face, its sigma in m), in their order; the
+        blocks' handles. The costs and each face's other parameter blocks are looked up once
+        per face and sigma, not per point."""
+        slots = [self._slot_of_face[int(f)] for f in faces]
+        faces_blocks = {k: [self.blocks.normals[k], self.blocks.offsets[k]]
+                        + self._effect_blocks(k) for k in set(slots)}
+        costs = {}
+        point3D, add = self.reconstruction.point3D, self.problem.add_residual_block
+        out = []
+        for point_id, k, sigma in zip(point_ids, slots, sigmas):
+            key = (k, sigma)
+            if key not in costs:
+                costs[key] = self._tie_cost(k, float(sigma))
+            cost, loss = costs[key]
+            out.append(add(cost, loss, [point3D(int(point_id)).xyz] + faces_blocks[k]))
+        return out
 
     def _effect_blocks(self, k: int) -> list:
         """The generalisation offset of face slot `k` (if it has one) and, with
@@ -865,8 +878,8 @@ class HybridProblem:
 
     def _add_tie_distances(self) -> None:
         """Group "dTP" (last): one block per assigned tie point, in the order of `point_ids`."""
-        self._tie_blocks = [self._add_tie_block(int(i), int(f), s) for i, f, s in
-                            zip(self.point_ids, self.point_faces, self._row_sigmas)]
+        self._tie_blocks = self._add_tie_blocks(self.point_ids, self.point_faces,
+                                                self._row_sigmas.tolist())
         self.counts["dTP"] = len(self.point_ids)
 
     def reassign(self, assignment: Assignment, current: PlaneStore, *,
@@ -874,13 +887,13 @@ class HybridProblem:
                  pose_priors: PosePriors | None = None) -> bool:
         """Make this problem the one `HybridProblem(..., assignment, current=current)` would
         build, in place: the f_dTP blocks of the tie points whose plane changed are removed
-        and added, the model unknowns are set to `current`; image, GNSS and model blocks stay.
-        Poses and tie points are the reconstruction's own (already current). Returns False,
-        changing nothing, where that is not possible: another set of planes, another loss or
-        other priors, a problem that releases the model, or more than `MAX_REASSIGNED`
-        changes (build a new problem then)."""
+        and added, their loss switched to `robust_planes`, the model unknowns are set to
+        `current`; image, GNSS and model blocks stay. Poses and tie points are the
+        reconstruction's own (already current). Returns False, changing nothing, where that is
+        not possible: another set of planes or other priors, a problem that releases the
+        model, or more than `MAX_REASSIGNED` changes (build a new problem then)."""
         if (self.releases_model or not self.counts.get("dTP") or not hasattr(self, "_tie_blocks")
-                or robust_planes != self.robust_planes or baselines is not self.baselines
+                or baselines is not self.baselines
                 or pose_priors is not self.pose_priors
                 or not np.array_equal(assignment.faces, self.blocks.faces)
                 or self._effects_reweighted(assignment)):
@@ -916,16 +929,18 @@ class HybridProblem:
             ids.pop(), faces.pop(), blocks.pop(), row_sigmas.pop()
         added_sigmas = self._point_sigmas(current, self.blocks.faces, new_ids[added],
                                           new_faces[added], self.face_sigmas, assignment)
-        for j, sigma in zip(added, added_sigmas):
-            blocks.append(self._add_tie_block(int(new_ids[j]), int(new_faces[j]), sigma))
-            ids.append(new_ids[j])
-            faces.append(new_faces[j])
-            row_sigmas.append(sigma)
+        blocks += self._add_tie_blocks(new_ids[added], new_faces[added],
+                                       np.asarray(added_sigmas, float).tolist())
+        ids += new_ids[added].tolist()
+        faces += new_faces[added].tolist()
+        row_sigmas += np.asarray(added_sigmas, float).tolist()
         self.point_ids = np.asarray(ids, np.int64)
         self.point_faces = np.asarray(faces, np.int64)
         self._row_sigmas = np.asarray(row_sigmas, float)
         self.counts["dTP"] = len(self.point_ids)
         self.exchanged = len(removed) + len(added)
+        self.robust_planes = robust_planes
+        self._robust.on = robust_planes
         self._set_model(current)
         return True
 

@@ -358,6 +358,21 @@ def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dic
     return stats
 
 
+def _place_sequence(built: Path, seq_dir: Path) -> None:
+    """The built sequence into the cache as `seq_dir`, by one rename. Where another run of the
+    same sequence (the same key: equal) has placed it meanwhile, that one stays and this is
+    dropped: a run deriving scenarios from it never sees it removed. A leftover without
+    simulation.json (not a finished build) is replaced."""
+    if seq_dir.exists() and not (seq_dir / "simulation.json").exists():
+        shutil.rmtree(seq_dir)
+    try:
+        os.replace(built, seq_dir)
+    except OSError:
+        if not (seq_dir / "simulation.json").exists():
+            raise
+        logger.info("sequence %s was built meanwhile by another run; using it", seq_dir)
+
+
 def main(scenario_path: str | Path, output_path: str | Path, *, seed: int | None = None,
          cache_path: str | Path | None = None, overwrite: bool = False,
          progress: bool = True) -> Path:
@@ -384,9 +399,7 @@ def main(scenario_path: str | Path, output_path: str | Path, *, seed: int | None
                 seq_tmp = Path(tempfile.mkdtemp(prefix=f".{seq_dir.name}.", dir=cache))
                 try:
                     build_sequence(options, seq_tmp / "seq", progress=progress)
-                    if seq_dir.exists():
-                        shutil.rmtree(seq_dir)
-                    os.replace(seq_tmp / "seq", seq_dir)
+                    _place_sequence(seq_tmp / "seq", seq_dir)
                 finally:
                     shutil.rmtree(seq_tmp, ignore_errors=True)
             else:

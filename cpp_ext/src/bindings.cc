@@ -19,6 +19,7 @@
 #include "colmap_citymodel/projection_center_offset_prior.h"
 #include "colmap_citymodel/projection_center_prior.h"
 #include "colmap_citymodel/scalar_prior.h"
+#include "colmap_citymodel/switchable_loss.h"
 #include "colmap_citymodel/triangle_distance.h"
 
 #include <stdexcept>
@@ -115,8 +116,8 @@ PYBIND11_MODULE(_core, m) {
         CheckFinite(reference, "reference");
         if (!tilt_axes.allFinite()) throw std::invalid_argument("tilt_axes must be finite");
         if (scaled) CheckSigma(length0, "length0");
-        return PointPlaneEffectsDistanceCostFunctor::Create(sigma, reference, tilt_axes,
-                                                            length0, scaled);
+        return new PointPlaneEffectsDistanceCost(sigma, reference, tilt_axes, length0,
+                                                 scaled);
       },
       "sigma"_a,
       "reference"_a,
@@ -363,6 +364,25 @@ PYBIND11_MODULE(_core, m) {
       "d, n.x + d = 0, refit to its inliers; inlier row indices (K,) ascending), inliers "
       "closer than `distance`. No plane (fewer than 3 points, all collinear): zeros and "
       "no inliers. The same for a seed on any number of threads (0: all cores).");
+
+  py::class_<RobustSwitch, std::shared_ptr<RobustSwitch>>(
+      m, "RobustSwitch",
+      "Whether the SwitchableHuberLoss objects that share this switch are robust (set it "
+      "between solves, never during one).")
+      .def(py::init<bool>(), "on"_a = false)
+      .def_property("on", &RobustSwitch::on, &RobustSwitch::set);
+
+  m.def(
+      "SwitchableHuberLoss",
+      [](double scale, std::shared_ptr<RobustSwitch> robust)
+          -> std::shared_ptr<ceres::LossFunction> {
+        CheckSigma(scale, "scale");
+        if (!robust) throw std::invalid_argument("robust must be a RobustSwitch");
+        return std::make_shared<SwitchableHuberLoss>(scale, std::move(robust));
+      },
+      "scale"_a, "robust"_a,
+      "A loss for pyceres.Problem.add_residual_block: Huber's at `scale` while `robust.on`, "
+      "none (rho = s) while it is off.");
 
   m.attr("__ceres_version__") = CERES_VERSION_STRING;
   m.attr("__pybind11_version__") = COLMAP_CITYMODEL_PYBIND11_VERSION;

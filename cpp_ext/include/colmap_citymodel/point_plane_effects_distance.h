@@ -22,23 +22,33 @@
 
 #include <Eigen/Core>
 #include <Eigen/Geometry>
-#include <ceres/autodiff_cost_function.h>
 #include <ceres/ceres.h>
+#include <ceres/jet.h>
+#include <ceres/sized_cost_function.h>
 
 #include "colmap_citymodel/point_plane_distance.h"
 
 namespace colmap_citymodel {
 
-struct PointPlaneEffectsDistanceCostFunctor {
-  PointPlaneEffectsDistanceCostFunctor(double sigma, const Eigen::Vector3d& reference,
-                                       const Eigen::Matrix<double, 2, 3>& tilt_axes,
-                                       double length0, bool scaled)
+// The residual and its Jacobians in closed form (the distance and the effects)
+// and by forward differentiation of each frame's rig origin alone (7 values):
+// automatic differentiation of the whole residual would carry all 24
+// parameters through every operation, and these residuals, one per tie point
+// of a face with effects, are evaluated in every Ceres iteration.
+class PointPlaneEffectsDistanceCost
+    : public ceres::SizedCostFunction<1, 3, 3, 1, 3, 7, 7> {
+ public:
+  PointPlaneEffectsDistanceCost(double sigma, const Eigen::Vector3d& reference,
+                                const Eigen::Matrix<double, 2, 3>& tilt_axes,
+                                double length0, bool scaled)
       : inv_sigma_(1.0 / sigma),
-        reference_{reference[0], reference[1], reference[2]},
+        reference_(reference),
         tilt_axes_(tilt_axes),
         length0_(length0),
         scaled_(scaled) {}
 
+  // The origin of a rig, C = R^T (-t), as Eigen's quaternion rotates (the
+  // rotation's inverse applied to -t).
   template <typename T>
   static Eigen::Matrix<T, 3, 1> RigOrigin(const T* const rig_from_world) {
     const Eigen::Map<const Eigen::Quaternion<T>> rotation(rig_from_world);
@@ -46,36 +56,91 @@ struct PointPlaneEffectsDistanceCostFunctor {
     return rotation.inverse() * (-translation);
   }
 
-  template <typename T>
-  bool operator()(const T* const point, const T* const normal,
-                  const T* const offset, const T* const effects,
-                  const T* const frame_a, const T* const frame_b,
-                  T* residuals) const {
-    Eigen::Matrix<T, 3, 1> lever;
-    for (int i = 0; i < 3; ++i) lever[i] = point[i] - T(reference_[i]);
-    const Eigen::Matrix<T, 2, 1> tilts = tilt_axes_.cast<T>() * lever;
-    const T distance = SignedDistanceFromReference(point, normal, reference_) +
-                       offset[0] + effects[0] + effects[1] * tilts[0] +
-                       effects[2] * tilts[1];
-    T scale(1.0);
+  bool Evaluate(double const* const* parameters, double* residuals,
+                double** jacobians) const override {
+    const Eigen::Map<const Eigen::Vector3d> point(parameters[0]);
+    const Eigen::Map<const Eigen::Vector3d> normal(parameters[1]);
+    const double offset = parameters[2][0];
+    const double* const effects = parameters[3];
+    const Eigen::Vector3d lever = point - reference_;
+    const Eigen::Vector2d tilts = tilt_axes_ * lever;
+    const double norm = normal.norm();
+    const double along = normal.dot(lever) / norm;
+    const double distance = along + offset + effects[0] + effects[1] * tilts[0] +
+                            effects[2] * tilts[1];
+    double scale = 1.0;
+    Eigen::Matrix<double, 1, 7> scale_a = Eigen::Matrix<double, 1, 7>::Zero();
+    Eigen::Matrix<double, 1, 7> scale_b = Eigen::Matrix<double, 1, 7>::Zero();
     if (scaled_) {
-      scale = (RigOrigin(frame_a) - RigOrigin(frame_b)).norm() / T(length0_);
+      const bool frames = jacobians != nullptr &&
+                          (jacobians[4] != nullptr || jacobians[5] != nullptr);
+      scale = Scale(parameters[4], parameters[5], frames ? &scale_a : nullptr,
+                    frames ? &scale_b : nullptr);
     }
-    residuals[0] = distance * T(inv_sigma_) / scale;
+    const double factor = inv_sigma_ / scale;
+    residuals[0] = distance * factor;
+    if (jacobians == nullptr) return true;
+    if (jacobians[0] != nullptr) {
+      Eigen::Map<Eigen::RowVector3d> d_point(jacobians[0]);
+      d_point = factor * (normal / norm + effects[1] * tilt_axes_.row(0).transpose() +
+                    effects[2] * tilt_axes_.row(1).transpose())
+                       .transpose();
+    }
+    if (jacobians[1] != nullptr) {
+      Eigen::Map<Eigen::RowVector3d> d_normal(jacobians[1]);
+      d_normal = factor * ((lever - along * normal / norm) / norm).transpose();
+    }
+    if (jacobians[2] != nullptr) jacobians[2][0] = factor;
+    if (jacobians[3] != nullptr) {
+      jacobians[3][0] = factor;
+      jacobians[3][1] = factor * tilts[0];
+      jacobians[3][2] = factor * tilts[1];
+    }
+    // r = distance / (sigma s): dr/ds = -r / s.
+    const double by_scale = -residuals[0] / scale;
+    if (jacobians[4] != nullptr) {
+      Eigen::Map<Eigen::Matrix<double, 1, 7>> d_frame_a(jacobians[4]);
+      d_frame_a = by_scale * scale_a;
+    }
+    if (jacobians[5] != nullptr) {
+      Eigen::Map<Eigen::Matrix<double, 1, 7>> d_frame_b(jacobians[5]);
+      d_frame_b = by_scale * scale_b;
+    }
     return true;
   }
 
-  static ceres::CostFunction* Create(double sigma, const Eigen::Vector3d& reference,
-                                     const Eigen::Matrix<double, 2, 3>& tilt_axes,
-                                     double length0, bool scaled) {
-    return new ceres::AutoDiffCostFunction<PointPlaneEffectsDistanceCostFunctor, 1,
-                                           3, 3, 1, 3, 7, 7>(
-        new PointPlaneEffectsDistanceCostFunctor(sigma, reference, tilt_axes, length0,
-                                                 scaled));
+ private:
+  // s = |C_a - C_b| / length0 and, where asked, its derivatives by each
+  // frame's 7 parameters.
+  double Scale(const double* frame_a, const double* frame_b,
+               Eigen::Matrix<double, 1, 7>* d_a,
+               Eigen::Matrix<double, 1, 7>* d_b) const {
+    if (d_a == nullptr) {
+      return (RigOrigin(frame_a) - RigOrigin(frame_b)).norm() / length0_;
+    }
+    using Jet = ceres::Jet<double, 7>;
+    Jet a[7], b[7];
+    for (int i = 0; i < 7; ++i) {
+      a[i] = Jet(frame_a[i], i);
+      b[i] = Jet(frame_b[i], i);
+    }
+    const Eigen::Matrix<Jet, 3, 1> origin_a = RigOrigin(a);
+    const Eigen::Matrix<Jet, 3, 1> origin_b = RigOrigin(b);
+    Eigen::Vector3d between, direction;
+    for (int k = 0; k < 3; ++k) between[k] = origin_a[k].a - origin_b[k].a;
+    const double length = between.norm();
+    direction = between / (length * length0_);
+    d_a->setZero();
+    d_b->setZero();
+    for (int k = 0; k < 3; ++k) {
+      *d_a += direction[k] * origin_a[k].v.transpose();
+      *d_b -= direction[k] * origin_b[k].v.transpose();
+    }
+    return length / length0_;
   }
 
   const double inv_sigma_;
-  const double reference_[3];
+  const Eigen::Vector3d reference_;
   const Eigen::Matrix<double, 2, 3> tilt_axes_;
   const double length0_;
   const bool scaled_;
