@@ -171,9 +171,9 @@ def test_a_gnss_bias_common_to_the_block_does_not_average_out():
 def _weighted_fit_spread(points, normals, groups, shared, weights_sigmas, noise, trials, rng):
     """Spread (std per datum parameter) of the 7-parameter weighted least-squares fit of
     tie points whose distances to their planes are each group's shared error plus noise."""
-    from colmap_citymodel.adjust.observability import _datum_jacobian
+    from colmap_citymodel.errormodel.gnss import datum_jacobian
 
-    jac = _datum_jacobian(points, normals, points.mean(0))
+    jac = datum_jacobian(points, normals, points.mean(0))
     w = 1.0 / weights_sigmas ** 2
     solve = np.linalg.solve(jac.T @ (w[:, None] * jac), (w[:, None] * jac).T)
     keys, slots = np.unique(groups, return_inverse=True)

@@ -119,8 +119,8 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
     it); `current`: the model state after the adjustment; `threshold`: its last assignment
     threshold. With `correction_moves_block`, `rec` is adjusted in place (a correction whose
     block objective, against the corrected model, is worse than `objective`'s against the
-    given one by more than its tolerance (a significant likelihood ratio) is undone: the result then holds a copy of
-    the block as it was)."""
+    given one by more than its tolerance (a significant likelihood ratio) is undone: the
+    result then holds a copy of the block as it was)."""
     o_a, o_adj, o_w = options.assignment, options.adjustment, options.workflow
     moves_block = o_adj.correction_moves_block
     # With the block held the model's datum comes from the block: no datum condition.
@@ -175,19 +175,10 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
                                 current if saved is None else saved[1], assignment, None, None,
                                 iterations=records, undone="no tie point could be assigned")
     if moves_block:
-        if before is not None:
-            # The block objective against the corrected model: the tie points near the model
-            # they were adjusted to, and GNSS.
-            after = BlockObjective(SurfaceDistance(current, o_a.excluded_classes,
-                                                   options.adjustment.num_threads),
-                                   objective.priors, objective.ids, objective.options,
-                                   options.workflow.divergence_alpha)(rec)
-            if after > before + objective.tolerance:
-                reason = (f"the corrected model moved the block away from it (objective "
-                          f"{before:.3f} -> {after:.3f})")
-                logger.warning("model correction undone: %s", reason)
-                return CorrectionResult(saved[0], saved[1], assignment, None, None,
-                                        iterations=records, undone=reason)
+        undone = _moved_away(rec, current, objective, before, options)
+        if undone is not None:
+            return CorrectionResult(saved[0], saved[1], assignment, None, None,
+                                    iterations=records, undone=undone)
         return CorrectionResult(rec, current, assignment, last.blocks.correction, last, last,
                                 records)
     # The sigmas: the joint problem at the final state (not solved again).
@@ -195,3 +186,23 @@ def correction_loop(rec: pycolmap.Reconstruction, store: PlaneStore, current: Pl
                               robust_planes=False, current=current, baselines=baselines)
     return CorrectionResult(rec, current, assignment, last.blocks.correction, joint, None,
                             records)
+
+
+def _moved_away(rec: pycolmap.Reconstruction, current: PlaneStore, objective, before,
+                options: RefineOptions) -> str | None:
+    """Why the correction that moved the block is undone: its block objective against the
+    corrected model (the tie points near the model they were adjusted to, and GNSS) is worse
+    than `before` (against the given one) by more than the objective's tolerance; None when it
+    is not, or without an objective."""
+    if before is None:
+        return None
+    after = BlockObjective(SurfaceDistance(current, options.assignment.excluded_classes,
+                                           options.adjustment.num_threads),
+                           objective.priors, objective.ids, objective.options,
+                           options.workflow.divergence_alpha)(rec)
+    if after <= before + objective.tolerance:
+        return None
+    reason = (f"the corrected model moved the block away from it (objective {before:.3f} -> "
+              f"{after:.3f})")
+    logger.warning("model correction undone: %s", reason)
+    return reason

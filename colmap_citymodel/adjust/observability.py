@@ -21,6 +21,7 @@ from ..assign.assignment import Assignment
 from ..block.priors import GNSSPriors
 from ..citymodel.ground_faces import terrain_faces, terrain_groups, terrain_units
 from ..citymodel.store import PlaneStore
+from ..errormodel.gnss import datum_jacobian
 from ..options import RefineOptions
 from .faces import offsets_sigma, vertex_tilt_covariance
 from .marks import active_marks, datum_observations
@@ -40,14 +41,6 @@ DOMINANCE = 3.0
 #: Without either source, a sigma above these counts as "none": metres for shifts, relative
 #: scale, radians.
 UNDETERMINED = {"shift": 10.0, "scale": 0.1, "rotation": 0.1}
-
-
-def _datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarray
-                    ) -> np.ndarray:
-    """d (direction . X') / d (shift, log scale, rotation) for X' = X + t + s y + w x y."""
-    y = points - centre
-    return np.hstack([directions, np.einsum("ij,ij->i", directions, y)[:, None],
-                      np.cross(y, directions)])
 
 
 @dataclass
@@ -95,7 +88,7 @@ def _plane_terms(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
     """Per plane (group): the datum Jacobian of its points and the columns of the error they
     share (offset and, for the groups in `tilts`, the two tilts, as distances along the
     normal at each point), and which points are the group's."""
-    jac = _datum_jacobian(points, normals, centre)
+    jac = datum_jacobian(points, normals, centre)
     for group in np.unique(groups):
         selected = groups == group
         shared = np.full((int(selected.sum()), 1), sigma_generalisation if shared_sigmas is None
@@ -167,7 +160,7 @@ def gnss_information(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarr
     for axis in range(3):
         directions = np.zeros_like(positions)
         directions[:, axis] = 1.0
-        jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
+        jac = datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
         info += jac.T @ jac
         a = 1.0 / sigmas[:, axis]  # the common offset's column (whitened, sign irrelevant)
         g = jac.T @ a
@@ -193,7 +186,7 @@ def gnss_bias_part(positions: np.ndarray, sigmas: np.ndarray, centre: np.ndarray
             continue
         directions = np.zeros_like(positions)
         directions[:, axis] = 1.0
-        jac = _datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
+        jac = datum_jacobian(positions, directions, centre) / sigmas[:, axis:axis + 1]
         g = jac.T @ (1.0 / sigmas[:, axis])
         out += bias_sigmas[axis] ** 2 * np.outer(g, g)
     return out
@@ -229,7 +222,7 @@ def image_sigmas(covariance: np.ndarray, determined: np.ndarray, positions: np.n
     for axis in range(3):
         directions = np.zeros_like(offsets)
         directions[:, axis] = 1.0
-        jac = _datum_jacobian(offsets, directions, np.zeros(3))
+        jac = datum_jacobian(offsets, directions, np.zeros(3))
         variance[axis] = np.mean(np.einsum("ij,jk,ik->i", jac, cov, jac))
     out = np.sqrt(np.maximum(variance, 0.0))
     out[~determined[:3]] = np.inf
@@ -351,7 +344,20 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
             points, normals, groups, centre, sigma_dtp, sigma_generalisation, tilts,
             shared_sigmas, gnss + from_marks, bias_part, model_bias_sigma, weights_sigmas)
         s_stated, images_stated = _no_sharper(covariance, s_both, images_both, at, centre)
-    s_robust = _leave_one_out(total, per_plane)
+    out = _rows(s_planes, s_gnss, _leave_one_out(total, per_plane), by_terrain,
+                stated=(np.r_[images_stated, s_stated[3:]], np.r_[images_both, s_both[3:]]),
+                with_bias=np.r_[images_biased, s_biased[3:]])
+    if marks is not None:
+        _with_marks(out, _sigmas(from_marks), s_planes, s_gnss)
+    return out
+
+
+def _rows(s_planes: np.ndarray, s_gnss: np.ndarray, s_robust: np.ndarray, by_terrain: list,
+          stated: tuple[np.ndarray, np.ndarray], with_bias: np.ndarray) -> dict:
+    """`observability`'s row per datum parameter from the sigmas of the planes, GNSS, the
+    planes' leave-one-out, what refine's weighting and the optimal one state (`stated`; the
+    shifts' as they move the images) and GNSS with its bias."""
+    refine_weighting, optimal = stated
     out = {}
     for k, name in enumerate(DATUM):
         kind = "shift" if k < 3 else "scale" if k == 3 else "rotation"
@@ -360,23 +366,16 @@ def observability(points: np.ndarray, normals: np.ndarray, groups: np.ndarray,
         factor = np.degrees(1.0) if kind == "rotation" else 1.0
         # Refine's weighting where the planes hold the direction; where GNSS alone does, the
         # loop holds it to GNSS (workflow.hold_gnss_height, scale priors), as weighed optimally.
-        stated = s_stated[k] if source in ("planes", "both") else s_both[k]
-        with_bias = s_biased[k]
-        if k < 3:  # a shift: as it moves the images, with the block's scale and rotations
-            stated = images_stated[k] if source in ("planes", "both") else images_both[k]
-            with_bias = images_biased[k]
-        one_plane = bool(s_planes[k] < limit and not p_ok)
+        sigma = refine_weighting[k] if source in ("planes", "both") else optimal[k]
         # What a user can rely on: planes (a single one too, with its generalisation error)
         # and GNSS with its bias; whether that one plane is the right one the verdict's tests
         # judge (precision.quality), not this sigma.
         out[name] = {"source": source, **by_terrain[k],
-                     "one_plane": one_plane,
-                     "sigma": _finite(stated * factor),
+                     "one_plane": bool(s_planes[k] < limit and not p_ok),
+                     "sigma": _finite(sigma * factor),
                      "sigma_planes": _finite(s_planes[k] * factor),
                      "sigma_gnss": _finite(s_gnss[k] * factor),
-                     "sigma_gnss_with_bias": _finite(with_bias * factor)}
-    if marks is not None:
-        _with_marks(out, _sigmas(from_marks), s_planes, s_gnss)
+                     "sigma_gnss_with_bias": _finite(with_bias[k] * factor)}
     return out
 
 

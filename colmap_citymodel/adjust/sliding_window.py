@@ -298,13 +298,7 @@ def sliding_window(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSS
         image_ids = set(sub.reg_image_ids())
         window_priors = _window_priors(priors, image_ids)
         held_frames = held_stations(rec, kept, o_w.window_held_images)
-        held = None
-        if held_frames:
-            held = PosePriors(
-                image_ids=np.array([next(iter(rec.frame(f).image_ids)).id for f in held_frames]),
-                rig_from_world=[_copy_pose(rec.frame(f).rig_from_world)
-                                for f in held_frames],
-                sigma_position=o_w.sigma_window_position, sigma_rotation=sigma_rotation)
+        held = _held_poses(rec, held_frames, o_w.sigma_window_position, sigma_rotation)
         window_options = _window_options(options, first=index == 0)
         note = None
         record_rms, iterations, assigned, planes = None, 0, 0, 0
@@ -346,6 +340,18 @@ def sliding_window(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSS
     bar.close()
     result.seconds = time.perf_counter() - start
     return result
+
+
+def _held_poses(rec: pycolmap.Reconstruction, frames: list[int], sigma_position: float,
+                sigma_rotation: float) -> PosePriors | None:
+    """The poses of `frames` (kept from the window before) as priors with these sigmas (m,
+    rad); None without such frames."""
+    if not frames:
+        return None
+    return PosePriors(image_ids=np.array([next(iter(rec.frame(f).image_ids)).id
+                                          for f in frames]),
+                      rig_from_world=[_copy_pose(rec.frame(f).rig_from_world) for f in frames],
+                      sigma_position=sigma_position, sigma_rotation=sigma_rotation)
 
 
 def _copy_pose(pose: pycolmap.Rigid3d) -> pycolmap.Rigid3d:

@@ -113,6 +113,18 @@ class GNSSErrorModel:
                 out[axis] = 1.0 / np.sqrt(max(float(self.weigh(axis, ones).sum()), 1e-300))
         return out
 
+    def datum_information(self, positions: np.ndarray, centre: np.ndarray) -> np.ndarray:
+        """7x7 information of the block's datum (shifts, log scale, rotations about `centre`)
+        from GNSS at `positions` (n, 3: where the block puts what GNSS observed)."""
+        positions = np.asarray(positions, float).reshape(-1, 3)
+        info = np.zeros((7, 7))
+        for axis in range(3):
+            directions = np.zeros_like(positions)
+            directions[:, axis] = 1.0
+            jacobian = datum_jacobian(positions, directions, centre)
+            info += jacobian.T @ self.weigh(axis, jacobian)
+        return info
+
     def chi2(self, residuals: np.ndarray) -> float:
         """The squared Mahalanobis norm of (n, 3) residuals (where the block puts what GNSS
         observed minus the observations) under the model."""
@@ -148,6 +160,15 @@ class ShiftQuadratic:
     def minimum(self) -> np.ndarray:
         """(3,) the shift GNSS alone prefers (0 along an axis GNSS does not hold)."""
         return np.where(self.p > 0, -self.q / np.maximum(self.p, 1e-300), 0.0)
+
+
+def datum_jacobian(points: np.ndarray, directions: np.ndarray, centre: np.ndarray
+                   ) -> np.ndarray:
+    """d (direction . X') / d (shift, log scale, rotation) for X' = X + t + s y + w x y, y =
+    X - centre: (n, 7), the datum's order E, N, U, scale, rotations about E, N, U."""
+    y = points - centre
+    return np.hstack([directions, np.einsum("ij,ij->i", directions, y)[:, None],
+                      np.cross(y, directions)])
 
 
 def track_distance(positions: np.ndarray) -> np.ndarray:

@@ -34,7 +34,7 @@ import numpy as np
 import pycolmap
 from scipy import stats
 
-from ..adjust.observability import (REGULARISATION, FaceFit, common_shift_eliminated,
+from ..adjust.observability import (DATUM, REGULARISATION, FaceFit, common_shift_eliminated,
                                     face_fit, face_tilts,
                                     plane_information, planes_fix, rests_on_one_plane)
 from ..assign.assignment import Assignment
@@ -157,16 +157,17 @@ def contradiction(shift: np.ndarray, covariance: np.ndarray, alpha: float) -> di
 
 
 def shift_test(shift: np.ndarray, gnss: np.ndarray, planes: np.ndarray, alpha: float) -> dict:
-    """No move without evidence: the shift (3,) between the GNSS-only and the refined block,
-    tested along every axis GNSS holds. Along an axis the planes and terrain fix (`planes`
-    finite there) the two blocks may differ by both errors (covariance gnss + planes); along
-    one they leave free, the refined block has no evidence to move by, and the shift there
-    is tested against GNSS's own covariance: a move the GNSS does not explain is a
-    contradiction, never a test with fewer degrees of freedom. `unfixed`: those axes."""
+    """No move without evidence: the datum difference (`datum_difference`, (7,); or its
+    shifts alone, (3,)) between the GNSS-only and the refined block, tested along every
+    parameter GNSS holds. Where the planes and terrain fix it (`planes` finite there) the two
+    blocks may differ by both errors (covariance gnss + planes); where they leave it free, the
+    refined block has no evidence to move by, and the difference there is tested against
+    GNSS's own covariance: a move GNSS does not explain is a contradiction, never a test with
+    fewer degrees of freedom. `unfixed`: those parameters."""
     free = ~(np.isfinite(np.diag(planes)))
     held = np.where(np.outer(free, free) | free[:, None] | free[None, :], 0.0, planes)
     out = contradiction(shift, gnss + held, alpha)
-    out["unfixed"] = [axis for axis, f in zip(("E", "N", "U"), free) if f]
+    out["unfixed"] = [name for name, f in zip(DATUM, free) if f]
     return out
 
 
@@ -282,19 +283,20 @@ def gnss_alone(observability_dict: dict) -> list[str]:
             and not observability_dict.get(axis, {}).get("one_plane")]
 
 
-def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit,
+def datum_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit,
                       priors: GNSSPriors, rec: pycolmap.Reconstruction,
                       options: RefineOptions) -> tuple[np.ndarray, np.ndarray]:
-    """3x3 covariances of the block's position from GNSS alone, under its error model (white
-    noise, the bias common to the block, the slowly varying part: errormodel.gnss), and from
-    the planes alone (each face with the estimated generalisation, outlier faces out, the
-    model's common error); inf on the diagonal where one leaves a direction free."""
+    """7x7 covariances of the block's datum (E, N, U shifts, log scale, rotations about the
+    cameras' centroid) from GNSS alone, under its error model (white noise, the bias common to
+    the block, the slowly varying part: errormodel.gnss), and from the planes alone (each face
+    with the estimated generalisation, outlier faces out, the model's common error); inf on the
+    diagonal where one leaves a parameter free."""
     from ..errormodel.model import gnss_model
 
-    gnss = np.diag(gnss_model(priors, priors.observed_points(rec),
-                              options.adjustment).shift_sigma() ** 2)
     positions = priors.observed_points(rec)
     centre = positions.mean(0)
+    gnss = gnss_model(priors, positions, options.adjustment).datum_information(positions,
+                                                                               centre)
     keep = ~np.isin(faces, fit.outlier_faces)
     planes = np.zeros((7, 7))
     if keep.any():
@@ -303,22 +305,42 @@ def shift_covariances(points: np.ndarray, faces: np.ndarray, store, fit: FaceFit
             options.adjustment.sigma_dtp, fit.sigma_generalisation,
             face_tilts(store, faces[keep], fit.sigma_generalisation)), np.zeros((7, 7)))
     planes = common_shift_eliminated(planes, options.adjustment.sigma_model_datum)
-    return gnss, _shift_block(planes)
+    return _covariance(gnss), _covariance(planes)
 
 
-def _shift_block(info: np.ndarray) -> np.ndarray:
-    """The 3x3 shift covariance of a 7x7 datum information (inverted as
-    adjust.observability's sigmas are, with its weak regularising priors); inf where the
-    information leaves a shift (nearly) free."""
+def _covariance(info: np.ndarray) -> np.ndarray:
+    """The covariance of a 7x7 datum information (inverted as adjust.observability's sigmas
+    are, with its weak regularising priors); inf where the information leaves a parameter
+    (nearly) free."""
     regularised = info + np.diag(1.0 / REGULARISATION ** 2)
     scale = np.sqrt(np.diag(regularised))
     values, vectors = np.linalg.eigh(regularised / np.outer(scale, scale))
     covariance = ((vectors / np.maximum(values, 1e-300)) @ vectors.T
-                  / np.outer(scale, scale))[:3, :3]
-    free = np.diag(covariance) > (0.5 * REGULARISATION[:3]) ** 2
+                  / np.outer(scale, scale))
+    free = np.diag(covariance) > (0.5 * REGULARISATION) ** 2
     covariance[free, :] = covariance[:, free] = 0.0
     covariance[free, free] = np.inf
     return covariance
+
+
+def datum_difference(gnss_only: pycolmap.Reconstruction, rec: pycolmap.Reconstruction,
+                     priors: GNSSPriors) -> np.ndarray:
+    """(7,) how the refined block's datum differs from the GNSS-only block's: the similarity
+    between their cameras with GNSS about its centroid (shift m, log scale, rotation vector
+    rad), less an estimated GNSS offset the user asked for (another height system, a bias); a
+    bias estimated as a random effect is what the test's GNSS covariance allows for."""
+    from scipy.spatial.transform import Rotation
+
+    ids = [int(i) for i in priors.image_ids]
+    a = np.array([gnss_only.image(i).projection_center() for i in ids])
+    b = np.array([rec.image(i).projection_center() for i in ids])
+    out = np.zeros(7)
+    out[:3] = (b - a).mean(0) - (0.0 if priors.bias_is_random else priors.offset)
+    found = pycolmap.estimate_sim3d(a - a.mean(0), b - b.mean(0)) if len(ids) >= 3 else None
+    if found is not None:
+        out[3] = float(np.log(found.scale))
+        out[4:] = Rotation.from_matrix(np.asarray(found.rotation.matrix())).as_rotvec()
+    return out
 
 
 def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruction | None,
@@ -370,19 +392,16 @@ def measure_quality(rec: pycolmap.Reconstruction, gnss_only: pycolmap.Reconstruc
         metrics["near_share_gnss_only"] = (
             float(np.mean(surface(before, NEAR_DISTANCE) < NEAR_DISTANCE)) if len(before)
             else 0.0)
-        ids = [int(i) for i in priors.image_ids]
-        a = np.array([gnss_only.image(i).projection_center() for i in ids])
-        b = np.array([rec.image(i).projection_center() for i in ids])
-        # An estimated GNSS offset (another height system, a bias) explains that much; a
-        # bias estimated as a random effect is what the test's GNSS covariance allows for.
-        shift = (b - a).mean(0) - (0.0 if priors.bias_is_random else priors.offset)
+        difference = datum_difference(gnss_only, rec, priors)
+        shift = difference[:3]
         metrics["shift_m"] = float(np.linalg.norm(shift))
         metrics["shift_enu_m"] = shift.tolist()
+        metrics["datum_difference"] = dict(zip(DATUM, difference.tolist()))
         if fit is not None:
-            gnss_covariance, planes_covariance = shift_covariances(
+            gnss_datum, planes_datum = datum_covariances(
                 points[assigned], faces, store, fit, priors, rec, options)
-            metrics["gnss_test"] = shift_test(shift, gnss_covariance, planes_covariance,
-                                              t.alpha)
+            gnss_covariance = gnss_datum[:3, :3]
+            metrics["gnss_test"] = shift_test(difference, gnss_datum, planes_datum, t.alpha)
     if len(points):
         # Where the faces' effects are estimated, the points as the model's faces see them.
         shifts = getattr(last, "face_effect_shifts", None)
