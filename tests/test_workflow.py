@@ -301,9 +301,10 @@ def test_gnss_positions_rejected_as_gross_errors_are_not_priors(scene):
 
 def unsettled_loop(monkeypatch) -> RefineOptions:
     """Options and patches under which the loop runs out of iterations: the block objective
-    worsens a little with every evaluation (less than the divergence tolerance), so each
-    loop's iteration 0 is its best by it; convergence and cycle detection are off, and every
-    iteration ends on a solve with the original weights (none on its robust solve)."""
+    worsens significantly with every evaluation (by twice the objective's tolerance; not a
+    divergence: the block barely moves), so each loop's iteration 0 is its best by it;
+    convergence and cycle detection are off, and every iteration ends on a solve with the
+    original weights (none on its robust solve)."""
     from colmap_citymodel.adjust import loop as loop_module
     from colmap_citymodel.align.objective import BlockObjective
 
@@ -312,7 +313,7 @@ def unsettled_loop(monkeypatch) -> RefineOptions:
 
     def worsening(self, rec, *args, **kwargs):
         calls.append(None)
-        return real(self, rec, *args, **kwargs) + 1e-3 * len(calls)
+        return real(self, rec, *args, **kwargs) + 2 * self.tolerance * len(calls)
 
     counter = iter(range(10 ** 6))
     monkeypatch.setattr(BlockObjective, "__call__", worsening)
@@ -674,14 +675,12 @@ def test_the_walls_errors_do_not_move_a_held_height_in_the_stated_precision(scen
     assert np.all(aware[:2] > 5 * classical[:2]), (aware, classical)
 
 
-@pytest.mark.parametrize("hold", [True, False])
-def test_a_height_the_planes_leave_to_gnss_stays_where_gnss_put_it(scene, caplog, hold):
+def test_a_height_the_planes_leave_to_gnss_stays_where_gnss_put_it(scene, caplog):
     """Walls only, each tilted by 0.1 deg: the planes fix the plan position, and the height
     only through the tilts, far more weakly than GNSS. No move without evidence: the block
     ends at the GNSS-only block's height, held there in the solves (`hold_gnss_height`) and
     put back there before the verdict; its plan position is the planes'."""
     options = RefineOptions()
-    options.workflow.hold_gnss_height = hold
     store = walls_only(scene.store, tilt_deg=0.1)
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.scale"):
         result = refine(scene.sfm, store, scene.gnss(), options, progress=False)
@@ -692,7 +691,7 @@ def test_a_height_the_planes_leave_to_gnss_stays_where_gnss_put_it(scene, caplog
     refined = np.array([result.reconstruction.image(i).projection_center() for i in ids])
     assert abs(float(np.mean(refined[:, 2] - there[:, 2]))) < 0.05
     held = [r for r in caplog.records if "held where GNSS put it" in r.getMessage()]
-    assert bool(held) == hold and (not hold or "U" in held[0].getMessage())
+    assert held and "U" in held[0].getMessage()
     # The plan position is the planes': within a decimetre or two of the truth.
     true = {im.name: im.projection_center() for im in scene.truth.images.values()}
     plan = [result.reconstruction.image(i).projection_center()[:2]

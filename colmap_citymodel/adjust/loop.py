@@ -186,6 +186,7 @@ class _Loop:
         self.roof_observers = RoofObservers(store, self.o_a)  # tie points keep their order
         self.read_tie_points = TiePointReader(exclude_point_ids)
         self.value = None  # the block objective after the last kept iteration
+        self.lowest = None  # the lowest block objective of the kept iterations
 
     # -- assign ----------------------------------------------------------------------------
 
@@ -532,14 +533,19 @@ class _Loop:
         self.change = change
 
     def stops(self, iteration: int) -> bool:
-        """The stopping rules after a kept iteration: diverged (the block objective worse than
-        the best by more than the tolerance), the RMS settled, the cameras settled, a cycle,
-        or alternating sets of planes."""
+        """The stopping rules after a kept iteration: diverged (the block objective
+        significantly worse than the lowest seen, and the block moved away from the best
+        iterate: `_away_from`), the RMS settled, the cameras settled, a cycle, or alternating
+        sets of planes. The best iterate is the latest whose objective is not significantly
+        worse than the lowest."""
         o_w, value, best = self.o_w, self.value, self.best
-        if best is None or value <= best[0]:
+        self.lowest = value if self.lowest is None else min(self.lowest, value)
+        if best is None or value <= self.lowest + self.objective.tolerance:
+            # Not significantly worse than the best seen: the later iterate is the best one
+            # (the score and the solves weigh the tie points a little differently).
             self.best = best = (value, iteration, None, self.assignment, self.current,
                                 _offset(self.priors))
-        elif value > best[0] + self.objective.tolerance and self._away_from(best):
+        elif self._away_from(best):
             # The hybrid solve moved the block away from the model: go back to the best
             # iterate and stop.
             self.diverged = (f"objective {value:.3f} in iteration {iteration} against "
