@@ -7,7 +7,6 @@ import numpy as np
 import pycolmap
 import pytest
 import shapely
-from shapely.geometry import Polygon
 
 from colmap_citymodel.citymodel.read import read_city_model
 from colmap_citymodel.errors import InputError
