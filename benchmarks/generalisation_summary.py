@@ -30,8 +30,14 @@ Z_RMS_RANGE, Z_MAX, Z_SMALL, Z_SMALL_SHARE = (0.7, 1.3), 3.5, 0.3, 0.20
 NO_GNSS_BUILDINGS, NO_GNSS_SHARE, NO_GNSS_WRONG = 3, 0.80, 1.0
 
 
-def _criterion(passed: bool, value, offenders: list[str], what: str) -> dict:
-    return {"pass": bool(passed), "value": value, "offenders": sorted(offenders), "what": what}
+def _criterion(passed: bool | None, value, offenders: list[str], what: str) -> dict:
+    """A criterion's outcome; `passed` None: no block it applies to (not evaluated)."""
+    return {"pass": None if passed is None else bool(passed), "value": value,
+            "offenders": sorted(offenders), "what": what}
+
+
+def _applies(rows: list, passed: bool) -> bool | None:
+    return passed if rows else None
 
 
 def _gnss(r: dict) -> bool:
@@ -49,23 +55,26 @@ def criteria(rows: list[dict]) -> dict:
     out = {}
     worse = [r["name"] for r in measured if _gnss(r) and r["verdict"] in ("ok", "weak")
              and _worse(r)]
-    out["never_worse"] = _criterion(not worse, len(worse), worse,
+    with_gnss = [r for r in measured if _gnss(r)]
+    out["never_worse"] = _criterion(_applies(with_gnss, not worse), len(worse), worse,
                                     "no ok/weak block further from the truth than GNSS alone")
     wrong = [r for r in measured if r["wrong_model"]]
     not_failed = [r["name"] for r in wrong if r["verdict"] != "failed"]
-    out["wrong_failed"] = _criterion(not not_failed, f"{len(wrong) - len(not_failed)} of "
+    out["wrong_failed"] = _criterion(_applies(wrong, not not_failed),
+                                     f"{len(wrong) - len(not_failed)} of "
                                      f"{len(wrong)}", not_failed, "every wrong model failed")
     right = [r for r in measured if _gnss(r) and not r["wrong_model"]]
     bad = [r["name"] for r in right if r["verdict"] == "ok"
            and (r.get("error_3d") is None or r["error_3d"] > GOOD_3D)]
     share = 1.0 - len(bad) / len(right) if right else None
     out["right_good_or_not_ok"] = _criterion(
-        share is not None and share >= SHARE_GOOD, share, bad,
+        _applies(right, share is not None and share >= SHARE_GOOD), share, bad,
         f"right model with GNSS: >= {SHARE_GOOD:.0%} within {GOOD_3D} m or not ok")
     drives = [r for r in right if r["family"] in DRIVES and r["terrain"]]
     off_u = [r["name"] for r in drives if not r.get("error") or r["error"][2] > DRIVE_U]
-    out["drive_dtm_u"] = _criterion(not off_u, f"{len(drives) - len(off_u)} of {len(drives)}",
-                                    off_u, f"every drive with a DTM within {DRIVE_U} m in U")
+    out["drive_dtm_u"] = _criterion(_applies(drives, not off_u),
+                                    f"{len(drives) - len(off_u)} of {len(drives)}", off_u,
+                                    f"every drive with a DTM within {DRIVE_U} m in U")
     out.update(z_criteria(measured))
     out.update(no_gnss_criteria(measured))
     broken = [r["name"] for r in rows if r["verdict"] not in MEASURED]
@@ -85,12 +94,14 @@ def z_criteria(measured: list[dict]) -> dict:
     small = float(np.mean(values < Z_SMALL)) if len(values) else None
     small_blocks = sorted({n for n, v in z if v < Z_SMALL})
     lo, hi = Z_RMS_RANGE
-    return {"z_rms": _criterion(rms is not None and lo <= rms <= hi, rms, [],
+    return {"z_rms": _criterion(_applies(z, rms is not None and lo <= rms <= hi), rms, [],
                                 f"z RMS in [{lo}, {hi}] ({len(values)} z of {len(rows)} "
                                 "blocks not failed)"),
-            "z_max": _criterion(not big, float(values.max()) if len(values) else None, big,
+            "z_max": _criterion(_applies(z, not big), float(values.max()) if len(values)
+                                else None, big,
                                 f"no z above {Z_MAX}"),
-            "z_small": _criterion(small is not None and small <= Z_SMALL_SHARE, small,
+            "z_small": _criterion(_applies(z, small is not None and small <= Z_SMALL_SHARE),
+                                  small,
                                   small_blocks if small is not None and small > Z_SMALL_SHARE
                                   else [], f"at most {Z_SMALL_SHARE:.0%} of z below {Z_SMALL}")}
 
@@ -107,13 +118,13 @@ def no_gnss_criteria(measured: list[dict]) -> dict:
            and (r.get("error_3d") is None or r["error_3d"] > NO_GNSS_WRONG)]
     missed = [r["name"] for r in rows if r not in registered]
     return {"no_gnss_registered": _criterion(
-                share is not None and share >= NO_GNSS_SHARE, share,
+                _applies(rows, share is not None and share >= NO_GNSS_SHARE), share,
                 missed if share is None or share < NO_GNSS_SHARE else [],
                 f"no GNSS, >= {NO_GNSS_BUILDINGS} buildings seen: >= {NO_GNSS_SHARE:.0%} "
                 f"within {GOOD_3D} m ({len(rows)} blocks)"),
-            "no_gnss_rest_failed": _criterion(not rest, len(rest), rest,
+            "no_gnss_rest_failed": _criterion(_applies(rows, not rest), len(rest), rest,
                                               "no GNSS: the others failed"),
-            "no_gnss_none_far": _criterion(not far, len(far), far,
+            "no_gnss_none_far": _criterion(_applies(rows, not far), len(far), far,
                                            f"no GNSS: none ok/weak beyond {NO_GNSS_WRONG} m")}
 
 
@@ -131,7 +142,7 @@ def summarise(rows: list[dict]) -> dict:
                        "refine_max": max((r.get("seconds") or 0 for r in rows), default=None),
                        "cpu_per_block_mean": _mean_cpu(rows)},
            "criteria": criteria(rows)}
-    out["passed"] = all(c["pass"] for c in out["criteria"].values())
+    out["passed"] = all(c["pass"] is not False for c in out["criteria"].values())
     out["by_family"] = _groups(measured, "family", out["criteria"])
     out["by_gnss_model"] = _groups(measured, "gnss_model", out["criteria"])
     return out
@@ -199,8 +210,10 @@ def summary_lines(s: dict) -> list[str]:
              "", "| criterion | result | figure | offending blocks |", "|---|---|---|---|"]
     for c in s["criteria"].values():
         value = c["value"]
-        figure = _n(value, "{:.2f}") if isinstance(value, float) else str(value)
-        lines.append(f"| {c['what']} | {'pass' if c['pass'] else '**fail**'} | {figure} | "
+        figure = _n(value, "{:.2f}") if isinstance(value, float) else (
+            "-" if value is None else str(value))
+        result = {True: "pass", False: "**fail**", None: "n/a (no such block)"}[c["pass"]]
+        lines.append(f"| {c['what']} | {result} | {figure} | "
                      f"{', '.join(c['offenders']) or '-'} |")
     return lines
 
