@@ -145,6 +145,8 @@ def summarise(rows: list[dict]) -> dict:
     out["passed"] = all(c["pass"] is not False for c in out["criteria"].values())
     out["by_family"] = _groups(measured, "family", out["criteria"])
     out["by_gnss_model"] = _groups(measured, "gnss_model", out["criteria"])
+    out["by_model_level"] = _groups(measured, "model", out["criteria"])
+    out["by_wrong_model"] = _groups(measured, "wrong_kind", out["criteria"])
     return out
 
 
@@ -168,11 +170,17 @@ def _median(values) -> float | None:
     return float(np.median(v)) if v else None
 
 
+def _value(r: dict, key: str) -> str:
+    if key == "wrong_kind":
+        return (r.get("wrong") or {}).get("kind", "right model")
+    return str(r[key])
+
+
 def _groups(rows: list[dict], key: str, crit: dict) -> dict:
     """Per value of `key`: blocks, verdicts, median errors and each criterion's offenders."""
     out = {}
-    for value in sorted({r[key] for r in rows}):
-        mine = [r for r in rows if r[key] == value]
+    for value in sorted({_value(r, key) for r in rows}):
+        mine = [r for r in rows if _value(r, key) == value]
         names = {r["name"] for r in mine}
         out[value] = {"blocks": len(mine), "verdicts": _count(mine, "verdict"),
                       "median_error_3d": _median(r.get("error_3d") for r in mine),
@@ -280,7 +288,9 @@ def write_markdown(content: dict, path: Path) -> None:
         text += ["", f"## {split}: {'all criteria pass' if s['passed'] else 'criteria fail'}",
                  "", *summary_lines(s), "", "By family:", "",
                  *group_table(s["by_family"], "family"), "", "By GNSS model:", "",
-                 *group_table(s["by_gnss_model"], "GNSS")]
+                 *group_table(s["by_gnss_model"], "GNSS"), "", "By model level:", "",
+                 *group_table(s["by_model_level"], "model"), "", "By wrong model:", "",
+                 *group_table(s["by_wrong_model"], "wrong model")]
     skipped = content.get("skipped_combinations") or []
     if skipped:
         text += ["", "## Family and tile combinations left out", ""]
