@@ -311,6 +311,10 @@ def measure(block: dict, workspace: Path, out: Path, ran: dict) -> dict:
     row = read_report(out)
     if ran.get("timeout"):
         row["verdict"] = "timeout"
+    elif ran["exit"] == 2:  # refine refused its input with a message
+        row["verdict"] = "refused"
+        row["failure"] = next((line for line in reversed(ran.get("log_tail") or [])
+                               if line.startswith("error:")), None)
     elif ran["exit"] not in (0, 3):
         row["verdict"] = "error"
     elif not row:
@@ -323,7 +327,11 @@ def measure(block: dict, workspace: Path, out: Path, ran: dict) -> dict:
                                                                sigma)]
     row["true_images"] = len(truth)
     if block["gnss_model"] != "none":
-        gnss = gnss_only_errors(workspace, truth, origin)
+        try:
+            gnss = gnss_only_errors(workspace, truth, origin)
+        except Exception as error:  # noqa: BLE001  (GNSS alone may not place the block)
+            gnss = None
+            row["gnss_only_failure"] = f"{type(error).__name__}: {error}"
         row["gnss_only_error_3d"] = gnss["error_3d"] if gnss else None
         row["gnss_only_error"] = gnss["error"] if gnss else None
     row["buildings_seen"] = buildings_seen(workspace, origin)
@@ -369,7 +377,7 @@ def run_block(block: dict, code_dir: str, python: str, code: str, precision: str
         row.update(measure(block, workspace, out, ran))
     except Exception as error:  # noqa: BLE001  (an unreadable output is a result too)
         row.update(verdict="error", failure=f"measuring: {type(error).__name__}: {error}")
-    if row["verdict"] in ("error", "timeout"):
+    if row["verdict"] in ("error", "timeout", "refused"):
         row["log_tail"] = ran.get("log_tail")
     return row
 

@@ -462,7 +462,8 @@ def wrong_model_of(kind: str, model: TileModel, region, rng) -> dict:
         shift = size * _direction(rng)
         if shapely.affinity.translate(union, *shift).intersects(region):
             break
-    return {"kind": "shifted", "model_shift": [round(shift[0], 2), round(shift[1], 2), 0.0],
+    return {"kind": "shifted",
+            "model_shift": [round(float(shift[0]), 2), round(float(shift[1]), 2), 0.0],
             "size_m": round(size, 1)}
 
 

@@ -12,7 +12,7 @@ pass or fail, its figure and the blocks that offend against it:
   above 3.5, at most 20 % below 0.3;
 - without GNSS, of the blocks that see three or more buildings: at least 80 % registered
   ("ok" or "weak" within 0.30 m), the rest "failed", none "ok" or "weak" beyond 1 m;
-- and every block built and refined (no crash, no timeout).
+- and every block built and refined (no input refused with exit 2, no crash, no timeout).
 """
 
 from __future__ import annotations
@@ -79,7 +79,8 @@ def criteria(rows: list[dict]) -> dict:
     out.update(no_gnss_criteria(measured))
     broken = [r["name"] for r in rows if r["verdict"] not in MEASURED]
     out["all_ran"] = _criterion(not broken, f"{len(rows) - len(broken)} of {len(rows)}",
-                                broken, "every block built and refined (no crash, no timeout)")
+                                broken, "every block built and refined (no refusal, crash "
+                                "or timeout)")
     return out
 
 
