@@ -10,7 +10,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from .flight import Flight
-from .scenario import STAGE_CHECK, STAGE_GNSS, STAGE_OBS, STAGE_POINTS, CheckPointOptions, GNSSOptions, ObservationOptions
+from .scenario import STAGE_CHECK, STAGE_GNSS, STAGE_GNSS_GROSS, STAGE_OBS, STAGE_POINTS, \
+    CheckPointOptions, GNSSOptions, ObservationOptions
 from .scene import LABEL_GROUND, LABEL_ROOF, LABEL_WALL, TrueScene
 
 logger = logging.getLogger(__name__)
@@ -286,7 +287,8 @@ def simulate_gnss(flight: Flight, opt: GNSSOptions, seed: int) -> np.ndarray:
     """Local GNSS positions: truth + white noise + a smooth bias (Gaussian-filtered noise along
     the path with std `bias_sigma` and correlation length `bias_length`) + a constant bias of
     length `bias_magnitude` in a direction uniform on the sphere (drawn from the seed only, so
-    the same direction for every magnitude and independent of the other noise)."""
+    the same direction for every magnitude and independent of the other noise) + the gross
+    errors of `gnss_gross_errors` (outliers and a step)."""
     rng = np.random.default_rng([seed, STAGE_GNSS])
     n = len(flight.centres)
     white_sigma = opt.sigma if opt.white_sigma is None else opt.white_sigma
@@ -303,7 +305,38 @@ def simulate_gnss(flight: Flight, opt: GNSSOptions, seed: int) -> np.ndarray:
     bias *= np.asarray(opt.bias_sigma)
     if opt.bias_magnitude:
         bias = bias + opt.bias_magnitude * constant_bias_direction(seed)
-    return flight.centres + white + bias
+    return flight.centres + white + bias + gnss_gross_errors(flight, opt, seed)[0]
+
+
+def gnss_gross_errors(flight: Flight, opt: GNSSOptions, seed: int) -> tuple[np.ndarray, dict]:
+    """GNSSOptions' outliers and step: the (N, 3) errors they add to the positions, and what
+    they are (the outlying key frames with their errors, the first key frame of the step and
+    its vector; {} when there are none). Drawn from their own stream (seed, STAGE_GNSS_GROSS)."""
+    rng = np.random.default_rng([seed, STAGE_GNSS_GROSS])
+    n = len(flight.centres)
+    errors = np.zeros((n, 3))
+    info: dict = {}
+    if opt.outliers > 0 and n > 2:
+        frames = np.sort(rng.choice(np.arange(1, n - 1), size=min(opt.outliers, n - 2),
+                                    replace=False))
+        lengths = rng.uniform(*opt.outlier_range, len(frames))
+        errors[frames] = lengths[:, None] * _unit_vectors(rng, len(frames))
+        info["outliers"] = [{"image": flight.names[k], "error_m": errors[k].tolist()}
+                            for k in frames]
+    if opt.step_magnitude > 0:
+        at = rng.uniform(*opt.step_range) * flight.arc[-1]
+        first = int(np.searchsorted(flight.arc, at))
+        step = opt.step_magnitude * _unit_vectors(rng, 1)[0]
+        errors[first:] += step
+        if first < n:
+            info["step"] = {"from_image": flight.names[first], "vector_m": step.tolist()}
+    return errors, info
+
+
+def _unit_vectors(rng: np.random.Generator, n: int) -> np.ndarray:
+    """n directions uniform on the sphere."""
+    v = rng.standard_normal((n, 3))
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
 
 
 def constant_bias_direction(seed: int) -> np.ndarray:

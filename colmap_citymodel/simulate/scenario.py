@@ -27,7 +27,12 @@ FLIGHT_MODES = ("sideways", "forward", "orbit")
 # Options left out of the sequence key while they hold these defaults, so that sequences
 # cached without them keep their keys.
 _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_radius": 35.0},
-                "gnss": {"bias_magnitude": 0.0},
+                "gnss": {"bias_magnitude": 0.0, "outliers": 0, "outlier_range": (10.0, 30.0),
+                         "step_magnitude": 0.0, "step_range": (0.3, 0.7)},
+                "scene": {"target_crs": None},
+                "model_errors": {"missing_buildings": 0, "extra_buildings": 0,
+                                 "extra_size_range": (8.0, 16.0),
+                                 "extra_height_range": (5.0, 14.0)},
                 "observations": {"ground_points_per_m2": None,
                                  "ground_max_incidence_deg": None},
                 "details": {"kerb_height": 0.0, "sidewalk_width": 3.0,
@@ -39,6 +44,9 @@ class SceneOptions:
     source: str = "procedural"  # "procedural" or a CityGML/CityJSON file/directory
     lod: int = 2
     crs: str | None = None  # CRS to assume when the file names none
+    # projected CRS to reproject the model to (a geographic model such as PLATEAU's EPSG:6697
+    # needs one: the simulation works in metres); None: the model's own CRS
+    target_crs: str | None = None
     bbox_crs: list[float] | None = None  # [xmin, ymin, xmax, ymax] (model CRS) to read a part
     procedural: ProceduralOptions = field(default_factory=ProceduralOptions)
 
@@ -125,6 +133,15 @@ class GNSSOptions:
     # a constant bias of this length (m) over the whole block, its direction uniform on the
     # sphere and drawn from the seed alone (the same direction for every magnitude)
     bias_magnitude: float = 0.0
+    # Gross errors (a wrong fix, a change of satellites or of correction service), drawn from
+    # their own random stream so that the noise above stays as it is: `outliers` key frames
+    # (never the first or last) each off by a length drawn from outlier_range (m), and from a
+    # point along the path drawn from step_range (share of the path length) on, every position
+    # moved by step_magnitude (m); each in a direction uniform on the sphere. 0: none.
+    outliers: int = 0
+    outlier_range: tuple[float, float] = (10.0, 30.0)
+    step_magnitude: float = 0.0
+    step_range: tuple[float, float] = (0.3, 0.7)
 
 
 @dataclass
@@ -152,6 +169,13 @@ class ScenarioOptions:
     dtm_tiles: int = 2
     dtm_offset_sigma: float = 0.10
     dtm_noise: float = 0.15
+    # A wrong given model (its datum, not its shape): turned by model_turn_deg (counter-
+    # clockwise seen from above) about the vertical through model_turn_centre (local xy, the
+    # truth's frame; None: the centre of the true camera centres), then moved by model_shift
+    # (m, x y z). The truth, the DTM and the other models/ variants stay where they are.
+    model_shift: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    model_turn_deg: float = 0.0
+    model_turn_centre: list[float] | None = None
 
 
 @dataclass
@@ -264,6 +288,17 @@ def _validate(o: SimulationOptions, path: Path) -> None:
         bad("flight.orbit_radius must be positive (metres)")
     if o.gnss.bias_magnitude < 0:
         bad("gnss.bias_magnitude must not be negative (metres)")
+    if o.gnss.outliers < 0 or o.gnss.step_magnitude < 0:
+        bad("gnss.outliers and gnss.step_magnitude must not be negative")
+    if not 0.0 <= o.gnss.step_range[0] <= o.gnss.step_range[1] <= 1.0:
+        bad("gnss.step_range must be [a, b] with 0 <= a <= b <= 1 (shares of the path)")
+    if o.model_errors.missing_buildings < 0 or o.model_errors.extra_buildings < 0:
+        bad("model_errors.missing_buildings and extra_buildings must not be negative")
+    if o.scenario.model == "none" and (any(o.scenario.model_shift)
+                                       or o.scenario.model_turn_deg):
+        bad("scenario.model_shift / model_turn_deg need a given model (scenario.model)")
+    if o.scenario.model_turn_centre is not None and len(o.scenario.model_turn_centre) != 2:
+        bad("scenario.model_turn_centre must be [x, y] (local metres)")
     if o.flight.num_key_frames < 3:
         bad("flight.num_key_frames must be at least 3")
     if o.flight.spacing < 0.05:
@@ -302,3 +337,4 @@ def sequence_key(options: SimulationOptions) -> str:
 #: changing one stage's options leaves the others' draws as they were.
 STAGE_FLIGHT, STAGE_POINTS, STAGE_OBS, STAGE_CHECK, STAGE_GNSS, STAGE_DETAILED = 21, 22, 23, 24, \
     25, 26
+STAGE_GNSS_GROSS, STAGE_BUILDINGS = 27, 28

@@ -106,6 +106,16 @@ class ModelErrorOptions:
     detailed_shift_sigma: float = 0.02  # per polygon of the detailed model
     detailed_rotation_sigma_deg: float = 0.1
     detailed_min_area: float = 0.5  # smaller true polygons are left out of the detailed model
+    # Whole buildings the given model (every variant) gets wrong, as an outdated or
+    # incomplete city model does (simulate.buildings): `missing_buildings` of the true
+    # buildings near the flight (footprint within the observations' max_distance of a camera)
+    # left out of it, at least one near building kept; `extra_buildings` flat-roofed boxes in
+    # it where the true scene has none (a demolished building), in front of the cameras, each
+    # side drawn from extra_size_range (m) and its height from extra_height_range (m). 0: none.
+    missing_buildings: int = 0
+    extra_buildings: int = 0
+    extra_size_range: tuple[float, float] = (8.0, 16.0)
+    extra_height_range: tuple[float, float] = (5.0, 14.0)
 
 
 @dataclass

@@ -63,7 +63,9 @@ import numpy as np
 from ..errors import InputError
 from .flight import plan_flight
 from .mapping import run_mapping, truth_reconstruction, write_database
-from .observations import simulate_checkpoints, simulate_gnss, simulate_observations
+from .buildings import building_changes, given_polygons, given_store
+from .observations import gnss_gross_errors, simulate_checkpoints, simulate_gnss, \
+    simulate_observations
 from .scenario import STAGE_DETAILED, SimulationOptions, load_scenario, sequence_key
 from .scene import GroundModel, build_true_scene, detailed_polygons, perturb_planes, perturb_polygons, procedural_store
 
@@ -135,7 +137,7 @@ def _load_store(options: SimulationOptions):
         b = np.asarray(options.scene.bbox_crs, dtype=np.float64)
         bbox = b.reshape(2, -1)
     return read_city_model(options.scene.source, lod=options.scene.lod, crs=options.scene.crs,
-                           bbox_crs=bbox)
+                           target_crs=options.scene.target_crs, bbox_crs=bbox)
 
 
 def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = True) -> dict:
@@ -167,11 +169,17 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
     # models
     models = out / "models"
     models.mkdir()
-    write_citygml(models / "corrected.gml", raw_from_store(store), name="corrected (as given)")
-    original = perturb_planes(store, options.model_errors, seed)
+    changes = building_changes(store, flight.centres, flight.rotations[:, 2],
+                               options.observations.max_distance, options.model_errors, seed,
+                               ground)
+    given = given_store(store, changes)
+    write_citygml(models / "corrected.gml", raw_from_store(given), name="corrected (as given)")
+    original = perturb_planes(given, options.model_errors, seed)
     write_citygml(models / "original.gml", raw_from_store(original),
                   name="original (systematic plane errors)")
     det = detailed_polygons(scene, options.model_errors.detailed_min_area)
+    if changes:
+        det = given_polygons(det, changes, origin)
     det = perturb_polygons(det, options.model_errors.detailed_shift_sigma,
                            options.model_errors.detailed_rotation_sigma_deg, seed, STAGE_DETAILED)
     for i, p in enumerate(det):
@@ -194,6 +202,9 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         "# origin X Y Z: local = model CRS - origin\n"
         f"{_fmt(origin[0])} {_fmt(origin[1])} {_fmt(origin[2])}\n"
         f"# crs: {store.crs.label}\n")
+    if changes:  # the given model is not the truth's: keep the true LOD2 model beside it
+        write_citygml(truth / "true_model.gml", raw_from_store(store),
+                      name="the true scene's LOD2 model")
     scene.to_trimesh().export(truth / "true_scene.ply")
     np.save(truth / "true_scene_labels.npy", scene.labels)
     _write_true_ground(scene, origin, store.crs, truth / "ground.tif")
@@ -243,6 +254,11 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         "num_checkpoint_observations": int(len(cps.obs_id)),
         "build_seconds": t_built - t_start,
     }
+    if changes:
+        stats["model_buildings"] = changes.todict()
+    gross = gnss_gross_errors(flight, options.gnss, seed)[1]
+    if gross:
+        stats["gnss_gross_errors"] = gross
     stats.update(run_mapping(out, flight, obs, options.mapping, seed))
     stats["total_seconds"] = time.perf_counter() - t_start
     stats["options"] = options.sequence_dict()
@@ -265,8 +281,8 @@ sequence {sequence} (key {key}). Scenario: given model `{model}`, GNSS `{gnss}`.
 |---|---|
 | `database.db` | COLMAP database: camera (SIMPLE_PINHOLE, fixed), rig, frames, images, keypoints, matches incl. wrong ones, two-view geometries (COLMAP's own verification), pose priors (GNSS, model CRS, CARTESIAN, covariance diag(sigma^2)) for the images with GNSS in this scenario |
 | `sparse/0` | COLMAP's incremental mapper result (arbitrary frame); `sparse/1..` only if COLMAP split the block |
-| `truth/` | true poses and tie points (COLMAP text model) in the LOCAL frame = model CRS - `truth/origin.txt`; `true_scene.ply` the true mesh (same frame), `true_scene_labels.npy` its triangle labels (0 wall, 1 roof, 2 detail, 3 clutter, 4 ground) |
-| `given_model.gml` | the building model of this scenario (CityGML 2.0, model CRS); absent when the scenario has none |
+| `truth/` | true poses and tie points (COLMAP text model) in the LOCAL frame = model CRS - `truth/origin.txt`; `true_scene.ply` the true mesh (same frame), `true_scene_labels.npy` its triangle labels (0 wall, 1 roof, 2 detail, 3 clutter, 4 ground); `true_model.gml` the true LOD2 model when the given one lacks or adds buildings (model_errors) |
+| `given_model.gml` | the building model of this scenario (CityGML 2.0, model CRS), turned and moved when the scenario asks (model_turn_deg, model_shift); absent when the scenario has none |
 | `models/` | all variants: `corrected.gml` (the LOD2 model as given: only generalisation effects), `original.gml` (plus systematic plane errors), `detailed.gml` (the true building planes, LOD3-like, stored as LOD2 surfaces) |
 | `checkpoints.txt` | `id X Y Z` true check point coordinates (model CRS) |
 | `checkpoint_observations.txt` | `image_name id x y` image observations of check points (1 px noise); not in the database |
@@ -295,6 +311,33 @@ def _write_true_ground(scene, origin: np.ndarray, crs, path: Path) -> None:
     x0, y_top, heights = true_ground_grid(ground)
     write_grid(path, x0 + origin[0], y_top + origin[1], 1.0, heights + origin[2],
                f"EPSG:{crs.horizontal_epsg}")
+
+
+def move_given_model(workspace: Path, scenario) -> None:
+    """given_model.gml turned by scenario.model_turn_deg about the vertical through
+    scenario.model_turn_centre (local xy; default: the true camera centres' mean), then moved
+    by scenario.model_shift (ScenarioOptions)."""
+    import pycolmap
+
+    from ..citymodel.read import read_city_model
+    from ..citymodel.write_citygml import raw_from_store, write_citygml
+
+    path = workspace / "given_model.gml"
+    origin = np.array([float(v) for v in (workspace / "truth" / "origin.txt").read_text()
+                       .splitlines()[1].split()[:3]])
+    if scenario.model_turn_centre is not None:
+        centre = np.asarray(scenario.model_turn_centre, dtype=np.float64)
+    else:
+        truth = pycolmap.Reconstruction(str(workspace / "truth"))
+        centre = np.mean([im.projection_center()[:2] for im in truth.images.values()], axis=0)
+    store = read_city_model(path)
+    xyz = store.to_crs(store.vertices) - origin  # the truth's local frame
+    a = np.radians(scenario.model_turn_deg)
+    turn = np.array([[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]])
+    xyz[:, :2] = (xyz[:, :2] - centre) @ turn.T + centre
+    xyz += np.asarray(scenario.model_shift, dtype=np.float64)
+    moved = store.with_vertices(store.to_local(xyz + origin))
+    write_citygml(path, raw_from_store(moved), name="given model, moved (a wrong datum)")
 
 
 def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dict:
@@ -333,6 +376,8 @@ def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dic
         db.close()
     if sc.model != "none":
         shutil.copy2(out / "models" / f"{sc.model}.gml", out / "given_model.gml")
+        if any(sc.model_shift) or sc.model_turn_deg:
+            move_given_model(out, sc)
     if sc.dtm:
         from .dtm import dtm_from_truth
 
