@@ -31,7 +31,8 @@ _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_r
                 "observations": {"ground_points_per_m2": None,
                                  "ground_max_incidence_deg": None},
                 "details": {"kerb_height": 0.0, "sidewalk_width": 3.0,
-                            "road_cross_slope": 0.0}}
+                            "road_cross_slope": 0.0, "furniture_spacing": 0.0,
+                            "dormer_probability": 0.0}}
 
 
 @dataclass
