@@ -55,7 +55,7 @@ class Light:
         if len(idx):
             start = points[idx] + normals[idx] * SHADOW_OFFSET
             rays = np.concatenate([start, np.broadcast_to(self.sun, start.shape)], 1)
-            hit = raycaster.cast_rays(o3d.core.Tensor(rays.astype(np.float32)),
+            hit = raycaster.cast_rays(o3d.core.Tensor(rays.astype(np.float32, copy=False)),
                                       nthreads=threads)["t_hit"].numpy()
             lit[idx] = ~np.isfinite(hit)
         return lit

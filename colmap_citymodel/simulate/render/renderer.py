@@ -77,8 +77,7 @@ class Renderer:
         radiance = np.empty((len(dirs), 3), np.float32)
         key = np.full(len(dirs), KEY_SKY, np.int64)
         if hit.any():
-            h = Hits.of(self.tables, origin, dirs[hit], t[hit], tri[hit].astype(np.int64),
-                        self.pixel_angle)
+            h = Hits.of(self.tables, origin, dirs[hit], t[hit], tri[hit], self.pixel_angle)
             radiance[hit] = self._surface(h)
             key[hit] = np.where(h.label == sc.LABEL_GROUND, KEY_TERRAIN, h.face)
         miss = np.flatnonzero(~hit)
@@ -120,7 +119,7 @@ class Renderer:
         """Linear radiance (H,W,3) of key frame k and the mask of pixels that see the ground or
         the city (not the sky)."""
         f = self.flight
-        dirs = self.pixel_dirs @ f.rotations[k].astype(np.float32)
+        dirs = np.einsum("ij,jk->ik", self.pixel_dirs, f.rotations[k].astype(np.float32))
         radiance, key = self.shade(f.centres[k], dirs)
         image = radiance.reshape(f.height, f.width, 3)
         key = key.reshape(f.height, f.width)
@@ -147,6 +146,7 @@ class Renderer:
         px = (jj[:, None] + 0.5 + ox.ravel()[None]).ravel()
         py = (ii[:, None] + 0.5 + oy.ravel()[None]).ravel()
         f = self.flight
-        dirs = self._directions(np.stack([px, py], axis=1)) @ f.rotations[k].astype(np.float32)
+        dirs = np.einsum("ij,jk->ik", self._directions(np.stack([px, py], axis=1)),
+                         f.rotations[k].astype(np.float32))
         radiance, _ = self.shade(f.centres[k], dirs)
         image[ii, jj] = radiance.reshape(len(ii), m * m, 3).mean(axis=1)

@@ -90,13 +90,12 @@ class Hits:
         p = origins + dirs * distance[:, None]
         n = tables.normals[tri]
         cos = np.einsum("ij,ij->i", n, dirs)
-        n = n * -np.sign(cos + 1e-12)[:, None]
-        footprint = distance * pixel_angle / np.maximum(np.abs(cos), 0.25)
-        u, v = tables.u[tri], tables.v[tri]
-        return cls(p.astype(np.float32), dirs, distance, tri, n.astype(np.float32),
-                   np.einsum("ij,ij->i", p, u), np.einsum("ij,ij->i", p, v), tables.rect[tri],
-                   tables.parts[tri], tables.labels[tri], tables.objects[tri],
-                   tables.faces[tri], footprint.astype(np.float32))
+        n *= np.where(cos > 0, np.float32(-1.0), np.float32(1.0))[:, None]
+        footprint = distance * np.float32(pixel_angle) / np.maximum(np.abs(cos), 0.25)
+        s = np.einsum("ij,ij->i", p, tables.u[tri])
+        t = np.einsum("ij,ij->i", p, tables.v[tri])
+        return cls(p, dirs, distance, tri, n, s, t, tables.rect[tri], tables.parts[tri],
+                   tables.labels[tri], tables.objects[tri], tables.faces[tri], footprint)
 
     def __len__(self) -> int:
         return len(self.tri)
