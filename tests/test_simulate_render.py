@@ -122,6 +122,21 @@ def _rotation_to(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.eye(3) + k + k @ k / (1.0 + c)
 
 
+def test_barrel_lens_does_not_fold_far_points_into_the_image():
+    """With k1 < 0 the radial polynomial turns back 76 deg off the axis (k1 = -0.02): a point
+    80 deg off is not projected (it would land inside the image), one 40 deg off is, where
+    COLMAP's camera model puts it."""
+    flight = Flight(["a.jpg"], np.zeros((1, 3)), np.eye(3)[None], np.zeros(1), 1600, 1200,
+                    1150.0, -0.02, -0.02)
+    angles = np.radians([80.0, 40.0])
+    points = np.stack([np.sin(angles), np.zeros(2), np.cos(angles)], axis=1) * 20.0
+    uv, _ = flight.project(0, points)
+    assert np.isnan(uv[0]).all()
+    camera = pycolmap.Camera(model="SIMPLE_RADIAL", width=1600, height=1200,
+                             params=[1150.0, 800.0, 600.0, -0.02])
+    assert np.allclose(uv[1], camera.img_from_cam(points[1:])[0], atol=1e-9)
+
+
 def _xmp_fields(path: Path) -> dict[str, str]:
     xmp = Image.open(path).info["xmp"].decode()
     return dict(re.findall(r'drone-dji:(\w+)="([^"]*)"', xmp))

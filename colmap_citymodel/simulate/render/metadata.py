@@ -24,6 +24,8 @@ from ...errors import InputError
 
 #: Sensor width (mm) assumed for the EXIF focal length in millimetres: a 1" sensor.
 SENSOR_WIDTH_MM = 13.2
+#: Diagonal of a 35 mm film frame (36 x 24 mm), for FocalLengthIn35mmFilm.
+FILM_DIAGONAL_MM = math.hypot(36.0, 24.0)
 #: Time of the first exposure (EXIF DateTimeOriginal) and the interval between key frames.
 START_TIME = dt.datetime(2024, 6, 15, 9, 0, 0)
 INTERVAL_S = 2.0
@@ -112,7 +114,8 @@ def exif_bytes(meta: ImageMetadata, width: int, height: int, focal_px: float) ->
     taken = START_TIME + dt.timedelta(seconds=INTERVAL_S * meta.index)
     sub[0x9003] = taken.strftime("%Y:%m:%d %H:%M:%S")  # DateTimeOriginal
     sub[0x920A] = rational(focal_px * SENSOR_WIDTH_MM / width, 1000)
-    sub[0xA405] = int(round(focal_px / max(width, height) * 36.0))  # 35 mm equivalent
+    # 35 mm equivalent: the same angle of view over the diagonal (43.27 mm on 35 mm film)
+    sub[0xA405] = int(round(focal_px * FILM_DIAGONAL_MM / math.hypot(width, height)))
     sub[0xA002], sub[0xA003] = width, height
     gps = exif.get_ifd(0x8825)
     gps[0x0000] = b"\x02\x03\x00\x00"  # GPSVersionID 2.3

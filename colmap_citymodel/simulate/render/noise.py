@@ -74,9 +74,14 @@ class Noise:
         wavelength, amplitude, octave = float(largest), 1.0, 0
         while wavelength >= smallest * 0.999:
             weight = fade(wavelength, footprint)
-            if np.any(weight > 0):
+            live = np.flatnonzero(weight > 0)
+            if len(live) > 0.7 * len(out):  # most pixels: evaluate everywhere
                 n = self.value(x / wavelength, y / (wavelength * stretch), layer * 16 + octave)
                 out += (amplitude * weight) * n
+            elif len(live):  # a fine octave only near pixels resolve: evaluate only there
+                n = self.value(x[live] / wavelength, y[live] / (wavelength * stretch),
+                               layer * 16 + octave)
+                out[live] += (amplitude * weight[live]) * n
             total += amplitude
             wavelength /= LACUNARITY
             amplitude *= gain
