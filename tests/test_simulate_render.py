@@ -21,7 +21,8 @@ from colmap_citymodel.simulate.render.renderer import Renderer
 from colmap_citymodel.simulate.render.sensor import expose
 from colmap_citymodel.simulate.render.targets import Targets
 from colmap_citymodel.simulate.scenario import SimulationOptions, sequence_key
-from colmap_citymodel.simulate.scene import LABEL_WALL, PART_FURNITURE, PART_WINDOW, building_footprints
+from colmap_citymodel.simulate.scene import LABEL_WALL, PART_FURNITURE, PART_WINDOW, \
+    building_footprints
 from colmap_citymodel.simulate.sequence import plan_sequence, render_sequence, simulate_sequence
 
 

@@ -698,31 +698,16 @@ def _wall_frame(store: PlaneStore, f: int, building_centre: np.ndarray) -> _Fram
     return _Frame(c, u, v, n)
 
 
-def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: DetailOptions,
-                   rng: np.random.Generator, bid: str) -> list[tuple[np.ndarray, np.ndarray]]:
-    """Windows, entrances, pilasters and balconies on one wall. Returns clutter anchor points
-    (bottom centre of the facade, outward normal) for trees/cars."""
-    face = store.faces[f]
-    ext = fr.to2d(store.vertices[face.exterior])
-    holes = [fr.to2d(store.vertices[h]) for h in face.holes]
-    poly = Polygon(ext, holes)
-    if not poly.is_valid:
-        poly = poly.buffer(0)
-    polys = _polygons_of(poly)
-    if not polys:
-        return []
-    poly = max(polys, key=lambda p: p.area) if len(polys) > 1 else polys[0]
-    umin, vmin, umax, vmax = poly.bounds
-    length, height = umax - umin, vmax - vmin
-    if length < opt.min_wall_length or height < 2.5 or abs(fr.n[2]) > 0.3:
-        _cap(mb, fr, poly, 0.0, 1.0, LABEL_WALL, bid)
-        return []
+def _plan_openings(poly: Polygon, nbays: int, bay: float, opt: DetailOptions,
+                   rng: np.random.Generator):
+    """Per bay and storey of a wall (2D, facade frame): a garage door or an entrance on the
+    ground floor, else a window; balconies under some upper windows. Returns the openings
+    (rectangle, depth behind the wall, PART_*) and the balconies (u0, u1, floor v)."""
+    umin, vmin, _, vmax = poly.bounds
     inner = poly.buffer(-0.3)
-    nbays = max(int(length // opt.bay_width), 1)
-    bay = length / nbays
-    nstoreys = max(int(height // opt.storey_height), 1)
-    openings: list[tuple[Polygon, float, int]] = []  # (rectangle, depth behind the wall, part)
-    balconies: list[tuple[float, float, float]] = []  # (u0, u1, floor v)
+    nstoreys = max(int((vmax - vmin) // opt.storey_height), 1)
+    openings: list[tuple[Polygon, float, int]] = []
+    balconies: list[tuple[float, float, float]] = []
     ww, wh = opt.window_size
     for b in range(nbays):
         uc = umin + (b + 0.5) * bay
@@ -751,6 +736,31 @@ def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: 
                     u0, u1 = uc - min(1.3, bay / 2 - 0.3), uc + min(1.3, bay / 2 - 0.3)
                     if inner.contains(box(u0, base - 0.15, u1, base + 1.0)):
                         balconies.append((u0, u1, base))
+    return openings, balconies
+
+
+def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: DetailOptions,
+                   rng: np.random.Generator, bid: str) -> list[tuple[np.ndarray, np.ndarray]]:
+    """Windows, entrances, pilasters and balconies on one wall. Returns clutter anchor points
+    (bottom centre of the facade, outward normal) for trees/cars."""
+    face = store.faces[f]
+    ext = fr.to2d(store.vertices[face.exterior])
+    holes = [fr.to2d(store.vertices[h]) for h in face.holes]
+    poly = Polygon(ext, holes)
+    if not poly.is_valid:
+        poly = poly.buffer(0)
+    polys = _polygons_of(poly)
+    if not polys:
+        return []
+    poly = max(polys, key=lambda p: p.area) if len(polys) > 1 else polys[0]
+    umin, vmin, umax, vmax = poly.bounds
+    length, height = umax - umin, vmax - vmin
+    if length < opt.min_wall_length or height < 2.5 or abs(fr.n[2]) > 0.3:
+        _cap(mb, fr, poly, 0.0, 1.0, LABEL_WALL, bid)
+        return []
+    nbays = max(int(length // opt.bay_width), 1)
+    bay = length / nbays
+    openings, balconies = _plan_openings(poly, nbays, bay, opt, rng)
     holes_union = shapely.unary_union([r for r, _, _ in openings]) if openings else None
     wall = poly.difference(holes_union) if holes_union is not None else poly
     for part in _polygons_of(wall):
