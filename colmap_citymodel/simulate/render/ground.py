@@ -1,9 +1,9 @@
 """The terrain's paint: pavements along the buildings, asphalt with lane markings, manholes and
 repairs beyond them, grass further out, chosen by the distance to the building footprints.
 
-The distance (and the direction to the nearest footprint, which orients paving joints and
-dashes) is a raster over the terrain (10 cm cells, Euclidean distance transform of the
-rasterised footprints), read bilinearly per hit.
+The distance (Euclidean distance transform of the rasterised footprints) and the coordinate
+along the footprints' outlines of the nearest footprint point (which dashes, manholes and
+paving joints follow) are rasters over the terrain (10 cm cells), read bilinearly per hit.
 """
 
 from __future__ import annotations
@@ -46,34 +46,55 @@ class GroundPaint:
                                         transform=affine, all_touched=False, dtype=np.uint8)
         if inside.any():
             dist, (iy, ix) = ndimage.distance_transform_edt(inside == 0, return_indices=True)
-            gy, gx = np.mgrid[0:ny, 0:nx]
-            dx, dy = (gx - ix).astype(np.float32), (gy - iy).astype(np.float32)
-        else:  # no buildings: everything far away
+            self.along = self._arc_lengths(footprints, iy * nx + ix, nx)
+        else:  # no buildings: everything far away, one direction
             dist = np.full((ny, nx), 1e3)
-            dx, dy = np.ones((ny, nx), np.float32), np.zeros((ny, nx), np.float32)
-        norm = np.maximum(np.hypot(dx, dy), 1e-6)
+            self.along = (self.x0 + CELL * np.arange(nx, dtype=np.float32))[None].repeat(ny, 0)
         self.distance = (dist * CELL).astype(np.float32)
-        self.away = np.stack([dx / norm, dy / norm], -1).astype(np.float16)
+
+    def _arc_lengths(self, footprints, nearest: np.ndarray, nx: int) -> np.ndarray:
+        """Per cell, how far along the footprints' outlines (m) the nearest footprint cell
+        lies: the coordinate along the kerb that dashes and paving joints follow."""
+        from scipy.spatial import cKDTree
+
+        points, arcs = [], []
+        geoms = getattr(footprints, "geoms", [footprints])
+        for poly in geoms:
+            for ring in [poly.exterior, *poly.interiors]:
+                n = max(int(ring.length / (CELL / 2)), 4)
+                t = np.linspace(0.0, ring.length, n, endpoint=False)
+                points.append(np.array([ring.interpolate(v).coords[0][:2] for v in t]))
+                arcs.append(t + (arcs[-1][-1] + 100.0 if arcs else 0.0))
+        cells, inverse = np.unique(nearest.ravel(), return_inverse=True)
+        xy = np.c_[self.x0 + CELL * (cells % nx), self.y0 + CELL * (cells // nx)]
+        _, which = cKDTree(np.concatenate(points)).query(xy)
+        return np.concatenate(arcs)[which][inverse].reshape(nearest.shape).astype(np.float32)
 
     def _sample(self, x: np.ndarray, y: np.ndarray):
-        """Bilinear distance (m) and the nearest cell's unit direction away from the
-        buildings."""
+        """Bilinear distance (m) and coordinate along the outlines (bilinear where the four
+        cells agree within a metre, else the nearest cell's)."""
         fx = np.clip((x - self.x0) / CELL, 0, self.distance.shape[1] - 1.001)
         fy = np.clip((y - self.y0) / CELL, 0, self.distance.shape[0] - 1.001)
         ix, iy = fx.astype(np.int64), fy.astype(np.int64)
         tx, ty = (fx - ix).astype(np.float32), (fy - iy).astype(np.float32)
-        d = self.distance
-        top = d[iy, ix] * (1 - tx) + d[iy, ix + 1] * tx
-        bottom = d[iy + 1, ix] * (1 - tx) + d[iy + 1, ix + 1] * tx
-        away = self.away[np.rint(fy).astype(np.int64), np.rint(fx).astype(np.int64)]
-        return top * (1 - ty) + bottom * ty, away.astype(np.float32)
+        out = []
+        for grid in (self.distance, self.along):
+            a, b = grid[iy, ix], grid[iy, ix + 1]
+            c, d = grid[iy + 1, ix], grid[iy + 1, ix + 1]
+            top = a + (b - a) * tx
+            out.append(top + (c + (d - c) * tx - top) * ty)
+        a, b = self.along[iy, ix], self.along[iy, ix + 1]
+        c, d = self.along[iy + 1, ix], self.along[iy + 1, ix + 1]
+        jump = np.maximum.reduce([a, b, c, d]) - np.minimum.reduce([a, b, c, d]) > 1.0
+        out[1][jump] = self.along[np.rint(fy[jump]).astype(np.int64),
+                                  np.rint(fx[jump]).astype(np.int64)]
+        return out[0], out[1]
 
     def __call__(self, x: np.ndarray, y: np.ndarray, w: np.ndarray,
                  noise: Noise) -> np.ndarray:
         x = x.astype(np.float64)
         y = y.astype(np.float64)
-        dist, away = self._sample(x, y)
-        along = x * -away[:, 1] + y * away[:, 0]  # coordinate along the kerb line
+        dist, along = self._sample(x, y)
         sw = self.sidewalk
         colour = self._asphalt(x, y, w, dist - sw, along, noise)
         pave = dist < sw

@@ -27,9 +27,9 @@ class RenderOptions:
     sky_light: float = 0.35
     """Irradiance from the sky on an upward surface, relative to the sun's on a surface facing
     it: 0.35 is a clear day (shadows a third as bright as sunlit ground, as on a photograph)."""
-    haze_distance: float = 800.0
+    haze_distance: float = 5000.0
     """Distance (m) at which aerial haze has taken 63 % of an object's contrast: a clear day
-    (meteorological visibility about 2.4 km)."""
+    (meteorological visibility about 20 km, Koschmieder: 3.9 x this)."""
     exposure_jitter: float = 0.15
     """Standard deviation (stops, log2) of the auto exposure's error per image: a camera's
     metering varies by a fraction of a stop between frames."""

@@ -105,7 +105,7 @@ class Renderer:
             d = dirs[far]
             t = height / -d[:, 2]
             p = origin + d * t[:, None]
-            w = t * self.pixel_angle / np.maximum(-d[:, 2], 0.25)
+            w = t * self.pixel_angle / np.sqrt(np.maximum(-d[:, 2], 0.05))
             fields = self.noise.fbm(p[:, 0], p[:, 1], w, largest=40.0, smallest=3.0, gain=0.7,
                                     layer=40)
             albedo = FAR_GROUND * (1.0 + 0.4 * fields)[:, None]

@@ -82,7 +82,7 @@ class Hits:
     label: np.ndarray  # (N,) scene.LABEL_*
     obj: np.ndarray  # (N,) object number, -1: terrain
     face: np.ndarray  # (N,) face number
-    footprint: np.ndarray  # (N,) metres of surface one pixel covers (its larger side)
+    footprint: np.ndarray  # (N,) metres of surface one pixel covers (geometric mean of its sides)
 
     @classmethod
     def of(cls, tables: SceneTables, origins: np.ndarray, dirs: np.ndarray,
@@ -91,7 +91,10 @@ class Hits:
         n = tables.normals[tri]
         cos = np.einsum("ij,ij->i", n, dirs)
         n *= np.where(cos > 0, np.float32(-1.0), np.float32(1.0))[:, None]
-        footprint = distance * np.float32(pixel_angle) / np.maximum(np.abs(cos), 0.25)
+        # a pixel's footprint is pixel_angle x distance across the view and that over |cos|
+        # along it: their geometric mean keeps detail on surfaces seen at grazing angles
+        # (roads from a car) that the larger side would blur away
+        footprint = distance * np.float32(pixel_angle) / np.sqrt(np.maximum(np.abs(cos), 0.05))
         s = np.einsum("ij,ij->i", p, tables.u[tri])
         t = np.einsum("ij,ij->i", p, tables.v[tri])
         return cls(p, dirs, distance, tri, n, s, t, tables.rect[tri], tables.parts[tri],
