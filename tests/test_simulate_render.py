@@ -246,6 +246,24 @@ def test_scene_parts_furniture_and_dormers():
     assert len(same) >= len(plain.triangles)
 
 
+def test_render_table_is_checked(tmp_path):
+    """A scenario's [render] table: unknown keys and bad values are errors naming the file."""
+    from colmap_citymodel.errors import InputError
+    from colmap_citymodel.simulate.scenario import load_scenario
+
+    path = tmp_path / "s.toml"
+    path.write_text('[render]\nenabled = true\nxmp = "exif"\n')
+    with pytest.raises(InputError, match="render.xmp") as caught:
+        load_scenario(path)
+    assert "s.toml" in str(caught.value)
+    path.write_text("[render]\nsun_height = 30\n")
+    with pytest.raises(InputError, match="render.sun_height"):
+        load_scenario(path)
+    path.write_text("[render]\nenabled = true\nsun_elevation_deg = 25\n")
+    options = load_scenario(path)
+    assert options.render.enabled and options.render.sun_elevation_deg == 25.0
+
+
 def test_sequence_key_ignores_render_until_enabled():
     """Sequences without images keep their keys; enabling the renderer makes a new one."""
     o = SimulationOptions()
