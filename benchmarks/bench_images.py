@@ -305,7 +305,8 @@ def run_block(family: str, mapper: str) -> dict:
     start = time.perf_counter()
     workspace, sim = build_from_toml(ROOT / "workspaces" / toml, GENERATED / "render" / family)
     render = sim.get("render", {})
-    row = {"name": f"render_{family}", "family": family, "images": sim["num_key_frames"],
+    name = f"render_{family}" + ("_map" if mapper == "map" else "")
+    row = {"name": name, "family": family, "images": sim["num_key_frames"],
            "build_seconds": time.perf_counter() - start, "matcher": matcher,
            "render_seconds_per_image": render.get("seconds_per_image"),
            "render_cpu_seconds_per_image": render.get("cpu_seconds_per_image")}
@@ -361,12 +362,14 @@ def write_markdown(blocks: list[dict], command: str, code: str, results: Path) -
     lines = ["# Rendered images through COLMAP's own features", "", "Produced by", "",
              f"    {command}", "", f"Code measured: {code}.", "",
              "Per block: the flight rendered into JPEGs and run from the image folder "
-             "(`pipeline`: `run`, or its steps: COLMAP SIFT, matching, `map` with the model, "
-             "refine), against refine on the same flight's simulated tie points. Check points: "
-             "RMS 3D (m) against the truth; GNSS-only: the image run's GNSS-only adjustment. "
+             "(`pipeline`: `run`; `pycolmap+refine`: COLMAP's SIFT, matching and incremental "
+             "mapping, then refine with GNSS from the EXIF; `pycolmap+map`: the same features "
+             "and matches, then `map` with the model inside and its final refine), against "
+             "refine on the same flight's simulated tie points (COLMAP's map of them). Check "
+             "points: RMS 3D (m) against the truth; GNSS-only: the GNSS-only adjustment. "
              f"within: the image run within {FACTOR} x + {MARGIN} m of the tie-point run, or "
              "not \"ok\". s: seconds of the image run (features, matching, mapping, refine); "
-             "render: CPU seconds per image (rendering).", "",
+             "render: seconds per image of rendering, wall / CPU (all threads).", "",
              "| block | images | registered | features / image | GNSS-only | images | tie "
              "points (GNSS-only) | verdict (tie points) | within | s | render | pipeline |",
              "|---|---|---|---|---|---|---|---|---|---|---|---|"]
