@@ -85,12 +85,17 @@ def _add_simulate(subparsers) -> None:
     p.add_argument("--cache_path", default=None,
                    help="directory of built sequences, reused by scenarios of the same sequence")
     p.add_argument("--overwrite", action="store_true", help="replace an existing workspace")
+    p.add_argument("--render", action="store_true",
+                   help="also render the key frames into images/ (JPEG with EXIF GPS and DJI "
+                        "XMP from the simulated GNSS, check-point targets painted on the "
+                        "surfaces, their image positions in images/gcp_list.txt); the "
+                        "scenario's [render] table sets light, textures and sensor")
 
     def run(args):
         from .simulate.sequence import main
 
         main(args.scenario, args.output_path, seed=args.seed, cache_path=args.cache_path,
-             overwrite=args.overwrite)
+             overwrite=args.overwrite, render=args.render)
 
     p.set_defaults(func=run)
 

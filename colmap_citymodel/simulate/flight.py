@@ -31,13 +31,21 @@ class Flight:
         return -np.einsum("nij,nj->ni", self.rotations, self.centres)
 
     def project(self, k: int, X: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Pixel coordinates (COLMAP convention) and depth of local points in key frame k."""
+        """Pixel coordinates (COLMAP convention) and depth of local points in key frame k.
+
+        A barrel-distorting lens (k1 < 0) maps radius r to r (1 + k1 r^2), which turns back
+        beyond r^2 = 1 / (3 |k1|): points that far off the axis (76 deg for k1 = -0.02) would
+        fold back into the image although no pixel sees them; their pixel coordinates are
+        NaN."""
         Xc = (X - self.centres[k]) @ self.rotations[k].T
         z = Xc[:, 2]
         with np.errstate(divide="ignore", invalid="ignore"):
             n = Xc[:, :2] / z[:, None]
             if self.k1:
-                n = n * (1.0 + self.k1 * np.sum(n * n, axis=1, keepdims=True))
+                r2 = np.sum(n * n, axis=1, keepdims=True)
+                n = n * (1.0 + self.k1 * r2)
+                if self.k1 < 0:
+                    n[r2[:, 0] >= 1.0 / (3.0 * -self.k1)] = np.nan
             uv = self.focal * n + np.array([self.width / 2, self.height / 2])
         return uv, z
 

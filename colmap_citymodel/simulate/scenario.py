@@ -12,6 +12,7 @@ from pathlib import Path
 from typing import Any
 
 from ..errors import InputError
+from .render.options import RenderOptions
 from .scene import DetailOptions, ModelErrorOptions, ProceduralOptions
 
 # Bump when the simulation changes in a way that makes cached sequences stale.
@@ -36,7 +37,8 @@ _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_r
                 "observations": {"ground_points_per_m2": None,
                                  "ground_max_incidence_deg": None},
                 "details": {"kerb_height": 0.0, "sidewalk_width": 3.0,
-                            "road_cross_slope": 0.0}}
+                            "road_cross_slope": 0.0, "furniture_spacing": 0.0,
+                            "dormer_probability": 0.0}}
 
 
 @dataclass
@@ -190,6 +192,8 @@ class SimulationOptions:
     checkpoints: CheckPointOptions = field(default_factory=CheckPointOptions)
     gnss: GNSSOptions = field(default_factory=GNSSOptions)
     mapping: MappingOptions = field(default_factory=MappingOptions)
+    # rendered images of the key frames (simulate --render); part of the sequence when enabled
+    render: RenderOptions = field(default_factory=RenderOptions)
     scenario: ScenarioOptions = field(default_factory=ScenarioOptions)
     # files the options came from (copied into the workspace)
     source_files: list[str] = field(default_factory=list)
@@ -198,6 +202,8 @@ class SimulationOptions:
         d = dataclasses.asdict(self)
         d.pop("scenario")
         d.pop("source_files")
+        if not self.render.enabled:  # sequences without images keep their keys
+            d.pop("render")
         return d
 
 
@@ -309,6 +315,8 @@ def _validate(o: SimulationOptions, path: Path) -> None:
         bad("observations.min_track_length must be at least 2")
     if o.scene.source != "procedural" and not Path(o.scene.source).exists():
         bad(f"scene.source {o.scene.source} does not exist")
+    for problem in o.render.validate():
+        bad(problem)
 
 
 def sequence_key(options: SimulationOptions) -> str:

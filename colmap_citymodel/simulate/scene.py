@@ -6,9 +6,12 @@ variants, and the *true* scene that the simulated camera sees.
 - The true scene is that model plus generalisation effects a LOD2 model does not have (Unger
   Fig. 10): facade relief (pilasters +0.1 m, window recesses -0.12 m), entrances and garage doors
   0.5-1 m behind the wall, balconies 1 m out with balustrades, roof overhangs on sloped roofs,
-  parapets on flat roofs, roof furniture (chimneys, boxes), clutter in front of facades (trees,
-  cars) and the terrain. It is a triangle mesh (for sampling points and ray casting) plus the
-  planar polygons of the buildings (the *detailed* model, LOD3-like, for Scn1).
+  parapets on flat roofs, roof furniture (chimneys, boxes), optionally dormers, clutter in front
+  of facades (trees, cars, optionally street furniture) and the terrain. It is a triangle mesh
+  (for sampling points, ray casting and rendering; each triangle knows its part: window, reveal,
+  door, chimney, crown, car, ...; its object: a building or one clutter object; and the planar
+  face it was cut from) plus the planar polygons of the buildings (the *detailed* model,
+  LOD3-like, for Scn1).
 - Model variants: "corrected" = the LOD2 model as given (its planes are the true scene's main
   planes, only generalisation effects differ), "original" = the same topology with systematic
   plane errors (per face a shift N(0, 0.2 m) along the normal and a tilt N(0, 0.5 deg); every
@@ -40,9 +43,19 @@ logger = logging.getLogger(__name__)
 LABEL_WALL, LABEL_ROOF, LABEL_DETAIL, LABEL_CLUTTER, LABEL_GROUND = 0, 1, 2, 3, 4
 LABEL_NAMES = ("wall", "roof", "detail", "clutter", "ground")
 
+# What each triangle is a part of, finer than its label (the renderer's materials): the label's
+# own part (wall, roof, detail, clutter, ground) unless a detail or clutter object says more.
+(PART_WALL, PART_ROOF, PART_DETAIL, PART_CLUTTER, PART_GROUND, PART_WINDOW, PART_REVEAL,
+ PART_DOOR, PART_GARAGE, PART_PILASTER, PART_BALCONY, PART_OVERHANG, PART_PARAPET,
+ PART_CHIMNEY, PART_CROWN, PART_TRUNK, PART_CAR, PART_FURNITURE) = range(18)
+PART_NAMES = ("wall", "roof", "detail", "clutter", "ground", "window", "reveal", "door",
+              "garage", "pilaster", "balcony", "overhang", "parapet", "chimney", "crown",
+              "trunk", "car", "furniture")
+
 # Random streams: each stage draws from its own generator np.random.default_rng([seed, stage,
 # ...]), so changing one stage's options never changes another stage's random numbers.
 STAGE_PROCEDURAL, STAGE_DETAILS, STAGE_ERRORS, STAGE_CLUTTER = 11, 12, 13, 14
+STAGE_FURNITURE, STAGE_DORMERS = 15, 16
 
 
 @dataclass
@@ -95,6 +108,13 @@ class DetailOptions:
     sidewalk_width: float = 3.0
     road_cross_slope: float = 0.0
     min_wall_length: float = 2.0  # smaller walls stay plain
+    # Street furniture (lamp posts, bollards, benches, sign posts) in front of decorated
+    # facades: one per furniture_spacing metres of facade on average (0: none, the default,
+    # which keeps the scenes of earlier sequences unchanged). Drawn from its own random stream.
+    furniture_spacing: float = 0.0
+    # Dormers: the chance that a sloped roof face near the flight (at least DORMER_MIN_AREA m^2)
+    # carries a row of one to three dormers with a window each (0: none, the default).
+    dormer_probability: float = 0.0
 
 
 @dataclass
@@ -124,6 +144,12 @@ class TrueScene:
     labels: np.ndarray  # (T,) int8 LABEL_*
     polygons: list[RawPolygon]  # building polygons of the true scene, LOCAL coordinates
     num_clutter_objects: int = 0
+    # per triangle: PART_* (what it is a part of), the object it belongs to (a building or one
+    # clutter object, numbered from 0; -1: the terrain) and the planar face it was cut from (a
+    # polygon, a quad or the triangle itself), numbered from 0
+    parts: np.ndarray | None = None
+    objects: np.ndarray | None = None
+    faces: np.ndarray | None = None
 
     @property
     def normals(self) -> np.ndarray:
@@ -209,23 +235,60 @@ def semantic_from_normal(normal: np.ndarray) -> str:
     return "WallSurface"
 
 
+_LABEL_PART = {LABEL_WALL: PART_WALL, LABEL_ROOF: PART_ROOF, LABEL_DETAIL: PART_DETAIL,
+               LABEL_CLUTTER: PART_CLUTTER, LABEL_GROUND: PART_GROUND}
+
+
 class MeshBuilder:
-    """Accumulates labelled triangles and the building polygons they come from."""
+    """Accumulates labelled triangles and the building polygons they come from; per triangle
+    also its part, object and face (TrueScene)."""
 
     def __init__(self):
         self._tris: list[np.ndarray] = []
         self._labels: list[np.ndarray] = []
+        self._parts: list[np.ndarray] = []
+        self._objects: list[np.ndarray] = []
+        self._faces: list[np.ndarray] = []
+        self._num_faces = 0
+        self._num_objects = 0
+        self._building_objects: dict[str, int] = {}
         self.polygons: list[RawPolygon] = []
 
+    def new_object(self) -> int:
+        """A fresh object number (a clutter object: a tree, a car, a lamp post)."""
+        self._num_objects += 1
+        return self._num_objects - 1
+
+    def _object(self, building_id: str, obj: int | None) -> int:
+        """`obj` when given, else the building's number (-1 without a building)."""
+        if obj is not None:
+            return obj
+        if not building_id:
+            return -1
+        if building_id not in self._building_objects:
+            self._building_objects[building_id] = self.new_object()
+        return self._building_objects[building_id]
+
+    def _append(self, tris: np.ndarray, label: int, part: int | None, obj: int,
+                faces: np.ndarray) -> None:
+        n = len(tris)
+        self._tris.append(tris)
+        self._labels.append(np.full(n, label, dtype=np.int8))
+        self._parts.append(np.full(n, _LABEL_PART[label] if part is None else part, np.int8))
+        self._objects.append(np.full(n, obj, dtype=np.int32))
+        self._faces.append(self._num_faces + faces.astype(np.int32))
+        self._num_faces += int(faces.max()) + 1 if n else 0
+
     def add(self, exterior, holes=(), *, label: int, building_id: str = "",
-            semantic: str | None = None, polygon: bool = True) -> None:
+            semantic: str | None = None, polygon: bool = True, part: int | None = None,
+            obj: int | None = None) -> None:
         exterior = np.asarray(exterior, dtype=np.float64)
         holes = [np.asarray(h, dtype=np.float64) for h in holes]
         tris = triangulate_rings(exterior, holes)
         if len(tris) == 0:
             return
-        self._tris.append(tris)
-        self._labels.append(np.full(len(tris), label, dtype=np.int8))
+        self._append(tris, label, part, self._object(building_id, obj),
+                     np.zeros(len(tris), np.int32))
         if polygon and label != LABEL_CLUTTER and label != LABEL_GROUND:
             self.polygons.append(
                 RawPolygon(
@@ -238,14 +301,15 @@ class MeshBuilder:
             )
 
     def add_quads(self, quads: np.ndarray, *, label: int, building_id: str = "",
-                  polygon: bool = True) -> None:
+                  polygon: bool = True, part: int | None = None,
+                  obj: int | None = None) -> None:
         """Planar convex quads (K,4,3), already oriented: two triangles each, no earcut."""
         quads = np.asarray(quads, dtype=np.float64).reshape(-1, 4, 3)
         if len(quads) == 0:
             return
         tris = np.concatenate([quads[:, [0, 1, 2]], quads[:, [0, 2, 3]]])
-        self._tris.append(tris)
-        self._labels.append(np.full(len(tris), label, dtype=np.int8))
+        self._append(tris, label, part, self._object(building_id, obj),
+                     np.tile(np.arange(len(quads), dtype=np.int32), 2))
         if polygon and label != LABEL_CLUTTER and label != LABEL_GROUND:
             nrm = np.cross(quads[:, 1] - quads[:, 0], quads[:, 2] - quads[:, 0])
             nz = nrm[:, 2] / np.maximum(np.linalg.norm(nrm, axis=1), 1e-15)
@@ -255,14 +319,40 @@ class MeshBuilder:
                 self.polygons.append(RawPolygon(exterior=q, semantic=sem,
                                                 building_id=building_id))
 
-    def add_triangles(self, tris: np.ndarray, label: int) -> None:
-        self._tris.append(np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3))
-        self._labels.append(np.full(len(self._tris[-1]), label, dtype=np.int8))
+    def add_triangles(self, tris: np.ndarray, label: int, *, parts=None,
+                      obj: int = -1) -> None:
+        """Loose triangles, each its own face; `parts`: one PART_* or one per triangle."""
+        tris = np.asarray(tris, dtype=np.float64).reshape(-1, 3, 3)
+        if len(tris) == 0:
+            return
+        self._append(tris, label, None, obj, np.arange(len(tris), dtype=np.int32))
+        if parts is not None:
+            self._parts[-1][:] = parts
+
+    def merge(self, other: MeshBuilder, *, obj: int) -> None:
+        """Another builder's triangles (its parts and faces kept), all as object `obj`."""
+        for tris, label, part, face in zip(other._tris, other._labels, other._parts,
+                                           other._faces):
+            self._append(tris, int(label[0]), None, obj, face - face.min())
+            self._parts[-1][:] = part
+        self.polygons += other.polygons
+
+    @property
+    def triangles(self) -> np.ndarray:
+        """(T,3,3) all triangles so far."""
+        return np.concatenate(self._tris) if self._tris else np.zeros((0, 3, 3))
 
     def scene(self, num_clutter_objects: int = 0) -> TrueScene:
-        tris = np.concatenate(self._tris) if self._tris else np.zeros((0, 3, 3))
+        tris = self.triangles
         labels = np.concatenate(self._labels) if self._labels else np.zeros(0, np.int8)
-        return TrueScene(tris, labels, self.polygons, num_clutter_objects)
+
+        def joined(parts, dtype):
+            return np.concatenate(parts) if parts else np.zeros(0, dtype)
+
+        return TrueScene(tris, labels, self.polygons, num_clutter_objects,
+                         parts=joined(self._parts, np.int8),
+                         objects=joined(self._objects, np.int32),
+                         faces=joined(self._faces, np.int32))
 
 
 @dataclass
@@ -299,12 +389,13 @@ def _polygons_of(geom) -> list[Polygon]:
 
 
 def _cap(mb: MeshBuilder, fr: _Frame, region: Polygon, depth: float, facing: float,
-         label: int, bid: str) -> None:
+         label: int, bid: str, part: int | None = None) -> None:
     """A planar face of `region` at `depth`; facing=+1 looks along n, -1 against it."""
     rings = _rings2d(region)
     if len(rings) == 1 and len(rings[0]) == 4:  # rectangles (most details): no earcut
         quad = fr.to3d(rings[0], depth)  # counter-clockwise in (u, v): faces +n
-        mb.add_quads((quad if facing > 0 else quad[::-1])[None], label=label, building_id=bid)
+        mb.add_quads((quad if facing > 0 else quad[::-1])[None], label=label, building_id=bid,
+                     part=part)
         return
     ext3 = fr.to3d(rings[0], depth)
     holes3 = [fr.to3d(r, depth) for r in rings[1:]]
@@ -312,18 +403,20 @@ def _cap(mb: MeshBuilder, fr: _Frame, region: Polygon, depth: float, facing: flo
         ext3 = ext3[::-1]
         holes3 = [h[::-1] for h in holes3]
     mb.add(ext3, holes3, label=label, building_id=bid,
-           semantic="WallSurface" if abs(fr.n[2]) < 0.7 else None)
+           semantic="WallSurface" if abs(fr.n[2]) < 0.7 else None, part=part)
 
 
 def _extrude(mb: MeshBuilder, fr: _Frame, region: Polygon, d0: float, d1: float, *,
-             cap0: bool, cap1: bool, label: int, bid: str) -> None:
-    """A prism of the 2D `region` between depths d0 and d1 along the facade normal."""
+             cap0: bool, cap1: bool, label: int, bid: str, part: int | None = None,
+             side_part: int | None = None) -> None:
+    """A prism of the 2D `region` between depths d0 and d1 along the facade normal; its caps
+    are `part`, its sides `side_part` (default: `part`)."""
     if region.is_empty or region.area < 1e-4:
         return
     if cap1:
-        _cap(mb, fr, region, d1, 1.0 if d1 >= d0 else -1.0, label, bid)
+        _cap(mb, fr, region, d1, 1.0 if d1 >= d0 else -1.0, label, bid, part)
     if cap0:
-        _cap(mb, fr, region, d0, -1.0 if d1 >= d0 else 1.0, label, bid)
+        _cap(mb, fr, region, d0, -1.0 if d1 >= d0 else 1.0, label, bid, part)
     for ring in _rings2d(region):
         nxt = np.roll(ring, -1, axis=0)
         keep = np.linalg.norm(nxt - ring, axis=1) > 1e-6
@@ -337,7 +430,8 @@ def _extrude(mb: MeshBuilder, fr: _Frame, region: Polygon, d0: float, d1: float,
         nrm = np.cross(quads[:, 1] - quads[:, 0], quads[:, 3] - quads[:, 0])
         flip = np.einsum("ij,ij->i", nrm, out3) < 0
         quads[flip] = quads[flip][:, ::-1]
-        mb.add_quads(quads, label=label, building_id=bid)
+        mb.add_quads(quads, label=label, building_id=bid,
+                     part=part if side_part is None else side_part)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -614,6 +708,47 @@ def _wall_frame(store: PlaneStore, f: int, building_centre: np.ndarray) -> _Fram
     return _Frame(c, u, v, n)
 
 
+def _plan_openings(poly: Polygon, nbays: int, bay: float, opt: DetailOptions,
+                   rng: np.random.Generator):
+    """Per bay and storey of a wall (2D, facade frame): a garage door or an entrance on the
+    ground floor, else a window; balconies under some upper windows. Returns the openings
+    (rectangle, depth behind the wall, PART_*) and the balconies (u0, u1, floor v)."""
+    umin, vmin, _, vmax = poly.bounds
+    inner = poly.buffer(-0.3)
+    nstoreys = max(int((vmax - vmin) // opt.storey_height), 1)
+    openings: list[tuple[Polygon, float, int]] = []
+    balconies: list[tuple[float, float, float]] = []
+    ww, wh = opt.window_size
+    for b in range(nbays):
+        uc = umin + (b + 0.5) * bay
+        for s in range(nstoreys):
+            base = vmin + s * opt.storey_height
+            if s == 0:
+                r = rng.random()
+                size = None
+                if r < opt.garage_probability and bay >= 3.0:
+                    size, kind = (1.3, 2.3), PART_GARAGE  # garage door: half width, height
+                elif r < opt.garage_probability + opt.entrance_probability:
+                    size, kind = (0.7, 2.4), PART_DOOR  # entrance
+                if size is not None:
+                    half, top = size
+                    depth = rng.uniform(*opt.entrance_depth_range)
+                    # doors reach the ground: test containment above the bottom margin
+                    if inner.contains(box(uc - half, vmin + 0.3, uc + half, vmin + top)):
+                        openings.append((box(uc - half, vmin, uc + half, vmin + top), depth,
+                                         kind))
+                        continue
+            sill = base + 0.9
+            rect = box(uc - ww / 2, sill, uc + ww / 2, sill + wh)
+            if inner.contains(rect):
+                openings.append((rect, opt.window_depth, PART_WINDOW))
+                if s >= 1 and nstoreys >= 3 and rng.random() < opt.balcony_probability:
+                    u0, u1 = uc - min(1.3, bay / 2 - 0.3), uc + min(1.3, bay / 2 - 0.3)
+                    if inner.contains(box(u0, base - 0.15, u1, base + 1.0)):
+                        balconies.append((u0, u1, base))
+    return openings, balconies
+
+
 def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: DetailOptions,
                    rng: np.random.Generator, bid: str) -> list[tuple[np.ndarray, np.ndarray]]:
     """Windows, entrances, pilasters and balconies on one wall. Returns clutter anchor points
@@ -633,45 +768,16 @@ def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: 
     if length < opt.min_wall_length or height < 2.5 or abs(fr.n[2]) > 0.3:
         _cap(mb, fr, poly, 0.0, 1.0, LABEL_WALL, bid)
         return []
-    inner = poly.buffer(-0.3)
     nbays = max(int(length // opt.bay_width), 1)
     bay = length / nbays
-    nstoreys = max(int(height // opt.storey_height), 1)
-    openings: list[tuple[Polygon, float]] = []  # (rectangle, depth behind the wall)
-    balconies: list[tuple[float, float, float]] = []  # (u0, u1, floor v)
-    ww, wh = opt.window_size
-    for b in range(nbays):
-        uc = umin + (b + 0.5) * bay
-        for s in range(nstoreys):
-            base = vmin + s * opt.storey_height
-            if s == 0:
-                r = rng.random()
-                size = None
-                if r < opt.garage_probability and bay >= 3.0:
-                    size = (1.3, 2.3)  # garage door: half width, height
-                elif r < opt.garage_probability + opt.entrance_probability:
-                    size = (0.7, 2.4)  # entrance
-                if size is not None:
-                    half, top = size
-                    depth = rng.uniform(*opt.entrance_depth_range)
-                    # doors reach the ground: test containment above the bottom margin
-                    if inner.contains(box(uc - half, vmin + 0.3, uc + half, vmin + top)):
-                        openings.append((box(uc - half, vmin, uc + half, vmin + top), depth))
-                        continue
-            sill = base + 0.9
-            rect = box(uc - ww / 2, sill, uc + ww / 2, sill + wh)
-            if inner.contains(rect):
-                openings.append((rect, opt.window_depth))
-                if s >= 1 and nstoreys >= 3 and rng.random() < opt.balcony_probability:
-                    u0, u1 = uc - min(1.3, bay / 2 - 0.3), uc + min(1.3, bay / 2 - 0.3)
-                    if inner.contains(box(u0, base - 0.15, u1, base + 1.0)):
-                        balconies.append((u0, u1, base))
-    holes_union = shapely.unary_union([r for r, _ in openings]) if openings else None
+    openings, balconies = _plan_openings(poly, nbays, bay, opt, rng)
+    holes_union = shapely.unary_union([r for r, _, _ in openings]) if openings else None
     wall = poly.difference(holes_union) if holes_union is not None else poly
     for part in _polygons_of(wall):
         _cap(mb, fr, part, 0.0, 1.0, LABEL_WALL, bid)
-    for rect, depth in openings:
-        _extrude(mb, fr, rect, 0.0, -depth, cap0=False, cap1=True, label=LABEL_DETAIL, bid=bid)
+    for rect, depth, kind in openings:
+        _extrude(mb, fr, rect, 0.0, -depth, cap0=False, cap1=True, label=LABEL_DETAIL, bid=bid,
+                 part=kind, side_part=PART_REVEAL)
     if opt.pilaster_every > 0 and opt.pilaster_depth > 0:
         for k in range(0, nbays + 1, opt.pilaster_every):
             uc = umin + k * bay
@@ -683,14 +789,14 @@ def _decorate_wall(mb: MeshBuilder, store: PlaneStore, f: int, fr: _Frame, opt: 
             for part in _polygons_of(region):
                 if part.area > 0.2:
                     _extrude(mb, fr, part, 0.0, opt.pilaster_depth, cap0=False, cap1=True,
-                             label=LABEL_DETAIL, bid=bid)
+                             label=LABEL_DETAIL, bid=bid, part=PART_PILASTER)
     for u0, u1, floor in balconies:
         slab = box(u0, floor - 0.15, u1, floor)
         _extrude(mb, fr, slab, 0.0, opt.balcony_depth, cap0=False, cap1=True,
-                 label=LABEL_DETAIL, bid=bid)
+                 label=LABEL_DETAIL, bid=bid, part=PART_BALCONY)
         rail = box(u0, floor, u1, floor + opt.balustrade_height)
         _extrude(mb, fr, rail, opt.balcony_depth - 0.05, opt.balcony_depth, cap0=True,
-                 cap1=True, label=LABEL_DETAIL, bid=bid)
+                 cap1=True, label=LABEL_DETAIL, bid=bid, part=PART_BALCONY)
     # clutter anchors every metre along the bottom edge
     anchors = []
     for uu in np.arange(umin + 1.0, umax - 1.0, 1.0):
@@ -740,17 +846,17 @@ def _decorate_roof(mb: MeshBuilder, store: PlaneStore, f: int, edges, opt: Detai
             oh /= np.linalg.norm(oh)
             up = np.array([0, 0, opt.parapet_height])
             t = -oh * opt.parapet_thickness
-            mb.add([pa, pb, pb + up, pa + up], label=LABEL_DETAIL, building_id=bid)
-            mb.add([pa + t, pb + t, pb + t + up, pa + t + up][::-1], label=LABEL_DETAIL,
-                   building_id=bid)
-            mb.add([pa + up, pb + up, pb + up + t, pa + up + t], label=LABEL_DETAIL,
-                   building_id=bid)
+            for ring in ([pa, pb, pb + up, pa + up],
+                         [pa + t, pb + t, pb + t + up, pa + t + up][::-1],
+                         [pa + up, pb + up, pb + up + t, pa + up + t]):
+                mb.add(ring, label=LABEL_DETAIL, building_id=bid, part=PART_PARAPET)
         elif opt.roof_overhang > 0:
             horiz = math.hypot(o[0], o[1])
             if horiz < 0.2:
                 continue
             off = o * (opt.roof_overhang / horiz)
-            mb.add([pa, pb, pb + off, pa + off], label=LABEL_DETAIL, building_id=bid)
+            mb.add([pa, pb, pb + off, pa + off], label=LABEL_DETAIL, building_id=bid,
+                   part=PART_OVERHANG)
     # roof furniture: boxes standing on the roof plane
     area = store.areas[f]
     k = rng.poisson(area * opt.roof_furniture_per_100m2 / 100.0) if area > 10 else 0
@@ -781,24 +887,27 @@ def _decorate_roof(mb: MeshBuilder, store: PlaneStore, f: int, edges, opt: Detai
         rot = np.array([[math.cos(yaw), -math.sin(yaw)], [math.sin(yaw), math.cos(yaw)]])
         cxy = corners @ rot.T + q[:2]
         zr = -(n[0] * cxy[:, 0] + n[1] * cxy[:, 1] + d) / n[2]
-        _add_box(mb, cxy, zr.min() - 0.1, zr.max() + hgt, LABEL_DETAIL, bid, bottom=False)
+        _add_box(mb, cxy, zr.min() - 0.1, zr.max() + hgt, LABEL_DETAIL, bid, bottom=False,
+                 part=PART_CHIMNEY)
 
 
 def _add_box(mb: MeshBuilder, cxy: np.ndarray, z0: float, z1: float, label: int, bid: str,
-             bottom: bool = False) -> None:
+             bottom: bool = False, part: int | None = None, obj: int | None = None) -> None:
     """A vertical prism over the counter-clockwise footprint `cxy` (4,2) from z0 to z1."""
     if Polygon(cxy).exterior.is_ccw is False:
         cxy = cxy[::-1]
     top = np.c_[cxy, np.full(len(cxy), z1)]
-    mb.add(top, label=label, building_id=bid)
+    kw = dict(label=label, building_id=bid, part=part, obj=obj)
+    mb.add(top, **kw)
     if bottom:
-        mb.add(np.c_[cxy, np.full(len(cxy), z0)][::-1], label=label, building_id=bid)
+        mb.add(np.c_[cxy, np.full(len(cxy), z0)][::-1], **kw)
     for i in range(len(cxy)):
         a, b = cxy[i], cxy[(i + 1) % len(cxy)]
-        mb.add([[*a, z0], [*b, z0], [*b, z1], [*a, z1]], label=label, building_id=bid)
+        mb.add([[*a, z0], [*b, z0], [*b, z1], [*a, z1]], **kw)
 
 
-def _tree_triangles(base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
+def _tree(base: np.ndarray, rng: np.random.Generator) -> MeshBuilder:
+    """A tree standing at `base`: an irregular icosphere crown on a square trunk."""
     import trimesh
 
     trunk_h = rng.uniform(2.0, 3.5)
@@ -812,8 +921,10 @@ def _tree_triangles(base: np.ndarray, rng: np.random.Generator) -> np.ndarray:
     t = 0.15
     cxy = np.array([[-t, -t], [t, -t], [t, t], [-t, t]]) + base[:2]
     mb = MeshBuilder()
-    _add_box(mb, cxy, base[2], base[2] + trunk_h + 0.5, LABEL_CLUTTER, "", bottom=False)
-    return np.concatenate([crown, mb.scene().triangles])
+    mb.add_triangles(crown, LABEL_CLUTTER, parts=PART_CROWN)
+    _add_box(mb, cxy, base[2], base[2] + trunk_h + 0.5, LABEL_CLUTTER, "", bottom=False,
+             part=PART_TRUNK)
+    return mb
 
 
 def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
@@ -821,8 +932,9 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
                      ground: GroundModel | None = None,
                      avoid_points: np.ndarray | None = None) -> TrueScene:
     """The true scene around the flight: faces within `roi_radius` of a camera centre
-    (`roi_centres`, local) get generalisation effects, all others stay plain LOD2; clutter stands in front of decorated facades, away from `avoid_points` (cameras);
-    terrain covers the cameras' surroundings."""
+    (`roi_centres`, local) get generalisation effects, all others stay plain LOD2; clutter
+    (trees, cars, street furniture) stands in front of decorated facades, away from
+    `avoid_points` (cameras); terrain covers the cameras' surroundings."""
     from scipy.spatial import cKDTree
 
     ground = ground or GroundModel(store)
@@ -859,6 +971,9 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
             elif face.semantic == "RoofSurface" or (
                     face.semantic != "WallSurface" and abs(store.normals[f][2]) > 0.7):
                 _decorate_roof(mb, store, f, edges, options, rng, bid)
+                if options.dormer_probability > 0:
+                    _add_dormers(mb, store, f, options,
+                                 np.random.default_rng([seed, STAGE_DORMERS, f]), bid)
             else:
                 fr = _wall_frame(store, f, centre)
                 anchors += _decorate_wall(mb, store, f, fr, options, rng, bid)
@@ -878,7 +993,8 @@ def build_true_scene(store: PlaneStore, options: DetailOptions, seed: int, *,
     keep = tree.query(cen)[0] < roi_radius
     mb.add_triangles(tris[keep], LABEL_GROUND)
     # clutter in front of facades
-    n_clutter = _add_clutter(mb, store, anchors, options, seed, avoid_points)
+    n_clutter, placed = _add_clutter(mb, store, anchors, options, seed, avoid_points)
+    n_clutter += _add_furniture(mb, store, anchors, options, seed, avoid_points, placed)
     return mb.scene(num_clutter_objects=n_clutter)
 
 
@@ -887,7 +1003,7 @@ def _add_clutter(mb: MeshBuilder, store: PlaneStore, anchors, opt: DetailOptions
     from scipy.spatial import cKDTree
 
     if not anchors or (opt.tree_spacing <= 0 and opt.car_spacing <= 0):
-        return 0
+        return 0, []
     rng = np.random.default_rng([seed, STAGE_CLUTTER])
     footprints = shapely.unary_union(list(building_footprints(store).values())).buffer(0.5)
     shapely.prepare(footprints)
@@ -912,7 +1028,7 @@ def _add_clutter(mb: MeshBuilder, store: PlaneStore, anchors, opt: DetailOptions
         if any(np.linalg.norm(pos[:2] - q[:2]) < 3.0 for q in placed[-50:]):
             continue
         if kind == "tree":
-            tris = _tree_triangles(pos, rng)
+            tmp = _tree(pos, rng)
         else:
             along = np.array([-nh[1], nh[0]])
             acr = nh[:2]
@@ -920,16 +1036,154 @@ def _add_clutter(mb: MeshBuilder, store: PlaneStore, anchors, opt: DetailOptions
             cxy = np.array([pos[:2] + s1 * L / 2 * along + s2 * W / 2 * acr
                             for s1, s2 in [(-1, -1), (1, -1), (1, 1), (-1, 1)]])
             tmp = MeshBuilder()
-            _add_box(tmp, cxy, pos[2] + 0.2, pos[2] + H, LABEL_CLUTTER, "")
-            tris = tmp.scene().triangles
+            _add_box(tmp, cxy, pos[2] + 0.2, pos[2] + H, LABEL_CLUTTER, "", part=PART_CAR)
         if cams is not None:
-            pts = tris.reshape(-1, 3)
+            pts = tmp.triangles.reshape(-1, 3)
             if np.min(cams.query(pts)[0]) < opt.camera_clearance:
                 continue
-        mb.add_triangles(tris, LABEL_CLUTTER)
+        mb.merge(tmp, obj=mb.new_object())
         placed.append(pos)
         count += 1
+    return count, placed
+
+
+#: The smallest sloped roof face (m^2) that may carry dormers.
+DORMER_MIN_AREA = 20.0
+
+
+def _add_dormers(mb: MeshBuilder, store: PlaneStore, f: int, opt: DetailOptions,
+                 rng: np.random.Generator, bid: str) -> None:
+    """With probability opt.dormer_probability, one to three dormers in a row on the sloped
+    roof face f: a vertical front wall with a window, facing down the slope, two triangular
+    cheeks and a flat top that runs back into the roof plane."""
+    n = store.normals[f].copy()
+    n = -n if n[2] < 0 else n
+    if not 0.3 < n[2] < 0.97 or store.areas[f] < DORMER_MIN_AREA:
+        return
+    if rng.random() >= opt.dormer_probability:
+        return
+    centre = store.centroids[f]
+    u, v = plane_basis(n)  # u horizontal, v up the slope in the roof plane
+    ext = store.vertices[store.faces[f].exterior]
+    poly = Polygon(np.stack([(ext - centre) @ u, (ext - centre) @ v], axis=1)).buffer(0)
+    inner = poly.buffer(-0.8)
+    if inner.is_empty:
+        return
+    sin_a = math.sqrt(max(1.0 - n[2] ** 2, 1e-12))
+    count = int(rng.integers(1, 4))
+    width, front = rng.uniform(1.6, 2.4), rng.uniform(1.3, 1.7)
+    u_lo, v_lo, u_hi, _ = inner.bounds
+    v_front = v_lo + rng.uniform(1.0, 1.8)
+    depth = front / sin_a  # in-plane distance up the slope to where the top meets the roof
+    for i in range(count):
+        uc = u_lo + (i + 0.5) * (u_hi - u_lo) / count
+        if not inner.contains(box(uc - width / 2, v_front, uc + width / 2, v_front + depth)):
+            continue
+        a = centre + (uc - width / 2) * u + v_front * v
+        b = centre + (uc + width / 2) * u + v_front * v
+        _dormer(mb, a, b, front, depth * (v - (v @ [0, 0, 1.0]) * np.array([0, 0, 1.0])),
+                bid)
+
+
+def _dormer(mb: MeshBuilder, a: np.ndarray, b: np.ndarray, front: float, back: np.ndarray,
+            bid: str) -> None:
+    """A dormer whose front wall stands on the roof between a and b, `front` m high; its top
+    reaches back by the horizontal vector `back` to the roof plane."""
+    up = np.array([0.0, 0.0, front])
+    out = -back / np.linalg.norm(back)  # the front wall's outward normal (down the slope)
+    fu, _ = plane_basis(out)
+    if np.dot(b - a, fu) < 0:
+        a, b = b, a
+    width = float(np.linalg.norm(b - a))
+    fr = _Frame(a, fu, np.array([0.0, 0.0, 1.0]), out)
+    window = box(0.3, 0.25, width - 0.3, front - 0.2)
+    for part in _polygons_of(box(0.0, 0.0, width, front).difference(window)):
+        _cap(mb, fr, part, 0.0, 1.0, LABEL_DETAIL, bid, PART_WALL)
+    _extrude(mb, fr, window, 0.0, -0.08, cap0=False, cap1=True, label=LABEL_DETAIL, bid=bid,
+             part=PART_WINDOW, side_part=PART_REVEAL)
+    for p, side in ((a, -fu), (b, fu)):
+        ring = np.array([p, p + back + up, p + up])
+        if np.dot(newell_normal(ring), side) < 0:
+            ring = ring[::-1]
+        mb.add(ring, label=LABEL_DETAIL, building_id=bid, part=PART_WALL)
+    top = np.array([a + up, b + up, b + up + back, a + up + back])
+    if newell_normal(top)[2] < 0:
+        top = top[::-1]
+    mb.add(top, label=LABEL_DETAIL, building_id=bid, part=PART_ROOF)
+
+
+#: Street furniture: (kind, probability, distance range from the facade in m).
+FURNITURE = (("lamp", 0.35, (2.4, 3.0)), ("bollard", 0.3, (2.0, 2.8)),
+             ("bench", 0.2, (0.9, 1.6)), ("sign", 0.15, (2.2, 2.9)))
+
+
+def _add_furniture(mb: MeshBuilder, store: PlaneStore, anchors, opt: DetailOptions, seed: int,
+                   avoid_points: np.ndarray | None, placed: list[np.ndarray]) -> int:
+    """Lamp posts, bollards, benches and sign posts in front of decorated facades (see
+    DetailOptions.furniture_spacing), at least 1.5 m from each other and from trees and cars,
+    outside the footprints and camera_clearance from every camera. Returns their number."""
+    from scipy.spatial import cKDTree
+
+    if not anchors or opt.furniture_spacing <= 0:
+        return 0
+    rng = np.random.default_rng([seed, STAGE_FURNITURE])
+    footprints = shapely.unary_union(list(building_footprints(store).values())).buffer(0.3)
+    shapely.prepare(footprints)
+    cams = cKDTree(avoid_points) if avoid_points is not None and len(avoid_points) else None
+    taken = [p[:2] for p in placed]
+    count = 0
+    kinds = [k for k, _, _ in FURNITURE]
+    weights = np.array([w for _, w, _ in FURNITURE])
+    for base, n in anchors:
+        if rng.random() >= 1.0 / opt.furniture_spacing:
+            continue
+        kind = kinds[int(rng.choice(len(kinds), p=weights / weights.sum()))]
+        nh = np.array([n[0], n[1], 0.0])
+        if np.linalg.norm(nh) < 1e-6:
+            continue
+        nh /= np.linalg.norm(nh)
+        pos = base + rng.uniform(*dict((k, r) for k, _, r in FURNITURE)[kind]) * nh
+        if footprints.contains(shapely.Point(pos[:2])) or any(
+                np.linalg.norm(pos[:2] - q) < 1.5 for q in taken[-80:]):
+            continue
+        tmp = MeshBuilder()
+        _furniture(tmp, kind, pos, nh, rng)
+        if cams is not None and np.min(cams.query(tmp.triangles.reshape(-1, 3))[0]) < \
+                opt.camera_clearance:
+            continue
+        mb.merge(tmp, obj=mb.new_object())
+        taken.append(pos[:2])
+        count += 1
     return count
+
+
+def _furniture(mb: MeshBuilder, kind: str, pos: np.ndarray, out: np.ndarray,
+               rng: np.random.Generator) -> None:
+    """One piece of street furniture of `kind` standing at `pos`; `out` (horizontal, unit)
+    points away from the facade."""
+    along = np.array([-out[1], out[0]])
+
+    def prism(centre, half_along, half_out, z0, z1):
+        c = pos[:2] + centre[0] * along + centre[1] * out[:2]
+        cxy = np.array([c + sa * half_along * along + so * half_out * out[:2]
+                        for sa, so in ((-1, -1), (1, -1), (1, 1), (-1, 1))])
+        _add_box(mb, cxy, pos[2] + z0, pos[2] + z1, LABEL_CLUTTER, "", part=PART_FURNITURE)
+
+    if kind == "lamp":
+        h = rng.uniform(5.0, 6.5)
+        prism((0.0, 0.0), 0.07, 0.07, 0.0, h)
+        prism((0.0, 0.6), 0.05, 0.6, h - 0.1, h)  # the arm over the road
+        prism((0.0, 1.15), 0.15, 0.25, h - 0.28, h - 0.1)  # the lamp head
+    elif kind == "bollard":
+        prism((0.0, 0.0), 0.08, 0.08, 0.0, rng.uniform(0.8, 1.0))
+    elif kind == "bench":
+        prism((0.0, 0.0), 0.8, 0.22, 0.42, 0.48)  # seat
+        for s in (-0.7, 0.7):
+            prism((s, 0.0), 0.04, 0.2, 0.0, 0.42)  # legs
+        prism((0.0, -0.2), 0.8, 0.03, 0.5, 0.95)  # backrest, on the facade side
+    else:  # a sign post with its plate
+        prism((0.0, 0.0), 0.035, 0.035, 0.0, 2.6)
+        prism((0.0, 0.05), 0.3, 0.015, 2.0, 2.6)
 
 
 def detailed_polygons(scene: TrueScene, min_area: float) -> list[RawPolygon]:

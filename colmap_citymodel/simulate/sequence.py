@@ -29,6 +29,11 @@ workspace whose drift is COLMAP's own:
 5. COLMAP (mapping.py): database (camera, rig, frames, images, keypoints, matches, pose priors), geometric
    verification by COLMAP itself (`pycolmap.verify_matches`), then COLMAP's incremental mapper ->
    `sparse/0`. The interior orientation is known and kept fixed (as in Unger 5.3).
+6. Images (render/, with `--render`): the key frames rendered from the true scene with procedural
+   textures, sun, sky and shadows, the true lens distortion, exposure and sensor noise, as JPEGs
+   with EXIF GPS and DJI XMP from the simulated GNSS (of every key frame, as gnss_all.txt), and
+   check-point targets painted on the surfaces with their image positions in
+   `images/gcp_list.txt`: a folder of photographs to run from, with the truth beside it.
 
 Frames. `truth/` and everything "local" use the model CRS minus `truth/origin.txt` (the store's
 origin: the model's lower bbox corner rounded down to metres). `checkpoints.txt`, `gnss.txt` and
@@ -55,6 +60,7 @@ import os
 import shutil
 import tempfile
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -140,14 +146,24 @@ def _load_store(options: SimulationOptions):
                            target_crs=options.scene.target_crs, bbox_crs=bbox)
 
 
-def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = True) -> dict:
-    """Everything shared by the scenarios of a sequence, written into `out` (a new directory):
-    models/, truth/, database.db with all GNSS priors, gnss_all.txt, check points, sparse/."""
-    from ..citymodel.write_citygml import raw_from_store, write_citygml
+@dataclass
+class SimulatedSequence:
+    """What a sequence simulates before anything is written (local coordinates)."""
 
-    t_start = time.perf_counter()
+    store: Any  # the given model (PlaneStore)
+    ground: GroundModel
+    flight: Any  # flight.Flight
+    scene: Any  # scene.TrueScene
+    raycaster: Any = None  # open3d RaycastingScene of the true scene
+    observations: Any = None  # observations.Observations (tie points)
+    checkpoints: Any = None  # observations.CheckPoints
+    gnss_crs: np.ndarray | None = None  # (N,3) GNSS positions in the model CRS
+    changes: Any = None  # buildings.BuildingChanges: the given model's missing and extra ones
+
+
+def plan_sequence(options: SimulationOptions) -> SimulatedSequence:
+    """The sequence's given model, terrain, flight and true scene (no observations yet)."""
     seed = options.seed
-    out.mkdir(parents=True)
     store = _load_store(options)
     ground = GroundModel(store, options.details)
     flight = plan_flight(store, options.flight, seed, ground)
@@ -157,27 +173,93 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
                              roi_radius=roi, ground=ground, avoid_points=flight.centres)
     logger.info("true scene: %d triangles, %d clutter objects", len(scene.triangles),
                 scene.num_clutter_objects)
-    raycaster = scene.raycasting_scene()
-    obs = simulate_observations(flight, scene, raycaster, options.observations, seed, progress)
-    cps = simulate_checkpoints(flight, scene, raycaster, options.observations,
-                               options.checkpoints, seed)
-    gnss_local = simulate_gnss(flight, options.gnss, seed)
-    origin = store.origin
-    gnss_crs = gnss_local + origin
-    t_built = time.perf_counter()
-
-    # models
-    models = out / "models"
-    models.mkdir()
     changes = building_changes(store, flight.centres, flight.rotations[:, 2],
                                options.observations.max_distance, options.model_errors, seed,
                                ground)
+    return SimulatedSequence(store, ground, flight, scene, changes=changes)
+
+
+def simulate_sequence(options: SimulationOptions, *, progress: bool = True,
+                      tie_points: bool = True) -> SimulatedSequence:
+    """plan_sequence, then what the cameras observe: tie points (unless `tie_points` is
+    False), check points and GNSS."""
+    seed = options.seed
+    sim = plan_sequence(options)
+    sim.raycaster = sim.scene.raycasting_scene()
+    if tie_points:
+        sim.observations = simulate_observations(sim.flight, sim.scene, sim.raycaster,
+                                                 options.observations, seed, progress)
+    sim.checkpoints = simulate_checkpoints(sim.flight, sim.scene, sim.raycaster,
+                                           options.observations, options.checkpoints, seed)
+    sim.gnss_crs = simulate_gnss(sim.flight, options.gnss, seed) + sim.store.origin
+    return sim
+
+
+def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = True) -> dict:
+    """Everything shared by the scenarios of a sequence, written into `out` (a new directory):
+    models/, truth/, database.db with all GNSS priors, gnss_all.txt, check points, sparse/;
+    with options.render.enabled also images/ (render.images.render_flight)."""
+    t_start = time.perf_counter()
+    out.mkdir(parents=True)
+    sim = simulate_sequence(options, progress=progress)
+    t_built = time.perf_counter()
+    num_detailed = _write_models(sim, options, out / "models")
+    _write_truth(sim, out / "truth")
+    _write_checkpoints_and_gnss(sim, options, out)
+    write_database(out / "database.db", sim.flight, sim.observations, sim.gnss_crs,
+                   options.gnss.sigma)
+    stats = _sequence_stats(sim, options, num_detailed)
+    stats["build_seconds"] = t_built - t_start
+    stats.update(run_mapping(out, sim.flight, sim.observations, options.mapping, options.seed))
+    if options.render.enabled:
+        stats["render"] = render_sequence(sim, options, out, progress=progress)
+    stats["total_seconds"] = time.perf_counter() - t_start
+    stats["options"] = options.sequence_dict()
+    (out / "simulation.json").write_text(json.dumps(stats, indent=2, default=str))
+    logger.info(
+        "sequence %s: %d key frames, %d tie points, %d observations; COLMAP registered %s/%d "
+        "images in %s model(s), %.0f s in total", options.name, stats["num_key_frames"],
+        stats["num_tie_points"], stats["num_image_observations"],
+        stats.get("num_registered_images"), stats["num_key_frames"], stats.get("num_models"),
+        stats["total_seconds"])
+    return stats
+
+
+def render_sequence(sim: SimulatedSequence, options: SimulationOptions, out: Path, *,
+                    progress: bool = True, threads: int = 0) -> dict:
+    """The sequence's key frames rendered into `out`/images/ (render.images.render_flight):
+    JPEGs with EXIF GPS and DJI XMP from the simulated GNSS, gcp_list.txt of the targets at
+    the check points."""
+    import shapely
+
+    from .render.images import render_flight
+    from .scene import building_footprints
+
+    footprints = shapely.unary_union(list(building_footprints(sim.store).values()))
+    takeoff = float(sim.ground(sim.flight.centres[:1, :2])[0])
+    return render_flight(out, flight=sim.flight, scene=sim.scene, footprints=footprints,
+                         sidewalk_width=options.details.sidewalk_width, takeoff_height=takeoff,
+                         crs=sim.store.crs, origin=sim.store.origin, gnss_crs=sim.gnss_crs,
+                         gnss_sigma=options.gnss.sigma, checkpoints=sim.checkpoints,
+                         options=options.render, seed=options.seed, progress=progress,
+                         threads=threads)
+
+
+def _write_models(sim: SimulatedSequence, options: SimulationOptions, models: Path) -> int:
+    """models/: corrected.gml (the given model), original.gml (with systematic plane errors),
+    detailed.gml (the true scene's building polygons). Returns the detailed polygons' count."""
+    from ..citymodel.raw_model import RawCityModel
+    from ..citymodel.write_citygml import raw_from_store, write_citygml
+
+    store, seed, origin = sim.store, options.seed, sim.store.origin
+    models.mkdir()
+    changes = sim.changes
     given = given_store(store, changes)
     write_citygml(models / "corrected.gml", raw_from_store(given), name="corrected (as given)")
     original = perturb_planes(given, options.model_errors, seed)
     write_citygml(models / "original.gml", raw_from_store(original),
                   name="original (systematic plane errors)")
-    det = detailed_polygons(scene, options.model_errors.detailed_min_area)
+    det = detailed_polygons(sim.scene, options.model_errors.detailed_min_area)
     if changes:
         det = given_polygons(det, changes, origin)
     det = perturb_polygons(det, options.model_errors.detailed_shift_sigma,
@@ -187,51 +269,59 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         p.holes = [h + origin for h in p.holes]
         p.gml_id = f"detailed_{i}"
     srs = raw_from_store(store).crs
-    from ..citymodel.raw_model import RawCityModel
-
     write_citygml(models / "detailed.gml",
                   RawCityModel("simulate", "CityGML", "2.0", srs, det,
                                sorted({p.building_id for p in det}), []),
                   name="detailed (true scene planes)")
+    return len(det)
 
-    # truth
-    truth = out / "truth"
+
+def _write_truth(sim: SimulatedSequence, truth: Path) -> None:
+    """truth/: true poses and tie points, origin.txt, the true mesh, its labels, the ground."""
+    origin = sim.store.origin
     truth.mkdir()
-    truth_reconstruction(flight, obs).write_text(str(truth))
+    truth_reconstruction(sim.flight, sim.observations).write_text(str(truth))
     (truth / "origin.txt").write_text(
         "# origin X Y Z: local = model CRS - origin\n"
         f"{_fmt(origin[0])} {_fmt(origin[1])} {_fmt(origin[2])}\n"
-        f"# crs: {store.crs.label}\n")
-    if changes:  # the given model is not the truth's: keep the true LOD2 model beside it
-        write_citygml(truth / "true_model.gml", raw_from_store(store),
+        f"# crs: {sim.store.crs.label}\n")
+    if sim.changes:  # the given model is not the truth's: keep the true LOD2 model beside it
+        write_citygml(truth / "true_model.gml", raw_from_store(sim.store),
                       name="the true scene's LOD2 model")
-    scene.to_trimesh().export(truth / "true_scene.ply")
-    np.save(truth / "true_scene_labels.npy", scene.labels)
-    _write_true_ground(scene, origin, store.crs, truth / "ground.tif")
+    sim.scene.to_trimesh().export(truth / "true_scene.ply")
+    np.save(truth / "true_scene_labels.npy", sim.scene.labels)
+    _write_true_ground(sim.scene, origin, sim.store.crs, truth / "ground.tif")
 
-    # check points, GNSS
-    cp_crs = cps.xyz + origin
-    _write_lines(out / "checkpoints.txt", f"# id X Y Z ({store.crs.label})\n",
+
+def _write_checkpoints_and_gnss(sim: SimulatedSequence, options: SimulationOptions,
+                                out: Path) -> None:
+    """checkpoints.txt, checkpoint_observations.txt and gnss_all.txt (model CRS)."""
+    cps, flight, label = sim.checkpoints, sim.flight, sim.store.crs.label
+    cp_crs = cps.xyz + sim.store.origin
+    _write_lines(out / "checkpoints.txt", f"# id X Y Z ({label})\n",
                  (f"{i} {_fmt(x)} {_fmt(y)} {_fmt(z)}" for i, (x, y, z) in zip(cps.ids, cp_crs)))
     _write_lines(out / "checkpoint_observations.txt",
                  "# image_name id x y (pixels, COLMAP convention)\n",
                  (f"{flight.names[f]} {i} {_fmt(u)} {_fmt(v)}"
                   for f, i, (u, v) in zip(cps.obs_frame, cps.obs_id, cps.obs_uv)))
-    write_mark_lists(out, cps, flight.names, cp_crs, store.crs.label,
+    write_mark_lists(out, cps, flight.names, cp_crs, label,
                      options.checkpoints.control)
     sig = options.gnss.sigma
-    _write_lines(out / "gnss_all.txt", f"# image_name X Y Z sX sY sZ ({store.crs.label})\n",
+    _write_lines(out / "gnss_all.txt", f"# image_name X Y Z sX sY sZ ({label})\n",
                  (f"{n} {_fmt(p[0])} {_fmt(p[1])} {_fmt(p[2])} {sig[0]} {sig[1]} {sig[2]}"
-                  for n, p in zip(flight.names, gnss_crs)))
+                  for n, p in zip(flight.names, sim.gnss_crs)))
 
-    # COLMAP
-    write_database(out / "database.db", flight, obs, gnss_crs, sig)
-    stats: dict[str, Any] = {
+
+def _sequence_stats(sim: SimulatedSequence, options: SimulationOptions,
+                    num_detailed: int) -> dict[str, Any]:
+    store, flight, scene = sim.store, sim.flight, sim.scene
+    obs, cps = sim.observations, sim.checkpoints
+    stats = {
         "sequence": options.name,
-        "seed": seed,
+        "seed": options.seed,
         "sequence_key": sequence_key(options),
         "crs": store.crs.label,
-        "origin": [float(v) for v in origin],
+        "origin": [float(v) for v in store.origin],
         "num_key_frames": len(flight.names),
         "path_length_m": float(flight.arc[-1]),
         "image_size": [flight.width, flight.height],
@@ -240,7 +330,7 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         "num_buildings": store.num_buildings,
         "num_true_triangles": int(len(scene.triangles)),
         "num_clutter_objects": scene.num_clutter_objects,
-        "num_detailed_polygons": len(det),
+        "num_detailed_polygons": num_detailed,
         "num_candidate_points": obs.num_candidates,
         "num_visible_observations": obs.num_visible,
         "num_tie_points": int(len(obs.track_xyz)),
@@ -252,23 +342,12 @@ def build_sequence(options: SimulationOptions, out: Path, *, progress: bool = Tr
         "num_outlier_matches": int(obs.num_outlier_matches),
         "num_checkpoints": int(len(cps.ids)),
         "num_checkpoint_observations": int(len(cps.obs_id)),
-        "build_seconds": t_built - t_start,
     }
-    if changes:
-        stats["model_buildings"] = changes.todict()
-    gross = gnss_gross_errors(flight, options.gnss, seed)[1]
+    if sim.changes:
+        stats["model_buildings"] = sim.changes.todict()
+    gross = gnss_gross_errors(flight, options.gnss, options.seed)[1]
     if gross:
         stats["gnss_gross_errors"] = gross
-    stats.update(run_mapping(out, flight, obs, options.mapping, seed))
-    stats["total_seconds"] = time.perf_counter() - t_start
-    stats["options"] = options.sequence_dict()
-    (out / "simulation.json").write_text(json.dumps(stats, indent=2, default=str))
-    logger.info(
-        "sequence %s: %d key frames, %d tie points, %d observations; COLMAP registered %s/%d "
-        "images in %s model(s), %.0f s in total", options.name, stats["num_key_frames"],
-        stats["num_tie_points"], stats["num_image_observations"],
-        stats.get("num_registered_images"), stats["num_key_frames"], stats.get("num_models"),
-        stats["total_seconds"])
     return stats
 
 
@@ -293,10 +372,15 @@ sequence {sequence} (key {key}). Scenario: given model `{model}`, GNSS `{gnss}`.
 | `scenario.toml` | the scenario file (`sequence.toml`: the sequence file it names) |
 | `simulation.json` | options, sizes, timings |
 | `colmap.log` | COLMAP's log |
-
+{images}
 Sizes: {frames} key frames, {tps} tie points, {obs} image observations, {cps} check points;
 COLMAP registered {reg} of {frames} images ({models} model(s)).
 """
+
+
+IMAGES_ROW = ("| `images/` | the key frames rendered (JPEG, EXIF GPS and DJI XMP from the GNSS of "
+              "every key frame as in `gnss_all.txt`; `gcp_list.txt`: the check-point targets' "
+              "image positions, OpenDroneMap's format); `render.json` their statistics |\n")
 
 
 def _write_true_ground(scene, origin: np.ndarray, crs, path: Path) -> None:
@@ -399,7 +483,7 @@ def derive_scenario(seq_dir: Path, options: SimulationOptions, out: Path) -> dic
         f"first {sc.gnss_first_n} key frames", frames=stats["num_key_frames"],
         tps=stats["num_tie_points"], obs=stats["num_image_observations"],
         cps=stats["num_checkpoints"], reg=stats.get("num_registered_images", "-"),
-        models=stats.get("num_models", "-")))
+        models=stats.get("num_models", "-"), images=IMAGES_ROW if "render" in stats else ""))
     return stats
 
 
@@ -420,14 +504,17 @@ def _place_sequence(built: Path, seq_dir: Path) -> None:
 
 def main(scenario_path: str | Path, output_path: str | Path, *, seed: int | None = None,
          cache_path: str | Path | None = None, overwrite: bool = False,
-         progress: bool = True) -> Path:
+         progress: bool = True, render: bool = False) -> Path:
     """Build the scenario's workspace at `output_path` (see the module docstring); returns it.
 
     cache_path: directory of built sequences (`<name>-<hash>`), reused by later scenarios of the
-    same sequence; None builds the sequence afresh. The workspace appears atomically."""
+    same sequence; None builds the sequence afresh. render: also render the key frames into
+    images/ (as the scenario's `render.enabled`). The workspace appears atomically."""
     options = load_scenario(scenario_path)
     if seed is not None:
         options.seed = int(seed)
+    if render:
+        options.render.enabled = True
     out = Path(output_path).resolve()
     if out.exists():
         if not overwrite:
