@@ -31,6 +31,8 @@ _KEY_NEUTRAL = {"flight": {"yaw_offset_deg": 0.0, "orbit_centre": None, "orbit_r
                 "gnss": {"bias_magnitude": 0.0, "outliers": 0, "outlier_range": (10.0, 30.0),
                          "step_magnitude": 0.0, "step_range": (0.3, 0.7)},
                 "scene": {"target_crs": None},
+                # which marks are written as control changes no simulated value
+                "checkpoints": {"control": 5},
                 "model_errors": {"missing_buildings": 0, "extra_buildings": 0,
                                  "extra_size_range": (8.0, 16.0),
                                  "extra_height_range": (5.0, 14.0)},

@@ -277,7 +277,10 @@ def _write_models(sim: SimulatedSequence, options: SimulationOptions, models: Pa
 
 
 def _write_truth(sim: SimulatedSequence, truth: Path) -> None:
-    """truth/: true poses and tie points, origin.txt, the true mesh, its labels, the ground."""
+    """truth/: true poses and tie points, origin.txt, the true mesh, its labels, the ground;
+    the true LOD2 model where the given one lacks or adds buildings."""
+    from ..citymodel.write_citygml import raw_from_store, write_citygml
+
     origin = sim.store.origin
     truth.mkdir()
     truth_reconstruction(sim.flight, sim.observations).write_text(str(truth))
