@@ -94,7 +94,8 @@ def test_the_gnss_bias_is_a_random_effect_beside_the_faces(street_scene):
     assert camera_rms(result, street_scene) < 0.02
     offset = result.gnss_offset
     assert offset is not None and offset["random_effect"]
-    assert np.allclose(offset["prior_sigma_used_m"], [1.5, 1.5, 2.5])
+    share = options.adjustment.gnss_bias_share
+    assert np.allclose(offset["prior_sigma_used_m"], share * np.array([3.0, 3.0, 5.0]))
     assert result.quality.verdict != "failed"
 
 

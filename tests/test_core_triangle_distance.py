@@ -118,7 +118,7 @@ def test_coarse_grid_shares_are_the_same_for_whole_and_any_shifts_and_near_the_e
     """The translation search's coarse level on an official LoD2 tile: shifts of whole and half
     grid cells (one cell index per point and fraction) give the shares that rounding each
     shifted point gives, and both are close to the exact smooth share of the shifted points."""
-    from colmap_citymodel.align.coarse import _grid_shares_builder, near_share
+    from colmap_citymodel.align.coarse import _grid_scores_builder, near_share, near_weights
     from colmap_citymodel.citymodel.read import read_city_model
 
     store = read_city_model(BERLIN)
@@ -129,7 +129,8 @@ def test_coarse_grid_shares_are_the_same_for_whole_and_any_shifts_and_near_the_e
     points = np.einsum("nk,nkd->nd", weights, surface.vertices[surface.triangles[on]])
     points += rng.normal(0.0, 0.3, points.shape) + np.array([1.2, -0.7, 2.1])  # off the model
     high = np.array([6.0, 6.0, 9.0])
-    shares = _grid_shares_builder(points, surface, -high, high, 1.0, 2.0)
+    shares = _grid_scores_builder(points, np.full(len(points), 1.0 / len(points)), surface,
+                                  -high, high, 1.0, 2.0, lambda d: near_weights(d, 2.0))
     axes = [np.arange(-h, h + 1e-9, 1.5) for h in high]
     shifts = np.stack(np.meshgrid(*axes, indexing="ij"), -1).reshape(-1, 3)  # whole and half
     fast = shares(shifts)

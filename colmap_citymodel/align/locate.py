@@ -831,7 +831,13 @@ def start_from_model(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, loca
     sigma = (float(np.median(np.asarray(gnss.sigmas)[:, :2])) if gnss is not None
              and len(gnss.positions) else None)
     useless = sigma is not None and sigma > USELESS_GNSS_SIGMA
-    short = gnss is not None and not useless and short_baseline(gnss)
+    short = False
+    if gnss is not None and not useless:
+        from ..block.gnss import match_to_reconstruction
+
+        # only positions of registered images count (a naming mismatch is an error here)
+        _, positions, sigmas = match_to_reconstruction(gnss, rec)
+        short = short_baseline(positions, sigmas)
     if gnss is not None and not useless and not short:
         if location is not None:
             logger.warning("GNSS is given: it registers the block, the location hint is not "
@@ -865,15 +871,15 @@ def start_from_model(rec: pycolmap.Reconstruction, store: PlaneStore, gnss, loca
 SHORT_RADIUS_SIGMAS = 5.0
 
 
-def short_baseline(gnss) -> bool:
-    """Whether the GNSS positions spread too little along their main axis for a similarity
+def short_baseline(positions: np.ndarray, sigmas: np.ndarray) -> bool:
+    """Whether GNSS positions spread too little along their main axis for a similarity
     (align.georegister's own rule: GeoregistrationOptions.min_baseline_sigmas of the
     horizontal sigma)."""
     from .georegister import GeoregistrationOptions, _principal_std
 
-    positions = np.asarray(gnss.positions, float)
+    positions = np.asarray(positions, float)
     if len(positions) < 3:
         return True
-    horizontal = float(np.median(np.asarray(gnss.sigmas, float), axis=0)[:2].max())
+    horizontal = float(np.median(np.asarray(sigmas, float), axis=0)[:2].max())
     return bool(_principal_std(positions)[0]
                 < GeoregistrationOptions().min_baseline_sigmas * horizontal)

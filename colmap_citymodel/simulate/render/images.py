@@ -13,7 +13,7 @@ import numpy as np
 
 from ..flight import Flight
 from ..scene import TrueScene
-from .metadata import ImageMetadata, dji_angles, exif_bytes, geographic, write_gcp_list, xmp_bytes
+from .metadata import RenderedTags, dji_angles, exif_bytes, geographic, write_gcp_list, xmp_bytes
 from .options import RenderOptions
 from .renderer import Renderer
 from .sensor import expose
@@ -30,7 +30,7 @@ FLIGHT_TILT_SIGMA_DEG = 2.0
 
 def image_metadata(flight: Flight, crs, origin: np.ndarray, gnss_crs: np.ndarray,
                    sigma, takeoff_height: float, options: RenderOptions,
-                   seed: int) -> list[ImageMetadata]:
+                   seed: int) -> list[RenderedTags]:
     """What each key frame's EXIF and XMP say: the GNSS position (model CRS -> WGS84), the
     heights, the camera's attitude with the gimbal's noise (options.attitude_sigma_deg), the
     aircraft's (heading along the camera's, tilted by wind) and the RTK status."""
@@ -45,7 +45,7 @@ def image_metadata(flight: Flight, crs, origin: np.ndarray, gnss_crs: np.ndarray
         yaw, pitch, roll = dji_angles(flight.rotations[k], float(north[k]))
         gimbal = ((yaw + noise[k, 0] + 180.0) % 360.0 - 180.0, pitch + noise[k, 1],
                   roll + noise[k, 2])
-        out.append(ImageMetadata(
+        out.append(RenderedTags(
             name=name, index=k, latitude=float(lat[k]), longitude=float(lon[k]),
             altitude=float(gnss_crs[k, 2]),
             relative_altitude=float(gnss_crs[k, 2] - origin[2] - takeoff_height),
@@ -101,7 +101,7 @@ def render_flight(out: Path, *, flight: Flight, scene: TrueScene, footprints,
     return stats
 
 
-def _save(path: Path, image, meta: ImageMetadata, flight: Flight,
+def _save(path: Path, image, meta: RenderedTags, flight: Flight,
           options: RenderOptions) -> None:
     extra = {}
     if options.xmp == "dji":

@@ -34,7 +34,9 @@ RTK_FIXED, RTK_NONE = 50, 0
 
 
 @dataclass
-class ImageMetadata:
+class RenderedTags:
+    """What the renderer writes into one image's EXIF and XMP (block.image_metadata reads it)."""
+
     name: str
     index: int
     latitude: float  # degrees
@@ -95,7 +97,7 @@ def _dms(value: float) -> tuple[float, float, float]:
     return float(degrees), float(minutes), round(seconds, 6)
 
 
-def exif_bytes(meta: ImageMetadata, width: int, height: int, focal_px: float) -> bytes:
+def exif_bytes(meta: RenderedTags, width: int, height: int, focal_px: float) -> bytes:
     """The EXIF block of one image (Pillow): make, model, time, focal length, GPS."""
     from fractions import Fraction
 
@@ -128,7 +130,7 @@ def exif_bytes(meta: ImageMetadata, width: int, height: int, focal_px: float) ->
     return exif.tobytes()
 
 
-def xmp_bytes(meta: ImageMetadata, width: int, height: int, focal_px: float) -> bytes:
+def xmp_bytes(meta: RenderedTags, width: int, height: int, focal_px: float) -> bytes:
     """DJI's XMP packet (attributes of one rdf:Description, as DJI's cameras write it)."""
     gy, gp, gr = meta.gimbal
     fy, fp, fr = meta.flight
