@@ -786,9 +786,76 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
     of check marks; `gcp_sigma` (H, V m): their sigmas where the lines give none."""
     from .align.georegister import read_initial_transform
     from .citymodel.crs import user_crs
-    from .citymodel.read import read_city_model
     from .files import atomic_directory
 
+    options = _options_from_arguments(preset, options_file, precision, sigma_generalisation,
+                                      tolerance, variance_components, assignment, workflow,
+                                      terrain, terrain_sigma, gnss_bias, num_threads,
+                                      gcp_sigma)
+    if gnss_height_offset == "auto":
+        if options.adjustment.gnss_offset == "none":
+            options.adjustment.gnss_offset = "height"
+        gnss_height_offset = None
+    if write_model:  # writing the corrected model back means correcting it
+        options.adjustment.correct_model = True
+    if write_model is None:
+        write_model = options.adjustment.correct_model
+    cp_known = cp_observations = None
+    if checkpoints is None and checkpoint_observations is not None:
+        from .errors import InputError
+
+        raise InputError("--checkpoint_observations needs --checkpoints ('id X Y Z' lines)")
+    if checkpoint_observations is not None:
+        from .precision.checkpoints import (
+            read_checkpoint_observations,
+            read_checkpoints,
+        )
+
+        cp_known = read_checkpoints(checkpoints)
+        cp_observations = read_checkpoint_observations(checkpoint_observations)
+    # Fail on a taken output directory before the expensive work.
+    with atomic_directory(output_path):
+        pass
+    Path(output_path).rmdir()
+    reconstruction = read_reconstruction(input_path) if input_path is not None else None
+    crs = user_crs(target_crs) if target_crs else peek_crs(citymodel, model_crs)
+    observations = None
+    if crs is not None:
+        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
+                                 target_crs=crs, default_sigma=options.adjustment.sigma_gnss)
+    check_path = None if checkpoint_observations else checkpoints
+    marks, check_marks = read_marks(gcp, check_path, crs, options)  # None without a CRS yet
+    store = _read_model_near(citymodel, crs, model_crs, target_crs, lod, observations, marks,
+                             location, location_radius)
+    if observations is None and crs is None:
+        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
+                                 target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
+    if observations is not None and lever_arm is not None:
+        observations.lever_arm = np.asarray(lever_arm, dtype=np.float64).reshape(3)
+    if observations is not None and gnss_height_offset is not None:
+        observations.positions = observations.positions + [0.0, 0.0, float(gnss_height_offset)]
+        observations.vertical_applied = True
+        observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
+                                  "(--gnss_height_offset)")
+    transform = read_initial_transform(initial_transform) if initial_transform else None
+    if crs is None:
+        marks, check_marks = read_marks(gcp, check_path, store.crs, options)
+    if check_marks is not None:  # also as plain check points (map evaluates those)
+        cp_known, cp_observations = check_marks.checkpoints()
+    inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
+              **{k: str(v) for k, v in (("gcp", gcp), ("checkpoints", checkpoints)) if v},
+              "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
+              "gnss_source": observations.source if observations is not None else None,
+              "initial_transform": str(initial_transform) if initial_transform else None,
+              "preset": preset, "options_file": str(options_file) if options_file else None}
+    return RefineInputs(options, store, observations, transform, cp_known, cp_observations,
+                        bool(write_model), inputs, reconstruction, marks, check_marks)
+
+
+def _options_from_arguments(preset, options_file, precision, sigma_generalisation, tolerance,
+                            variance_components, assignment, workflow, terrain, terrain_sigma,
+                            gnss_bias, num_threads, gcp_sigma) -> RefineOptions:
+    """The preset or options file, with the command line's overrides."""
     options = (RefineOptions.from_toml(options_file, preset) if options_file
                else RefineOptions.preset(preset))
     if precision is not None:  # --precision on/off/auto overrides the options file
@@ -813,42 +880,21 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         from .errors import InputError
 
         raise InputError(f"--gnss_bias takes auto, got {gnss_bias!r}")
-    if gnss_height_offset == "auto":
-        if options.adjustment.gnss_offset == "none":
-            options.adjustment.gnss_offset = "height"
-        gnss_height_offset = None
-    if write_model:  # writing the corrected model back means correcting it
-        options.adjustment.correct_model = True
-    if write_model is None:
-        write_model = options.adjustment.correct_model
     if num_threads is not None:  # threads of each Ceres solve (a batch worker uses one)
         options.adjustment.num_threads = int(num_threads)
-    cp_known = cp_observations = None
-    if checkpoints is None and checkpoint_observations is not None:
-        from .errors import InputError
-
-        raise InputError("--checkpoint_observations needs --checkpoints ('id X Y Z' lines)")
     if gcp_sigma is not None:  # --gcp_sigma H V overrides the options file
         options.mergedict({"marks": dict(zip(("sigma_horizontal", "sigma_vertical"),
                                              map(float, gcp_sigma)))}, source="--gcp_sigma")
-    if checkpoint_observations is not None:
-        from .precision.checkpoints import (
-            read_checkpoint_observations,
-            read_checkpoints,
-        )
+    return options
 
-        cp_known = read_checkpoints(checkpoints)
-        cp_observations = read_checkpoint_observations(checkpoint_observations)
-    # Fail on a taken output directory before the expensive work.
-    with atomic_directory(output_path):
-        pass
-    Path(output_path).rmdir()
-    reconstruction = read_reconstruction(input_path) if input_path is not None else None
-    crs = user_crs(target_crs) if target_crs else peek_crs(citymodel, model_crs)
-    observations = None
-    if crs is not None:
-        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
-                                 target_crs=crs, default_sigma=options.adjustment.sigma_gnss)
+
+def _read_model_near(citymodel, crs, model_crs, target_crs, lod, observations, marks, location,
+                     location_radius) -> PlaneStore:
+    """The city model's buildings near the block: around the GNSS positions, else the location
+    hint, else the control marks (of a directory of tiles only the tiles there are read)."""
+    from .citymodel.crs import user_crs
+    from .citymodel.read import read_city_model
+
     bbox = None
     if observations is not None:
         bbox = np.array([observations.positions.min(0) - GNSS_READ_MARGIN,
@@ -857,8 +903,6 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
         reach = float(location_radius) + GNSS_READ_MARGIN
         bbox = np.array([[location[0] - reach, location[1] - reach, -1e5],
                          [location[0] + reach, location[1] + reach, 1e5]])
-    check_path = None if checkpoint_observations else checkpoints
-    marks, check_marks = read_marks(gcp, check_path, crs, options)  # None without a CRS yet
     if bbox is None and marks is not None:  # no GNSS: the model around the control marks
         bbox = marks_box(marks)
     if bbox is not None:  # of a directory of tiles, only those near the block are read
@@ -879,29 +923,7 @@ def read_inputs(citymodel, output_path, *, input_path=None, database=None, gnss=
             "the city model does not overlap the GNSS positions "
             f"({observations.path or observations.source}, {GNSS_READ_MARGIN:.0f} m margin): "
             f"{error.message}; check the GNSS CRS and the model tiles", error.path) from None
-    if observations is None and crs is None:
-        observations = read_gnss(database=database, gnss=gnss, gnss_crs=gnss_crs, exif=exif,
-                                 target_crs=store.crs, default_sigma=options.adjustment.sigma_gnss)
-    if observations is not None and lever_arm is not None:
-        observations.lever_arm = np.asarray(lever_arm, dtype=np.float64).reshape(3)
-    if observations is not None and gnss_height_offset is not None:
-        observations.positions = observations.positions + [0.0, 0.0, float(gnss_height_offset)]
-        observations.vertical_applied = True
-        observations.notes.append(f"GNSS heights shifted by {float(gnss_height_offset):+.3f} m "
-                                  "(--gnss_height_offset)")
-    transform = read_initial_transform(initial_transform) if initial_transform else None
-    if crs is None:
-        marks, check_marks = read_marks(gcp, check_path, store.crs, options)
-    if check_marks is not None:  # also as plain check points (map evaluates those)
-        cp_known, cp_observations = check_marks.checkpoints()
-    inputs = {**({"input_path": str(input_path)} if input_path is not None else {}),
-              **{k: str(v) for k, v in (("gcp", gcp), ("checkpoints", checkpoints)) if v},
-              "citymodel": [str(p) for p in np.atleast_1d(citymodel)],
-              "gnss_source": observations.source if observations is not None else None,
-              "initial_transform": str(initial_transform) if initial_transform else None,
-              "preset": preset, "options_file": str(options_file) if options_file else None}
-    return RefineInputs(options, store, observations, transform, cp_known, cp_observations,
-                        bool(write_model), inputs, reconstruction, marks, check_marks)
+    return store
 
 
 def read_marks(gcp, checkpoints, crs, options: RefineOptions):
