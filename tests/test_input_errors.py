@@ -405,3 +405,19 @@ def test_2d_point_far_outside_the_image(workspace, tmp_path, capsys):
     images.write_bytes(bytes(data))
     code, err = run(refine_argv(workspace, tmp_path / "out", **{"--input_path": model}), capsys)
     assert code == 2 and str(images) in err and "far outside the 1280 px image" in err
+
+
+def test_a_binary_model_of_35_images_is_binary(tmp_path):
+    """A binary file whose record count is 35 starts with the byte of "#": it is read as the
+    binary model it is, not refused as a text file."""
+    import pycolmap
+
+    from colmap_citymodel.block.colmap_files import check_model
+
+    rec = pycolmap.Reconstruction()
+    for camera_id in range(1, 36):
+        rec.add_camera(pycolmap.Camera(camera_id=camera_id, model="SIMPLE_PINHOLE", width=640,
+                                       height=480, params=[500.0, 320.0, 240.0]))
+    rec.write(tmp_path)
+    assert (tmp_path / "cameras.bin").read_bytes()[:1] == b"#"
+    assert check_model(tmp_path) == "bin"

@@ -385,8 +385,9 @@ class _Binary:
         if self.size == 0:
             raise _Damaged(self.path, "empty file")
         head = bytes(self.data[:64])
-        if head.startswith(b"#") or (len(head) >= 8 and all(32 <= c < 127 or c in b"\t\r\n"
-                                                             for c in head)):
+        # printable throughout (a binary count of 35 records starts with "#" too)
+        printable = all(32 <= c < 127 or c in b"\t\r\n" for c in head)
+        if printable and (len(head) >= 8 or head.startswith(b"#")):
             raise _Damaged(self.path, "a text file, not COLMAP's binary format (a .txt model "
                                       "saved as .bin?)")
         (n,) = self.unpack(_U64, 0, f"the number of {what}")
