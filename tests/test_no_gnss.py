@@ -276,3 +276,23 @@ def test_each_part_of_a_model_is_registered_on_its_own(workspace, tmp_path, caps
         report = json.loads((out / part / "report.json").read_text())
         assert report["georegistration"]["method"] == "model only"
         assert report["inputs"]["input_path"].endswith(f"sparse/{part}")
+
+
+def test_a_block_that_fits_nowhere_near_the_hint_fails_with_a_verdict(street_scene):
+    """Tie points scattered through the street's volume lie on no surface of the model: the
+    search ends with the verdict "failed" (exit 3, what it found in its report), not as a
+    refused input."""
+    from colmap_citymodel.align.locate import ModelOnlyFailure
+
+    sfm = pycolmap.Reconstruction(street_scene.sfm)
+    rng = np.random.default_rng(3)
+    xyz = np.array([p.xyz for p in sfm.points3D.values()])
+    low, high = xyz.min(axis=0), xyz.max(axis=0)
+    for point in sfm.points3D.values():
+        point.xyz = rng.uniform(low, high)
+    hint = true_centre(street_scene)[:2] - street_scene.store.origin[:2]
+    with pytest.raises(ModelOnlyFailure) as caught:
+        locate(sfm, street_scene.store, hint)
+    assert "fits nowhere" in str(caught.value) and caught.value.exit_code == 3
+    assert caught.value.report["verdict"] == "failed"
+    assert caught.value.report["best_score"] < LocateOptions().min_share

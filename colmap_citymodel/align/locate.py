@@ -792,11 +792,13 @@ def _decide(placements: list[_Hypothesis], hypotheses: list[_Hypothesis],
     logger.info("model-only georegistration: best share %.2f, distinct runner-up %.2f (ratio "
                 "%.2f), %.1f m from the hint, scale %.4g, %.1f s", best.share, runner_share,
                 ratio, report["hint_distance_m"], sim3.scale, seconds)
-    if best.share < options.min_share:
-        raise GeoregistrationError(
+    if best.share < options.min_share:  # a verdict on the block, not a refusal of the input
+        raise ModelOnlyFailure(
             f"the block fits nowhere within {options.radius:g} m of the location hint: at best "
-            f"{100 * best.share:.0f} % of its tie points lie near the model (at least "
-            f"{100 * options.min_share:.0f} % needed); check the hint and the radius")
+            f"{100 * max(best.share, 0.0):.0f} % of its tie points lie near the model (at least "
+            f"{100 * options.min_share:.0f} % needed, less where its rays would pass through "
+            "roofs or its ground would lie under them); check the hint and the radius",
+            {**report, "verdict": "failed"})
     if ratio > options.max_ratio:
         raise AmbiguousLocationError(
             f"the block fits two places about equally well ({100 * best.share:.0f} % and "
