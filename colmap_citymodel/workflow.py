@@ -188,8 +188,8 @@ def refine_block(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore
     final = after_loop(loop, placed, start.priors, options, run)
     judged = judge(final, loop, placed, start, gnss_only, options, run, gnss)
     judged.sim3 = judged.sim3 * loop.move * placed.sim3  # input frame to local
-    if judged.verdict_failed and gnss_only is not None:
-        # Never hand back a block worse than GNSS alone: the result is the GNSS-only one.
+    if judged.gnss_only_handed_back(options) and gnss_only is not None:
+        # Never hand back a block worse than GNSS alone, nor one moved without evidence.
         judged.reconstruction, judged.sim3 = gnss_only, start.sim3
         judged.observability = gnss_only_observability(judged.observability)
     precision = None if judged.reconstruction is gnss_only else precision_after_refine(
@@ -330,9 +330,22 @@ class Judged:
     gnss_offset: dict | None
     sim3: pycolmap.Sim3d | None
 
+    # Every datum parameter (shifts, scale, rotations) is one GNSS fixes and the planes and
+    # terrain do not (adjust.observability.left_to_gnss).
+    all_left_to_gnss: bool = False
+
     @property
     def verdict_failed(self) -> bool:
         return self.quality.verdict == "failed"
+
+    def gnss_only_handed_back(self, options) -> bool:
+        """Whether the GNSS-only block is the result: the verdict failed, or the model fixes
+        nothing of the datum that GNSS does not fix better, so that what it changed is the
+        block's shape alone, under GNSS's own precision, which is no evidence to move on
+        (except where the images are to correct the model: there GNSS's block is the datum
+        the model is corrected to)."""
+        return self.verdict_failed or (self.all_left_to_gnss
+                                       and not options.adjustment.correct_model)
 
 
 def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, options,
@@ -354,8 +367,12 @@ def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, op
     if start.located is not None and isinstance(quality.metrics, dict):
         quality.metrics["location_score_ratio"] = start.located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
+    alone = priors is not None and bool(np.all(left_to_gnss(observability, DATUM)))
+    if alone and not quality.verdict == "failed" and not options.adjustment.correct_model:
+        quality.reasons.append("the planes and terrain fix no datum parameter that GNSS does "
+                               "not fix better: the GNSS-only block is handed back")
     logger.info(quality.line())
-    return Judged(rec, observability, quality, gnss_offset, sim3)
+    return Judged(rec, observability, quality, gnss_offset, sim3, alone)
 
 
 def refine_result(start, placed: Placed, loop, final: Final, judged: Judged, options,
@@ -725,7 +742,7 @@ def _model_correction(store: PlaneStore, current: PlaneStore, corrected, last, p
     from .precision.estimate import vertex_covariances
 
     if handed_back:
-        warnings.append("the model is not corrected: the quality gate failed")
+        warnings.append("the model is not corrected: the GNSS-only block is handed back")
         return None
     ids = cov = None
     note = "no covariances"
@@ -956,7 +973,8 @@ def write_outputs(result: RefineResult, output_path, read: RefineInputs, *, outp
     s0 = (result.precision.variance.sigma0 if result.precision is not None
           else np.sqrt(last.final.sigma0_squared))
     if result.handed_back == "gnss_only":
-        print(f"the city model could not help: wrote the GNSS-only adjustment of "
+        beyond = "" if result.quality.verdict == "failed" else " beyond GNSS"
+        print(f"the city model could not help{beyond}: wrote the GNSS-only adjustment of "
               f"{result.reconstruction.num_reg_images()} images")
     elif result.quality.verdict == "failed":
         print(f"the city model could not help, and without GNSS there is no other result: the "

@@ -76,9 +76,10 @@ class RefineResult:
 
     @property
     def handed_back(self) -> str:
-        """"refined", or "gnss_only" when the quality gate failed."""
-        return ("gnss_only" if self.quality is not None and self.quality.verdict == "failed"
-                and self.gnss_only is not None else "refined")
+        """"refined", or "gnss_only" when the GNSS-only block is the result (the quality gate
+        failed, or the model fixes nothing of the datum that GNSS does not fix better)."""
+        return ("gnss_only" if self.gnss_only is not None
+                and self.reconstruction is self.gnss_only else "refined")
 
     @property
     def origin(self) -> np.ndarray:

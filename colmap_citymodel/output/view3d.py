@@ -541,8 +541,8 @@ def view_section(result: RefineResult, palette: np.ndarray, *, max_points: int =
     blocks = ("the GNSS-only block (the bundle adjustment with GNSS, before the model took "
               "part), the refined block, or both" if "gnss_only" in facts["blocks"] else
               "the refined block (there is no GNSS-only one without GNSS)")
-    handed_back = (" The quality gate failed: the GNSS-only block is what was written, and it "
-                   "shows first." if facts["shown"] == "gnss_only" else "")
+    handed_back = (" The GNSS-only block is what was written (see the verdict), and it shows "
+                   "first." if facts["shown"] == "gnss_only" else "")
     caption = (
         f"Coordinates in metres in the local frame: model CRS ({crs}) minus the origin E "
         f"{origin[0]:.3f}, N {origin[1]:.3f}, H {origin[2]:.3f}. Buttons at the top left: "

@@ -71,7 +71,7 @@ def georeference_dict(result: RefineResult, output_frame: str) -> dict:
                  "model coordinates are CRS coordinates minus origin"),
         "result": result.handed_back,
         "result_note": ("the refined block" if result.handed_back == "refined" else
-                        "the GNSS-only adjustment: the quality gate failed ("
+                        f"the GNSS-only adjustment (verdict {result.quality.verdict}: "
                         + "; ".join(result.quality.reasons) + ")"),
         "input_to_local_sim3": sim3_dict(result.input_to_local),
         "input_to_crs_sim3": sim3_dict(to_crs),
@@ -328,8 +328,7 @@ def write_model_correction(result: RefineResult, directory: Path, *, write_model
         if not result.options.adjustment.correct_model:
             note = "Model correction was not asked for (--preset correct_model)."
         elif result.handed_back == "gnss_only":
-            note = ("The model was not corrected: the quality gate failed and the GNSS-only "
-                    "result was handed back.")
+            note = "The model was not corrected: the GNSS-only result was handed back."
         else:
             note = "The model was not corrected: the correction was undone (see the warnings)."
         return {"note": note}
