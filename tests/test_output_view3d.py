@@ -219,13 +219,14 @@ def test_a_large_block_is_subsampled_and_stays_small():
 
 def test_without_gnss_only_the_refined_block_and_after_a_failed_gate_gnss_only_first():
     result = synthetic_result(300)
-    failed = dataclasses.replace(result, quality=QualityReport("failed", ["no help"]))
+    failed = dataclasses.replace(result, quality=QualityReport("failed", ["no help"]),
+                                 reconstruction=result.gnss_only)  # as refine hands it back
     figure, facts = view3d.build_figure(failed, palette(failed))
     assert facts["shown"] == "gnss_only"
     assert [t.get("visible", True) for t in figure["data"]] == [True] * 8 + [False] * 3
     assert figure["layout"]["updatemenus"][0]["active"] == 0
     section, _ = view3d.view_section(failed, palette(failed))
-    assert "the GNSS-only block is what was written" in section
+    assert "The GNSS-only block is what was written" in section
     alone = dataclasses.replace(result, gnss_only=None)
     figure, facts = view3d.build_figure(alone, palette(alone))
     assert facts["blocks"] == {"refined": [5, 6, 7]} and len(figure["data"]) == 8
