@@ -82,3 +82,16 @@ def quiet_colmap(log_path: Path):
             os.dup2(saved[1], 2)
             os.close(saved[0])
             os.close(saved[1])
+
+
+def content_lines(path: Path, what: str = "file"):
+    """(line number, content) of each line of the text file `path` that holds more than a
+    comment ('#' to the end of a line); unreadable: an InputError naming `what` and the file."""
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except (OSError, UnicodeDecodeError) as error:
+        raise InputError(f"cannot read {what}: {error}", path) from None
+    for number, line in enumerate(text.splitlines(), start=1):
+        content = line.split("#", 1)[0].strip()
+        if content:
+            yield number, content

@@ -148,7 +148,9 @@ def parse_option_values(items: list[str] | None, what: str) -> dict:
     return out
 
 
-def _merged(options, values: dict, what: str):
+def merged_options(options, values: dict, what: str):
+    """pycolmap's option object `options` with `values` merged in; what pycolmap rejects is an
+    InputError naming `what` (the command line's option)."""
     if values:
         try:
             options.mergedict(values)
@@ -166,7 +168,7 @@ def pipeline_options(values: dict | None = None, *, num_threads: int | None = No
         o.num_threads = int(num_threads)
     if seed is not None:
         o.random_seed = int(seed)
-    return _merged(o, values or {}, "--mapper_options")
+    return merged_options(o, values or {}, "--mapper_options")
 
 
 # -- features and matches ----------------------------------------------------------------------
@@ -197,12 +199,12 @@ def extract_and_match(database_path: Path, image_path: Path, *, matcher: str = "
     pycolmap.extract_features(
         database_path, image_path, reader_options=reader,
         camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
-        extraction_options=_merged(pycolmap.FeatureExtractionOptions(), extraction or {},
+        extraction_options=merged_options(pycolmap.FeatureExtractionOptions(), extraction or {},
                                    "--extraction_options"))
     logger.info("%s matching (COLMAP)", matcher)
     match = {"exhaustive": pycolmap.match_exhaustive, "sequential": pycolmap.match_sequential,
              "spatial": pycolmap.match_spatial}[matcher]
-    match(database_path, matching_options=_merged(pycolmap.FeatureMatchingOptions(),
+    match(database_path, matching_options=merged_options(pycolmap.FeatureMatchingOptions(),
                                                   matching or {}, "--matching_options"))
 
 
@@ -639,7 +641,7 @@ def main(database_path, image_path, citymodel, output_path, *, output_type="bin"
         match = {"exhaustive": pycolmap.match_exhaustive,
                  "sequential": pycolmap.match_sequential,
                  "spatial": pycolmap.match_spatial}[matcher]
-        match(database_path, matching_options=_merged(pycolmap.FeatureMatchingOptions(),
+        match(database_path, matching_options=merged_options(pycolmap.FeatureMatchingOptions(),
                                                       matching, "--matching_options"))
     mapper_opts = MapperOptions()
     if min_gnss_images is not None:

@@ -41,6 +41,7 @@ import pycolmap
 
 from ..citymodel.raw_model import CRSInfo
 from ..errors import InputError
+from ..files import content_lines
 
 logger = logging.getLogger(__name__)
 
@@ -114,15 +115,6 @@ def header_crs(text: str) -> str:
     return text.strip()
 
 
-def _content_lines(path: Path):
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"cannot read the marks file: {error}", path) from None
-    for number, line in enumerate(text.splitlines(), start=1):
-        content = line.split("#", 1)[0].strip()
-        if content:
-            yield number, content
 
 
 def _sigma_columns(parts: list[str]) -> np.ndarray | None:
@@ -188,7 +180,7 @@ def read_gcp_list(path, target_crs: CRSInfo, default_sigma=(0.02, 0.03)) -> Grou
     from .gnss import _crs_info
 
     path = Path(path)
-    lines = list(_content_lines(path))
+    lines = list(content_lines(path, "the marks file"))
     if not lines:
         raise InputError("the marks file is empty (a first line with the CRS, then one line "
                          "per mark and image)", path)

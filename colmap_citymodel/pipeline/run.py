@@ -37,7 +37,7 @@ import numpy as np
 import pycolmap
 
 from ..errors import InputError
-from ..mapper import map_block, parse_option_values, pipeline_options
+from ..mapper import map_block, merged_options, parse_option_values, pipeline_options
 from ..options import MapperOptions
 from ..workflow import (RefineInputs, add_sequence_check, read_inputs, refine,
                         write_failed_report, write_outputs)
@@ -94,13 +94,7 @@ def colmap_options(cls, items: list[str] | None, what: str, num_threads: int | N
     options = cls()
     if num_threads is not None:
         options.num_threads = int(num_threads)
-    values = parse_option_values(items, what)
-    if values:
-        try:
-            options.mergedict(values)
-        except Exception as error:  # pycolmap rejects unknown keys and wrong types
-            raise InputError(f"{what}: {error}") from None
-    return options
+    return merged_options(options, parse_option_values(items, what), what)
 
 
 def main(image_path, citymodel, output_path, *, gnss=None, gnss_crs=None, matcher="auto",

@@ -35,6 +35,7 @@ from pathlib import Path
 import numpy as np
 
 from ..errors import InputError
+from ..files import content_lines
 from .accuracy import accuracy_markdown, check_accuracy, read_check_marks
 from .quality import QualityThresholds
 
@@ -52,14 +53,7 @@ CHECKPOINT_PRECISION_FILE = "checkpoint_precision.json"
 
 
 def _lines(path: Path):
-    try:
-        text = path.read_text(encoding="utf-8")
-    except (OSError, UnicodeDecodeError) as error:
-        raise InputError(f"cannot read file: {error}", path) from None
-    for number, line in enumerate(text.splitlines(), start=1):
-        content = line.split("#", 1)[0].strip()
-        if content:
-            yield number, content.split()
+    return ((number, content.split()) for number, content in content_lines(path))
 
 
 def _floats(values, number, path) -> list[float]:
