@@ -199,13 +199,13 @@ def extract_and_match(database_path: Path, image_path: Path, *, matcher: str = "
     pycolmap.extract_features(
         database_path, image_path, reader_options=reader,
         camera_mode=pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO,
-        extraction_options=merged_options(pycolmap.FeatureExtractionOptions(), extraction or {},
-                                   "--extraction_options"))
+        extraction_options=merged_options(pycolmap.FeatureExtractionOptions(),
+                                          extraction or {}, "--extraction_options"))
     logger.info("%s matching (COLMAP)", matcher)
     match = {"exhaustive": pycolmap.match_exhaustive, "sequential": pycolmap.match_sequential,
              "spatial": pycolmap.match_spatial}[matcher]
     match(database_path, matching_options=merged_options(pycolmap.FeatureMatchingOptions(),
-                                                  matching or {}, "--matching_options"))
+                                                         matching or {}, "--matching_options"))
 
 
 # -- the global adjustment with the model ------------------------------------------------------
@@ -641,8 +641,8 @@ def main(database_path, image_path, citymodel, output_path, *, output_type="bin"
         match = {"exhaustive": pycolmap.match_exhaustive,
                  "sequential": pycolmap.match_sequential,
                  "spatial": pycolmap.match_spatial}[matcher]
-        match(database_path, matching_options=merged_options(pycolmap.FeatureMatchingOptions(),
-                                                      matching, "--matching_options"))
+        match(database_path, matching_options=merged_options(
+            pycolmap.FeatureMatchingOptions(), matching, "--matching_options"))
     mapper_opts = MapperOptions()
     if min_gnss_images is not None:
         mapper_opts.min_gnss_images = int(min_gnss_images)

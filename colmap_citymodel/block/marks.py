@@ -115,8 +115,6 @@ def header_crs(text: str) -> str:
     return text.strip()
 
 
-
-
 def _sigma_columns(parts: list[str]) -> np.ndarray | None:
     """(sigma_h, sigma_h, sigma_v) from the two columns after the name, when both are positive
     finite numbers; None otherwise (no such columns, or other extras)."""
