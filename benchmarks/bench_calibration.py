@@ -47,7 +47,7 @@ from colmap_citymodel.options import PrecisionOptions
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from scenarios import GENERATED, RESULTS, ROOT, build_from_toml, centre_errors, code_version, \
-    inputs, model_variant, truth_centres  # noqa: E402
+    inputs, model_variant, toml_value, truth_centres  # noqa: E402
 
 DATA = ROOT / "tests" / "data" / "citygml"
 BERLIN_BLOCK = DATA / "berlin" / "3910_5819.gml"
@@ -188,18 +188,6 @@ def draw_blocks(count: int, seed: int) -> list[dict]:
     return blocks
 
 
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    if isinstance(value, str):
-        return json.dumps(value)
-    return repr(float(value)) if isinstance(value, float) else str(int(value))
-
-
 def scenario_toml(block: dict) -> str:
     """The block's simulator scenario file (colmap_citymodel.simulate.scenario)."""
     tables = {**block["toml"], "checkpoints": {"count": 15}, "gnss": block["gnss"],
@@ -207,7 +195,7 @@ def scenario_toml(block: dict) -> str:
     lines = [f"name = {json.dumps(block['name'])}", f"seed = {block['sim_seed']}"]
     for table, values in tables.items():
         lines += ["", f"[{table}]"]
-        lines += [f"{key} = {_toml_value(value)}" for key, value in values.items()]
+        lines += [f"{key} = {toml_value(value)}" for key, value in values.items()]
     return "\n".join(lines) + "\n"
 
 

@@ -57,6 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import generalisation_blocks as blocks_mod  # noqa: E402
 from generalisation_blocks import ROOT, SPLITS, draw_blocks  # noqa: E402
 from generalisation_summary import summarise, write_markdown  # noqa: E402
+from scenarios import toml_value  # noqa: E402
 
 GENERATED = ROOT / "workspaces" / "generated" / "generalisation"
 RESULTS = ROOT / "benchmarks" / "results"
@@ -74,18 +75,6 @@ CHECKPOINTS = 15
 
 # ----------------------------------------------------------------------------------------------
 # the block's scenario file and workspace
-
-def _toml_value(value) -> str:
-    if isinstance(value, bool):
-        return "true" if value else "false"
-    if isinstance(value, (list, tuple)):
-        return "[" + ", ".join(_toml_value(v) for v in value) + "]"
-    if isinstance(value, dict):
-        return "{ " + ", ".join(f"{k} = {_toml_value(v)}" for k, v in value.items()) + " }"
-    if isinstance(value, str):
-        return json.dumps(value)
-    return repr(float(value)) if isinstance(value, float) else str(int(value))
-
 
 def scenario_table(block: dict) -> dict:
     """The simulator's [scenario] table: model level, GNSS, DTM, wrong datum."""
@@ -110,12 +99,12 @@ def scenario_toml(block: dict) -> str:
     lines = [f"name = {json.dumps(block['name'])}", f"seed = {block['sim_seed']}"]
     for table, values in tables.items():
         lines += ["", f"[{table}]"]
-        lines += [f"{key} = {_toml_value(value)}" for key, value in values.items()
+        lines += [f"{key} = {toml_value(value)}" for key, value in values.items()
                   if value is not None and not isinstance(value, dict)]
         for key, value in values.items():
             if isinstance(value, dict):
                 lines += ["", f"[{table}.{key}]"]
-                lines += [f"{k} = {_toml_value(v)}" for k, v in value.items()]
+                lines += [f"{k} = {toml_value(v)}" for k, v in value.items()]
     return "\n".join(lines) + "\n"
 
 

@@ -68,6 +68,19 @@ UNGER = {"short": {"Scn1": 0.10, "Scn2": 0.19, "Scn3": 0.25, "Scn5": "< 1"},
          "long": {"Scn2": 0.12, "Scn4": 0.31, "Scn5": "metres", "Scn6": "~5"}}
 
 
+def toml_value(value) -> str:
+    """One TOML value (bool, number, string, list, inline table) as scenario files write it."""
+    if isinstance(value, bool):
+        return "true" if value else "false"
+    if isinstance(value, (list, tuple)):
+        return "[" + ", ".join(toml_value(v) for v in value) + "]"
+    if isinstance(value, dict):
+        return "{ " + ", ".join(f"{k} = {toml_value(v)}" for k, v in value.items()) + " }"
+    if isinstance(value, str):
+        return json.dumps(value)
+    return repr(float(value)) if isinstance(value, float) else str(int(value))
+
+
 def update_json(path: Path, keys: list[str], value) -> dict:
     """Set path[keys[0]]...[keys[-1]] = value in the JSON file, read just before writing: other
     benchmarks (or other runs of this one) write their own parts of the same file meanwhile.
