@@ -188,7 +188,7 @@ def refine_block(reconstruction: pycolmap.Reconstruction, city_model: PlaneStore
     final = after_loop(loop, placed, start.priors, options, run)
     judged = judge(final, loop, placed, start, gnss_only, options, run, gnss)
     judged.sim3 = judged.sim3 * loop.move * placed.sim3  # input frame to local
-    if judged.gnss_only_handed_back(options) and gnss_only is not None:
+    if judged.gnss_only_handed_back and gnss_only is not None:
         # Never hand back a block worse than GNSS alone, nor one moved without evidence.
         judged.reconstruction, judged.sim3 = gnss_only, start.sim3
         judged.observability = gnss_only_observability(judged.observability)
@@ -330,22 +330,21 @@ class Judged:
     gnss_offset: dict | None
     sim3: pycolmap.Sim3d | None
 
-    # Every datum parameter (shifts, scale, rotations) is one GNSS fixes and the planes and
-    # terrain do not (adjust.observability.left_to_gnss).
-    all_left_to_gnss: bool = False
+    # The planes and terrain fix no datum parameter (shifts, scale, rotations) that GNSS does
+    # not fix better (adjust.observability.left_to_gnss): what the model changed is the
+    # block's shape alone, under GNSS's own precision, no evidence to move on, so the
+    # GNSS-only block is the result (not where the images correct the model: there GNSS's
+    # block is the datum the model is corrected to).
+    gnss_fixes_all: bool = False
 
     @property
     def verdict_failed(self) -> bool:
         return self.quality.verdict == "failed"
 
-    def gnss_only_handed_back(self, options) -> bool:
-        """Whether the GNSS-only block is the result: the verdict failed, or the model fixes
-        nothing of the datum that GNSS does not fix better, so that what it changed is the
-        block's shape alone, under GNSS's own precision, which is no evidence to move on
-        (except where the images are to correct the model: there GNSS's block is the datum
-        the model is corrected to)."""
-        return self.verdict_failed or (self.all_left_to_gnss
-                                       and not options.adjustment.correct_model)
+    @property
+    def gnss_only_handed_back(self) -> bool:
+        """Whether the GNSS-only block is the result: the verdict failed, or `gnss_fixes_all`."""
+        return self.verdict_failed or self.gnss_fixes_all
 
 
 def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, options,
@@ -367,12 +366,14 @@ def judge(final: Final, loop, placed: Placed, start: "ModelStart", gnss_only, op
     if start.located is not None and isinstance(quality.metrics, dict):
         quality.metrics["location_score_ratio"] = start.located["score_ratio"]
     logger.info("datum fixed by: %s", datum_line(observability))
-    alone = priors is not None and bool(np.all(left_to_gnss(observability, DATUM)))
-    if alone and not quality.verdict == "failed" and not options.adjustment.correct_model:
+    fixes_all = (priors is not None and quality.verdict != "failed"
+                 and not options.adjustment.correct_model
+                 and bool(np.all(left_to_gnss(observability, DATUM))))
+    if fixes_all:
         quality.reasons.append("the planes and terrain fix no datum parameter that GNSS does "
                                "not fix better: the GNSS-only block is handed back")
     logger.info(quality.line())
-    return Judged(rec, observability, quality, gnss_offset, sim3, alone)
+    return Judged(rec, observability, quality, gnss_offset, sim3, fixes_all)
 
 
 def refine_result(start, placed: Placed, loop, final: Final, judged: Judged, options,

@@ -315,13 +315,12 @@ def test_run_from_a_rendered_folder_end_to_end(tmp_path):
     """Ten rendered images with their EXIF GPS, `run` from the folder as a user calls it
     (features, matching, mapping with the model, refine): every image registered, and the
     block either nearer the truth than the GNSS-only one or handed back "failed"."""
+    from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
     from colmap_citymodel.pipeline.run import main
 
     o, sim, out, _ = _render(tmp_path / "set", 10, 800, 600, 620.0)
     flight = sim.flight
     model = tmp_path / "model.gml"
-    from colmap_citymodel.citymodel.write_citygml import raw_from_store, write_citygml
-
     write_citygml(model, raw_from_store(sim.store), sim.store.crs.label)
     params = ",".join(str(v) for v in (flight.focal, flight.width / 2, flight.height / 2,
                                        flight.k1))
