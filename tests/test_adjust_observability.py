@@ -309,3 +309,22 @@ def test_weighting_the_faces_that_moves_the_block_beyond_its_sigma_is_in_the_sig
     assert out["U"]["sigma_one_weighting"] == 0.085
     assert out["N"]["sigma"] == 1.6 and out["N"]["source"] == "gnss"
     assert weighting_observability(rows, None) is rows
+
+
+def test_a_shift_widened_to_gnss_s_sigma_goes_back_to_gnss():
+    """An RTK block (GNSS 0.03 m with its bias) that the faces' weighting moved 0.09 m in U
+    against a stated 0.04 m: U's sigma is GNSS's, so the block's U is GNSS's too (held back);
+    E, moved within its sigma, stays the planes'; a shift GNSS fixes alone while one plane
+    seems to (source "gnss", the planes' sigma small) is not held by the widening rule."""
+    from colmap_citymodel.adjust.observability import left_to_gnss, weighting_observability
+
+    rows = {"E": {"source": "both", "sigma": 0.02, "sigma_planes": 0.03, "sigma_gnss": 0.03,
+                  "sigma_gnss_with_bias": 0.03},
+            "N": {"source": "gnss", "sigma": 0.03, "sigma_planes": 0.04, "sigma_gnss": 0.03,
+                  "sigma_gnss_with_bias": 0.03},
+            "U": {"source": "both", "sigma": 0.04, "sigma_planes": 0.05, "sigma_gnss": 0.03,
+                  "sigma_gnss_with_bias": 0.035}}
+    assert not left_to_gnss(rows).any()
+    out = weighting_observability(rows, np.array([0.01, 0.0, 0.09]))
+    assert out["U"]["source"] == "gnss" and out["U"]["sigma"] == 0.04
+    assert left_to_gnss(out).tolist() == [False, False, True]

@@ -415,11 +415,12 @@ def gnss_only_observability(observability_dict: dict) -> dict:
 
 def _widened(row: dict, sigma: float) -> dict:
     """A shift's `row` stating `sigma` (m, at least its own), at most GNSS's sigma with its
-    bias (the block's position without the planes; source "gnss" then); inf without GNSS:
-    no sigma, source "none"."""
+    bias (the block's position without the planes; source "gnss" and `widened_to_gnss` then:
+    the block goes back to GNSS's position there, left_to_gnss); inf without GNSS: no sigma,
+    source "none"."""
     with_bias = row.get("sigma_gnss_with_bias")
     if with_bias is not None and sigma > max(row["sigma"], with_bias):
-        return {**row, "source": "gnss", "one_plane": False,
+        return {**row, "source": "gnss", "one_plane": False, "widened_to_gnss": True,
                 "sigma": max(row["sigma"], with_bias)}
     if not np.isfinite(sigma):
         return {**row, "source": "none", "sigma": None}
@@ -505,13 +506,17 @@ def left_to_gnss(observability_dict: dict, names=("E", "N", "U")) -> np.ndarray:
     while the planes' information there (each plane with its generalisation error) is
     DOMINANCE times weaker or none. Per tie point, as the adjustment weighs them, the same
     planes can seem to fix it: walls tilted by a fraction of a degree, thousands of points
-    each."""
+    each. Also a shift whose stated sigma, widened by an error the faces' model does not
+    describe (how far their weighting or an unsettled loop moves the block), reached GNSS's
+    sigma with its bias (`widened_to_gnss`): GNSS alone states that position no worse, and
+    the model's move there is not evidence, so GNSS's position is the one stated."""
     out = np.zeros(len(names), bool)
     for k, name in enumerate(names):
         row = observability_dict.get(name, {})
         planes, gnss = row.get("sigma_planes"), row.get("sigma_gnss")
         out[k] = (row.get("source") == "gnss" and gnss is not None
-                  and (planes is None or planes > DOMINANCE * gnss))
+                  and (planes is None or planes > DOMINANCE * gnss
+                       or bool(row.get("widened_to_gnss"))))
     return out
 
 
