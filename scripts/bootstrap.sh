@@ -2,8 +2,8 @@
 # Idempotent set-up on a Debian machine (run from anywhere; as root, or with sudo):
 #  1. Debian packages for the C++ extension and Open3D, installed only when missing;
 #  2. .venv with Python >= 3.11 (set PYTHON=/path/to/python3.x to choose the interpreter);
-#  3. this package installed editable with its test and docs extras (pytest, mkdocs), and
-#     `build` for scripts/check_wheel.sh. Skipped when pyproject.toml and
+#  3. this package installed editable with its test and docs extras (pytest, pytest-xdist,
+#     mkdocs), and `build` for scripts/check_wheel.sh. Skipped when pyproject.toml and
 #     cpp_ext/ are unchanged since the last successful install and the extension loads.
 set -euo pipefail
 cd "$(dirname "$0")/.."
