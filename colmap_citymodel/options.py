@@ -419,7 +419,16 @@ class WorkflowOptions:
     convergence_camera_shift: float = 0.005
     """Stop when two iterations in a row (after the first) move no camera centre by more than this
     (m): late iterations move the cameras by millimetres, each at the cost of a hybrid solve,
-    while one small move alone can be a pause in a slow swing. 0 runs until the RMS settles."""
+    while one small move alone can be a pause in a slow swing. The floor of the tolerance:
+    `convergence_sigma_share` of the block's stated sigma can be larger. 0 (with
+    convergence_sigma_share 0) runs until the RMS settles."""
+    convergence_sigma_share: float = 0.1
+    """The cameras have settled (convergence_camera_shift's two iterations, and the assignment
+    rule after one) once they move by less than this share of the block's stated position
+    sigma at the first assignment (the smallest of E, N, U, planes and GNSS together), where
+    that is more than convergence_camera_shift: a step a tenth of what the block is known to
+    adds 1 % to its mean square error (0.1^2), while each further iteration costs a hybrid
+    solve or two. 0: convergence_camera_shift alone."""
     convergence_assignment_change: float | None = 0.002
     """Stop before solving when the last solve (after the second iteration) moved no camera centre
     by more than convergence_camera_shift and the new assignment keeps the same planes and

@@ -323,6 +323,7 @@ def unsettled_loop(monkeypatch) -> RefineOptions:
     options.workflow.max_iterations = 3
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_camera_shift = 0.0
+    options.workflow.convergence_sigma_share = 0.0
     options.workflow.solve_again_after_elimination = True
     return options
 
@@ -337,6 +338,19 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
     notes = [w for w in result.warnings if "did not converge" in w]
     assert len(notes) == 1 and "iteration 0," in notes[0], result.warnings
     assert rms(centre_errors(result.reconstruction, scene.truth)) < 0.10
+
+
+def test_the_loop_with_every_point_alike_ends_once_the_block_is_placed(refined, scene):
+    """The loop with every tie point alike only places the block for the faces' loop, which
+    moves it on by up to the faces' sigma (0.2 m): it ends at its first solve after the first
+    that moves no camera by more than a tenth of that; the faces' loop then settles the block
+    on the model."""
+    first = [it for it in refined.iterations if it.phase == "loop"]
+    faces = [it for it in refined.iterations if it.phase == "faces"]
+    assert faces and refined.loop_stopped_by not in (None, "diverged")
+    assert first[-1].camera_shift < 0.02 and len(first) >= 2
+    assert all(it.camera_shift >= 0.02 for it in first[1:-1])
+    assert rms(centre_errors(refined.reconstruction, scene.truth)) < 0.10
 
 
 def test_the_faces_loop_out_of_iterations_returns_its_last_iterate(scene, monkeypatch):
@@ -362,6 +376,7 @@ def test_the_loop_stops_when_an_assignment_repeats(scene, caplog):
     options.workflow.max_iterations = 10
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_camera_shift = 0.0
+    options.workflow.convergence_sigma_share = 0.0
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
         result = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(result.iterations) < 10
@@ -371,9 +386,11 @@ def test_the_loop_stops_when_an_assignment_repeats(scene, caplog):
 
 def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog):
     """With the other stopping rules off, the loop ends once two iterations in a row move no
-    camera by more than convergence_camera_shift; the iterations it leaves out would have
-    moved the cameras by less than that."""
+    camera by more than a tenth of the block's stated sigma at the first assignment (at least
+    convergence_camera_shift); the iterations it leaves out would have moved the cameras by
+    less than that."""
     from colmap_citymodel.adjust import loop as loop_module
+    from colmap_citymodel.adjust.loop import settle_tolerance
 
     counter = iter(range(10 ** 6))
     monkeypatch.setattr(loop_module, "_signature",
@@ -387,14 +404,17 @@ def test_the_loop_stops_once_the_cameras_stop_moving(scene, monkeypatch, caplog)
     options.workflow.max_iterations = 6
     options.workflow.convergence_rms_change = 0.0
     options.workflow.convergence_assignment_change = None
-    tolerance = options.workflow.convergence_camera_shift
     with caplog.at_level("INFO", logger="colmap_citymodel.adjust.loop"):
         early = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
+    sigmas = [early.observability_before[a]["sigma"] for a in "ENU"]
+    tolerance = settle_tolerance(early.observability_before, options.workflow)
+    assert tolerance == pytest.approx(max(0.005, 0.1 * min(sigmas)))
     assert any("moved no camera" in r.getMessage() for r in caplog.records)
     shifts = [it.camera_shift for it in early.iterations]
     assert shifts[0] > tolerance and max(shifts[-2:]) < tolerance
     assert len(early.iterations) < 6
     options.workflow.convergence_camera_shift = 0.0
+    options.workflow.convergence_sigma_share = 0.0
     full = refine(scene.sfm, scene.store, scene.gnss(), options, progress=False)
     assert len(full.iterations) == 6
     difference = [np.linalg.norm(early.reconstruction.image(i).projection_center()

@@ -1,9 +1,10 @@
 """Steps 3-4 of the global workflow, repeated: assign the tie points to the model planes, solve
 the hybrid adjustment (robust on f_dTP where needed), until the RMS of the normalised residuals
-settles, two solves in a row move no camera by more than a few millimetres, a solve that moved
-them that little is followed by an assignment that keeps its planes and nearly all of its points,
-an assignment repeats an earlier one (a cycle), the planes alternate between two sets with small
-moves (the best of them is kept), the block objective worsens, or the iterations run out.
+settles, two solves in a row move no camera by more than a tenth of the block's stated sigma
+(at least a few millimetres: settle_tolerance), a solve that moved them that little is followed
+by an assignment that keeps its planes and nearly all of its points, an assignment repeats an
+earlier one (a cycle), the planes alternate between two sets with small moves (the best of them
+is kept), the block objective worsens, or the iterations run out.
 
 Assignments are recomputed from the current estimate every iteration; vertex-plane relations
 never change; the threshold never grows (no flip-flop between two assignments); an f_dTP
@@ -95,6 +96,8 @@ class LoopResult:
     # "same_assignment", "cycle", "alternating_planes" or "diverged"; None when the iterations
     # ran out.
     stopped_by: str | None = None
+    # The largest camera move (m) of an iteration that counted as settled (settle_tolerance).
+    settle_shift: float | None = None
 
 
 def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
@@ -104,7 +107,7 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
                     scale_sigma: float | None = None, progress: bool = True,
                     pose_priors: PosePriors | None = None,
                     hold_runaway_scale: bool = True,
-                    best_when_unsettled: bool = True) -> LoopResult:
+                    best_when_unsettled: bool = True, places_next: bool = False) -> LoopResult:
     """Run steps 3-4 on `rec` (modified in place; the result may hold the best iterate's copy
     instead). `store` is the model as given (its vertices are observed); `gnss_only` and
     `scale_sigma` let the loop hold the block's scale where the planes cannot give it, and,
@@ -113,9 +116,12 @@ def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNS
     kept from the window before). `best_when_unsettled`: a loop that runs out of iterations,
     or swings between two sets of planes, returns its best iterate by the block objective;
     False: its last (the faces' loop, whose estimated offsets move the points off the given
-    planes the objective measures them against)."""
+    planes the objective measures them against). `places_next`: the block is where another
+    loop starts (adjust.staged), so one settled iteration ends it, a robust one too (its
+    result is solved with the original weights once more)."""
     loop = _Loop(rec, store, priors, options, objective, all_ids, exclude_point_ids,
-                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled)
+                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled,
+                 places_next)
     bar = tqdm(range(options.workflow.max_iterations), desc="refine", unit="it",
                disable=not progress)
     for iteration in bar:
@@ -141,11 +147,12 @@ class _Loop:
     the stopping rules; after the last iteration, the result."""
 
     def __init__(self, rec, store, priors, options, objective, all_ids, exclude_point_ids,
-                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled):
+                 gnss_only, scale_sigma, pose_priors, hold_runaway_scale, best_when_unsettled,
+                 places_next):
         self.rec, self.store, self.priors, self.options = rec, store, priors, options
         self.objective, self.gnss_only, self.scale_sigma = objective, gnss_only, scale_sigma
         self.pose_priors, self.hold_runaway_scale = pose_priors, hold_runaway_scale
-        self.best_when_unsettled = best_when_unsettled
+        self.best_when_unsettled, self.places_next = best_when_unsettled, places_next
         self.o_a, self.o_adj, self.o_w = options.assignment, options.adjustment, options.workflow
         self.current = store
         self.threshold = initial_threshold(self.o_a)
@@ -187,6 +194,9 @@ class _Loop:
         self.read_tie_points = TiePointReader(exclude_point_ids)
         self.value = None  # the block objective after the last kept iteration
         self.lowest = None  # the lowest block objective of the kept iterations
+        # The largest camera move (m) of a settled iteration (settle_tolerance, from the first
+        # assignment's stated sigma on).
+        self.settle = self.o_w.convergence_camera_shift
 
     # -- assign ----------------------------------------------------------------------------
 
@@ -257,7 +267,7 @@ class _Loop:
             return True
         if (o_w.convergence_assignment_change is not None and solved is not None
                 and self.last is not None and len(iterations) >= 2
-                and iterations[-1].camera_shift < o_w.convergence_camera_shift):
+                and iterations[-1].camera_shift < self.settle):
             changed = assignment_change(solved.face_index, self.assignment.face_index)
             if changed is not None and changed <= o_w.convergence_assignment_change:
                 # The last solve barely moved the cameras and this assignment keeps its
@@ -319,6 +329,7 @@ class _Loop:
         priors, options = self.priors, self.options
         self.observability_before = assigned_observability(
             self.points, self.assignment, self.current, priors, self.rec, options)
+        self.settle = settle_tolerance(self.observability_before, self.o_w)
         # A sliding window's frames held from the window before keep the orientation count.
         self.warnings += check_datum(self.store, self.assignment, priors is not None,
                                      self.observability_before if self.pose_priors is None
@@ -556,14 +567,20 @@ class _Loop:
         if best[1] == iteration:
             self.best = (value, iteration, pycolmap.Reconstruction(self.rec), self.assignment,
                          self.current, _offset(self.priors))
+        if (self.places_next and len(self.iterations) > 1
+                and self.iterations[-1].camera_shift < self.settle):
+            logger.info("iteration %d moved no camera by more than %.4f m: the block is placed "
+                        "for the loop that follows", iteration, self.settle)
+            self.stopped_by = "camera_shift"
+            return True
         if self.robust_only:  # no stopping rule before a solve with the original weights
             return False
         if self.change < o_w.convergence_rms_change:
             self.stopped_by = "rms"
             return True
-        if cameras_settled(self.iterations, o_w.convergence_camera_shift):
+        if cameras_settled(self.iterations, self.settle):
             logger.info("iterations %d and %d moved no camera by more than %.4f m: the loop "
-                        "has converged", iteration - 1, iteration, o_w.convergence_camera_shift)
+                        "has converged", iteration - 1, iteration, self.settle)
             self.stopped_by = "camera_shift"
             return True
         if self.repeats is not None:
@@ -667,7 +684,18 @@ class _Loop:
                           seconds=self.seconds, threshold=self.threshold,
                           baselines=self.baselines, weights=self.weights,
                           unsettled_shift=self.unsettled_shift,
-                          unsettled_move=self.unsettled_move, stopped_by=self.stopped_by)
+                          unsettled_move=self.unsettled_move, stopped_by=self.stopped_by,
+                          settle_shift=self.settle)
+
+
+def settle_tolerance(observability_dict: dict, o_w) -> float:
+    """The largest camera move (m) of an iteration that counts as settled: `o_w.
+    convergence_sigma_share` of the smallest stated shift sigma (E, N, U) of
+    `observability_dict`, at least `o_w.convergence_camera_shift` (WorkflowOptions)."""
+    sigmas = [observability_dict.get(name, {}).get("sigma") for name in ("E", "N", "U")]
+    sigmas = [s for s in sigmas if s is not None and np.isfinite(s)]
+    share = o_w.convergence_sigma_share * min(sigmas) if sigmas else 0.0
+    return max(o_w.convergence_camera_shift, share)
 
 
 def without_contradicted_faces(assignment: Assignment, points: np.ndarray, current: PlaneStore,

@@ -7,7 +7,9 @@ error follow them: the block's scale and position wander off with the wrong poin
 along one row of facades grew by 8.7 % in its first solve). Every point alike, on faces held
 where the model has them, is the robust way there. So the loop runs twice:
 
-1. every tie point alike (`face_weighting` "per_point") from the start, as Unger's loop;
+1. every tie point alike (`face_weighting` "per_point") from the start, as Unger's loop,
+   until one solve moves no camera by more than a tenth of the faces' sigma (the second loop
+   moves the block on by up to that sigma: settling it further buys nothing);
 2. from its result, at its last threshold and without the similarity rounds, with the faces'
    errors as unknowns, until that loop converges.
 
@@ -32,6 +34,7 @@ from dataclasses import replace
 
 from ..block.reconstruction import camera_centres
 from .correction_loop import every_point_alike
+from .faces import sigma_face_in_use
 from .loop import LoopResult, adjustment_loop
 from .record import mean_move
 
@@ -48,7 +51,13 @@ def staged_adjustment_loop(rec, store, priors, options, objective, all_ids, *,
         return adjustment_loop(rec, store, priors, options, objective, all_ids, **kwargs)
     alike = copy.deepcopy(options)
     alike.adjustment = every_point_alike(alike.adjustment)
-    first = adjustment_loop(rec, store, priors, alike, objective, all_ids, **kwargs)
+    # Its block is where the second loop starts, which moves it on by up to the faces' sigma:
+    # settled to a tenth of that (convergence_sigma_share) is settled enough.
+    alike.workflow.convergence_camera_shift = max(
+        options.workflow.convergence_camera_shift,
+        options.workflow.convergence_sigma_share * sigma_face_in_use(options.adjustment))
+    first = adjustment_loop(rec, store, priors, alike, objective, all_ids, **kwargs,
+                            places_next=True)
     why = (f"the loop with every tie point alike diverged ({first.diverged})"
            if first.diverged is not None else placed(first, alike) if placed else None)
     if why:
