@@ -11,8 +11,9 @@ simulated tie points (`sparse/0`).
 
 Per block:
 
-- images: the run from the image folder. `--mapper run` (the default): `colmap_citymodel.run`
-  (the `run` command) when this checkout has it, else as `colmap`. `colmap`: COLMAP's SIFT
+- images: the run from the image folder. `--mapper run` (the default): the `run` command
+  (colmap_citymodel.pipeline.run.main: the calibrated camera, one camera for the flight, the
+  DTM tiles as terrain, its own matcher and mapping with the model). `colmap`: COLMAP's SIFT
   (pycolmap.extract_features, the calibrated camera given as SIMPLE_RADIAL), matching (spatial
   from the EXIF GNSS for the orbit and nadir blocks, sequential for the drive and the street),
   COLMAP's incremental mapping (intrinsics held), then refine with GNSS from the EXIF and the
@@ -88,36 +89,37 @@ def _refine_options(workspace: Path):
 
 
 def run_images(workspace: Path, out: Path, matcher: str, mapper: str) -> dict:
-    """The run from `workspace`/images: `run` when the package has it (and `mapper` is
-    "run"), else its steps here."""
+    """The run from `workspace`/images: the `run` command (`mapper` "run"), else its steps
+    here."""
     if mapper == "run":
-        try:
-            from colmap_citymodel.run import main as run_main  # noqa: F401
-        except ImportError:
-            mapper = "colmap"
-        else:
-            return run_command(workspace, out)
+        return run_command(workspace, out)
     return run_steps(workspace, out, matcher, mapper)
 
 
 def run_command(workspace: Path, out: Path) -> dict:
-    """colmap_citymodel.run.main on the image folder (the `run` command's Python face)."""
+    """colmap_citymodel.pipeline.run.main on the image folder (the `run` command's Python
+    face) with the calibrated camera, one camera for the flight, the workspace's DTM tiles as
+    terrain, and its own choice of matcher; a new run directory (no step reused)."""
     import shutil
 
-    from colmap_citymodel.run import main as run_main
+    from colmap_citymodel.pipeline.run import main as run_main
 
     model, params = _camera(workspace)
     dtm = [str(p) for p in sorted((workspace / "dtm").glob("*.tif"))]
     if out.exists():
         shutil.rmtree(out)
-    start = time.perf_counter()
-    returned = run_main(workspace / "images", workspace / "given_model.gml", out,
-                        camera_model=model, camera_params=params, single_camera=True,
-                        terrain=dtm or None, progress=False)
-    seconds = time.perf_counter() - start
-    result = returned[0] if isinstance(returned, tuple) else returned
-    return {"pipeline": "run", "result": result, "seconds": seconds,
-            "registered": int(result.reconstruction.num_reg_images())}
+    start = time.perf_counter(), time.process_time()
+    run = run_main(workspace / "images", workspace / "given_model.gml", out,
+                   camera_mode="single", camera_model=model, camera_params=params,
+                   terrain=dtm or None, progress=False)
+    seconds = time.perf_counter() - start[0], time.process_time() - start[1]
+    steps = {"matching" if step.name == "matches" else step.name: step.seconds
+             for step in run.steps}
+    return {"pipeline": "run", "result": run.result, "seconds": seconds[0],
+            "cpu_seconds": seconds[1], "step_seconds": steps,
+            "matcher": run.matcher.todict().get("matcher") if run.matcher else None,
+            "registered": int(run.result.reconstruction.num_reg_images())
+            if run.result is not None else 0}
 
 
 def run_steps(workspace: Path, out: Path, matcher: str, mapper: str) -> dict:
@@ -394,8 +396,8 @@ def write_markdown(blocks: list[dict], command: str, code: str, results: Path) -
               "shape (m) |", "|---|---|---|---|---|---|---|"]
     for r in blocks:
         wall, cpu = r.get("step_seconds") or {}, r.get("step_cpu_seconds") or {}
-        cells = [f"{wall[k]:.0f} / {cpu[k]:.0f}" if k in wall else "-"
-                 for k in ("features", "matching", "mapping", "refine")]
+        cells = [(f"{wall[k]:.0f} / {cpu[k]:.0f}" if k in cpu else f"{wall[k]:.0f} / -")
+                 if k in wall else "-" for k in ("features", "matching", "mapping", "refine")]
         lines.append(f"| {r['name']} | {r.get('matcher', '-')} | " + " | ".join(cells) +
                      f" | {_n(r.get('colmap_centres_rms_after_similarity'))} |")
     (results / "images.md").write_text("\n".join(lines) + "\n")
@@ -407,7 +409,7 @@ def main() -> None:
     parser.add_argument("--families", nargs="+", choices=list(FAMILIES),
                         default=list(FAMILIES), help="blocks to run (default: all)")
     parser.add_argument("--mapper", choices=("run", "colmap", "map"), default="run",
-                        help="the image run: `run` when the package has it (else colmap); "
+                        help="the image run: run: the `run` command; "
                              "colmap: COLMAP's incremental mapping, then refine; map: `map` "
                              "with the model inside, then its final refine")
     parser.add_argument("--results", type=Path, default=RESULTS)
