@@ -116,6 +116,7 @@ def run_command(workspace: Path, out: Path) -> dict:
     steps = {"matching" if step.name == "matches" else step.name: step.seconds
              for step in run.steps}
     return {"pipeline": "run", "result": run.result, "seconds": seconds[0],
+            "features_per_image": _features_per_image(out / "database.db"),
             "cpu_seconds": seconds[1], "step_seconds": steps,
             "matcher": run.matcher.todict().get("matcher") if run.matcher else None,
             "registered": int(run.result.reconstruction.num_reg_images())

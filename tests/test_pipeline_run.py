@@ -287,3 +287,41 @@ def test_run_on_real_photos(tmp_path):
     assert [s.status for s in second.steps] == ["done", "reused", "reused", "reused"]
     assert second.mapping["num_registered_images"] == first.mapping["num_registered_images"]
     assert sum(s.seconds for s in second.steps) < 0.2 * sum(s.seconds for s in first.steps)
+
+
+def test_a_mapped_block_rolled_about_its_straight_track_is_refined_from_the_whole_block(
+        street_scene):
+    """Mapping georegisters the block at its first images with GNSS, where a short, nearly
+    straight track leaves the roll about it to the few tie points seen by then. With GNSS,
+    `run` lets refine fit the whole mapped block to GNSS itself (start_transform None, also
+    where mapping left it in model CRS): the mapped street, rolled 15 deg about its track,
+    lands within 0.1 m of the truth. Without GNSS refine starts where mapping placed it."""
+    from scipy.spatial.transform import Rotation
+
+    from colmap_citymodel.options import RefineOptions
+    from colmap_citymodel.pipeline.run import start_transform
+    from colmap_citymodel.workflow import refine
+
+    scene = street_scene
+    centres = np.array([im.projection_center() for im in scene.truth.images.values()])
+    centre = centres.mean(axis=0)
+    track = np.linalg.svd(centres - centre)[2][0]
+    turn = Rotation.from_rotvec(np.radians(15.0) * track).as_matrix()
+    mapped = pycolmap.Reconstruction(scene.truth)
+    mapped.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(turn),
+                                    centre - turn @ centre + scene.store.origin))
+    read = SimpleNamespace(observations=scene.gnss(), initial_transform=None)
+    assert start_transform({"frame": "crs"}, read) is None
+    assert start_transform({"frame": "crs"}, SimpleNamespace(
+        observations=None, initial_transform=None)) is not None  # placed on the model
+
+    def error(initial) -> float:
+        result = refine(mapped, scene.store, scene.gnss(), RefineOptions(),
+                        initial_transform=initial, progress=False)
+        truth = {im.name: im.projection_center() for im in scene.truth.images.values()}
+        rec = result.reconstruction
+        return float(np.sqrt(np.mean([np.sum((rec.image(i).projection_center()
+                                              - truth[rec.image(i).name]) ** 2)
+                                      for i in rec.reg_image_ids()])))
+
+    assert error(start_transform({"frame": "crs"}, read)) < 0.10

@@ -382,12 +382,13 @@ def _write_model(rec: pycolmap.Reconstruction, sparse: Path) -> None:
 def _refine(rec: pycolmap.Reconstruction, mapping: dict, read: RefineInputs, output_path: Path,
             step: Step, *, location, location_radius, sequence, progress, output_type,
             output_frame, lod, model_crs):
-    """refine on the mapped block (started where mapping georegistered it) into refined/;
-    the earlier result, moved aside by the inputs step, is deleted once this one is there."""
+    """refine on the mapped block into refined/; the earlier result, moved aside by the inputs
+    step, is deleted once this one is there. With GNSS, refine georegisters the whole block
+    itself (`start_transform`); without, it starts where mapping placed it on the model."""
     from ..align.locate import ModelOnlyFailure
 
     refined = output_path / REFINED_NAME
-    initial = pycolmap.Sim3d() if mapping.get("frame") == "crs" else read.initial_transform
+    initial = start_transform(mapping, read)
     try:
         result = refine(rec, read.store, read.observations, read.options,
                         initial_transform=initial, progress=progress,
@@ -408,6 +409,20 @@ def _refine(rec: pycolmap.Reconstruction, mapping: dict, read: RefineInputs, out
                     "result": result.handed_back,
                     "summary": f"quality {result.quality.verdict}"}
     return result
+
+
+def start_transform(mapping: dict, read: RefineInputs) -> pycolmap.Sim3d | None:
+    """refine's `initial_transform` for the mapped block: None (refine fits the block to GNSS
+    itself) where there is GNSS, also where mapping georegistered the block: mapping did so at
+    its first images with GNSS (MapperOptions.min_gnss_images), where a short, nearly straight
+    track leaves the rotation about it to the few tie points seen by then (a street's mapped
+    block rolled by 19 deg there), while refine's fit takes every image and, along a straight
+    track, the roll from all the walls and the ground (align.georegister). Without GNSS: the
+    identity where mapping placed the block on the model (model CRS). A block mapping left in
+    COLMAP's frame: the user's transform, if any."""
+    if mapping.get("frame") != "crs":
+        return read.initial_transform
+    return None if read.observations is not None else pycolmap.Sim3d()
 
 
 # -- 6. the report --------------------------------------------------------------------------------
