@@ -3,8 +3,9 @@
 # slow tests also marked `ci`, but not the `fuzz` run of 10,000 damaged inputs (pytest -m fuzz),
 # spread over one worker per core (pytest-xdist `-n auto`; the tests share nothing but the
 # simulated-workspace cache, whose builds appear by one rename). Extra arguments go to pytest
-# (`-n 0` runs them in this process). "No tests collected" is a failure. Then build the documentation
-# site with `mkdocs build --strict` (a broken link, page or CLI reference fails the run).
+# (`-n 0` runs them in this process). "No tests collected" is a failure. Then build the
+# documentation site with `mkdocs build --strict` (a broken link, page or CLI reference fails
+# the run).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 bash scripts/bootstrap.sh

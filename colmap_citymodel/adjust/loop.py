@@ -96,8 +96,6 @@ class LoopResult:
     # "same_assignment", "cycle", "alternating_planes" or "diverged"; None when the iterations
     # ran out.
     stopped_by: str | None = None
-    # The largest camera move (m) of an iteration that counted as settled (settle_tolerance).
-    settle_shift: float | None = None
 
 
 def adjustment_loop(rec: pycolmap.Reconstruction, store: PlaneStore, priors: GNSSPriors | None,
@@ -684,8 +682,7 @@ class _Loop:
                           seconds=self.seconds, threshold=self.threshold,
                           baselines=self.baselines, weights=self.weights,
                           unsettled_shift=self.unsettled_shift,
-                          unsettled_move=self.unsettled_move, stopped_by=self.stopped_by,
-                          settle_shift=self.settle)
+                          unsettled_move=self.unsettled_move, stopped_by=self.stopped_by)
 
 
 def settle_tolerance(observability_dict: dict, o_w) -> float:
