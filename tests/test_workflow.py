@@ -342,9 +342,9 @@ def test_a_loop_that_does_not_settle_returns_its_best_iterate(scene, monkeypatch
 
 def test_the_loop_with_every_point_alike_ends_once_the_block_is_placed(refined, scene):
     """The loop with every tie point alike only places the block for the faces' loop, which
-    moves it on by up to the faces' sigma (0.2 m): it ends at its first solve after the first
-    that moves no camera by more than a tenth of that; the faces' loop then settles the block
-    on the model."""
+    moves it on by up to the faces' sigma (0.2 m): it ends at its first iteration (after the
+    first) that moves no camera by more than a tenth of that; the faces' loop then settles the
+    block on the model."""
     first = [it for it in refined.iterations if it.phase == "loop"]
     faces = [it for it in refined.iterations if it.phase == "faces"]
     assert faces and refined.loop_stopped_by not in (None, "diverged")
