@@ -106,7 +106,7 @@ def test_features_and_matches_are_reused(tmp_path):
 
 def test_spatial_pairs_follow_the_gnss(tmp_path):
     """COLMAP's spatial matcher pairs the images by the positions written as pose priors:
-    along a line each image with its nearest."""
+    along a line each image with its nearest (spaced unevenly: no image has two nearest)."""
     database = tmp_path / "run" / "database.db"
     folder = read_image_folder(photos(tmp_path / "images", 4))
     extract(folder, database, RunState.open(database.parent), extraction=SMALL,
@@ -115,7 +115,7 @@ def test_spatial_pairs_follow_the_gnss(tmp_path):
     order = [names[k] for k in (2, 0, 3, 1)]  # the line's order is not the names'
     gnss = SimpleNamespace(
         image_names=order,
-        positions=np.array([[400000.0 + 40.0 * k, 6100000.0, 30.0] for k in range(4)]),
+        positions=np.array([[400000.0 + x, 6100000.0, 30.0] for x in (0.0, 40.0, 70.0, 115.0)]),
         sigmas=np.tile([2.0, 2.0, 4.0], (4, 1)))
     assert sync_pose_priors(database, gnss) == 4
     with pycolmap.Database.open(str(database)) as db:
